@@ -1,0 +1,24 @@
+# Every third-party package the build uses, found once. deploy/install_deps.sh installs exactly these
+# (Debian 12 package names are given next to each).
+
+find_package(Eigen3 3.4 REQUIRED CONFIG)              # libeigen3-dev
+find_package(yaml-cpp REQUIRED CONFIG)                # libyaml-cpp-dev  (target: yaml-cpp, no namespace in 0.7)
+find_package(fmt REQUIRED CONFIG)                     # libfmt-dev
+find_package(nlohmann_json 3.10 REQUIRED CONFIG)      # nlohmann-json3-dev
+find_package(CLI11 REQUIRED CONFIG)                   # libcli11-dev
+
+# OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).
+# We install the per-module -dev packages and fall back to a small find-module; see README "Dependencies".
+find_package(OpenCV 4 QUIET CONFIG COMPONENTS core imgproc imgcodecs)
+if(NOT OpenCV_FOUND)
+  set(OpenCV_MIN_MODULES core imgproc imgcodecs)
+  include(OpenCVMinimal)
+endif()
+
+if(CVISLAM_BUILD_TESTS)
+  find_package(GTest REQUIRED CONFIG)                 # libgtest-dev libgmock-dev
+  include(GoogleTest)
+endif()
+if(CVISLAM_BUILD_BENCHMARKS)
+  find_package(benchmark REQUIRED CONFIG)             # libbenchmark-dev
+endif()
