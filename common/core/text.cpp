@@ -107,6 +107,12 @@ std::string formatNsAsSeconds(std::int64_t t_ns) {
   return buffer;
 }
 
+std::string formatDouble(double value) {
+  char buffer[32];
+  const auto [end, ec] = std::to_chars(buffer, buffer + sizeof(buffer), value);
+  return ec == std::errc() ? std::string(buffer, end) : std::string("nan");
+}
+
 void splitFields(std::string_view line, bool comma, std::vector<std::string_view>& fields) {
   fields.clear();
   if (comma) {

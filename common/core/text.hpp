@@ -27,6 +27,9 @@ std::optional<std::int64_t> parseSecondsAsNs(std::string_view field) noexcept;
 // Integer nanoseconds as seconds with nine decimals ("1403715273.262142976"); exact inverse of the above.
 std::string formatNsAsSeconds(std::int64_t t_ns);
 
+// The shortest decimal text that reads back as exactly `value` ("0.1", "1.6968e-05"). Deterministic.
+std::string formatDouble(double value);
+
 // Splits on commas (trimming blanks around fields) or, when `comma` is false, on runs of blanks/tabs.
 void splitFields(std::string_view line, bool comma, std::vector<std::string_view>& fields);
 

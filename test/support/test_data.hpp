@@ -16,12 +16,12 @@ std::filesystem::path findData(const std::string& relative);
 
 }  // namespace cvislam::test
 
-// Declares `path` = dataRoot()/relative, or skips the test, saying which data is missing and how to
+// Declares `var` = dataRoot()/relative, or skips the test, saying which data is missing and how to
 // provide it. CTest reports the test as skipped, not as passed.
-// NOLINTBEGIN(bugprone-macro-parentheses): `path` is the name the macro declares.
-#define CVISLAM_REQUIRE_DATA(path, relative)                                                           \
-  const std::filesystem::path path = ::cvislam::test::findData(relative);                              \
-  if (path.empty()) {                                                                                  \
+// NOLINTBEGIN(bugprone-macro-parentheses): `var` is the name the macro declares.
+#define CVISLAM_REQUIRE_DATA(var, relative)                                                            \
+  const std::filesystem::path var = ::cvislam::test::findData(relative);                               \
+  if (var.empty()) {                                                                                   \
     GTEST_SKIP() << "test data '" << (relative) << "' not found under " << ::cvislam::test::dataRoot() \
                  << " (set CVISLAM_DATA_DIR to the folder holding the shared data)";                   \
   }

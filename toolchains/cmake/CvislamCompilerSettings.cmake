@@ -23,7 +23,7 @@ endif()
 
 # Warnings for project code only (imported targets are SYSTEM includes, so third-party headers stay quiet).
 set(CVISLAM_WARNING_FLAGS -Wall -Wextra -Wshadow -Wnon-virtual-dtor -Wcast-align -Wunused -Woverloaded-virtual
-    -Wnull-dereference -Wdouble-promotion -Wformat=2 -Wimplicit-fallthrough)
+    -Wdouble-promotion -Wformat=2 -Wimplicit-fallthrough)
 if(CVISLAM_WERROR)
   list(APPEND CVISLAM_WARNING_FLAGS -Werror)
 endif()
