@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# Installs the Debian 12 packages that building and testing cvislam need, and nothing else.
+# Idempotent: when everything is already installed it checks with dpkg and returns in well under a second,
+# without touching the network. Run as root (or with sudo available).
+#
+#   deploy/install_deps.sh            # build + test dependencies
+#   deploy/install_deps.sh --check    # only report what is missing; exit 1 if anything is
+set -euo pipefail
+
+# Keep this list in step with toolchains/cmake/CvislamDependencies.cmake.
+packages=(
+  # toolchain
+  cmake ninja-build g++ ccache pkg-config
+  # maths and optimisation
+  libeigen3-dev libceres-dev
+  # OpenCV, per module: OpenCVConfig.cmake ships only in libopencv-dev (+330 MB of VTK, dnn, contrib),
+  # so we take the modules we use and toolchains/cmake/OpenCVMinimal.cmake makes the targets.
+  libopencv-core-dev libopencv-imgproc-dev libopencv-features2d-dev libopencv-calib3d-dev libopencv-imgcodecs-dev
+  # agent <-> server link and the map service
+  libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
+  # zero-copy tracking <-> mapping; libacl1-dev because iceoryx's RouDi headers include <sys/acl.h>
+  libiceoryx-posh-dev libiceoryx-hoofs-dev iceoryx libacl1-dev
+  # config, CLI, output
+  libyaml-cpp-dev libcli11-dev libfmt-dev nlohmann-json3-dev
+  # tests and benchmarks
+  libgtest-dev libgmock-dev libbenchmark-dev
+)
+
+missing=()
+for p in "${packages[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q '^install ok installed$'; then
+    missing+=("$p")
+  fi
+done
+
+if [ "${#missing[@]}" -eq 0 ]; then
+  echo "install_deps: all ${#packages[@]} packages present"
+  exit 0
+fi
+if [ "${1:-}" = "--check" ]; then
+  echo "install_deps: missing: ${missing[*]}" >&2
+  exit 1
+fi
+
+sudo_cmd=()
+if [ "$(id -u)" -ne 0 ]; then
+  if command -v sudo >/dev/null 2>&1; then
+    sudo_cmd=(sudo)
+  else
+    echo "install_deps: need root to install: ${missing[*]} (run as root or install sudo)" >&2
+    exit 1
+  fi
+fi
+
+echo "install_deps: installing ${#missing[@]} package(s): ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+# Update the package lists only when apt has never fetched them on this machine, or when an install fails
+# because they are stale.
+if ! compgen -G "/var/lib/apt/lists/*_Packages" >/dev/null; then
+  "${sudo_cmd[@]}" apt-get update -q
+fi
+if ! "${sudo_cmd[@]}" apt-get install -y -q --no-install-recommends "${missing[@]}"; then
+  "${sudo_cmd[@]}" apt-get update -q
+  "${sudo_cmd[@]}" apt-get install -y -q --no-install-recommends "${missing[@]}"
+fi
+echo "install_deps: done"
