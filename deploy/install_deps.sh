@@ -24,6 +24,8 @@ packages=(
   libyaml-cpp-dev libcli11-dev libfmt-dev nlohmann-json3-dev
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev
+  # deploy/run_mission.sh reads cvislam_eval's JSON
+  jq
 )
 
 missing=()

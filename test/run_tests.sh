@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Installs what is missing, builds everything and runs every test through CTest.
+#
+#   test/run_tests.sh [--preset default|asan|tsan] [extra ctest arguments, e.g. -R Lie -L integration]
+#
+# Tests that need the real data ($CVISLAM_DATA_DIR, else ../shared/data) are reported as skipped, with
+# the reason, when it is absent: never as passed.
+set -euo pipefail
+
+repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+preset=default
+if [ "${1:-}" = "--preset" ]; then
+  preset=$2; shift 2
+fi
+case "$preset" in
+  default|asan|tsan) ;;
+  *) echo "run_tests: unknown preset '$preset' (use default, asan or tsan)" >&2; exit 2 ;;
+esac
+
+"$repo/deploy/install_deps.sh"
+cd "$repo"
+build="build/$preset"
+start=$(date +%s)
+if [ ! -f "$build/build.ninja" ]; then
+  cmake --preset "$preset" >/dev/null
+fi
+cmake --build --preset "$preset"
+echo "run_tests: build took $(( $(date +%s) - start )) s"
+ctest --preset "$preset" "$@"
