@@ -2,6 +2,7 @@
 # (Debian 12 package names are given next to each).
 
 find_package(Eigen3 3.4 REQUIRED CONFIG)              # libeigen3-dev
+find_package(Ceres 2.1 REQUIRED CONFIG)              # libceres-dev (static libceres.a; pulls glog, gflags, SuiteSparse)
 find_package(yaml-cpp REQUIRED CONFIG)                # libyaml-cpp-dev  (target: yaml-cpp, no namespace in 0.7)
 find_package(fmt REQUIRED CONFIG)                     # libfmt-dev
 find_package(nlohmann_json 3.10 REQUIRED CONFIG)      # nlohmann-json3-dev

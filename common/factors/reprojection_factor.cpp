@@ -1,0 +1,114 @@
+#include "common/factors/reprojection_factor.hpp"
+
+namespace cvislam::factors {
+
+using Eigen::Matrix3d;
+using Eigen::Vector3d;
+using geometry::hatSO3;
+constexpr int kRowMajor = Eigen::RowMajor;
+
+namespace {
+
+Matrix3d rotationAt(const double* pose) {
+  return Eigen::Quaterniond(pose[6], pose[3], pose[4], pose[5]).normalized().toRotationMatrix();
+}
+
+// Projects h, writes the whitened residual, and returns d(residual)/dh; false when h is not in front.
+bool projectWhitened(const Vector3d& h, const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& K,
+                     double inv_sigma, double* residuals, Eigen::Matrix<double, 2, 3>& d_r_d_h) {
+  if (!(h.z() > kMinProjectionDepth * h.norm())) return false;
+  const double inv_z = 1.0 / h.z();
+  const double u = K.fx * h.x() * inv_z + K.cx;
+  const double v = K.fy * h.y() * inv_z + K.cy;
+  residuals[0] = inv_sigma * (u - keypoint_px.x());
+  residuals[1] = inv_sigma * (v - keypoint_px.y());
+  d_r_d_h << K.fx * inv_z, 0.0, -K.fx * h.x() * inv_z * inv_z,  //
+      0.0, K.fy * inv_z, -K.fy * h.y() * inv_z * inv_z;
+  d_r_d_h *= inv_sigma;
+  return true;
+}
+
+}  // namespace
+
+ReprojectionFactor::ReprojectionFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics,
+                                       double sigma_px)
+    : keypoint_px_(keypoint_px), intrinsics_(intrinsics), inv_sigma_(1.0 / sigma_px) {}
+
+bool ReprojectionFactor::Evaluate(double const* const* parameters, double* residuals, double** jacobians) const {
+  const double* pose_i = parameters[0];
+  const double* pose_r = parameters[1];
+  const double* extrinsics = parameters[2];
+  const Eigen::Map<const Vector3d> b(parameters[3]);
+  const double rho = parameters[4][0];
+
+  const Matrix3d R_w_si = rotationAt(pose_i);
+  const Matrix3d R_w_sr = rotationAt(pose_r);
+  const Matrix3d R_s_c = rotationAt(extrinsics);
+  const Eigen::Map<const Vector3d> p_w_si(pose_i);
+  const Eigen::Map<const Vector3d> p_w_sr(pose_r);
+  const Eigen::Map<const Vector3d> t_s_c(extrinsics);
+
+  const Matrix3d R_si_w = R_w_si.transpose();
+  const Matrix3d R_c_s = R_s_c.transpose();
+  const Vector3d u = R_s_c * b + rho * t_s_c;            // rho X_sr
+  const Vector3d w = R_w_sr * u + rho * (p_w_sr - p_w_si);  // rho (X_w - p_w_si)
+  const Vector3d m = R_si_w * w;                         // rho X_si
+  const Vector3d h = R_c_s * (m - rho * t_s_c);          // rho X_ci
+
+  Eigen::Matrix<double, 2, 3> d_r_d_h;
+  if (!projectWhitened(h, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_h)) return false;
+  if (jacobians == nullptr) return true;
+
+  const Matrix3d R_c_w = R_c_s * R_si_w;
+  if (jacobians[0] != nullptr) {  // observing pose [dp, dphi]
+    Eigen::Matrix<double, 2, 6> J;
+    J.leftCols<3>() = d_r_d_h * (-rho * R_c_w);
+    J.rightCols<3>() = d_r_d_h * (R_c_s * hatSO3(m));
+    Eigen::Map<Eigen::Matrix<double, 2, 7, kRowMajor>> J_out(jacobians[0]);
+    J_out.leftCols<3>() = J.leftCols<3>();
+    J_out.rightCols<4>() = liftRotationJacobian<2>(J.rightCols<3>(), pose_i + 3);
+  }
+  if (jacobians[1] != nullptr) {  // reference pose
+    Eigen::Matrix<double, 2, 6> J;
+    J.leftCols<3>() = d_r_d_h * (rho * R_c_w);
+    J.rightCols<3>() = d_r_d_h * (-R_c_w * R_w_sr * hatSO3(u));
+    Eigen::Map<Eigen::Matrix<double, 2, 7, kRowMajor>> J_out(jacobians[1]);
+    J_out.leftCols<3>() = J.leftCols<3>();
+    J_out.rightCols<4>() = liftRotationJacobian<2>(J.rightCols<3>(), pose_r + 3);
+  }
+  if (jacobians[2] != nullptr) {  // extrinsics T_s_c
+    const Matrix3d A = R_si_w * R_w_sr;  // R_si_sr
+    const Matrix3d M = R_c_s * A * R_s_c;
+    Eigen::Matrix<double, 2, 6> J;
+    J.leftCols<3>() = d_r_d_h * (rho * R_c_s * (A - Matrix3d::Identity()));
+    J.rightCols<3>() = d_r_d_h * (hatSO3(h) - M * hatSO3(Vector3d(b)));
+    Eigen::Map<Eigen::Matrix<double, 2, 7, kRowMajor>> J_out(jacobians[2]);
+    J_out.leftCols<3>() = J.leftCols<3>();
+    J_out.rightCols<4>() = liftRotationJacobian<2>(J.rightCols<3>(), extrinsics + 3);
+  }
+  if (jacobians[3] != nullptr) {  // bearing, ambient
+    Eigen::Map<Eigen::Matrix<double, 2, 3, kRowMajor>>{jacobians[3]} = d_r_d_h * (R_c_w * R_w_sr * R_s_c);
+  }
+  if (jacobians[4] != nullptr) {  // inverse depth
+    const Vector3d d_h_d_rho = R_c_s * (R_si_w * (R_w_sr * t_s_c + p_w_sr - p_w_si) - t_s_c);
+    Eigen::Map<Eigen::Vector2d>{jacobians[4]} = d_r_d_h * d_h_d_rho;
+  }
+  return true;
+}
+
+ReprojectionHostFactor::ReprojectionHostFactor(const Eigen::Vector2d& keypoint_px,
+                                               const PinholeIntrinsics& intrinsics, double sigma_px)
+    : keypoint_px_(keypoint_px), intrinsics_(intrinsics), inv_sigma_(1.0 / sigma_px) {}
+
+bool ReprojectionHostFactor::Evaluate(double const* const* parameters, double* residuals,
+                                      double** jacobians) const {
+  const Eigen::Map<const Vector3d> b(parameters[0]);
+  Eigen::Matrix<double, 2, 3> d_r_d_h;
+  if (!projectWhitened(b, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_h)) return false;
+  if (jacobians != nullptr && jacobians[0] != nullptr) {
+    Eigen::Map<Eigen::Matrix<double, 2, 3, kRowMajor>>{jacobians[0]} = d_r_d_h;
+  }
+  return true;
+}
+
+}  // namespace cvislam::factors

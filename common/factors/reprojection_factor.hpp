@@ -1,0 +1,60 @@
+// Reprojection of a map point into a keyframe (CVI-SLAM Eq. 6), for the agent's local BA and the server's
+// global BA.
+//
+// A map point is stored as a unit bearing b and an inverse depth rho in the camera of its reference
+// keyframe r: X_cr = b / rho. It is observed by the camera of keyframe i as an undistorted keypoint z (pixels)
+// of a pinhole camera. The residual is computed from rho X_ci, which stays finite as rho -> 0, so points
+// near infinity still constrain rotation:
+//   h = rho X_ci = R_s_c^T ( R_w_si^T ( R_w_sr (R_s_c b + rho t_s_c) + rho (p_w_sr - p_w_si) ) - rho t_s_c )
+//   r = (pi(h) - z) / sigma,   pi(h) = (fx h_x / h_z + cx, fy h_y / h_z + cy)
+// A robust loss (Cauchy, in the paper) is the caller's choice when adding the residual block.
+#pragma once
+
+#include <ceres/sized_cost_function.h>
+
+#include "common/factors/state_layout.hpp"
+
+namespace cvislam::factors {
+
+struct PinholeIntrinsics {
+  double fx = 458.654;
+  double fy = 457.296;
+  double cx = 367.215;
+  double cy = 248.375;
+};
+
+// Residuals whose point lies closer to the image plane than this (h_z <= kMinDepth * |h|) are reported as
+// not evaluable, so Ceres rejects the step that put the point behind the camera.
+inline constexpr double kMinProjectionDepth = 1e-6;
+
+// Parameter blocks: pose of the observing keyframe T_w_si (7), pose of the reference keyframe T_w_sr (7),
+// camera-IMU extrinsics T_s_c (7, same layout as a pose; hold it constant when it is calibrated), bearing
+// (3), inverse depth (1). The observing and reference keyframes must differ (Ceres forbids one block twice);
+// use ReprojectionHostFactor for the reference keyframe's own observation.
+class ReprojectionFactor final
+    : public ceres::SizedCostFunction<2, kPoseSize, kPoseSize, kPoseSize, kBearingSize, 1> {
+ public:
+  ReprojectionFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics, double sigma_px);
+
+  bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override;
+
+ private:
+  Eigen::Vector2d keypoint_px_;
+  PinholeIntrinsics intrinsics_;
+  double inv_sigma_;
+};
+
+// The observation in the reference keyframe itself: r = (pi(b) - z) / sigma. Parameter block: bearing (3).
+class ReprojectionHostFactor final : public ceres::SizedCostFunction<2, kBearingSize> {
+ public:
+  ReprojectionHostFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics, double sigma_px);
+
+  bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override;
+
+ private:
+  Eigen::Vector2d keypoint_px_;
+  PinholeIntrinsics intrinsics_;
+  double inv_sigma_;
+};
+
+}  // namespace cvislam::factors
