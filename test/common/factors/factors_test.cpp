@@ -1,0 +1,360 @@
+// Manifold invariants, and every factor's analytic Jacobian against numeric differentiation on the manifold,
+// at random states and at the edge cases: tiny rotations, rotations near pi, points near infinity.
+#include <cmath>
+#include <memory>
+#include <random>
+#include <vector>
+
+#include <ceres/manifold_test_utils.h>
+#include <gtest/gtest.h>
+
+#include "common/factors/imu_factor.hpp"
+#include "common/factors/manifolds.hpp"
+#include "common/factors/prior_factor.hpp"
+#include "common/factors/reprojection_factor.hpp"
+#include "test/support/vi_scenario.hpp"
+
+namespace cvislam::factors {
+namespace {
+
+using Eigen::Vector3d;
+using Eigen::VectorXd;
+using geometry::SE3d;
+using geometry::SO3d;
+using MatrixXdRowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+class Random {
+ public:
+  explicit Random(std::uint64_t seed) : rng_(seed) {}
+  double uniform(double a, double b) { return std::uniform_real_distribution<double>(a, b)(rng_); }
+  Vector3d vector3(double scale) { return scale * Vector3d(uniform(-1, 1), uniform(-1, 1), uniform(-1, 1)); }
+  SO3d rotation() { return SO3d::exp(vector3(M_PI) / std::sqrt(3.0)); }
+  SE3d pose(double translation_scale) { return {rotation(), vector3(translation_scale)}; }
+  Vector3d unitVector() { return vector3(1.0).normalized(); }
+
+ private:
+  std::mt19937_64 rng_;
+};
+
+// ------------------------------------------------------------------------------------------- manifolds
+// Ceres' invariant macro names its matchers unqualified, as if used inside namespace ceres.
+void expectManifoldInvariants(const ceres::Manifold& manifold, const VectorXd& x, const VectorXd& delta,
+                              const VectorXd& y, double tolerance) {
+  using ceres::HasCorrectMinusJacobianAt;
+  using ceres::HasCorrectPlusJacobianAt;
+  using ceres::HasCorrectRightMultiplyByPlusJacobianAt;
+  using ceres::MinusPlusIsIdentityAt;
+  using ceres::MinusPlusJacobianIsIdentityAt;
+  using ceres::PlusMinusIsIdentityAt;
+  using ceres::Vector;
+  using ceres::XMinusXIsZeroAt;
+  using ceres::XPlusZeroIsXAt;
+  EXPECT_THAT_MANIFOLD_INVARIANTS_HOLD(manifold, x, delta, y, tolerance);
+}
+
+TEST(PoseManifold, InvariantsHoldAtRandomPointsTinyAndLargeSteps) {
+  const PoseManifold sut;
+  Random random(11);
+  for (int trial = 0; trial < 20; ++trial) {
+    const VectorXd x = poseToBlock(random.pose(5.0));
+    VectorXd y = poseToBlock(random.pose(5.0));
+    // q and -q are one rotation; Plus(x, Minus(y, x)) returns the sign nearer x, so compare with that one.
+    if (x.tail<4>().dot(y.tail<4>()) < 0.0) y.tail<4>() = -y.tail<4>();
+    for (const double step : {1e-4, 0.3, 3.0}) {
+      Eigen::Matrix<double, 6, 1> delta;
+      delta << random.vector3(step), random.vector3(step) / std::sqrt(3.0);
+      expectManifoldInvariants(sut, x, VectorXd(delta), y, 1e-9);
+    }
+  }
+}
+
+TEST(UnitBearingManifold, InvariantsHoldAtRandomPointsAndOnTheAxes) {
+  const UnitBearingManifold sut;
+  Random random(12);
+  std::vector<Vector3d> points = {Vector3d::UnitX(), Vector3d::UnitY(), Vector3d::UnitZ(), -Vector3d::UnitZ()};
+  for (int i = 0; i < 16; ++i) points.push_back(random.unitVector());
+  for (const Vector3d& x : points) {
+    for (const double step : {1e-4, 0.2, 2.0}) {
+      const Eigen::Vector2d delta(step * random.uniform(-1, 1), step * random.uniform(-1, 1));
+      const Vector3d y = random.unitVector();
+      expectManifoldInvariants(sut, VectorXd(x), VectorXd(delta), VectorXd(y), 1e-9);
+    }
+  }
+}
+
+// ------------------------------------------------------------------------------- the Jacobian checker
+// One parameter block of a factor under test, with its manifold (nullptr for a Euclidean block).
+struct Block {
+  VectorXd value;
+  const ceres::Manifold* manifold = nullptr;
+};
+
+VectorXd evaluate(const ceres::CostFunction& cost, const std::vector<Block>& blocks, bool* ok = nullptr) {
+  std::vector<const double*> parameters;
+  for (const Block& b : blocks) parameters.push_back(b.value.data());
+  VectorXd residual(cost.num_residuals());
+  const bool evaluated = cost.Evaluate(parameters.data(), residual.data(), nullptr);
+  if (ok != nullptr) *ok = evaluated;
+  return residual;
+}
+
+// Compares, for every block, (analytic ambient Jacobian) x (manifold PlusJacobian) with the central
+// difference of the residual along the manifold's tangent directions, x [+] (+-h e_k).
+void expectJacobiansMatchNumeric(const ceres::CostFunction& cost, const std::vector<Block>& blocks,
+                                 double tolerance = 1e-6, double h = 1e-6) {
+  const int rows = cost.num_residuals();
+  std::vector<const double*> parameters;
+  std::vector<MatrixXdRowMajor> jacobians;
+  std::vector<double*> jacobian_ptrs;
+  for (const Block& b : blocks) {
+    parameters.push_back(b.value.data());
+    jacobians.emplace_back(rows, b.value.size());
+  }
+  for (auto& J : jacobians) jacobian_ptrs.push_back(J.data());
+  VectorXd residual(rows);
+  ASSERT_TRUE(cost.Evaluate(parameters.data(), residual.data(), jacobian_ptrs.data()));
+
+  for (std::size_t i = 0; i < blocks.size(); ++i) {
+    const Block& b = blocks[i];
+    const int tangent = b.manifold != nullptr ? b.manifold->TangentSize() : static_cast<int>(b.value.size());
+    Eigen::MatrixXd J_analytic = jacobians[i];
+    if (b.manifold != nullptr) {
+      MatrixXdRowMajor plus_jacobian(b.value.size(), tangent);
+      ASSERT_TRUE(b.manifold->PlusJacobian(b.value.data(), plus_jacobian.data()));
+      J_analytic = jacobians[i] * plus_jacobian;
+    }
+    Eigen::MatrixXd J_numeric(rows, tangent);
+    for (int k = 0; k < tangent; ++k) {
+      std::vector<Block> plus = blocks;
+      std::vector<Block> minus = blocks;
+      VectorXd delta = VectorXd::Zero(tangent);
+      delta(k) = h;
+      if (b.manifold != nullptr) {
+        b.manifold->Plus(b.value.data(), delta.data(), plus[i].value.data());
+        delta(k) = -h;
+        b.manifold->Plus(b.value.data(), delta.data(), minus[i].value.data());
+      } else {
+        plus[i].value(k) += h;
+        minus[i].value(k) -= h;
+      }
+      J_numeric.col(k) = (evaluate(cost, plus) - evaluate(cost, minus)) / (2.0 * h);
+    }
+    const double scale = std::max(1.0, J_numeric.cwiseAbs().maxCoeff());
+    EXPECT_LT((J_analytic - J_numeric).cwiseAbs().maxCoeff(), tolerance * scale)
+        << "block " << i << "\nanalytic\n" << J_analytic << "\nnumeric\n" << J_numeric;
+  }
+}
+
+Block poseBlock(const SE3d& T, const PoseManifold& manifold) { return {poseToBlock(T), &manifold}; }
+Block vectorBlock(const VectorXd& v) { return {v, nullptr}; }
+
+// ------------------------------------------------------------------------------------------ IMU factors
+class ImuFactorTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    test::ViScenarioOptions options;
+    options.imu_rate_hz = 200.0;
+    scenario_ = test::makeViScenario(options);
+  }
+  test::ViScenario scenario_;
+  PoseManifold pose_manifold_;
+};
+
+TEST_F(ImuFactorTest, JacobiansMatchNumericAtPerturbedStates) {
+  const ImuFactor sut(scenario_.preintegrations[2]);
+  Random random(21);
+  for (int trial = 0; trial < 10; ++trial) {
+    const imu::NavState& si = scenario_.keyframe_states[2];
+    const imu::NavState& sj = scenario_.keyframe_states[3];
+    const SE3d T_i = si.T_w_s * SE3d::exp((Eigen::Matrix<double, 6, 1>() << random.vector3(0.2), random.vector3(0.2))
+                                              .finished());
+    const SE3d T_j = sj.T_w_s * SE3d::exp((Eigen::Matrix<double, 6, 1>() << random.vector3(0.2), random.vector3(0.2))
+                                              .finished());
+    Eigen::Matrix<double, 6, 1> bias;
+    bias << random.vector3(0.05), random.vector3(0.3);
+    expectJacobiansMatchNumeric(sut, {poseBlock(T_i, pose_manifold_), vectorBlock(si.v_w + random.vector3(0.3)),
+                                      vectorBlock(bias), poseBlock(T_j, pose_manifold_),
+                                      vectorBlock(sj.v_w + random.vector3(0.3))});
+  }
+}
+
+TEST_F(ImuFactorTest, JacobiansMatchNumericAtTheTruthWhereTheRotationResidualIsTiny) {
+  const ImuFactor sut(scenario_.preintegrations[0]);
+  const imu::NavState& si = scenario_.keyframe_states[0];
+  const imu::NavState& sj = scenario_.keyframe_states[1];
+  const std::vector<Block> blocks = {poseBlock(si.T_w_s, pose_manifold_), vectorBlock(si.v_w),
+                                     vectorBlock(VectorXd::Zero(6)), poseBlock(sj.T_w_s, pose_manifold_),
+                                     vectorBlock(sj.v_w)};
+  EXPECT_LT(evaluate(sut, blocks).norm(), 0.1);  // the truth fits the noise-free preintegration
+  expectJacobiansMatchNumeric(sut, blocks);
+}
+
+TEST_F(ImuFactorTest, JacobiansMatchNumericWhenTheRotationResidualIsNearPi) {
+  const ImuFactor sut(scenario_.preintegrations[1]);
+  const imu::NavState& si = scenario_.keyframe_states[1];
+  const imu::NavState& sj = scenario_.keyframe_states[2];
+  // Keyframe j turned by nearly pi about an axis: r_dR is near pi, where Jr^-1 is largest.
+  const SE3d T_j(sj.T_w_s.so3() * SO3d::exp(Vector3d(0.3, -0.2, 0.93).normalized() * (M_PI - 1e-3)),
+                 sj.T_w_s.translation());
+  expectJacobiansMatchNumeric(sut, {poseBlock(si.T_w_s, pose_manifold_), vectorBlock(si.v_w),
+                                    vectorBlock(VectorXd::Zero(6)), poseBlock(T_j, pose_manifold_),
+                                    vectorBlock(sj.v_w)},
+                              1e-5);
+}
+
+TEST(BiasRandomWalkFactor, JacobiansMatchNumericAndWhitenByTheRandomWalk) {
+  const imu::ImuNoise noise;
+  const BiasRandomWalkFactor sut(noise, 0.5);
+  Random random(31);
+  VectorXd b_i(6);
+  VectorXd b_j(6);
+  b_i << random.vector3(0.1), random.vector3(0.1);
+  b_j << random.vector3(0.1), random.vector3(0.1);
+  expectJacobiansMatchNumeric(sut, {vectorBlock(b_i), vectorBlock(b_j)});
+  VectorXd b_step = b_i;
+  b_step(0) += noise.gyro_random_walk * std::sqrt(0.5);  // one sigma of drift over 0.5 s
+  EXPECT_NEAR(evaluate(sut, {vectorBlock(b_i), vectorBlock(b_step)}).norm(), 1.0, 1e-9);
+}
+
+// ----------------------------------------------------------------------------------- reprojection
+class ReprojectionFactorTest : public ::testing::Test {
+ protected:
+  PoseManifold pose_manifold_;
+  UnitBearingManifold bearing_manifold_;
+  PinholeIntrinsics intrinsics_;
+  Random random_{41};
+  SE3d T_s_c_ = test::makeViScenario({}).T_s_c;
+
+  // A random reference and observing pose that both see a point at `depth` along a random bearing.
+  std::vector<Block> randomCase(double inverse_depth, double rotation_scale) {
+    const Vector3d bearing = (Vector3d(0, 0, 1) + random_.vector3(0.3)).normalized();
+    const SE3d T_w_sr(SO3d::exp(random_.vector3(rotation_scale)), random_.vector3(2.0));
+    // The observing camera: moved a little and turned a little, so the point stays in front.
+    const SE3d T_w_cr = T_w_sr * T_s_c_;
+    const SE3d T_w_ci = T_w_cr * SE3d(SO3d::exp(random_.vector3(0.1)), random_.vector3(0.3));
+    const SE3d T_w_si = T_w_ci * T_s_c_.inverse();
+    return {poseBlock(T_w_si, pose_manifold_), poseBlock(T_w_sr, pose_manifold_), poseBlock(T_s_c_, pose_manifold_),
+            {VectorXd(bearing), &bearing_manifold_}, vectorBlock(VectorXd::Constant(1, inverse_depth))};
+  }
+};
+
+TEST_F(ReprojectionFactorTest, JacobiansMatchNumericAtRandomStates) {
+  for (int trial = 0; trial < 20; ++trial) {
+    const ReprojectionFactor sut(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5);
+    expectJacobiansMatchNumeric(sut, randomCase(random_.uniform(0.1, 1.0), M_PI / std::sqrt(3.0)));
+  }
+}
+
+TEST_F(ReprojectionFactorTest, JacobiansMatchNumericWithTinyRotations) {
+  const ReprojectionFactor sut(Eigen::Vector2d(400.0, 250.0), intrinsics_, 1.0);
+  expectJacobiansMatchNumeric(sut, randomCase(0.25, 1e-9));
+}
+
+TEST_F(ReprojectionFactorTest, JacobiansMatchNumericWithRotationsNearPi) {
+  const ReprojectionFactor sut(Eigen::Vector2d(400.0, 250.0), intrinsics_, 1.0);
+  std::vector<Block> blocks = randomCase(0.25, 0.0);
+  // Both keyframes turned by nearly pi about the same world axis: their absolute rotations are near pi.
+  const SO3d turn = SO3d::exp(Vector3d(0.2, 0.9, -0.3).normalized() * (M_PI - 1e-4));
+  for (int k : {0, 1}) {
+    const SE3d T = poseFromBlock(blocks[static_cast<std::size_t>(k)].value.data());
+    blocks[static_cast<std::size_t>(k)].value = poseToBlock(SE3d(turn, Vector3d::Zero()) * T);
+  }
+  expectJacobiansMatchNumeric(sut, blocks);
+}
+
+TEST_F(ReprojectionFactorTest, APointNearInfinityStillConstrainsRotation) {
+  const ReprojectionFactor sut(Eigen::Vector2d(380.0, 240.0), intrinsics_, 1.0);
+  const std::vector<Block> blocks = randomCase(1e-9, 0.5);  // a billion metres away
+  expectJacobiansMatchNumeric(sut, blocks, 1e-6, 1e-7);
+  std::vector<Block> at_infinity = blocks;
+  at_infinity[4].value(0) = 0.0;
+  bool ok = false;
+  const VectorXd r = evaluate(sut, at_infinity, &ok);
+  ASSERT_TRUE(ok);
+  EXPECT_TRUE(r.allFinite());
+  EXPECT_LT((r - evaluate(sut, blocks)).norm(), 1e-6);
+}
+
+TEST_F(ReprojectionFactorTest, ResidualIsTheWhitenedPixelErrorAndBehindTheCameraIsNotEvaluable) {
+  const std::vector<Block> blocks = randomCase(0.2, 0.3);
+  // Project the point by hand with the SE3 types, independently of the factor's algebra.
+  const SE3d T_w_si = poseFromBlock(blocks[0].value.data());
+  const SE3d T_w_sr = poseFromBlock(blocks[1].value.data());
+  const Vector3d p_cr = blocks[3].value / blocks[4].value(0);
+  const Vector3d p_ci = (T_w_si * T_s_c_).inverse() * (T_w_sr * T_s_c_ * p_cr);
+  const Eigen::Vector2d px(intrinsics_.fx * p_ci.x() / p_ci.z() + intrinsics_.cx,
+                           intrinsics_.fy * p_ci.y() / p_ci.z() + intrinsics_.cy);
+  const ReprojectionFactor sut(px + Eigen::Vector2d(3.0, -4.0), intrinsics_, 2.0);
+  EXPECT_LT((evaluate(sut, blocks) - Eigen::Vector2d(-1.5, 2.0)).norm(), 1e-9);
+
+  std::vector<Block> behind = blocks;
+  behind[3].value = -behind[3].value;
+  bool ok = true;
+  evaluate(sut, behind, &ok);
+  EXPECT_FALSE(ok);
+}
+
+TEST_F(ReprojectionFactorTest, HostObservationJacobianMatchesNumeric) {
+  const ReprojectionHostFactor sut(Eigen::Vector2d(350.0, 260.0), intrinsics_, 1.0);
+  for (int trial = 0; trial < 10; ++trial) {
+    const Vector3d bearing = (Vector3d(0, 0, 1) + random_.vector3(0.4)).normalized();
+    expectJacobiansMatchNumeric(sut, {{VectorXd(bearing), &bearing_manifold_}});
+  }
+}
+
+// ------------------------------------------------------------------------------------------- priors
+TEST(PriorFactors, PosePriorJacobianMatchesNumericIncludingNearPi) {
+  const PoseManifold manifold;
+  Random random(51);
+  Eigen::Matrix<double, 6, 6> S = Eigen::Matrix<double, 6, 6>::Identity();
+  S.diagonal() << 10, 20, 30, 40, 50, 60;
+  S(0, 4) = 3.0;
+  const SE3d prior = random.pose(3.0);
+  const PosePriorFactor sut(prior, S);
+  for (int trial = 0; trial < 10; ++trial) {
+    expectJacobiansMatchNumeric(sut, {poseBlock(random.pose(3.0), manifold)});
+  }
+  const SE3d near_pi(prior.so3() * SO3d::exp(Vector3d(1, 2, 3).normalized() * (M_PI - 1e-4)), prior.translation());
+  expectJacobiansMatchNumeric(sut, {poseBlock(near_pi, manifold)}, 1e-5);
+  EXPECT_LT(evaluate(sut, {poseBlock(prior, manifold)}).norm(), 1e-12);
+}
+
+TEST(PriorFactors, BearingPriorIsTheManifoldMinusAndItsJacobianMatchesNumeric) {
+  const UnitBearingManifold manifold;
+  Random random(52);
+  const Vector3d b0 = random.unitVector();
+  const Eigen::Matrix2d S = Eigen::Vector2d(5.0, 7.0).asDiagonal();
+  const BearingPriorFactor sut(b0, S);
+  for (int trial = 0; trial < 10; ++trial) {
+    const Vector3d b = (b0 + random.vector3(0.8)).normalized();
+    expectJacobiansMatchNumeric(sut, {{VectorXd(b), &manifold}});
+    Eigen::Vector2d minus;
+    manifold.Minus(b.data(), b0.data(), minus.data());
+    EXPECT_LT((evaluate(sut, {{VectorXd(b), &manifold}}) - S * minus).norm(), 1e-12);
+  }
+  expectJacobiansMatchNumeric(sut, {{VectorXd(b0), &manifold}});  // at the prior itself
+}
+
+TEST(PriorFactors, VectorPriorJacobianMatchesNumeric) {
+  Random random(53);
+  Eigen::Matrix3d S = Eigen::Matrix3d::Identity() * 4.0;
+  S(0, 2) = 1.0;
+  const VectorPriorFactor<3> velocity_prior(random.vector3(1.0), S);
+  expectJacobiansMatchNumeric(velocity_prior, {vectorBlock(random.vector3(1.0))});
+  const VectorPriorFactor<1> inverse_depth_prior(Eigen::Matrix<double, 1, 1>(0.5),
+                                                 Eigen::Matrix<double, 1, 1>(10.0));
+  expectJacobiansMatchNumeric(inverse_depth_prior, {vectorBlock(VectorXd::Constant(1, 0.7))});
+  EXPECT_NEAR(evaluate(inverse_depth_prior, {vectorBlock(VectorXd::Constant(1, 0.7))})(0), 2.0, 1e-12);
+}
+
+TEST(SqrtInformation, WhitensTheCovarianceToIdentity) {
+  Random random(54);
+  Eigen::Matrix<double, 9, 9> A;
+  for (int i = 0; i < 9; ++i) A.col(i) << random.vector3(1.0), random.vector3(1.0), random.vector3(1.0);
+  const Eigen::Matrix<double, 9, 9> covariance = A * A.transpose() + 1e-3 * Eigen::Matrix<double, 9, 9>::Identity();
+  const Eigen::Matrix<double, 9, 9> S = sqrtInformationFromCovariance<9>(covariance);
+  EXPECT_LT((S * covariance * S.transpose() - Eigen::Matrix<double, 9, 9>::Identity()).cwiseAbs().maxCoeff(), 1e-9);
+}
+
+}  // namespace
+}  // namespace cvislam::factors
