@@ -103,8 +103,8 @@ TEST(VisualInertialBundleAdjustment, InformationMatrixHasAFourDimensionalGaugeFr
   std::printf("information matrix %dx%d: smallest eigenvalues / largest:", crs.num_cols, crs.num_cols);
   for (int k = 0; k < 6; ++k) std::printf(" %.1e", lambda(k) / largest);
   std::printf("\n");
-  // Numerically zero is ~100 eps relative to the largest eigenvalue. The weakest observable direction (the
-  // accelerometer bias over a 2.5 s window) sits about six orders of magnitude above that.
+  // Numerically zero is ~100 eps relative to the largest eigenvalue; the weakest observable direction of
+  // this 2.5 s window sits about three orders of magnitude above that.
   constexpr double kNumericalZero = 1e-14;
   for (int k = 0; k < 4; ++k) EXPECT_LT(std::abs(lambda(k)) / largest, kNumericalZero) << "eigenvalue " << k;
   EXPECT_GT(lambda(4) / largest, 100.0 * kNumericalZero) << "a fifth unobservable direction";
