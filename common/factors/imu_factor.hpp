@@ -16,8 +16,8 @@ namespace cvislam::factors {
 //   r_dp = R_i^T (p_j - p_i - v_i dt - g dt^2 / 2) - (dp + dp_dbg db_g + dp_dba db_a)
 // with db = bias_i - preintegration.biasLin(). Parameter blocks: pose_i (7), v_i (3), bias_i (6),
 // pose_j (7), v_j (3). The bias of keyframe j enters only through the BiasRandomWalkFactor.
-class ImuFactor final : public ceres::SizedCostFunction<9, kPoseSize, kVelocitySize, kBiasSize, kPoseSize,
-                                                        kVelocitySize> {
+class ImuFactor final
+    : public ceres::SizedCostFunction<9, kPoseSize, kVelocitySize, kBiasSize, kPoseSize, kVelocitySize> {
  public:
   explicit ImuFactor(const imu::Preintegration& preintegration, const Eigen::Vector3d& g_w = imu::kGravityW);
 

@@ -8,8 +8,7 @@ using Eigen::Vector3d;
 using geometry::SO3d;
 constexpr int kRowMajor = Eigen::RowMajor;
 
-PosePriorFactor::PosePriorFactor(const geometry::SE3d& T_w_s_prior,
-                                 const Eigen::Matrix<double, 6, 6>& sqrt_information)
+PosePriorFactor::PosePriorFactor(const geometry::SE3d& T_w_s_prior, const Eigen::Matrix<double, 6, 6>& sqrt_information)
     : T_w_s_prior_(T_w_s_prior), sqrt_information_(sqrt_information) {}
 
 bool PosePriorFactor::Evaluate(double const* const* parameters, double* residuals, double** jacobians) const {

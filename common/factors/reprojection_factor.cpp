@@ -50,10 +50,10 @@ bool ReprojectionFactor::Evaluate(double const* const* parameters, double* resid
 
   const Matrix3d R_si_w = R_w_si.transpose();
   const Matrix3d R_c_s = R_s_c.transpose();
-  const Vector3d u = R_s_c * b + rho * t_s_c;            // rho X_sr
+  const Vector3d u = R_s_c * b + rho * t_s_c;               // rho X_sr
   const Vector3d w = R_w_sr * u + rho * (p_w_sr - p_w_si);  // rho (X_w - p_w_si)
-  const Vector3d m = R_si_w * w;                         // rho X_si
-  const Vector3d h = R_c_s * (m - rho * t_s_c);          // rho X_ci
+  const Vector3d m = R_si_w * w;                            // rho X_si
+  const Vector3d h = R_c_s * (m - rho * t_s_c);             // rho X_ci
 
   Eigen::Matrix<double, 2, 3> d_r_d_h;
   if (!projectWhitened(h, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_h)) return false;
@@ -76,7 +76,7 @@ bool ReprojectionFactor::Evaluate(double const* const* parameters, double* resid
     J_out.leftCols<3>() = J.leftCols<3>();
     J_out.rightCols<4>() = liftRotationJacobian<2>(J.rightCols<3>(), pose_r + 3);
   }
-  if (jacobians[2] != nullptr) {  // extrinsics T_s_c
+  if (jacobians[2] != nullptr) {         // extrinsics T_s_c
     const Matrix3d A = R_si_w * R_w_sr;  // R_si_sr
     const Matrix3d M = R_c_s * A * R_s_c;
     Eigen::Matrix<double, 2, 6> J;
@@ -96,12 +96,11 @@ bool ReprojectionFactor::Evaluate(double const* const* parameters, double* resid
   return true;
 }
 
-ReprojectionHostFactor::ReprojectionHostFactor(const Eigen::Vector2d& keypoint_px,
-                                               const PinholeIntrinsics& intrinsics, double sigma_px)
+ReprojectionHostFactor::ReprojectionHostFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics,
+                                               double sigma_px)
     : keypoint_px_(keypoint_px), intrinsics_(intrinsics), inv_sigma_(1.0 / sigma_px) {}
 
-bool ReprojectionHostFactor::Evaluate(double const* const* parameters, double* residuals,
-                                      double** jacobians) const {
+bool ReprojectionHostFactor::Evaluate(double const* const* parameters, double* residuals, double** jacobians) const {
   const Eigen::Map<const Vector3d> b(parameters[0]);
   Eigen::Matrix<double, 2, 3> d_r_d_h;
   if (!projectWhitened(b, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_h)) return false;

@@ -31,8 +31,7 @@ inline constexpr double kMinProjectionDepth = 1e-6;
 // camera-IMU extrinsics T_s_c (7, same layout as a pose; hold it constant when it is calibrated), bearing
 // (3), inverse depth (1). The observing and reference keyframes must differ (Ceres forbids one block twice);
 // use ReprojectionHostFactor for the reference keyframe's own observation.
-class ReprojectionFactor final
-    : public ceres::SizedCostFunction<2, kPoseSize, kPoseSize, kPoseSize, kBearingSize, 1> {
+class ReprojectionFactor final : public ceres::SizedCostFunction<2, kPoseSize, kPoseSize, kPoseSize, kBearingSize, 1> {
  public:
   ReprojectionFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics, double sigma_px);
 

@@ -31,8 +31,7 @@ inline constexpr int kBearingTangentSize = 2;
 using PoseBlock = Eigen::Matrix<double, kPoseSize, 1>;
 
 inline geometry::SE3d poseFromBlock(const double* block) {
-  return {Eigen::Quaterniond(block[6], block[3], block[4], block[5]),
-          Eigen::Vector3d(block[0], block[1], block[2])};
+  return {Eigen::Quaterniond(block[6], block[3], block[4], block[5]), Eigen::Vector3d(block[0], block[1], block[2])};
 }
 
 inline void poseToBlock(const geometry::SE3d& T, double* block) {

@@ -6,9 +6,9 @@
 
 namespace cvislam::imu {
 
-using geometry::SO3d;
 using Eigen::Matrix3d;
 using Eigen::Vector3d;
+using geometry::SO3d;
 
 ImuNoise ImuNoise::fromCalibration(const dataset::ImuCalibration& calibration) {
   ImuNoise noise;
@@ -27,10 +27,9 @@ Status ImuNoise::validate() const {
     }
     return Status::Ok();
   };
-  for (const auto& [value, name] : {std::pair{gyro_noise_density, "gyro_noise_density"},
-                                    std::pair{accel_noise_density, "accel_noise_density"},
-                                    std::pair{gyro_random_walk, "gyro_random_walk"},
-                                    std::pair{accel_random_walk, "accel_random_walk"}}) {
+  for (const auto& [value, name] :
+       {std::pair{gyro_noise_density, "gyro_noise_density"}, std::pair{accel_noise_density, "accel_noise_density"},
+        std::pair{gyro_random_walk, "gyro_random_walk"}, std::pair{accel_random_walk, "accel_random_walk"}}) {
     if (Status status = check(value, name); !status.ok()) return status;
   }
   return Status::Ok();
@@ -102,12 +101,12 @@ Status Preintegration::integrateInterval(std::span<const dataset::ImuSample> sam
                                                   std::to_string(t1_ns) + "] ns is empty or reversed"};
   }
   if (samples.empty() || samples.front().t_ns > t0_ns || samples.back().t_ns < t1_ns) {
-    return Error{ErrorCode::kDataError,
-                 "IMU samples " +
-                     (samples.empty() ? std::string("(none)")
-                                      : "[" + std::to_string(samples.front().t_ns) + ", " +
-                                            std::to_string(samples.back().t_ns) + "] ns") +
-                     " do not cover the interval [" + std::to_string(t0_ns) + ", " + std::to_string(t1_ns) + "] ns"};
+    return Error{ErrorCode::kDataError, "IMU samples " +
+                                            (samples.empty() ? std::string("(none)")
+                                                             : "[" + std::to_string(samples.front().t_ns) + ", " +
+                                                                   std::to_string(samples.back().t_ns) + "] ns") +
+                                            " do not cover the interval [" + std::to_string(t0_ns) + ", " +
+                                            std::to_string(t1_ns) + "] ns"};
   }
   // The last sample at or before t0.
   auto first = std::upper_bound(samples.begin(), samples.end(), t0_ns,

@@ -3,6 +3,7 @@
 //
 //   build/default/bin/bench_factors --benchmark_out=factors.json --benchmark_out_format=json
 #include <algorithm>
+#include <cmath>
 #include <vector>
 
 #include <benchmark/benchmark.h>
@@ -19,7 +20,7 @@ namespace {
 double percentile(const std::vector<double>& values, double p) {
   std::vector<double> v = values;
   std::sort(v.begin(), v.end());
-  return v.empty() ? 0.0 : v[static_cast<std::size_t>(p * static_cast<double>(v.size() - 1) + 0.5)];
+  return v.empty() ? 0.0 : v[static_cast<std::size_t>(std::lround(p * static_cast<double>(v.size() - 1)))];
 }
 
 // Repetitions with p50 and p99 aggregates; every run stays on one thread.

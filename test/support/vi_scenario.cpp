@@ -38,7 +38,9 @@ SO3d baseRotation() {
 }
 
 // Rotation R_w_s(t) = R_base Exp(phi(t)) and position p_w(t), with analytic derivatives.
-Vector3d phiAt(double t) { return {0.15 * std::sin(0.9 * t), 0.12 * std::cos(0.7 * t) - 0.12, 0.25 * std::sin(0.4 * t)}; }
+Vector3d phiAt(double t) {
+  return {0.15 * std::sin(0.9 * t), 0.12 * std::cos(0.7 * t) - 0.12, 0.25 * std::sin(0.4 * t)};
+}
 Vector3d phiDotAt(double t) {
   return {0.135 * std::cos(0.9 * t), -0.084 * std::sin(0.7 * t), 0.1 * std::cos(0.4 * t)};
 }
@@ -52,7 +54,9 @@ Vector3d accelerationAt(double t) {
   return {-0.2 * std::sin(0.5 * t), -0.768 * std::sin(0.8 * t), -0.363 * std::sin(1.1 * t)};
 }
 
-std::int64_t toNs(double t_s) { return std::llround(t_s * 1e9); }
+std::int64_t toNs(double t_s) {
+  return std::llround(t_s * 1e9);
+}
 
 }  // namespace
 

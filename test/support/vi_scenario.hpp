@@ -6,8 +6,8 @@
 #include <cstdint>
 #include <vector>
 
-#include <Eigen/Core>
 #include <ceres/problem.h>
+#include <Eigen/Core>
 
 #include "common/dataset/types.hpp"
 #include "common/factors/reprojection_factor.hpp"
@@ -22,7 +22,7 @@ struct ViScenarioOptions {
   // Each sample holds the value at the middle of its interval, so that Forster's hold-constant integration
   // is exact to second order and the preintegrated deltas match the truth closely.
   double imu_rate_hz = 1000.0;
-  imu::ImuBias bias;        // added to every IMU sample
+  imu::ImuBias bias;         // added to every IMU sample
   double pixel_sigma = 0.0;  // Gaussian noise on the observations
   std::uint64_t seed = 7;
 };

@@ -140,13 +140,18 @@ void expectJacobiansMatchNumeric(const ceres::CostFunction& cost, const std::vec
       J_numeric.col(k) = (evaluate(cost, plus) - evaluate(cost, minus)) / (2.0 * h);
     }
     const double scale = std::max(1.0, J_numeric.cwiseAbs().maxCoeff());
-    EXPECT_LT((J_analytic - J_numeric).cwiseAbs().maxCoeff(), tolerance * scale)
-        << "block " << i << "\nanalytic\n" << J_analytic << "\nnumeric\n" << J_numeric;
+    EXPECT_LT((J_analytic - J_numeric).cwiseAbs().maxCoeff(), tolerance * scale) << "block " << i << "\nanalytic\n"
+                                                                                 << J_analytic << "\nnumeric\n"
+                                                                                 << J_numeric;
   }
 }
 
-Block poseBlock(const SE3d& T, const PoseManifold& manifold) { return {poseToBlock(T), &manifold}; }
-Block vectorBlock(const VectorXd& v) { return {v, nullptr}; }
+Block poseBlock(const SE3d& T, const PoseManifold& manifold) {
+  return {poseToBlock(T), &manifold};
+}
+Block vectorBlock(const VectorXd& v) {
+  return {v, nullptr};
+}
 
 // ------------------------------------------------------------------------------------------ IMU factors
 class ImuFactorTest : public ::testing::Test {
@@ -166,15 +171,15 @@ TEST_F(ImuFactorTest, JacobiansMatchNumericAtPerturbedStates) {
   for (int trial = 0; trial < 10; ++trial) {
     const imu::NavState& si = scenario_.keyframe_states[2];
     const imu::NavState& sj = scenario_.keyframe_states[3];
-    const SE3d T_i = si.T_w_s * SE3d::exp((Eigen::Matrix<double, 6, 1>() << random.vector3(0.2), random.vector3(0.2))
-                                              .finished());
-    const SE3d T_j = sj.T_w_s * SE3d::exp((Eigen::Matrix<double, 6, 1>() << random.vector3(0.2), random.vector3(0.2))
-                                              .finished());
+    const SE3d T_i =
+        si.T_w_s * SE3d::exp((Eigen::Matrix<double, 6, 1>() << random.vector3(0.2), random.vector3(0.2)).finished());
+    const SE3d T_j =
+        sj.T_w_s * SE3d::exp((Eigen::Matrix<double, 6, 1>() << random.vector3(0.2), random.vector3(0.2)).finished());
     Eigen::Matrix<double, 6, 1> bias;
     bias << random.vector3(0.05), random.vector3(0.3);
-    expectJacobiansMatchNumeric(sut, {poseBlock(T_i, pose_manifold_), vectorBlock(si.v_w + random.vector3(0.3)),
-                                      vectorBlock(bias), poseBlock(T_j, pose_manifold_),
-                                      vectorBlock(sj.v_w + random.vector3(0.3))});
+    expectJacobiansMatchNumeric(
+        sut, {poseBlock(T_i, pose_manifold_), vectorBlock(si.v_w + random.vector3(0.3)), vectorBlock(bias),
+              poseBlock(T_j, pose_manifold_), vectorBlock(sj.v_w + random.vector3(0.3))});
   }
 }
 
@@ -196,9 +201,9 @@ TEST_F(ImuFactorTest, JacobiansMatchNumericWhenTheRotationResidualIsNearPi) {
   // Keyframe j turned by nearly pi about an axis: r_dR is near pi, where Jr^-1 is largest.
   const SE3d T_j(sj.T_w_s.so3() * SO3d::exp(Vector3d(0.3, -0.2, 0.93).normalized() * (M_PI - 1e-3)),
                  sj.T_w_s.translation());
-  expectJacobiansMatchNumeric(sut, {poseBlock(si.T_w_s, pose_manifold_), vectorBlock(si.v_w),
-                                    vectorBlock(VectorXd::Zero(6)), poseBlock(T_j, pose_manifold_),
-                                    vectorBlock(sj.v_w)},
+  expectJacobiansMatchNumeric(sut,
+                              {poseBlock(si.T_w_s, pose_manifold_), vectorBlock(si.v_w), vectorBlock(VectorXd::Zero(6)),
+                               poseBlock(T_j, pose_manifold_), vectorBlock(sj.v_w)},
                               1e-5);
 }
 
@@ -233,8 +238,11 @@ class ReprojectionFactorTest : public ::testing::Test {
     const SE3d T_w_cr = T_w_sr * T_s_c_;
     const SE3d T_w_ci = T_w_cr * SE3d(SO3d::exp(random_.vector3(0.1)), random_.vector3(0.3));
     const SE3d T_w_si = T_w_ci * T_s_c_.inverse();
-    return {poseBlock(T_w_si, pose_manifold_), poseBlock(T_w_sr, pose_manifold_), poseBlock(T_s_c_, pose_manifold_),
-            {VectorXd(bearing), &bearing_manifold_}, vectorBlock(VectorXd::Constant(1, inverse_depth))};
+    return {poseBlock(T_w_si, pose_manifold_),
+            poseBlock(T_w_sr, pose_manifold_),
+            poseBlock(T_s_c_, pose_manifold_),
+            {VectorXd(bearing), &bearing_manifold_},
+            vectorBlock(VectorXd::Constant(1, inverse_depth))};
   }
 };
 
@@ -341,8 +349,7 @@ TEST(PriorFactors, VectorPriorJacobianMatchesNumeric) {
   S(0, 2) = 1.0;
   const VectorPriorFactor<3> velocity_prior(random.vector3(1.0), S);
   expectJacobiansMatchNumeric(velocity_prior, {vectorBlock(random.vector3(1.0))});
-  const VectorPriorFactor<1> inverse_depth_prior(Eigen::Matrix<double, 1, 1>(0.5),
-                                                 Eigen::Matrix<double, 1, 1>(10.0));
+  const VectorPriorFactor<1> inverse_depth_prior(Eigen::Matrix<double, 1, 1>(0.5), Eigen::Matrix<double, 1, 1>(10.0));
   expectJacobiansMatchNumeric(inverse_depth_prior, {vectorBlock(VectorXd::Constant(1, 0.7))});
   EXPECT_NEAR(evaluate(inverse_depth_prior, {vectorBlock(VectorXd::Constant(1, 0.7))})(0), 2.0, 1e-12);
 }

@@ -111,7 +111,7 @@ TEST(VisualInertialBundleAdjustment, InformationMatrixHasAFourDimensionalGaugeFr
 
   // The null space is spanned by global translation and yaw about gravity (world z): shifting or turning
   // the whole world changes no residual. Points live in their reference keyframes and do not move.
-  const auto gaugeDirection = [&](const Vector3d& translation, double yaw) {
+  const auto gauge_direction = [&](const Vector3d& translation, double yaw) {
     Eigen::VectorXd delta = Eigen::VectorXd::Zero(crs.num_cols);
     const Vector3d axis_w = Vector3d::UnitZ();
     for (std::size_t i = 0; i < state.poses.size(); ++i) {
@@ -124,8 +124,8 @@ TEST(VisualInertialBundleAdjustment, InformationMatrixHasAFourDimensionalGaugeFr
     return delta;
   };
   for (const Eigen::VectorXd& null_direction :
-       {gaugeDirection(Vector3d::UnitX(), 0.0), gaugeDirection(Vector3d::UnitY(), 0.0),
-        gaugeDirection(Vector3d::UnitZ(), 0.0), gaugeDirection(Vector3d::Zero(), 1.0)}) {
+       {gauge_direction(Vector3d::UnitX(), 0.0), gauge_direction(Vector3d::UnitY(), 0.0),
+        gauge_direction(Vector3d::UnitZ(), 0.0), gauge_direction(Vector3d::Zero(), 1.0)}) {
     EXPECT_LT((J * null_direction).norm(), 1e-6 * null_direction.norm());
   }
   // Roll is observable: gravity fixes it.

@@ -3,11 +3,11 @@
 
 #include <algorithm>
 #include <array>
-#include <filesystem>
-#include <string>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <random>
+#include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -71,18 +71,18 @@ TEST(Preintegration, BiasJacobiansMatchNumericReintegration) {
   ImuBias b0;
   b0.gyro = Vector3d(0.02, -0.01, 0.03);
   b0.accel = Vector3d(-0.1, 0.2, 0.05);
-  const auto integrateAt = [&](const ImuBias& bias) {
+  const auto integrate_at = [&](const ImuBias& bias) {
     Preintegration p(bias, s.noise);
     EXPECT_TRUE(p.integrateInterval(s.imu, s.keyframe_t_ns[1], s.keyframe_t_ns[3]).ok());
     return p;
   };
-  const Preintegration sut = integrateAt(b0);
+  const Preintegration sut = integrate_at(b0);
   const Deltas at_b0{sut.deltaR(), sut.deltaV(), sut.deltaP()};
   const auto f = [&](const Eigen::Matrix<double, 6, 1>& db) {
     ImuBias b = b0;
     b.gyro += db.head<3>();
     b.accel += db.tail<3>();
-    const Preintegration p = integrateAt(b);
+    const Preintegration p = integrate_at(b);
     return deltaError(at_b0, p.deltaR(), p.deltaV(), p.deltaP());
   };
   const Eigen::Matrix<double, 9, 6> J_numeric = test::numericJacobian<9, 6>(f, Eigen::Matrix<double, 6, 1>::Zero());
@@ -98,7 +98,7 @@ TEST(Preintegration, BiasJacobiansMatchNumericReintegration) {
   ImuBias b1 = b0;
   b1.gyro += Vector3d(2e-3, -1e-3, 1.5e-3);
   b1.accel += Vector3d(0.02, 0.01, -0.03);
-  const Preintegration reintegrated = integrateAt(b1);
+  const Preintegration reintegrated = integrate_at(b1);
   const Deltas exact{reintegrated.deltaR(), reintegrated.deltaV(), reintegrated.deltaP()};
   const Vec9 corrected_error =
       deltaError(exact, sut.correctedDeltaR(b1), sut.correctedDeltaV(b1), sut.correctedDeltaP(b1));
@@ -194,7 +194,7 @@ struct ConsistencyStats {
   int windows = 0;
   std::array<int, 9> within_3_sigma{};
   double max_position_error_m = 0.0;
-  std::vector<double> nees;  // normalised estimation error squared, 9 dof
+  std::vector<double> nees;                        // normalised estimation error squared, 9 dof
   std::array<std::vector<double>, 3> error_norms;  // |e| of rotation [deg], velocity [m/s], position [m]
   std::array<std::vector<double>, 3> sigmas;       // sqrt(trace/3) of the blocks, same units
   std::array<std::vector<double>, 9> normalised;   // |e_k| / sigma_k per component
@@ -262,8 +262,11 @@ ConsistencyStats checkAgainstGroundTruth(const RealImuData& data, double window_
         stats.nees.push_back(e.dot(P.ldlt().solve(e)));
         for (int b = 0; b < 3; ++b) {
           const double unit = b == 0 ? 180.0 / M_PI : 1.0;
-          stats.error_norms[static_cast<std::size_t>(b)].push_back(unit * e.segment<3>(3 * b).norm());
-          stats.sigmas[static_cast<std::size_t>(b)].push_back(unit * std::sqrt(P.block<3, 3>(3 * b, 3 * b).trace() / 3));
+          stats.error_norms[static_cast<std::size_t>(b)].push_back(
+              unit * e.segment<3>(3 * static_cast<Eigen::Index>(b)).norm());
+          stats.sigmas[static_cast<std::size_t>(b)].push_back(
+              unit *
+              std::sqrt(P.block<3, 3>(3 * static_cast<Eigen::Index>(b), 3 * static_cast<Eigen::Index>(b)).trace() / 3));
         }
         stats.max_position_error_m = std::max(stats.max_position_error_m, e.tail<3>().norm());
         ++stats.windows;
@@ -290,10 +293,11 @@ double reportConsistency(const std::string& name, const ConsistencyStats& stats)
     if (!z.empty()) k_needed = std::max(k_needed, z[static_cast<std::size_t>(0.95 * (z.size() - 1))] / 3.0);
   }
   std::printf("; NEES median %.0f (9 if consistent)\n", median(stats.nees));
-  std::printf("  median |error| vs median sigma: rot %.4f vs %.4f deg, vel %.4f vs %.4f m/s, pos %.4f vs %.4f m;"
-              " noise must be x%.1f for 95 %% within 3 sigma\n",
-              median(stats.error_norms[0]), median(stats.sigmas[0]), median(stats.error_norms[1]),
-              median(stats.sigmas[1]), median(stats.error_norms[2]), median(stats.sigmas[2]), k_needed);
+  std::printf(
+      "  median |error| vs median sigma: rot %.4f vs %.4f deg, vel %.4f vs %.4f m/s, pos %.4f vs %.4f m;"
+      " noise must be x%.1f for 95 %% within 3 sigma\n",
+      median(stats.error_norms[0]), median(stats.sigmas[0]), median(stats.error_norms[1]), median(stats.sigmas[1]),
+      median(stats.error_norms[2]), median(stats.sigmas[2]), k_needed);
   return k_needed;
 }
 
