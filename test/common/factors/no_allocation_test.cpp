@@ -1,0 +1,104 @@
+// Counts heap allocations (this binary replaces global operator new) while the factors evaluate with
+// Jacobians and while the preintegration integrates samples: the agent calls both on its hot paths.
+#include <atomic>
+#include <cstdlib>
+#include <new>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "common/factors/imu_factor.hpp"
+#include "common/factors/prior_factor.hpp"
+#include "common/factors/reprojection_factor.hpp"
+#include "test/support/vi_scenario.hpp"
+
+namespace {
+std::atomic<long> g_allocations{0};
+}  // namespace
+
+void* operator new(std::size_t size) {
+  g_allocations.fetch_add(1, std::memory_order_relaxed);
+  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
+  throw std::bad_alloc();
+}
+void operator delete(void* p) noexcept {
+  std::free(p);
+}
+void operator delete(void* p, std::size_t /*size*/) noexcept {
+  std::free(p);
+}
+
+namespace cvislam::factors {
+namespace {
+
+// Evaluates `cost` with every Jacobian `repeats` times; returns the allocations counted meanwhile.
+long allocationsDuringEvaluate(const ceres::CostFunction& cost, const std::vector<const double*>& blocks, int repeats) {
+  std::vector<std::vector<double>> storage;
+  std::vector<double*> jacobians;
+  for (std::size_t i = 0; i < blocks.size(); ++i) {
+    storage.emplace_back(static_cast<std::size_t>(cost.num_residuals() * cost.parameter_block_sizes()[i]));
+  }
+  for (auto& s : storage) jacobians.push_back(s.data());
+  std::vector<double> residuals(static_cast<std::size_t>(cost.num_residuals()));
+  const long before = g_allocations.load();
+  for (int k = 0; k < repeats; ++k) {
+    EXPECT_TRUE(cost.Evaluate(blocks.data(), residuals.data(), jacobians.data()));
+  }
+  return g_allocations.load() - before;
+}
+
+TEST(NoAllocation, TheCounterSeesAnAllocation) {
+  const long before = g_allocations.load();
+  auto* p = new std::vector<int>(100);
+  delete p;
+  EXPECT_GE(g_allocations.load() - before, 2);
+}
+
+TEST(NoAllocation, FactorsEvaluateWithoutHeapAllocation) {
+  const test::ViScenario s = test::makeViScenario({});
+  test::ViBaState x = test::trueViBaState(s);
+  const ImuFactor imu_factor(s.preintegrations[1]);
+  EXPECT_EQ(allocationsDuringEvaluate(imu_factor,
+                                      {x.poses[1].data(), x.velocities[1].data(), x.biases[1].data(), x.poses[2].data(),
+                                       x.velocities[2].data()},
+                                      1000),
+            0);
+  const BiasRandomWalkFactor walk(s.noise, 0.5);
+  EXPECT_EQ(allocationsDuringEvaluate(walk, {x.biases[1].data(), x.biases[2].data()}, 1000), 0);
+
+  const test::ViObservation* o = nullptr;
+  for (const auto& candidate : s.observations) {
+    if (candidate.keyframe != s.points[static_cast<std::size_t>(candidate.point)].reference_keyframe) {
+      o = &candidate;
+      break;
+    }
+  }
+  ASSERT_NE(o, nullptr);
+  const auto j = static_cast<std::size_t>(o->point);
+  const ReprojectionFactor reprojection(o->keypoint_px, s.intrinsics, 1.0);
+  EXPECT_EQ(allocationsDuringEvaluate(reprojection,
+                                      {x.poses[static_cast<std::size_t>(o->keyframe)].data(),
+                                       x.poses[static_cast<std::size_t>(s.points[j].reference_keyframe)].data(),
+                                       x.extrinsics.data(), x.bearings[j].data(), &x.inverse_depths[j]},
+                                      1000),
+            0);
+  const ReprojectionHostFactor host(o->keypoint_px, s.intrinsics, 1.0);
+  EXPECT_EQ(allocationsDuringEvaluate(host, {x.bearings[j].data()}, 1000), 0);
+  const PosePriorFactor pose_prior(poseFromBlock(x.poses[0].data()), Eigen::Matrix<double, 6, 6>::Identity());
+  EXPECT_EQ(allocationsDuringEvaluate(pose_prior, {x.poses[1].data()}, 1000), 0);
+  const BearingPriorFactor bearing_prior(x.bearings[0], Eigen::Matrix2d::Identity());
+  EXPECT_EQ(allocationsDuringEvaluate(bearing_prior, {x.bearings[1].data()}, 1000), 0);
+}
+
+TEST(NoAllocation, PreintegrationIntegratesWithoutHeapAllocation) {
+  const test::ViScenario s = test::makeViScenario({});
+  imu::Preintegration pre(imu::ImuBias{}, s.noise);
+  const long before = g_allocations.load();
+  for (const auto& sample : s.imu) pre.integrate(0.001, sample.gyro_s, sample.accel_s);
+  const Status status = pre.integrateInterval(s.imu, s.keyframe_t_ns[1], s.keyframe_t_ns[2]);
+  EXPECT_TRUE(status.ok());
+  EXPECT_EQ(g_allocations.load() - before, 0);
+}
+
+}  // namespace
+}  // namespace cvislam::factors
