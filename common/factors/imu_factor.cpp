@@ -75,9 +75,7 @@ bool ImuFactor::Evaluate(double const* const* parameters, double* residuals, dou
     J.block<3, 3>(6, 0) = -Rt_i;
     J.block<3, 3>(6, 3) = geometry::hatSO3(p_term);
     J = sqrt_information_ * J;
-    Eigen::Map<Eigen::Matrix<double, 9, 7, kRowMajor>> J_out(jacobians[0]);
-    J_out.leftCols<3>() = J.leftCols<3>();
-    J_out.rightCols<4>() = liftRotationJacobian<9>(J.rightCols<3>(), pose_i + 3);
+    writePoseJacobian<9>(J, pose_i, jacobians[0]);
   }
   if (jacobians[1] != nullptr) {  // v_i
     Eigen::Matrix<double, 9, 3> J = Eigen::Matrix<double, 9, 3>::Zero();
@@ -99,9 +97,7 @@ bool ImuFactor::Evaluate(double const* const* parameters, double* residuals, dou
     J.block<3, 3>(0, 3) = Jr_inv;
     J.block<3, 3>(6, 0) = Rt_i;
     J = sqrt_information_ * J;
-    Eigen::Map<Eigen::Matrix<double, 9, 7, kRowMajor>> J_out(jacobians[3]);
-    J_out.leftCols<3>() = J.leftCols<3>();
-    J_out.rightCols<4>() = liftRotationJacobian<9>(J.rightCols<3>(), pose_j + 3);
+    writePoseJacobian<9>(J, pose_j, jacobians[3]);
   }
   if (jacobians[4] != nullptr) {  // v_j
     Eigen::Matrix<double, 9, 3> J = Eigen::Matrix<double, 9, 3>::Zero();

@@ -23,9 +23,7 @@ bool PosePriorFactor::Evaluate(double const* const* parameters, double* residual
     Eigen::Matrix<double, 6, 6> J = Eigen::Matrix<double, 6, 6>::Identity();
     J.bottomRightCorner<3, 3>() = SO3d::rightJacobianInverse(phi);
     J = sqrt_information_ * J;
-    Eigen::Map<Eigen::Matrix<double, 6, 7, kRowMajor>> J_out(jacobians[0]);
-    J_out.leftCols<3>() = J.leftCols<3>();
-    J_out.rightCols<4>() = liftRotationJacobian<6>(J.rightCols<3>(), pose + 3);
+    writePoseJacobian<6>(J, pose, jacobians[0]);
   }
   return true;
 }

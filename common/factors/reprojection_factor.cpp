@@ -64,17 +64,13 @@ bool ReprojectionFactor::Evaluate(double const* const* parameters, double* resid
     Eigen::Matrix<double, 2, 6> J;
     J.leftCols<3>() = d_r_d_h * (-rho * R_c_w);
     J.rightCols<3>() = d_r_d_h * (R_c_s * hatSO3(m));
-    Eigen::Map<Eigen::Matrix<double, 2, 7, kRowMajor>> J_out(jacobians[0]);
-    J_out.leftCols<3>() = J.leftCols<3>();
-    J_out.rightCols<4>() = liftRotationJacobian<2>(J.rightCols<3>(), pose_i + 3);
+    writePoseJacobian<2>(J, pose_i, jacobians[0]);
   }
   if (jacobians[1] != nullptr) {  // reference pose
     Eigen::Matrix<double, 2, 6> J;
     J.leftCols<3>() = d_r_d_h * (rho * R_c_w);
     J.rightCols<3>() = d_r_d_h * (-R_c_w * R_w_sr * hatSO3(u));
-    Eigen::Map<Eigen::Matrix<double, 2, 7, kRowMajor>> J_out(jacobians[1]);
-    J_out.leftCols<3>() = J.leftCols<3>();
-    J_out.rightCols<4>() = liftRotationJacobian<2>(J.rightCols<3>(), pose_r + 3);
+    writePoseJacobian<2>(J, pose_r, jacobians[1]);
   }
   if (jacobians[2] != nullptr) {         // extrinsics T_s_c
     const Matrix3d A = R_si_w * R_w_sr;  // R_si_sr
@@ -82,9 +78,7 @@ bool ReprojectionFactor::Evaluate(double const* const* parameters, double* resid
     Eigen::Matrix<double, 2, 6> J;
     J.leftCols<3>() = d_r_d_h * (rho * R_c_s * (A - Matrix3d::Identity()));
     J.rightCols<3>() = d_r_d_h * (hatSO3(h) - M * hatSO3(Vector3d(b)));
-    Eigen::Map<Eigen::Matrix<double, 2, 7, kRowMajor>> J_out(jacobians[2]);
-    J_out.leftCols<3>() = J.leftCols<3>();
-    J_out.rightCols<4>() = liftRotationJacobian<2>(J.rightCols<3>(), extrinsics + 3);
+    writePoseJacobian<2>(J, extrinsics, jacobians[2]);
   }
   if (jacobians[3] != nullptr) {  // bearing, ambient
     Eigen::Map<Eigen::Matrix<double, 2, 3, kRowMajor>>{jacobians[3]} = d_r_d_h * (R_c_w * R_w_sr * R_s_c);

@@ -69,6 +69,15 @@ Eigen::Matrix<double, Rows, 4> liftRotationJacobian(const Eigen::Matrix<double, 
   return 4.0 * J_tangent * quaternionPlusJacobian(q_xyzw).transpose();
 }
 
+// Writes a Jacobian with respect to a pose's tangent [dp, dphi] (Rows x 6) as the ambient Jacobian Ceres
+// expects for the 7 pose parameters (row-major Rows x 7); see liftRotationJacobian.
+template <int Rows>
+void writePoseJacobian(const Eigen::Matrix<double, Rows, 6>& J_tangent, const double* pose, double* jacobian) {
+  Eigen::Map<Eigen::Matrix<double, Rows, kPoseSize, Eigen::RowMajor>> J_out(jacobian);
+  J_out.template leftCols<3>() = J_tangent.template leftCols<3>();
+  J_out.template rightCols<4>() = liftRotationJacobian<Rows>(J_tangent.template rightCols<3>(), pose + 3);
+}
+
 // An orthonormal 3x2 basis of the plane perpendicular to the unit vector b, a fixed function of b.
 inline Eigen::Matrix<double, 3, 2> bearingTangentBasis(const Eigen::Vector3d& b) {
   int axis = 0;  // the coordinate axis least aligned with b

@@ -12,6 +12,7 @@
 #include "common/factors/imu_factor.hpp"
 #include "common/factors/prior_factor.hpp"
 #include "common/factors/reprojection_factor.hpp"
+#include "test/support/cost_evaluation.hpp"
 #include "test/support/vi_scenario.hpp"
 
 namespace cvislam {
@@ -61,17 +62,11 @@ BENCHMARK(BM_Preintegrate)->Arg(10)->Arg(200)->Apply([](auto* b) { withPercentil
 
 // Evaluates `cost` with all Jacobians on `blocks`.
 void evaluateLoop(benchmark::State& state, const ceres::CostFunction& cost, std::vector<const double*> blocks) {
-  std::vector<std::vector<double>> jacobian_storage;
-  std::vector<double*> jacobians;
-  for (std::size_t i = 0; i < blocks.size(); ++i) {
-    jacobian_storage.emplace_back(static_cast<std::size_t>(cost.num_residuals() * cost.parameter_block_sizes()[i]));
-  }
-  for (auto& j : jacobian_storage) jacobians.push_back(j.data());
-  std::vector<double> residuals(static_cast<std::size_t>(cost.num_residuals()));
+  test::CostEvaluation evaluation(cost, std::move(blocks));
   for (auto _ : state) {
-    const bool ok = cost.Evaluate(blocks.data(), residuals.data(), jacobians.data());
+    const bool ok = evaluation.evaluate();
     benchmark::DoNotOptimize(ok);
-    benchmark::DoNotOptimize(jacobians[0][0]);
+    benchmark::DoNotOptimize(evaluation.firstJacobian());
   }
 }
 

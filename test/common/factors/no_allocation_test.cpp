@@ -10,6 +10,7 @@
 #include "common/factors/imu_factor.hpp"
 #include "common/factors/prior_factor.hpp"
 #include "common/factors/reprojection_factor.hpp"
+#include "test/support/cost_evaluation.hpp"
 #include "test/support/vi_scenario.hpp"
 
 namespace {
@@ -33,17 +34,9 @@ namespace {
 
 // Evaluates `cost` with every Jacobian `repeats` times; returns the allocations counted meanwhile.
 long allocationsDuringEvaluate(const ceres::CostFunction& cost, const std::vector<const double*>& blocks, int repeats) {
-  std::vector<std::vector<double>> storage;
-  std::vector<double*> jacobians;
-  for (std::size_t i = 0; i < blocks.size(); ++i) {
-    storage.emplace_back(static_cast<std::size_t>(cost.num_residuals() * cost.parameter_block_sizes()[i]));
-  }
-  for (auto& s : storage) jacobians.push_back(s.data());
-  std::vector<double> residuals(static_cast<std::size_t>(cost.num_residuals()));
+  test::CostEvaluation evaluation(cost, blocks);
   const long before = g_allocations.load();
-  for (int k = 0; k < repeats; ++k) {
-    EXPECT_TRUE(cost.Evaluate(blocks.data(), residuals.data(), jacobians.data()));
-  }
+  for (int k = 0; k < repeats; ++k) EXPECT_TRUE(evaluation.evaluate());
   return g_allocations.load() - before;
 }
 
