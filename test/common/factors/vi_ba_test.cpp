@@ -1,6 +1,8 @@
 // A small visual-inertial bundle adjustment on the synthetic scene: it converges from a perturbed start to
 // the truth, and its information matrix has exactly the gauge freedom of visual-inertial estimation.
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 
 #include <ceres/ceres.h>
 #include <gtest/gtest.h>
@@ -63,6 +65,36 @@ TEST(VisualInertialBundleAdjustment, ConvergesFromAPerturbedStartToTheTruth) {
     EXPECT_LT(std::acos(std::min(1.0, state.bearings[j].dot(truth.bearings[j]))), 1e-6) << "point " << j;
     EXPECT_NEAR(state.inverse_depths[j] / truth.inverse_depths[j], 1.0, 1e-4) << "point " << j;
   }
+}
+
+TEST(VisualInertialBundleAdjustment, WithPixelNoiseStaysWithinMillimetresOfTheTruth) {
+  test::ViScenarioOptions options = scenarioOptions(8, 300);
+  options.pixel_sigma = 0.5;
+  const test::ViScenario scenario = test::makeViScenario(options);
+  const test::ViBaState truth = test::trueViBaState(scenario);
+  test::ViBaState state = truth;
+  test::perturbViBaState(state, 0.1, 2.0 * M_PI / 180.0, 4);
+  ceres::Problem problem;
+  test::addViBaFactors(scenario, state, problem);
+  problem.SetParameterBlockConstant(state.poses[0].data());
+  ceres::Solver::Options solver_options;
+  solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
+  solver_options.max_num_iterations = 50;
+  ceres::Solver::Summary summary;
+  ceres::Solve(solver_options, &problem, &summary);
+  ASSERT_TRUE(summary.IsSolutionUsable()) << summary.FullReport();
+  double worst_position_m = 0.0;
+  double worst_rotation_deg = 0.0;
+  for (std::size_t i = 0; i < truth.poses.size(); ++i) {
+    const SE3d T = poseFromBlock(state.poses[i].data());
+    const SE3d T_true = poseFromBlock(truth.poses[i].data());
+    worst_position_m = std::max(worst_position_m, (T.translation() - T_true.translation()).norm());
+    worst_rotation_deg = std::max(worst_rotation_deg, (T_true.so3().inverse() * T.so3()).log().norm() * 180.0 / M_PI);
+  }
+  std::printf("VI-BA with 0.5 px noise: worst keyframe error %.2f mm, %.4f deg\n", 1e3 * worst_position_m,
+              worst_rotation_deg);
+  EXPECT_LT(worst_position_m, 5e-3);
+  EXPECT_LT(worst_rotation_deg, 0.05);
 }
 
 // J^T J at the truth, with nothing fixed but the calibrated extrinsics: its null space must be the four
