@@ -34,7 +34,8 @@ dataset::CameraCalibration eurocCam0() {
                            0.999557249008,  0.0149672133247, 0.025715529948,   -0.064676986768,
                            -0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949};
   cam.T_b_c = fromRowMajor(T_BS);
-  cam.comment = "cvislam_sim: EuRoC cam0 (MT9M034) calibration";
+  // No colon in comments: writeCameraCalibration() writes them as plain YAML scalars.
+  cam.comment = "cvislam_sim, EuRoC cam0 (MT9M034) calibration";
   return cam;
 }
 
@@ -50,7 +51,7 @@ dataset::CameraCalibration eurocCam1() {
                            0.999598781151,  0.0130119051815, 0.0251588363115, 0.0453689425024,
                            -0.0253898008918, 0.0179005838253, 0.999517347078, 0.00786212447038};
   cam.T_b_c = fromRowMajor(T_BS);
-  cam.comment = "cvislam_sim: EuRoC cam1 (MT9M034) calibration";
+  cam.comment = "cvislam_sim, EuRoC cam1 (MT9M034) calibration";
   return cam;
 }
 
@@ -62,7 +63,7 @@ dataset::ImuCalibration eurocImu() {
   imu.accel_noise_density = 2.0e-3;
   imu.accel_random_walk = 3.0e-3;
   imu.T_b_i = geometry::SE3d();
-  imu.comment = "cvislam_sim: EuRoC VI-Sensor IMU (ADIS16448) noise figures";
+  imu.comment = "cvislam_sim, EuRoC VI-Sensor IMU (ADIS16448) noise figures";
   return imu;
 }
 

@@ -37,7 +37,7 @@ Box makeBox(double x0, double y0, double z0, double x1, double y1, double z1, co
 struct RingMotion {
   double start_angle = 0.0;   // [rad] on the ring
   double direction = 1.0;     // +1 counter-clockwise
-  double speed_mps = 1.2;     // mean speed along the ring
+  double speed_mps = 1.0;     // mean speed along the ring
   bool sweep = false;         // back and forth over [centre - half_range, centre + half_range] instead of laps
   double sweep_half_range = 0.0;
   double lane_offset_m = 0.0;  // shifts the ring outwards (+) or inwards (-)
@@ -75,7 +75,7 @@ std::vector<PathSample> sampleRingPath(const RingMotion& m, double duration_s, s
     if (m.sweep) {
       // theta swings sinusoidally; the vehicle turns to face its direction of motion through a sideways look.
       const double omega = angular_rate * kPi / (2.0 * m.sweep_half_range);  // mean speed over a half swing
-      const double s = omega * progress_s;
+      const double s = omega * progress_s - 0.5 * kPi;  // start at the end of the arc, at rest
       theta = m.start_angle + m.direction * m.sweep_half_range * std::sin(s);
       heading_offset = 0.5 * kPi * (1.0 - std::cos(s)) * m.direction;
     } else {
@@ -98,8 +98,8 @@ std::vector<PathSample> sampleRingPath(const RingMotion& m, double duration_s, s
     // Motion-rich start: translation and rotation excitation on all axes, faded in and out.
     if (t < m.init_s) {
       const double w = std::pow(std::sin(kPi * t / m.init_s), 2);
-      s.p_w += w * Eigen::Vector3d(0.25 * std::sin(2.0 * kPi * 0.8 * t + phase[7]), 0.2 * std::sin(2.0 * kPi * 1.1 * t),
-                                   0.15 * std::sin(2.0 * kPi * 1.3 * t + 1.0));
+      s.p_w += w * Eigen::Vector3d(0.12 * std::sin(2.0 * kPi * 0.8 * t + phase[7]), 0.1 * std::sin(2.0 * kPi * 1.1 * t),
+                                   0.08 * std::sin(2.0 * kPi * 1.3 * t + 1.0));
       s.yaw += w * 0.3 * std::sin(2.0 * kPi * 0.6 * t);
       s.pitch += w * 0.15 * std::sin(2.0 * kPi * 0.9 * t + 0.5);
       s.roll += w * 0.15 * std::sin(2.0 * kPi * 0.7 * t + 2.0);
@@ -117,12 +117,14 @@ std::vector<RingMotion> presetMotions(const std::string& preset, std::uint64_t s
     m.start_angle = -0.5 * kPi;
     motions.push_back(m);
   } else if (preset == "overlap2") {
-    // Two swept arcs of 240 deg whose centres are 160 deg apart: they share 80 deg, a third of each.
+    // Two swept arcs of 200 deg whose centres are 135 deg apart: they share 65 deg at one end of each arc.
+    // Each starts at rest at the far end of its arc and sweeps towards the other.
     for (int i = 0; i < 2; ++i) {
       RingMotion m;
       m.sweep = true;
-      m.sweep_half_range = 2.0 * kPi / 3.0;
-      m.start_angle = i == 0 ? -0.5 * kPi : -0.5 * kPi + 8.0 * kPi / 9.0;
+      m.sweep_half_range = 100.0 * kPi / 180.0;
+      m.start_angle = i == 0 ? -0.5 * kPi : -0.5 * kPi + 0.75 * kPi;
+      m.direction = i == 0 ? 1.0 : -1.0;  // both start by flying towards the shared part
       m.z_mean_m = i == 0 ? 1.5 : 1.9;
       m.lane_offset_m = i == 0 ? 0.25 : -0.25;
       motions.push_back(m);
@@ -135,14 +137,14 @@ std::vector<RingMotion> presetMotions(const std::string& preset, std::uint64_t s
       m.direction = i % 2 == 0 ? 1.0 : -1.0;
       m.lane_offset_m = (i % 4 < 2 ? 0.4 : -0.4);
       m.z_mean_m = 1.3 + 0.25 * (i % 4);
-      m.speed_mps = rng.uniform(0.9, 1.4);
+      m.speed_mps = rng.uniform(0.8, 1.2);
       motions.push_back(m);
     }
   } else if (preset == "aggressive") {
     RingMotion m;
     m.start_angle = 0.5 * kPi;
-    m.speed_mps = 1.8;
-    m.lane_amp_m = 0.7;
+    m.speed_mps = 1.5;
+    m.lane_amp_m = 0.6;
     m.z_amp_m = 0.8;
     m.yaw_amp_rad = 0.8;
     m.tilt_amp_rad = 0.3;
