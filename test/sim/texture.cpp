@@ -58,7 +58,9 @@ Texture::Texture(double width_m, double height_m, std::uint64_t seed, const Text
   constexpr int kScales = 5;
   for (int scale = kScales - 1; scale >= 0; --scale) {
     const double size = options.min_feature_m * std::pow(scale_ratio, static_cast<double>(scale) / (kScales - 1));
-    const auto count = static_cast<std::size_t>(options.coverage_per_scale * area / (size * size));
+    // Large shapes cover more than small ones, so that structure at every scale survives the overdraw.
+    const double coverage = options.coverage_per_scale * (0.5 + 0.25 * scale);
+    const auto count = static_cast<std::size_t>(coverage * area / (size * size));
     for (std::size_t k = 0; k < count; ++k) {
       const double cu = rng.uniform(-0.5 * size, width_m + 0.5 * size);
       const double cv = rng.uniform(-0.5 * size, height_m + 0.5 * size);
@@ -96,9 +98,16 @@ Texture::Texture(double width_m, double height_m, std::uint64_t seed, const Text
     }
   }
 
+  // A slow brightness modulation (2.5 m value noise, +-12 %) makes places differ at a glance, as lighting and
+  // dirt do in a real hall, and keeps distant, filtered views from averaging out to flat grey.
   base.data.resize(w * h);
-  for (std::size_t i = 0; i < w * h; ++i) {
-    base.data[i] = static_cast<std::uint8_t>(std::lround(std::clamp(15.0F + 225.0F * value[i], 0.0F, 255.0F)));
+  const std::uint64_t light_seed = deriveSeed(seed, 3);
+  for (std::size_t y = 0; y < h; ++y) {
+    for (std::size_t x = 0; x < w; ++x) {
+      const double light = 0.88 + 0.24 * valueNoise(static_cast<double>(x) * tau / 2.5, static_cast<double>(y) * tau / 2.5, light_seed);
+      const double grey = (15.0 + 225.0 * static_cast<double>(value[y * w + x])) * light;
+      base.data[y * w + x] = static_cast<std::uint8_t>(std::lround(std::clamp(grey, 0.0, 255.0)));
+    }
   }
   levels_.push_back(std::move(base));
 

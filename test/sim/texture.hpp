@@ -1,8 +1,8 @@
 // Procedural surface textures: deterministic, multi-scale, high-contrast and not periodic.
 //
 // Each surface gets its own seed. The pattern is a "dead leaves" image: opaque rectangles, discs and bars at
-// five scales (3 cm to 60 cm), drawn from large to small, with intensities modulated by hash-based value
-// noise. Nothing repeats, so places look different to a place recogniser; every scale carries corners, so
+// five scales (3 cm to 60 cm), drawn from large to small, over hash-based value noise, and lit by a slow
+// (2.5 m) brightness modulation. Nothing repeats, so places look different to a place recogniser; every scale carries corners, so
 // ORB finds features near and far. The texture is stored as a mip pyramid for lookups at any distance.
 #pragma once
 
@@ -15,7 +15,7 @@ struct TextureOptions {
   double texel_size_m = 0.01;  // level 0
   double min_feature_m = 0.03;
   double max_feature_m = 0.6;
-  double coverage_per_scale = 0.35;  // fraction of the area each scale's shapes cover (they overlap)
+  double coverage_per_scale = 0.35;  // mean fraction of the area each scale's shapes cover (they overlap)
 };
 
 class Texture {
