@@ -81,6 +81,34 @@ TEST(Renderer, DrawnSurfacePointsReprojectOntoTheirPixelsWithTheWrittenGroundTru
   }
 }
 
+TEST(World, AxisParallelRaysHitTheRightWallsAndObstacles) {
+  WorldLayout layout;
+  layout.hall.min_w = Eigen::Vector3d(-10, -5, 0);
+  layout.hall.max_w = Eigen::Vector3d(10, 5, 6);
+  Box crate;
+  crate.min_w = Eigen::Vector3d(2.0, -1.0, 0.0);
+  crate.max_w = Eigen::Vector3d(3.0, 1.0, 2.0);
+  layout.obstacles.push_back(crate);
+  WorldOptions options;
+  options.texture.texel_size_m = 0.1;
+  const World sut(layout, options);
+  const Eigen::Vector3d o(0.0, 0.0, 1.0);
+  // Exactly axis-parallel rays have zero direction components (infinite inverse) on two axes.
+  const RayHit east = sut.cast(o, Eigen::Vector3d::UnitX());
+  EXPECT_DOUBLE_EQ(east.t_m, 2.0);
+  EXPECT_EQ(east.face, 6 + 0);  // obstacle 0, x axis, min face
+  const RayHit west = sut.cast(o, -Eigen::Vector3d::UnitX());
+  EXPECT_DOUBLE_EQ(west.t_m, 10.0);
+  EXPECT_EQ(west.face, 0);  // hall, x axis, min face
+  const RayHit up = sut.cast(o, Eigen::Vector3d::UnitZ());
+  EXPECT_DOUBLE_EQ(up.t_m, 5.0);
+  EXPECT_EQ(up.face, 5);  // hall ceiling
+  const RayHit north = sut.cast(o, Eigen::Vector3d::UnitY());
+  EXPECT_DOUBLE_EQ(north.t_m, 5.0);
+  EXPECT_EQ(north.face, 3);
+  EXPECT_NEAR(sut.clearance(o), 1.0, 1e-12);  // the floor is 1 m below
+}
+
 TEST(Renderer, AKnownPointOnABoxCornerProjectsToWhereTheBoxSilhouetteIs) {
   // A lone crate in front of the camera: its near top corner projects to a pixel; the pixels just inside
   // the corner show the crate, the pixels just outside show the wall behind.

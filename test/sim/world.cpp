@@ -49,6 +49,7 @@ RayHit World::cast(const Eigen::Vector3d& o_w, const Eigen::Vector3d& d_w, const
   RayHit hit;
   hit.t_m = std::numeric_limits<double>::infinity();
   for (int axis = 0; axis < 3; ++axis) {
+    if (d_w(axis) == 0.0) continue;  // parallel to these walls (inv is infinite)
     const bool positive = d_w(axis) > 0.0;
     const double plane = positive ? layout_.hall.max_w(axis) : layout_.hall.min_w(axis);
     const double t = (plane - o_w(axis)) * inv(axis);
