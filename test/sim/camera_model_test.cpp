@@ -1,6 +1,8 @@
 #include "test/sim/camera_model.hpp"
 
 #include <gtest/gtest.h>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
 
 #include "common/dataset/calibration.hpp"
 #include "test/sim/random.hpp"
@@ -21,6 +23,30 @@ TEST(CameraModel, UnprojectInvertsProjectAcrossTheWholeImage) {
       ASSERT_TRUE(back.has_value());
       EXPECT_LT((*back - pixel).norm(), 1e-8) << "pixel " << x << "," << y;
     }
+  }
+}
+
+// OpenCV's projectPoints is an independent implementation of the same model and pixel convention.
+TEST(CameraModel, ProjectsLikeOpenCvProjectPoints) {
+  const dataset::CameraCalibration cal = eurocCam0();
+  auto sut = CameraModel::create(cal);
+  ASSERT_TRUE(sut.ok());
+  Rng rng(23);
+  std::vector<cv::Point3d> points;
+  for (int i = 0; i < 500; ++i) {
+    const double z = rng.uniform(0.5, 20.0);
+    points.emplace_back(rng.uniform(-1.0, 1.0) * z, rng.uniform(-0.7, 0.7) * z, z);
+  }
+  const cv::Matx33d K(cal.fx, 0.0, cal.cx, 0.0, cal.fy, cal.cy, 0.0, 0.0, 1.0);
+  const auto& k = cal.distortion_coefficients;
+  const std::vector<double> dist = {k[0], k[1], k[2], k[3]};
+  std::vector<cv::Point2d> reference;
+  cv::projectPoints(points, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K, dist, reference);
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    const auto projected = sut->project(Eigen::Vector3d(points[i].x, points[i].y, points[i].z));
+    ASSERT_TRUE(projected.has_value());
+    EXPECT_NEAR(projected->x(), reference[i].x, 1e-6);
+    EXPECT_NEAR(projected->y(), reference[i].y, 1e-6);
   }
 }
 
