@@ -43,7 +43,13 @@ Status writeMissionYaml(const MissionPlan& plan, const MissionWriterOptions& opt
   out << "imu_noise: " << (options.imu_options.noise ? "true" : "false")
       << "\npixel_noise_sigma: " << text::formatDouble(options.pixel_noise_sigma)
       << "\nexposure_amplitude: " << text::formatDouble(options.exposure_amplitude) << "\nagents:\n";
-  for (const AgentPlan& a : plan.agents) out << "  - {name: " << a.name << ", motion: " << a.source << "}\n";
+  for (const AgentPlan& a : plan.agents) {
+    const geometry::SE3d T_w_b = a.trajectory.state(0.0).T_w_b;
+    const Eigen::Quaterniond& q = T_w_b.quaternion();
+    out << "  - {name: " << a.name << ", motion: " << a.source << ", start_p_w: " << vec(T_w_b.translation())
+        << ", start_q_w_b_wxyz: [" << text::formatDouble(q.w()) << ", " << text::formatDouble(q.x()) << ", "
+        << text::formatDouble(q.y()) << ", " << text::formatDouble(q.z()) << "]}\n";
+  }
   out << "hall: {min: " << vec(plan.layout.hall.min_w) << ", max: " << vec(plan.layout.hall.max_w) << "}\nobstacles:\n";
   for (const Box& b : plan.layout.obstacles) {
     out << "  - {kind: " << b.kind << ", min: " << vec(b.min_w) << ", max: " << vec(b.max_w) << "}\n";
