@@ -84,6 +84,22 @@ TEST(CvislamSim, SamePresetAndSeedGiveByteIdenticalFilesAndAnotherSeedDoesNot) {
   EXPECT_NE(a.at(image), c.at(image));
 }
 
+TEST(CvislamSim, RefusesExistingOutputUnlessOverwriteAndThenLeavesNoStaleImages) {
+  const test::TempDir dir;
+  const std::string out = " -q --out " + (dir / "m").string();
+  ASSERT_EQ(runSim("--preset loop --duration 0.5" + out).exit_code, 0);
+  const CommandResult again = runSim("--preset loop --duration 0.2" + out);
+  EXPECT_EQ(again.exit_code, 1);
+  EXPECT_NE(again.output.find("--overwrite"), std::string::npos) << again.output;
+  ASSERT_EQ(runSim("--preset loop --duration 0.2 --overwrite" + out).exit_code, 0);
+  auto seq = dataset::EurocSequence::open(dir / "m" / "agent0");
+  ASSERT_TRUE(seq.ok());
+  const auto images = std::distance(std::filesystem::directory_iterator(dir / "m/agent0/mav0/cam0/data"),
+                                    std::filesystem::directory_iterator{});
+  EXPECT_EQ(images, 5);  // 0.2 s at 20 Hz, both ends
+  EXPECT_EQ(seq->cam0().frames.size(), 5U);
+}
+
 TEST(CvislamSim, BadCommandLinesExitWith2) {
   EXPECT_EQ(runSim("--preset nosuchpreset --out /tmp/x").exit_code, 2);
   EXPECT_EQ(runSim("--preset loop").exit_code, 2);                           // no --out

@@ -6,6 +6,7 @@
 //
 // Exit status: 0 written, 1 the mission could not be planned or written (the message says why), 2 bad command line.
 #include <chrono>
+#include <filesystem>
 #include <iostream>
 #include <string>
 #include <vector>
@@ -70,7 +71,7 @@ static int run(int argc, char** argv) {
                  "ASL calibration folder with cam0/sensor.yaml, cam1/sensor.yaml and imu0/sensor.yaml "
                  "(default: the built-in EuRoC calibration)")
       ->check(CLI::ExistingDirectory);
-  app.add_flag("--overwrite", overwrite, "Write into existing agent folders");
+  app.add_flag("--overwrite", overwrite, "Replace existing OUT/agentN/mav0 folders (they are deleted first)");
   app.add_flag("-q,--quiet", quiet, "No progress output");
 
   try {
@@ -138,6 +139,22 @@ static int run(int argc, char** argv) {
                   << std::flush;
       }
     };
+  }
+  // Existing output: refuse, or with --overwrite replace each agent's mav0 (so no stale images stay behind).
+  for (const cvislam::sim::AgentPlan& agent : plan->agents) {
+    const std::filesystem::path mav0 = std::filesystem::path(out_dir) / agent.name / "mav0";
+    std::error_code ec;
+    if (!std::filesystem::exists(mav0, ec)) continue;
+    if (!overwrite) {
+      std::cerr << "cvislam_sim: " << mav0.string() << " already exists; pass --overwrite to replace it, or choose "
+                << "another --out\n";
+      return 1;
+    }
+    std::filesystem::remove_all(mav0, ec);
+    if (ec) {
+      std::cerr << "cvislam_sim: cannot remove " << mav0.string() << ": " << ec.message() << '\n';
+      return 1;
+    }
   }
   if (cvislam::Status st = cvislam::sim::writeMission(*plan, options); !st) {
     std::cerr << "cvislam_sim: " << st.error().toString() << '\n';
