@@ -1,6 +1,7 @@
 #include "test/sim/texture.hpp"
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <numbers>
 
@@ -135,9 +136,10 @@ Texture::Texture(double width_m, double height_m, std::uint64_t seed, const Text
 
 float Texture::sample(double u_m, double v_m, double footprint_m) const {
   // Level L has texels 2^L * tau; pick the largest L with 2^L * tau <= footprint.
+  // floor(log2(ratio)) from the float's exponent bits (std::ilogb is an out-of-line call on the hot path).
   const float ratio = static_cast<float>(footprint_m) * inv_texel_size_;
-  int level = ratio >= 1.0F ? std::ilogb(ratio) : 0;
-  level = std::min(level, static_cast<int>(levels_.size()) - 1);
+  const int exponent = static_cast<int>((std::bit_cast<std::uint32_t>(ratio) >> 23U) & 0xFFU) - 127;
+  const int level = std::clamp(exponent, 0, static_cast<int>(levels_.size()) - 1);
   const Level& l = levels_[static_cast<std::size_t>(level)];
   // Texel (i, j) of level 0 is centred at (i, j) * tau: level 0 has no half-texel offset; level L averages
   // texels 2i and 2i+1, so its centre is at (2i + 0.5) * tau.
