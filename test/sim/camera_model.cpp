@@ -30,9 +30,9 @@ dataset::CameraCalibration eurocCam0() {
   cam.cy = 248.375;
   cam.distortion = dataset::DistortionModel::kRadialTangential;
   cam.distortion_coefficients = {-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05};
-  const double T_BS[12] = {0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975,
-                           0.999557249008,  0.0149672133247, 0.025715529948,   -0.064676986768,
-                           -0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949};
+  const double T_BS[12] = {0.0148655429818,  -0.999880929698,  0.00414029679422, -0.0216401454975,
+                           0.999557249008,   0.0149672133247,  0.025715529948,   -0.064676986768,
+                           -0.0257744366974, 0.00375618835797, 0.999660727178,   0.00981073058949};
   cam.T_b_c = fromRowMajor(T_BS);
   // No colon in comments: writeCameraCalibration() writes them as plain YAML scalars.
   cam.comment = "cvislam_sim, EuRoC cam0 (MT9M034) calibration";
@@ -47,9 +47,9 @@ dataset::CameraCalibration eurocCam1() {
   cam.cx = 379.999;
   cam.cy = 255.238;
   cam.distortion_coefficients = {-0.28368365, 0.07451284, -0.00010473, -3.55590700e-05};
-  const double T_BS[12] = {0.0125552670891, -0.999755099723, 0.0182237714554, -0.0198435579556,
-                           0.999598781151,  0.0130119051815, 0.0251588363115, 0.0453689425024,
-                           -0.0253898008918, 0.0179005838253, 0.999517347078, 0.00786212447038};
+  const double T_BS[12] = {0.0125552670891,  -0.999755099723, 0.0182237714554, -0.0198435579556,
+                           0.999598781151,   0.0130119051815, 0.0251588363115, 0.0453689425024,
+                           -0.0253898008918, 0.0179005838253, 0.999517347078,  0.00786212447038};
   cam.T_b_c = fromRowMajor(T_BS);
   cam.comment = "cvislam_sim, EuRoC cam1 (MT9M034) calibration";
   return cam;
@@ -71,8 +71,10 @@ Result<CameraModel> CameraModel::create(const dataset::CameraCalibration& calibr
   if (calibration.distortion != dataset::DistortionModel::kNone &&
       calibration.distortion != dataset::DistortionModel::kRadialTangential) {
     return Error{ErrorCode::kInvalidArgument,
-                 calibration.name + ": the simulator renders pinhole cameras with radial-tangential or no "
-                                    "distortion, not " + std::string(dataset::toString(calibration.distortion))};
+                 calibration.name +
+                     ": the simulator renders pinhole cameras with radial-tangential or no "
+                     "distortion, not " +
+                     std::string(dataset::toString(calibration.distortion))};
   }
   if (calibration.width <= 0 || calibration.height <= 0 || calibration.fx <= 0.0 || calibration.fy <= 0.0) {
     return Error{ErrorCode::kInvalidArgument, calibration.name + ": resolution and focal lengths must be positive"};

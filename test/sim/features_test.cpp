@@ -39,13 +39,16 @@ FrameFeatures orbFeatures(const dataset::GrayImage& image, cv::Ptr<cv::ORB>& orb
   orb->detect(view, keypoints);
   std::vector<bool> covered(kGridColumns * kGridRows, false);
   for (const cv::KeyPoint& k : keypoints) {
-    const int cx = std::clamp(static_cast<int>(k.pt.x * kGridColumns / static_cast<float>(image.width)), 0, kGridColumns - 1);
-    const int cy = std::clamp(static_cast<int>(k.pt.y * kGridRows / static_cast<float>(image.height)), 0, kGridRows - 1);
+    const int cx =
+        std::clamp(static_cast<int>(k.pt.x * kGridColumns / static_cast<float>(image.width)), 0, kGridColumns - 1);
+    const int cy =
+        std::clamp(static_cast<int>(k.pt.y * kGridRows / static_cast<float>(image.height)), 0, kGridRows - 1);
     covered[static_cast<std::size_t>(cy * kGridColumns + cx)] = true;
   }
   FrameFeatures f;
   f.keypoints = static_cast<int>(keypoints.size());
-  f.covered_cells = static_cast<double>(std::count(covered.begin(), covered.end(), true)) / static_cast<double>(covered.size());
+  f.covered_cells =
+      static_cast<double>(std::count(covered.begin(), covered.end(), true)) / static_cast<double>(covered.size());
   return f;
 }
 
@@ -91,7 +94,8 @@ TEST_P(OrbOnPresets, AtLeast500WellSpreadKeypointsIn95PercentOfFrames) {
                   << f.covered_cells * 100.0 << " % of cells\n";
       }
       if (dump_dir != nullptr && t == 3.0) {  // example frames for humans
-        (void)dataset::writeGrayPng(std::filesystem::path(dump_dir) / (options.preset + "_" + agent.name + ".png"), image);
+        (void)dataset::writeGrayPng(std::filesystem::path(dump_dir) / (options.preset + "_" + agent.name + ".png"),
+                                    image);
         std::cout << "example " << options.preset << " " << agent.name << " t=3 s: " << f.keypoints << " keypoints\n";
       }
     }

@@ -16,9 +16,9 @@ namespace cvislam::sim {
 inline constexpr double kGravityMps2 = 9.81;
 
 struct ImuSimulatorOptions {
-  bool noise = true;                         // white noise and bias random walk; off: exact readings, zero bias
-  double initial_gyro_bias_sigma = 2e-3;     // [rad/s], drawn once per agent
-  double initial_accel_bias_sigma = 2e-2;    // [m/s^2]
+  bool noise = true;                       // white noise and bias random walk; off: exact readings, zero bias
+  double initial_gyro_bias_sigma = 2e-3;   // [rad/s], drawn once per agent
+  double initial_accel_bias_sigma = 2e-2;  // [m/s^2]
 };
 
 class ImuSimulator {

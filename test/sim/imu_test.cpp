@@ -53,9 +53,8 @@ NavState integrate(const std::vector<dataset::ImuSample>& imu, std::size_t first
   for (std::size_t k = first; k < last; ++k) {
     const double h = static_cast<double>(imu[k + 1].t_ns - imu[k].t_ns) * 1e-9;
     const auto mid = [&](auto member) {
-      return Eigen::Vector3d((-(imu[k - 1].*member) + 9.0 * (imu[k].*member) + 9.0 * (imu[k + 1].*member) -
-                              (imu[k + 2].*member)) /
-                             16.0);
+      return Eigen::Vector3d(
+          (-(imu[k - 1].*member) + 9.0 * (imu[k].*member) + 9.0 * (imu[k + 1].*member) - (imu[k + 2].*member)) / 16.0);
     };
     const Eigen::Vector3d gyro_mid = mid(&dataset::ImuSample::gyro_s);
     const Eigen::Vector3d accel_mid = mid(&dataset::ImuSample::accel_s);

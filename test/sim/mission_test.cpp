@@ -1,11 +1,11 @@
 // Missions as a whole: readable EuRoC output, determinism, path properties, and the command line.
+#include <sys/wait.h>
 #include <array>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <iterator>
 #include <map>
-#include <sys/wait.h>
 #include <string>
 
 #include <gtest/gtest.h>
@@ -102,21 +102,21 @@ TEST(CvislamSim, RefusesExistingOutputUnlessOverwriteAndThenLeavesNoStaleImages)
 
 TEST(CvislamSim, BadCommandLinesExitWith2) {
   EXPECT_EQ(runSim("--preset nosuchpreset --out /tmp/x").exit_code, 2);
-  EXPECT_EQ(runSim("--preset loop").exit_code, 2);                           // no --out
-  EXPECT_EQ(runSim("--out /tmp/x").exit_code, 2);                            // neither preset nor replay
+  EXPECT_EQ(runSim("--preset loop").exit_code, 2);                              // no --out
+  EXPECT_EQ(runSim("--out /tmp/x").exit_code, 2);                               // neither preset nor replay
   EXPECT_EQ(runSim("--preset loop --replay a.txt --out /tmp/x").exit_code, 2);  // both
   EXPECT_EQ(runSim("--preset loop --duration -1 --out /tmp/x").exit_code, 2);
 }
 
 TEST(CvislamSim, EurocMhWithoutDataNamesTheMissingFile) {
   const test::TempDir dir;
-  const CommandResult r =
-      runSim("--preset euroc-mh --duration 1 -q --out " + (dir / "m").string(), "CVISLAM_DATA_DIR=" + dir.path().string());
+  const CommandResult r = runSim("--preset euroc-mh --duration 1 -q --out " + (dir / "m").string(),
+                                 "CVISLAM_DATA_DIR=" + dir.path().string());
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("MH_01_easy.txt"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("CVISLAM_DATA_DIR"), std::string::npos) << r.output;
-  const CommandResult replay = runSim("--replay " + (dir / "nope.txt").string() + " --duration 1 -q --out " +
-                                      (dir / "r").string());
+  const CommandResult replay =
+      runSim("--replay " + (dir / "nope.txt").string() + " --duration 1 -q --out " + (dir / "r").string());
   EXPECT_EQ(replay.exit_code, 1);
   EXPECT_NE(replay.output.find("nope.txt"), std::string::npos) << replay.output;
 }
@@ -148,7 +148,8 @@ void expectUavLikePaths(const MissionPlan& plan, double max_speed_mps) {
     EXPECT_LE(max_speed, max_speed_mps) << plan.preset << " " << agent.name;
     // Motion-rich start: the first 3 s rotate about every axis.
     Eigen::Vector3d peak_rate = Eigen::Vector3d::Zero();
-    for (double t = 0.0; t <= 3.0; t += 0.05) peak_rate = peak_rate.cwiseMax(agent.trajectory.state(t).omega_b.cwiseAbs());
+    for (double t = 0.0; t <= 3.0; t += 0.05)
+      peak_rate = peak_rate.cwiseMax(agent.trajectory.state(t).omega_b.cwiseAbs());
     EXPECT_GT(peak_rate.minCoeff(), 0.2) << plan.preset << " " << agent.name;
   }
 }
@@ -183,7 +184,8 @@ TEST(MissionPlans, LoopRevisitsItsStartAndOverlap2SharesAboutAThird) {
   ASSERT_TRUE(two.ok());
   std::array<std::vector<Eigen::Vector3d>, 2> paths;
   for (std::size_t a = 0; a < 2; ++a) {
-    for (double t = 0.0; t <= 60.0; t += 0.1) paths[a].push_back(two->agents[a].trajectory.state(t).T_w_b.translation());
+    for (double t = 0.0; t <= 60.0; t += 0.1)
+      paths[a].push_back(two->agents[a].trajectory.state(t).T_w_b.translation());
   }
   std::size_t shared = 0;
   for (const Eigen::Vector3d& p : paths[0]) {
@@ -218,8 +220,8 @@ TEST(MissionPlans, EurocMhReplaysTheFiveFlightsInsideAHallAroundThem) {
   for (std::size_t i = 0; i < real->size(); i += 20) {
     const double t = static_cast<double>((*real)[i].t_ns - real->front().t_ns) * 1e-9;
     if (t > options.duration_s) break;
-    worst_m = std::max(worst_m, ((*real)[i].T_w_b.translation() -
-                                 plan->agents[2].trajectory.state(t).T_w_b.translation()).norm());
+    worst_m = std::max(
+        worst_m, ((*real)[i].T_w_b.translation() - plan->agents[2].trajectory.state(t).T_w_b.translation()).norm());
   }
   EXPECT_LT(worst_m, 0.05);
   for (const AgentPlan& agent : plan->agents) {

@@ -38,8 +38,9 @@ Status writeMissionYaml(const MissionPlan& plan, const MissionWriterOptions& opt
   const std::filesystem::path path = options.out_dir / "mission.yaml";
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
   out << "# cvislam_sim mission: what was simulated. Ground truth of all agents is in one world frame.\n";
-  out << "preset: " << plan.preset << "\nseed: " << options.seed << "\nduration_s: " << text::formatDouble(plan.duration_s)
-      << "\nstart_time_ns: " << options.start_time_ns << "\ngravity_w: [0, 0, -9.81]\n";
+  out << "preset: " << plan.preset << "\nseed: " << options.seed
+      << "\nduration_s: " << text::formatDouble(plan.duration_s) << "\nstart_time_ns: " << options.start_time_ns
+      << "\ngravity_w: [0, 0, -9.81]\n";
   out << "imu_noise: " << (options.imu_options.noise ? "true" : "false")
       << "\npixel_noise_sigma: " << text::formatDouble(options.pixel_noise_sigma)
       << "\nexposure_amplitude: " << text::formatDouble(options.exposure_amplitude) << "\nagents:\n";
@@ -120,7 +121,8 @@ Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options
     if (!writer) return writer.error().withContext(agent.name);
     ImuSimulator imu(options.imu, options.imu_options, deriveSeed(options.seed, kImuStream, a));
     Rng pixel_rng(deriveSeed(options.seed, kPixelNoiseStream, a));
-    const double exposure_phase = Rng(deriveSeed(options.seed, kExposureStream, a)).uniform(0.0, 2.0 * std::numbers::pi);
+    const double exposure_phase =
+        Rng(deriveSeed(options.seed, kExposureStream, a)).uniform(0.0, 2.0 * std::numbers::pi);
     dataset::GrayImage image;
     std::size_t frame = 0;
     for (std::int64_t k = 0; k < imu_ticks; ++k) {
@@ -134,13 +136,15 @@ Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options
       if (Status st = writer->addGroundTruth(gt); !st) return st.error().withContext(agent.name);
       if (k % imu_per_frame != 0) continue;
       // Exposure: two slow sinusoids, so the change is smooth and not periodic within a mission.
-      const double gain = 1.0 + options.exposure_amplitude * (0.7 * std::sin(2.0 * std::numbers::pi * t_s / 15.0 + exposure_phase) +
-                                                            0.3 * std::sin(2.0 * std::numbers::pi * t_s / 6.3 + 2.0 * exposure_phase));
+      const double gain = 1.0 + options.exposure_amplitude *
+                                    (0.7 * std::sin(2.0 * std::numbers::pi * t_s / 15.0 + exposure_phase) +
+                                     0.3 * std::sin(2.0 * std::numbers::pi * t_s / 6.3 + 2.0 * exposure_phase));
       for (std::size_t c = 0; c < renderers.size(); ++c) {
         const geometry::SE3d T_w_c = state.T_w_b * cameras[c].T_b_c;
         renderers[c].render(world, T_w_c, gain, image);
         if (options.pixel_noise_sigma > 0.0) addPixelNoise(image, options.pixel_noise_sigma, pixel_rng);
-        if (Status st = writer->addImage(static_cast<int>(c), t_ns, image); !st) return st.error().withContext(agent.name);
+        if (Status st = writer->addImage(static_cast<int>(c), t_ns, image); !st)
+          return st.error().withContext(agent.name);
       }
       ++frame;
       if (options.progress) options.progress(a, frame, frames);

@@ -20,7 +20,7 @@ struct MissionWriterOptions {
   std::uint64_t seed = 0;
   dataset::CameraCalibration cam0;  // defaults to EuRoC cam0 when created through defaultWriterOptions()
   dataset::CameraCalibration cam1;
-  bool stereo = false;              // also render cam1
+  bool stereo = false;  // also render cam1
   dataset::ImuCalibration imu;
   ImuSimulatorOptions imu_options;
   double pixel_noise_sigma = 0.0;   // grey levels; 0 = none

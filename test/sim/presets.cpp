@@ -35,10 +35,10 @@ Box makeBox(double x0, double y0, double z0, double x1, double y1, double z1, co
 
 // How an agent moves around the ring.
 struct RingMotion {
-  double start_angle = 0.0;   // [rad] on the ring
-  double direction = 1.0;     // +1 counter-clockwise
-  double speed_mps = 1.0;     // mean speed along the ring
-  bool sweep = false;         // back and forth over [centre - half_range, centre + half_range] instead of laps
+  double start_angle = 0.0;  // [rad] on the ring
+  double direction = 1.0;    // +1 counter-clockwise
+  double speed_mps = 1.0;    // mean speed along the ring
+  bool sweep = false;        // back and forth over [centre - half_range, centre + half_range] instead of laps
   double sweep_half_range = 0.0;
   double lane_offset_m = 0.0;  // shifts the ring outwards (+) or inwards (-)
   double lane_amp_m = 0.4;
@@ -75,7 +75,7 @@ std::vector<PathSample> sampleRingPath(const RingMotion& m, double duration_s, s
     if (m.sweep) {
       // theta swings sinusoidally; the vehicle turns to face its direction of motion through a sideways look.
       const double omega = angular_rate * kPi / (2.0 * m.sweep_half_range);  // mean speed over a half swing
-      const double s = omega * progress_s - 0.5 * kPi;  // start at the end of the arc, at rest
+      const double s = omega * progress_s - 0.5 * kPi;                       // start at the end of the arc, at rest
       theta = m.start_angle + m.direction * m.sweep_half_range * std::sin(s);
       heading_offset = 0.5 * kPi * (1.0 - std::cos(s)) * m.direction;
     } else {
@@ -190,7 +190,8 @@ WorldLayout syntheticHall(std::uint64_t seed) {
     obs.push_back(makeBox(x - 0.5 * sx, y - 0.5 * sy, 0.0, x + 0.5 * sx, y + 0.5 * sy, sz, "crate"));
   }
   for (int k = 0; k < 24; ++k) {
-    const double x = rng.uniform(-kHallHalfX + 0.5, kHallHalfX - 0.5), y = rng.uniform(-kHallHalfY + 0.5, kHallHalfY - 0.5);
+    const double x = rng.uniform(-kHallHalfX + 0.5, kHallHalfX - 0.5),
+                 y = rng.uniform(-kHallHalfY + 0.5, kHallHalfY - 0.5);
     const double sx = rng.uniform(0.4, 1.2), sy = rng.uniform(0.4, 1.2), sz = rng.uniform(0.3, 1.5);
     obs.push_back(makeBox(x - 0.5 * sx, y - 0.5 * sy, 0.0, x + 0.5 * sx, y + 0.5 * sy, sz, "crate"));
   }
@@ -212,12 +213,13 @@ WorldLayout hallAroundPaths(const std::vector<AgentPlan>& agents, double duratio
   WorldLayout layout;
   const double floor_z = lo.z() - 0.7;
   const double ceiling_z = std::max(hi.z() + 2.0, floor_z + 5.0);
-  layout.hall = makeBox(lo.x() - kMarginM, lo.y() - kMarginM, floor_z, hi.x() + kMarginM, hi.y() + kMarginM, ceiling_z,
-                        "hall");
+  layout.hall =
+      makeBox(lo.x() - kMarginM, lo.y() - kMarginM, floor_z, hi.x() + kMarginM, hi.y() + kMarginM, ceiling_z, "hall");
   const Eigen::Vector3d hmin = layout.hall.min_w, hmax = layout.hall.max_w;
   Rng rng(deriveSeed(seed, kLayoutStream, 1));
   const double area = (hmax.x() - hmin.x()) * (hmax.y() - hmin.y());
-  const int pillars = static_cast<int>(area / 25.0), crates = static_cast<int>(area / 6.0), shelves = static_cast<int>(area / 30.0);
+  const int pillars = static_cast<int>(area / 25.0), crates = static_cast<int>(area / 6.0),
+            shelves = static_cast<int>(area / 30.0);
   for (int k = 0; k < pillars; ++k) {
     const double x = rng.uniform(hmin.x() + 0.5, hmax.x() - 0.5), y = rng.uniform(hmin.y() + 0.5, hmax.y() - 0.5);
     layout.obstacles.push_back(makeBox(x - 0.25, y - 0.25, floor_z, x + 0.25, y + 0.25, ceiling_z, "pillar"));
@@ -270,8 +272,8 @@ Result<std::vector<AgentPlan>> replayAgents(const std::vector<std::filesystem::p
     if (!poses) return poses.error().withContext("reading " + file.string());
     const double flight_s = static_cast<double>(poses->back().t_ns - poses->front().t_ns) * 1e-9;
     if (flight_s < duration_s) {
-      return Error{ErrorCode::kInvalidArgument, file.string() + " covers only " + std::to_string(flight_s) +
-                                                    " s; ask for a shorter --duration"};
+      return Error{ErrorCode::kInvalidArgument,
+                   file.string() + " covers only " + std::to_string(flight_s) + " s; ask for a shorter --duration"};
     }
     Result<std::vector<PathSample>> samples = pathSamplesFromPoses(*poses, duration_s);
     if (!samples) return samples.error().withContext(file.string());
@@ -305,8 +307,8 @@ Result<MissionPlan> planMission(const MissionPlanOptions& options) {
   std::vector<std::filesystem::path> replay = options.replay;
   if (options.preset == "euroc-mh") {
     const std::filesystem::path dir = options.data_dir.empty() ? defaultDataDir() : options.data_dir;
-    for (const char* name : {"MH_01_easy.txt", "MH_02_easy.txt", "MH_03_medium.txt", "MH_04_difficult.txt",
-                             "MH_05_difficult.txt"}) {
+    for (const char* name :
+         {"MH_01_easy.txt", "MH_02_easy.txt", "MH_03_medium.txt", "MH_04_difficult.txt", "MH_05_difficult.txt"}) {
       replay.push_back(dir / "euroc-groundtruth" / name);
     }
   }

@@ -26,12 +26,12 @@ struct MissionPlan {
 };
 
 struct MissionPlanOptions {
-  std::string preset = "loop";            // loop, overlap2, hall4, hall8, aggressive, euroc-mh; or "replay"
+  std::string preset = "loop";  // loop, overlap2, hall4, hall8, aggressive, euroc-mh; or "replay"
   std::uint64_t seed = 0;
-  double duration_s = 60.0;               // per agent
+  double duration_s = 60.0;                   // per agent
   std::vector<std::filesystem::path> replay;  // ground-truth files (TUM) to replay, one agent each
-  std::filesystem::path data_dir;         // for euroc-mh: holds euroc-groundtruth/MH_0x_*.txt
-  double min_clearance_m = 0.8;           // obstacles closer than this to any agent's path are left out
+  std::filesystem::path data_dir;             // for euroc-mh: holds euroc-groundtruth/MH_0x_*.txt
+  double min_clearance_m = 0.8;               // obstacles closer than this to any agent's path are left out
 };
 
 // The preset names, in the order --help lists them.

@@ -32,11 +32,16 @@ void renderFrames(benchmark::State& state, const char* preset) {
     t += 0.05;
     if (t > options.duration_s) t = 0.0;
   }
-  state.counters["frames_per_s"] = benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
+  state.counters["frames_per_s"] =
+      benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
 }
 
-void BM_RenderLoop752x480(benchmark::State& state) { renderFrames(state, "loop"); }
-void BM_RenderAggressive752x480(benchmark::State& state) { renderFrames(state, "aggressive"); }
+void BM_RenderLoop752x480(benchmark::State& state) {
+  renderFrames(state, "loop");
+}
+void BM_RenderAggressive752x480(benchmark::State& state) {
+  renderFrames(state, "aggressive");
+}
 BENCHMARK(BM_RenderLoop752x480)->Unit(benchmark::kMillisecond)->MinTime(3.0);
 BENCHMARK(BM_RenderAggressive752x480)->Unit(benchmark::kMillisecond)->MinTime(3.0);
 

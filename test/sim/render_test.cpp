@@ -68,7 +68,7 @@ TEST(Renderer, DrawnSurfacePointsReprojectOntoTheirPixelsWithTheWrittenGroundTru
           // The point lies on the surface it was drawn from ...
           const int axis = (hit.face % 6) / 2;
           const Box& box = hit.face / 6 == 0 ? plan->layout.hall
-                                              : plan->layout.obstacles[static_cast<std::size_t>(hit.face / 6 - 1)];
+                                             : plan->layout.obstacles[static_cast<std::size_t>(hit.face / 6 - 1)];
           EXPECT_NEAR(hit.p_w(axis), hit.face % 2 == 1 ? box.max_w(axis) : box.min_w(axis), 1e-9);
           // ... and the camera model projects it back onto the pixel.
           const auto projected = written_model->project(T_w_c.inverse() * hit.p_w);

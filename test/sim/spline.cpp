@@ -61,8 +61,8 @@ Vector6d QuinticSpline::evaluate(double t_s, int derivative_order) const {
   // on the same knots, divided by h^k.
   std::array<double, p + 1> basis{};
   uniformBasis(x, m, p - k, basis);
-  static constexpr int kBinomial[5][5] = {{1, 0, 0, 0, 0}, {1, 1, 0, 0, 0}, {1, 2, 1, 0, 0}, {1, 3, 3, 1, 0},
-                                          {1, 4, 6, 4, 1}};
+  static constexpr int kBinomial[5][5] = {
+      {1, 0, 0, 0, 0}, {1, 1, 0, 0, 0}, {1, 2, 1, 0, 0}, {1, 3, 3, 1, 0}, {1, 4, 6, 4, 1}};
   Vector6d value = Vector6d::Zero();
   for (int r = 0; r <= p - k; ++r) {
     const int i = m - (p - k) + r;
@@ -115,8 +115,8 @@ Result<QuinticSpline> fitQuinticSpline(const std::vector<double>& t_s, const std
   for (int i = 3; i < n; ++i) {
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
-        triplets.emplace_back(i - a, i - b, options.smoothing * d3[static_cast<std::size_t>(a)] *
-                                                d3[static_cast<std::size_t>(b)]);
+        triplets.emplace_back(i - a, i - b,
+                              options.smoothing * d3[static_cast<std::size_t>(a)] * d3[static_cast<std::size_t>(b)]);
       }
     }
   }
@@ -124,7 +124,8 @@ Result<QuinticSpline> fitQuinticSpline(const std::vector<double>& t_s, const std
   Eigen::SparseMatrix<double> normal(n, n);
   normal.setFromTriplets(triplets.begin(), triplets.end());
   Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver(normal);
-  if (solver.info() != Eigen::Success) return Error{ErrorCode::kDegenerate, "spline fit: normal equations are singular"};
+  if (solver.info() != Eigen::Success)
+    return Error{ErrorCode::kDegenerate, "spline fit: normal equations are singular"};
   const Eigen::MatrixXd solution = solver.solve(rhs);
   std::vector<Vector6d> control(static_cast<std::size_t>(n));
   for (int i = 0; i < n; ++i) control[static_cast<std::size_t>(i)] = solution.row(i).transpose();

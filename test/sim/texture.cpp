@@ -13,8 +13,8 @@ namespace {
 
 // Value noise on an integer lattice: smooth, non-periodic, deterministic from the seed.
 double latticeValue(std::int64_t ix, std::int64_t iy, std::uint64_t seed) {
-  const std::uint64_t h = mix64(seed ^ mix64(static_cast<std::uint64_t>(ix) * 0x9E3779B97F4A7C15ULL +
-                                             static_cast<std::uint64_t>(iy)));
+  const std::uint64_t h =
+      mix64(seed ^ mix64(static_cast<std::uint64_t>(ix) * 0x9E3779B97F4A7C15ULL + static_cast<std::uint64_t>(iy)));
   return static_cast<double>(h >> 11U) * 0x1.0p-53;
 }
 
@@ -46,7 +46,8 @@ Texture::Texture(double width_m, double height_m, std::uint64_t seed, const Text
   for (std::size_t y = 0; y < h; ++y) {
     for (std::size_t x = 0; x < w; ++x) {
       const double u = static_cast<double>(x) * tau, v = static_cast<double>(y) * tau;
-      const double n = 0.5 * valueNoise(u / 1.0, v / 1.0, noise_seed) + 0.3 * valueNoise(u / 0.3, v / 0.3, noise_seed + 1) +
+      const double n = 0.5 * valueNoise(u / 1.0, v / 1.0, noise_seed) +
+                       0.3 * valueNoise(u / 0.3, v / 0.3, noise_seed + 1) +
                        0.2 * valueNoise(u / 0.1, v / 0.1, noise_seed + 2);
       value[y * w + x] = static_cast<float>(n);
     }
@@ -89,7 +90,8 @@ Texture::Texture(double width_m, double height_m, std::uint64_t seed, const Text
         for (int x = x0; x <= x1; ++x) {
           const double du = x * tau - cu, dv = y * tau - cv;
           const double a = ca * du + sa * dv, b = -sa * du + ca * dv;
-          const bool inside = disc ? (a * a + b * b <= half_a * half_a) : (std::abs(a) <= half_a && std::abs(b) <= half_b);
+          const bool inside =
+              disc ? (a * a + b * b <= half_a * half_a) : (std::abs(a) <= half_a && std::abs(b) <= half_b);
           if (!inside) continue;
           float& t = value[static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x)];
           // The noise already stored modulates the new shape slightly, so large shapes are not flat.
@@ -105,7 +107,8 @@ Texture::Texture(double width_m, double height_m, std::uint64_t seed, const Text
   const std::uint64_t light_seed = deriveSeed(seed, 3);
   for (std::size_t y = 0; y < h; ++y) {
     for (std::size_t x = 0; x < w; ++x) {
-      const double light = 0.88 + 0.24 * valueNoise(static_cast<double>(x) * tau / 2.5, static_cast<double>(y) * tau / 2.5, light_seed);
+      const double light =
+          0.88 + 0.24 * valueNoise(static_cast<double>(x) * tau / 2.5, static_cast<double>(y) * tau / 2.5, light_seed);
       const double grey = (15.0 + 225.0 * static_cast<double>(value[y * w + x])) * light;
       base.data[y * w + x] = static_cast<std::uint8_t>(std::lround(std::clamp(grey, 0.0, 255.0)));
     }
@@ -126,7 +129,8 @@ Texture::Texture(double width_m, double height_m, std::uint64_t seed, const Text
         const int xa = std::min(2 * x, fine.width - 1), xb = std::min(2 * x + 1, fine.width - 1);
         const int ya = std::min(2 * y, fine.height - 1), yb = std::min(2 * y + 1, fine.height - 1);
         const int sum = fine.at(xa, ya) + fine.at(xb, ya) + fine.at(xa, yb) + fine.at(xb, yb);
-        coarse.data[static_cast<std::size_t>(y) * static_cast<std::size_t>(coarse.width) + static_cast<std::size_t>(x)] =
+        coarse
+            .data[static_cast<std::size_t>(y) * static_cast<std::size_t>(coarse.width) + static_cast<std::size_t>(x)] =
             static_cast<std::uint8_t>((sum + 2) / 4);
       }
     }

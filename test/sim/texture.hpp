@@ -2,8 +2,8 @@
 //
 // Each surface gets its own seed. The pattern is a "dead leaves" image: opaque rectangles, discs and bars at
 // five scales (3 cm to 60 cm), drawn from large to small, over hash-based value noise, and lit by a slow
-// (2.5 m) brightness modulation. Nothing repeats, so places look different to a place recogniser; every scale carries corners, so
-// ORB finds features near and far. The texture is stored as a mip pyramid for lookups at any distance.
+// (2.5 m) brightness modulation. Nothing repeats, so places look different to a place recogniser; every scale carries
+// corners, so ORB finds features near and far. The texture is stored as a mip pyramid for lookups at any distance.
 #pragma once
 
 #include <cstdint>

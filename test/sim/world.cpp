@@ -13,8 +13,12 @@ namespace {
 constexpr std::uint64_t kTextureStream = 0x7E47;
 
 // The two in-face axes of a face perpendicular to `axis`.
-inline int firstAxis(int axis) { return axis == 0 ? 1 : 0; }
-inline int secondAxis(int axis) { return axis == 2 ? 1 : 2; }
+inline int firstAxis(int axis) {
+  return axis == 0 ? 1 : 0;
+}
+inline int secondAxis(int axis) {
+  return axis == 2 ? 1 : 2;
+}
 
 }  // namespace
 
@@ -31,9 +35,9 @@ World::World(WorldLayout layout, const WorldOptions& options) : layout_(std::mov
         // An obstacle's bottom on the floor is never seen.
         if (b > 0 && axis == 2 && side == 0 && bx.min_w.z() <= floor_z + 1e-6) continue;
         Face& f = faces_[static_cast<std::size_t>(face)];
-        f.texture = std::make_unique<Texture>(size(firstAxis(axis)), size(secondAxis(axis)),
-                                              deriveSeed(options.seed, kTextureStream, static_cast<std::uint64_t>(face)),
-                                              options.texture);
+        f.texture = std::make_unique<Texture>(
+            size(firstAxis(axis)), size(secondAxis(axis)),
+            deriveSeed(options.seed, kTextureStream, static_cast<std::uint64_t>(face)), options.texture);
         // Soft, fixed "lighting": floors brighter, ceilings darker, walls by direction.
         static constexpr float kBrightness[6] = {0.92F, 0.84F, 0.88F, 0.96F, 1.0F, 0.72F};
         f.brightness = kBrightness[2 * axis + side];

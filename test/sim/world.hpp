@@ -20,7 +20,7 @@ struct Box {
 };
 
 struct WorldLayout {
-  Box hall;                 // the room; cameras are inside it
+  Box hall;  // the room; cameras are inside it
   std::vector<Box> obstacles;
 };
 
