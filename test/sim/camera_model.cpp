@@ -30,10 +30,10 @@ dataset::CameraCalibration eurocCam0() {
   cam.cy = 248.375;
   cam.distortion = dataset::DistortionModel::kRadialTangential;
   cam.distortion_coefficients = {-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05};
-  const double T_BS[12] = {0.0148655429818,  -0.999880929698,  0.00414029679422, -0.0216401454975,
-                           0.999557249008,   0.0149672133247,  0.025715529948,   -0.064676986768,
-                           -0.0257744366974, 0.00375618835797, 0.999660727178,   0.00981073058949};
-  cam.T_b_c = fromRowMajor(T_BS);
+  const double T_b_c_rows[12] = {0.0148655429818,  -0.999880929698,  0.00414029679422, -0.0216401454975,
+                                 0.999557249008,   0.0149672133247,  0.025715529948,   -0.064676986768,
+                                 -0.0257744366974, 0.00375618835797, 0.999660727178,   0.00981073058949};
+  cam.T_b_c = fromRowMajor(T_b_c_rows);
   // No colon in comments: writeCameraCalibration() writes them as plain YAML scalars.
   cam.comment = "cvislam_sim, EuRoC cam0 (MT9M034) calibration";
   return cam;
@@ -47,10 +47,10 @@ dataset::CameraCalibration eurocCam1() {
   cam.cx = 379.999;
   cam.cy = 255.238;
   cam.distortion_coefficients = {-0.28368365, 0.07451284, -0.00010473, -3.55590700e-05};
-  const double T_BS[12] = {0.0125552670891,  -0.999755099723, 0.0182237714554, -0.0198435579556,
-                           0.999598781151,   0.0130119051815, 0.0251588363115, 0.0453689425024,
-                           -0.0253898008918, 0.0179005838253, 0.999517347078,  0.00786212447038};
-  cam.T_b_c = fromRowMajor(T_BS);
+  const double T_b_c_rows[12] = {0.0125552670891,  -0.999755099723, 0.0182237714554, -0.0198435579556,
+                                 0.999598781151,   0.0130119051815, 0.0251588363115, 0.0453689425024,
+                                 -0.0253898008918, 0.0179005838253, 0.999517347078,  0.00786212447038};
+  cam.T_b_c = fromRowMajor(T_b_c_rows);
   cam.comment = "cvislam_sim, EuRoC cam1 (MT9M034) calibration";
   return cam;
 }
@@ -92,8 +92,8 @@ Eigen::Vector2d CameraModel::distort(const Eigen::Vector2d& x, Eigen::Matrix2d* 
   const double u = x.x(), v = x.y();
   const double r2 = u * u + v * v;
   const double radial = 1.0 + k1 * r2 + k2 * r2 * r2;
-  const Eigen::Vector2d d(u * radial + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u),
-                          v * radial + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v);
+  Eigen::Vector2d d(u * radial + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u),
+                    v * radial + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v);
   if (J_d_x) {
     const double d_radial_d_r2 = k1 + 2.0 * k2 * r2;
     (*J_d_x)(0, 0) = radial + u * d_radial_d_r2 * 2.0 * u + 2.0 * p1 * v + p2 * 6.0 * u;

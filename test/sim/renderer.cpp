@@ -78,7 +78,7 @@ void Renderer::render(const World& world, const geometry::SE3d& T_w_c, double ga
   if (image.width != w || image.height != h) image = dataset::GrayImage(w, h);
   const geometry::SE3d T_c_w = T_w_c.inverse();
   const Eigen::Matrix3d R_w_c = T_w_c.rotationMatrix();
-  const Eigen::Vector3d o_w = T_w_c.translation();
+  const Eigen::Vector3d& o_w = T_w_c.translation();
   const auto g = static_cast<float>(gain);
   std::vector<int> cands;
   cands.reserve(world.layout().obstacles.size());

@@ -22,7 +22,7 @@ struct RendererOptions {
 
 class Renderer {
  public:
-  Renderer(CameraModel camera, const RendererOptions& options = {});
+  explicit Renderer(CameraModel camera, const RendererOptions& options = {});
 
   // Renders into `image` (resized as needed); gain scales intensities (exposure), 1 = nominal.
   void render(const World& world, const geometry::SE3d& T_w_c, double gain, dataset::GrayImage& image) const;

@@ -35,9 +35,9 @@ void uniformBasis(double x, int m, int d, std::array<double, QuinticSpline::kDeg
 
 // Span index and spline parameter for time t: x = degree + t/h, m = floor(x) clamped to the valid spans.
 void locate(double t_s, double h, int n_control, double& x, int& m) {
-  constexpr int p = QuinticSpline::kDegree;
-  x = p + t_s / h;
-  x = std::clamp(x, static_cast<double>(p), static_cast<double>(n_control));
+  constexpr int kP = QuinticSpline::kDegree;
+  x = kP + t_s / h;
+  x = std::clamp(x, static_cast<double>(kP), static_cast<double>(n_control));
   m = std::min(static_cast<int>(std::floor(x)), n_control - 1);
 }
 
@@ -51,21 +51,21 @@ double QuinticSpline::duration() const {
 }
 
 Vector6d QuinticSpline::evaluate(double t_s, int derivative_order) const {
-  constexpr int p = kDegree;
+  constexpr int kP = kDegree;
   const int n = static_cast<int>(control_points_.size());
   double x = 0.0;
   int m = 0;
   locate(t_s, knot_spacing_s_, n, x, m);
-  const int k = std::clamp(derivative_order, 0, p - 1);
-  // The k-th derivative is a degree p-k spline over the k-th backward differences of the control points,
+  const int k = std::clamp(derivative_order, 0, kP - 1);
+  // The k-th derivative is a degree (kP - k) spline over the k-th backward differences of the control points,
   // on the same knots, divided by h^k.
-  std::array<double, p + 1> basis{};
-  uniformBasis(x, m, p - k, basis);
+  std::array<double, kP + 1> basis{};
+  uniformBasis(x, m, kP - k, basis);
   static constexpr int kBinomial[5][5] = {
       {1, 0, 0, 0, 0}, {1, 1, 0, 0, 0}, {1, 2, 1, 0, 0}, {1, 3, 3, 1, 0}, {1, 4, 6, 4, 1}};
   Vector6d value = Vector6d::Zero();
-  for (int r = 0; r <= p - k; ++r) {
-    const int i = m - (p - k) + r;
+  for (int r = 0; r <= kP - k; ++r) {
+    const int i = m - (kP - k) + r;
     Vector6d diff = Vector6d::Zero();
     for (int j = 0; j <= k; ++j) {
       const double sign = (j % 2 == 0) ? 1.0 : -1.0;
@@ -78,7 +78,7 @@ Vector6d QuinticSpline::evaluate(double t_s, int derivative_order) const {
 
 Result<QuinticSpline> fitQuinticSpline(const std::vector<double>& t_s, const std::vector<Vector6d>& values,
                                        double duration_s, const SplineFitOptions& options) {
-  constexpr int p = QuinticSpline::kDegree;
+  constexpr int kP = QuinticSpline::kDegree;
   if (t_s.size() != values.size() || t_s.empty()) {
     return Error{ErrorCode::kInvalidArgument, "spline fit: need as many times as values, and at least one"};
   }
@@ -86,11 +86,11 @@ Result<QuinticSpline> fitQuinticSpline(const std::vector<double>& t_s, const std
     return Error{ErrorCode::kInvalidArgument, "spline fit: knot spacing and duration must be positive"};
   }
   const int spans = std::max(1, static_cast<int>(std::ceil(duration_s / options.knot_spacing_s - 1e-9)));
-  const int n = spans + p;
+  const int n = spans + kP;
   using Triplet = Eigen::Triplet<double>;
   std::vector<Triplet> triplets;
   Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(n, 6);
-  std::array<double, p + 1> basis{};
+  std::array<double, kP + 1> basis{};
   std::size_t used = 0;
   for (std::size_t s = 0; s < t_s.size(); ++s) {
     if (t_s[s] < -1e-9 || t_s[s] > spans * options.knot_spacing_s + 1e-9) continue;
@@ -98,16 +98,17 @@ Result<QuinticSpline> fitQuinticSpline(const std::vector<double>& t_s, const std
     double x = 0.0;
     int m = 0;
     locate(t_s[s], options.knot_spacing_s, n, x, m);
-    uniformBasis(x, m, p, basis);
-    for (int a = 0; a <= p; ++a) {
-      const int ia = m - p + a;
+    uniformBasis(x, m, kP, basis);
+    for (int a = 0; a <= kP; ++a) {
+      const int ia = m - kP + a;
       rhs.row(ia) += basis[static_cast<std::size_t>(a)] * values[s].transpose();
-      for (int b = 0; b <= p; ++b) {
-        triplets.emplace_back(ia, m - p + b, basis[static_cast<std::size_t>(a)] * basis[static_cast<std::size_t>(b)]);
+      for (int b = 0; b <= kP; ++b) {
+        triplets.emplace_back(ia, m - kP + b, basis[static_cast<std::size_t>(a)] * basis[static_cast<std::size_t>(b)]);
       }
     }
   }
-  if (used < static_cast<std::size_t>(p + 1)) {
+  constexpr std::size_t kMinSamples = kP + 1;
+  if (used < kMinSamples) {
     return Error{ErrorCode::kDataError, "spline fit: only " + std::to_string(used) + " samples in the time range"};
   }
   // Third differences c_i - 3c_{i-1} + 3c_{i-2} - c_{i-3}, plus a tiny ridge so that the system is never singular.

@@ -24,7 +24,7 @@ inline int secondAxis(int axis) {
 
 World::World(WorldLayout layout, const WorldOptions& options) : layout_(std::move(layout)) {
   const int boxes = 1 + static_cast<int>(layout_.obstacles.size());
-  faces_.resize(static_cast<std::size_t>(6 * boxes));
+  faces_.resize(6 * static_cast<std::size_t>(boxes));
   const double floor_z = layout_.hall.min_w.z();
   for (int b = 0; b < boxes; ++b) {
     const Box& bx = box(b);
