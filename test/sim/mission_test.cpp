@@ -1,6 +1,7 @@
 // Missions as a whole: readable EuRoC output, determinism, path properties, and the command line.
 #include <sys/wait.h>
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
@@ -119,6 +120,60 @@ TEST(CvislamSim, EurocMhWithoutDataNamesTheMissingFile) {
       runSim("--replay " + (dir / "nope.txt").string() + " --duration 1 -q --out " + (dir / "r").string());
   EXPECT_EQ(replay.exit_code, 1);
   EXPECT_NE(replay.output.find("nope.txt"), std::string::npos) << replay.output;
+}
+
+TEST(MissionWriter, PixelNoiseHasTheRequestedSigmaAndExposureChangesBrightnessSmoothly) {
+  const test::TempDir dir;
+  MissionPlanOptions plan_options;
+  plan_options.preset = "loop";
+  plan_options.duration_s = 0.5;
+  auto plan = planMission(plan_options);
+  ASSERT_TRUE(plan.ok());
+  constexpr double kSigma = 3.0;
+  constexpr double kExposure = 0.3;
+  for (const char* variant : {"clean", "noisy", "exposure"}) {
+    MissionWriterOptions options = defaultWriterOptions();
+    options.out_dir = dir / variant;
+    options.texture.texel_size_m = 0.02;
+    options.pixel_noise_sigma = std::string(variant) == "noisy" ? kSigma : 0.0;
+    options.exposure_amplitude = std::string(variant) == "exposure" ? kExposure : 0.0;
+    ASSERT_TRUE(writeMission(*plan, options).ok()) << variant;
+  }
+  auto clean = dataset::EurocSequence::open(dir / "clean" / "agent0");
+  auto noisy = dataset::EurocSequence::open(dir / "noisy" / "agent0");
+  auto exposed = dataset::EurocSequence::open(dir / "exposure" / "agent0");
+  ASSERT_TRUE(clean.ok() && noisy.ok() && exposed.ok());
+  double sum = 0.0, sum_sq = 0.0, count = 0.0;
+  std::vector<double> gain;
+  for (std::size_t f = 0; f < clean->cam0().frames.size(); ++f) {
+    auto a = clean->loadImage(0, f);
+    auto b = noisy->loadImage(0, f);
+    auto c = exposed->loadImage(0, f);
+    ASSERT_TRUE(a.ok() && b.ok() && c.ok());
+    double mean_a = 0.0, mean_c = 0.0;
+    for (std::size_t i = 0; i < a->pixels.size(); ++i) {
+      if (a->pixels[i] > 10 && a->pixels[i] < 245) {  // away from clipping
+        const double d = static_cast<double>(b->pixels[i]) - static_cast<double>(a->pixels[i]);
+        sum += d;
+        sum_sq += d * d;
+        count += 1.0;
+      }
+      mean_a += a->pixels[i];
+      mean_c += c->pixels[i];
+    }
+    gain.push_back(mean_c / mean_a);
+  }
+  const double mean = sum / count;
+  EXPECT_NEAR(mean, 0.0, 0.05);
+  EXPECT_NEAR(std::sqrt(sum_sq / count - mean * mean), kSigma, 0.1 * kSigma);
+  for (std::size_t f = 0; f < gain.size(); ++f) {
+    EXPECT_GT(gain[f], 1.0 - kExposure - 0.05);
+    EXPECT_LT(gain[f], 1.0 + kExposure + 0.05);
+    if (f > 0) {
+      EXPECT_LT(std::abs(gain[f] - gain[f - 1]), 0.05) << "exposure jumps at frame " << f;
+    }
+  }
+  EXPECT_GT(std::abs(gain.front() - 1.0) + std::abs(gain.back() - 1.0), 0.01);  // it does change brightness
 }
 
 // ---------------------------------------------------------------------------------------- path properties

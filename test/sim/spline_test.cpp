@@ -94,5 +94,16 @@ TEST(BodyTrajectory, LevelFlightHasTheImuXAxisUpAndTheCameraAxisForward) {
   EXPECT_LT((R_w_b.col(2) - Eigen::Vector3d::UnitX()).norm(), 1e-12);  // z forward
 }
 
+TEST(ReplayInput, RefusesPosesWhoseImuXAxisIsNotUp) {
+  dataset::Trajectory poses(3);
+  for (std::size_t i = 0; i < poses.size(); ++i) {
+    poses[i].t_ns = static_cast<std::int64_t>(i) * 5'000'000;
+    poses[i].T_w_b = geometry::SE3d();  // identity: body x horizontal, z (camera) pointing up
+  }
+  auto sut = pathSamplesFromPoses(poses, 1.0);
+  ASSERT_FALSE(sut.ok());
+  EXPECT_NE(sut.error().message().find("x axis should point up"), std::string::npos) << sut.error().message();
+}
+
 }  // namespace
 }  // namespace cvislam::sim
