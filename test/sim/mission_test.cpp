@@ -7,6 +7,7 @@
 #include <fstream>
 #include <iterator>
 #include <map>
+#include <numbers>
 #include <string>
 
 #include <gtest/gtest.h>
@@ -271,14 +272,17 @@ TEST(MissionPlans, EurocMhReplaysTheFiveFlightsInsideAHallAroundThem) {
   Diagnostics diagnostics;
   auto real = dataset::readTrajectory(gt_dir / "MH_03_medium.txt", {}, diagnostics);
   ASSERT_TRUE(real.ok());
-  double worst_m = 0.0;
+  double worst_m = 0.0, worst_rad = 0.0;
   for (std::size_t i = 0; i < real->size(); i += 20) {
     const double t = static_cast<double>((*real)[i].t_ns - real->front().t_ns) * 1e-9;
     if (t > options.duration_s) break;
-    worst_m = std::max(
-        worst_m, ((*real)[i].T_w_b.translation() - plan->agents[2].trajectory.state(t).T_w_b.translation()).norm());
+    const geometry::SE3d replayed = plan->agents[2].trajectory.state(t).T_w_b;
+    worst_m = std::max(worst_m, ((*real)[i].T_w_b.translation() - replayed.translation()).norm());
+    worst_rad = std::max(worst_rad, ((*real)[i].T_w_b.so3().inverse() * replayed.so3()).log().norm());
   }
   EXPECT_LT(worst_m, 0.05);
+  EXPECT_LT(worst_rad, 2.0 * std::numbers::pi / 180.0);
+  RecordProperty("replay_worst_error", std::to_string(worst_m) + " m, " + std::to_string(worst_rad) + " rad");
   for (const AgentPlan& agent : plan->agents) {
     for (double t = 0.0; t <= options.duration_s; t += 0.1) {
       const Eigen::Vector3d p = agent.trajectory.state(t).T_w_b.translation();
