@@ -102,6 +102,38 @@ TEST(CvislamSim, RefusesExistingOutputUnlessOverwriteAndThenLeavesNoStaleImages)
   EXPECT_EQ(seq->cam0().frames.size(), 5U);
 }
 
+TEST(CvislamSim, ReplayFollowsTheGivenFlight) {
+  // A flight to replay, written as a TUM file: 4 s of the aggressive preset at 200 Hz.
+  const test::TempDir dir;
+  MissionPlanOptions plan_options;
+  plan_options.preset = "aggressive";
+  plan_options.duration_s = 4.0;
+  auto source = planMission(plan_options);
+  ASSERT_TRUE(source.ok());
+  constexpr std::int64_t kStartNs = 1'403'636'580'838'555'000;
+  dataset::Trajectory flight;
+  for (int k = 0; k <= 800; ++k) {
+    flight.push_back({kStartNs + std::int64_t{5'000'000} * k, source->agents[0].trajectory.state(k / 200.0).T_w_b});
+  }
+  ASSERT_TRUE(dataset::writeTrajectory(dir / "flight.txt", flight, dataset::TrajectoryFormat::kTum).ok());
+
+  const CommandResult r = runSim("--replay " + (dir / "flight.txt").string() +
+                                 " --duration 3 --no-imu-noise -q --out " + (dir / "m").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  auto seq = dataset::EurocSequence::open(dir / "m" / "agent0");
+  ASSERT_TRUE(seq.ok()) << seq.error().toString();
+  ASSERT_EQ(seq->groundTruth().size(), 601U);
+  double worst_m = 0.0, worst_rad = 0.0;
+  for (std::size_t k = 0; k < seq->groundTruth().size(); ++k) {
+    const geometry::SE3d& replayed = seq->groundTruth()[k].T_w_b;
+    worst_m = std::max(worst_m, (replayed.translation() - flight[k].T_w_b.translation()).norm());
+    worst_rad = std::max(worst_rad, (flight[k].T_w_b.so3().inverse() * replayed.so3()).log().norm());
+  }
+  // The replay smooths (knots every 0.1 s), so it follows the flight closely but not exactly.
+  EXPECT_LT(worst_m, 0.01);
+  EXPECT_LT(worst_rad, 0.5 * std::numbers::pi / 180.0);
+}
+
 TEST(CvislamSim, BadCommandLinesExitWith2) {
   EXPECT_EQ(runSim("--preset nosuchpreset --out /tmp/x").exit_code, 2);
   EXPECT_EQ(runSim("--preset loop").exit_code, 2);                              // no --out
