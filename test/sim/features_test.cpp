@@ -37,13 +37,13 @@ FrameFeatures orbFeatures(const dataset::GrayImage& image, cv::Ptr<cv::ORB>& orb
   const cv::Mat view(image.height, image.width, CV_8UC1, const_cast<std::uint8_t*>(image.pixels.data()));
   std::vector<cv::KeyPoint> keypoints;
   orb->detect(view, keypoints);
-  std::vector<bool> covered(kGridColumns * kGridRows, false);
+  std::vector<bool> covered(static_cast<std::size_t>(kGridColumns) * kGridRows, false);
   for (const cv::KeyPoint& k : keypoints) {
     const int cx =
         std::clamp(static_cast<int>(k.pt.x * kGridColumns / static_cast<float>(image.width)), 0, kGridColumns - 1);
     const int cy =
         std::clamp(static_cast<int>(k.pt.y * kGridRows / static_cast<float>(image.height)), 0, kGridRows - 1);
-    covered[static_cast<std::size_t>(cy * kGridColumns + cx)] = true;
+    covered[static_cast<std::size_t>(cy) * kGridColumns + static_cast<std::size_t>(cx)] = true;
   }
   FrameFeatures f;
   f.keypoints = static_cast<int>(keypoints.size());

@@ -36,14 +36,14 @@ void renderFrames(benchmark::State& state, const char* preset) {
       benchmark::Counter(static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
 }
 
-void BM_RenderLoop752x480(benchmark::State& state) {
+void renderLoop752x480(benchmark::State& state) {
   renderFrames(state, "loop");
 }
-void BM_RenderAggressive752x480(benchmark::State& state) {
+void renderAggressive752x480(benchmark::State& state) {
   renderFrames(state, "aggressive");
 }
-BENCHMARK(BM_RenderLoop752x480)->Unit(benchmark::kMillisecond)->MinTime(3.0);
-BENCHMARK(BM_RenderAggressive752x480)->Unit(benchmark::kMillisecond)->MinTime(3.0);
+BENCHMARK(renderLoop752x480)->Unit(benchmark::kMillisecond)->MinTime(3.0);
+BENCHMARK(renderAggressive752x480)->Unit(benchmark::kMillisecond)->MinTime(3.0);
 
 }  // namespace
 }  // namespace cvislam::sim

@@ -15,7 +15,7 @@ constexpr double kHeightM = 3.0;
 
 std::vector<double> patch(const Texture& t, int x0, int y0, int size) {
   std::vector<double> out;
-  out.reserve(static_cast<std::size_t>(size * size));
+  out.reserve(static_cast<std::size_t>(size) * static_cast<std::size_t>(size));
   for (int y = y0; y < y0 + size; ++y) {
     for (int x = x0; x < x0 + size; ++x) out.push_back(t.texel(x, y));
   }
@@ -60,7 +60,7 @@ TEST(Texture, HasHighContrastAtFineAndCoarseScales) {
   EXPECT_GT(standardDeviation(patch(sut, 0, 0, 300)), 50.0);  // 1 cm texels
   std::vector<double> coarse;                                 // seen through 8 cm pixels (mip level 3)
   for (double v = 0.0; v < kHeightM; v += 0.08) {
-    for (double u = 0.0; u < kWidthM; u += 0.08) coarse.push_back(sut.sample(u, v, 0.08));
+    for (double u = 0.0; u < kWidthM; u += 0.08) coarse.push_back(static_cast<double>(sut.sample(u, v, 0.08)));
   }
   EXPECT_GT(standardDeviation(coarse), 25.0);
 }
