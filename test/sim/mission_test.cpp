@@ -230,6 +230,17 @@ void expectUavLikePaths(const MissionPlan& plan, double max_speed_mps) {
           << agent.name << " leaves the hall at t=" << t;
       for (const Box& b : plan.layout.obstacles) ASSERT_GT(distanceToBox(b, p), 0.5) << agent.name << " t=" << t;
     }
+    // Like a UAV with a forward camera, it mostly looks where it flies (camera axis = body z).
+    int fast = 0, forward = 0;
+    for (double t = 0.0; t <= plan.duration_s; t += 0.1) {
+      const KinematicState s = agent.trajectory.state(t);
+      const Eigen::Vector2d v = s.v_w.head<2>();
+      if (v.norm() < 0.5) continue;
+      ++fast;
+      const Eigen::Vector2d look = s.T_w_b.rotationMatrix().col(2).head<2>();
+      if (look.normalized().dot(v.normalized()) > std::cos(75.0 * std::numbers::pi / 180.0)) ++forward;
+    }
+    EXPECT_GT(forward, 0.8 * fast) << plan.preset << " " << agent.name << " flies sideways or backwards";
     const double mean_speed = path_m / plan.duration_s;
     EXPECT_GE(mean_speed, 0.5) << plan.preset << " " << agent.name;
     EXPECT_LE(mean_speed, 2.0) << plan.preset << " " << agent.name;

@@ -77,7 +77,9 @@ std::vector<PathSample> sampleRingPath(const RingMotion& m, double duration_s, s
       const double omega = angular_rate * kPi / (2.0 * m.sweep_half_range);  // mean speed over a half swing
       const double s = omega * progress_s - 0.5 * kPi;                       // start at the end of the arc, at rest
       theta = m.start_angle + m.direction * m.sweep_half_range * std::sin(s);
-      heading_offset = 0.5 * kPi * (1.0 - std::cos(s)) * m.direction;
+      // Moving along direction * (+theta) while cos(s) > 0: face that way, and turn through a sideways look
+      // to face back when the sweep reverses.
+      heading_offset = (m.direction > 0.0 ? 0.0 : kPi) + 0.5 * kPi * (1.0 - std::cos(s)) * m.direction;
     } else {
       theta = m.start_angle + m.direction * angular_rate * progress_s;
       heading_offset = m.direction > 0.0 ? 0.0 : kPi;
