@@ -10,9 +10,10 @@ find_package(CLI11 REQUIRED CONFIG)                   # libcli11-dev
 
 # OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).
 # We install the per-module -dev packages and fall back to a small find-module; see README "Dependencies".
-find_package(OpenCV 4 QUIET CONFIG COMPONENTS core imgproc imgcodecs)
+find_package(OpenCV 4 QUIET CONFIG COMPONENTS core imgproc imgcodecs features2d calib3d)
 if(NOT OpenCV_FOUND)
-  set(OpenCV_MIN_MODULES core imgproc imgcodecs)
+  # features2d and calib3d: ORB and an independent camera projection in the simulator's tests
+  set(OpenCV_MIN_MODULES core imgproc imgcodecs features2d calib3d)
   include(OpenCVMinimal)
 endif()
 

@@ -1,0 +1,42 @@
+// Writes a planned mission: one EuRoC/ASL dataset folder per agent (DIR/agent0, DIR/agent1, ...) with cam0
+// (and optionally cam1) images, imu0 and state_groundtruth_estimate0, plus DIR/mission.yaml describing it.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <string>
+
+#include "common/core/result.hpp"
+#include "common/dataset/types.hpp"
+#include "test/sim/imu_simulator.hpp"
+#include "test/sim/presets.hpp"
+#include "test/sim/texture.hpp"
+
+namespace cvislam::sim {
+
+struct MissionWriterOptions {
+  std::filesystem::path out_dir;
+  std::uint64_t seed = 0;
+  dataset::CameraCalibration cam0;  // defaults to EuRoC cam0 when created through defaultWriterOptions()
+  dataset::CameraCalibration cam1;
+  bool stereo = false;  // also render cam1
+  dataset::ImuCalibration imu;
+  ImuSimulatorOptions imu_options;
+  double pixel_noise_sigma = 0.0;   // grey levels; 0 = none
+  double exposure_amplitude = 0.0;  // relative gain change, e.g. 0.2 = +-20 %, smooth over ~15 s; 0 = none
+  bool overwrite = false;
+  std::int64_t start_time_ns = 1'600'000'000'000'000'000;  // shared mission clock
+  TextureOptions texture;
+  // Called after each rendered frame: agent index, frames done, frames total.
+  std::function<void(std::size_t, std::size_t, std::size_t)> progress;
+
+  [[nodiscard]] Status validate() const;
+};
+
+MissionWriterOptions defaultWriterOptions();
+
+// Writes every agent of the plan; fails (naming the file) at the first write error.
+Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options);
+
+}  // namespace cvislam::sim
