@@ -113,15 +113,26 @@ Status Preintegration::integrateInterval(std::span<const dataset::ImuSample> sam
                                 [](std::int64_t t, const dataset::ImuSample& s) { return t < s.t_ns; });
   std::size_t k = static_cast<std::size_t>(std::distance(samples.begin(), first)) - 1;
   for (; k + 1 < samples.size() && samples[k].t_ns < t1_ns; ++k) {
-    const std::int64_t gap_ns = samples[k + 1].t_ns - samples[k].t_ns;
+    const dataset::ImuSample& s0 = samples[k];
+    const dataset::ImuSample& s1 = samples[k + 1];
+    const std::int64_t gap_ns = s1.t_ns - s0.t_ns;
     if (gap_ns > max_gap_ns) {
-      return Error{ErrorCode::kDataError, "IMU gap of " + std::to_string(gap_ns / 1'000'000) + " ms after t = " +
-                                              std::to_string(samples[k].t_ns) + " ns (largest allowed " +
+      return Error{ErrorCode::kDataError, "IMU gap of " + std::to_string(gap_ns / 1'000'000) +
+                                              " ms after t = " + std::to_string(s0.t_ns) + " ns (largest allowed " +
                                               std::to_string(max_gap_ns / 1'000'000) + " ms)"};
     }
-    const std::int64_t a_ns = std::max(samples[k].t_ns, t0_ns);
-    const std::int64_t b_ns = std::min(samples[k + 1].t_ns, t1_ns);
-    integrate(static_cast<double>(b_ns - a_ns) * 1e-9, samples[k].gyro_s, samples[k].accel_s);
+    const std::int64_t a_ns = std::max(s0.t_ns, t0_ns);
+    const std::int64_t b_ns = std::min(s1.t_ns, t1_ns);
+    // The readings are instantaneous; between two of them the signal is taken as linear, and the piece
+    // [a, b] is integrated with its mean, the average of the interpolated readings at a and b. Holding the
+    // first reading instead (Forster's scheme) leaves an error of w' dt / 2 per step: 1e-2 rad over 1 s of
+    // aggressive flight at 200 Hz, against 1.3e-4 rad with the mean.
+    const double span = static_cast<double>(gap_ns);
+    const double alpha = 0.5 * static_cast<double>((a_ns - s0.t_ns) + (b_ns - s0.t_ns)) / span;
+    const Vector3d gyro = (1.0 - alpha) * s0.gyro_s + alpha * s1.gyro_s;
+    const Vector3d accel = (1.0 - alpha) * s0.accel_s + alpha * s1.accel_s;
+    const double dt_s = static_cast<double>(b_ns - a_ns) * 1e-9;
+    integrate(dt_s, gyro, accel);
   }
   return Status::Ok();
 }

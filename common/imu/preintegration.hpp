@@ -10,7 +10,7 @@
 //   dR = R_w_si^T R_w_sj
 //   dv = R_w_si^T (v_wj - v_wi - g_w dt)
 //   dp = R_w_si^T (p_wj - p_wi - v_wi dt - 1/2 g_w dt^2)
-// Each sample is held constant over its interval, as in Forster's scheme, but the acceleration is rotated
+// integrate() holds a reading constant over its interval, as in Forster's scheme, but the acceleration is rotated
 // with the delta rotation at the middle of the interval rather than at its start, which removes Euler's
 // first-order error (see integrate()). The covariance of the
 // deltas' errors is propagated in the order [dphi, dv, dp] (right perturbation of dR) from the continuous
@@ -74,8 +74,9 @@ class Preintegration {
   // Adds one measurement held constant for dt_s seconds (dt_s > 0; a non-positive dt_s is ignored).
   void integrate(double dt_s, const Eigen::Vector3d& gyro_s, const Eigen::Vector3d& accel_s);
 
-  // Integrates the samples covering [t0_ns, t1_ns]: the reading at or before t0 is held until the next one,
-  // and the interval is cut at t1, so keyframe times need not coincide with IMU times. Fails, naming the
+  // Integrates the samples covering [t0_ns, t1_ns]. Readings are instantaneous and taken as linear between
+  // two samples: each piece between samples (cut at t0 and t1, so keyframe times need not coincide with IMU
+  // times) is integrated with its mean value. Fails, naming the
   // times, when the samples do not cover the interval or leave a gap larger than max_gap_ns.
   Status integrateInterval(std::span<const dataset::ImuSample> samples, std::int64_t t0_ns, std::int64_t t1_ns,
                            std::int64_t max_gap_ns = 50'000'000);

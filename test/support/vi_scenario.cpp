@@ -78,12 +78,12 @@ ViScenario makeViScenario(const ViScenarioOptions& options) {
   const double duration = options.keyframe_interval_s * (options.keyframes - 1);
   const int sample_count = static_cast<int>(std::llround(duration / imu_dt)) + 1;
   for (int k = 0; k < sample_count; ++k) {
-    const double t_mid = (k + 0.5) * imu_dt;
-    const SO3d R_w_s = baseRotation() * SO3d::exp(phiAt(t_mid));
+    const double t = k * imu_dt;
+    const SO3d R_w_s = baseRotation() * SO3d::exp(phiAt(t));
     dataset::ImuSample sample;
-    sample.t_ns = toNs(k * imu_dt);
-    sample.gyro_s = SO3d::rightJacobian(phiAt(t_mid)) * phiDotAt(t_mid) + options.bias.gyro;
-    sample.accel_s = R_w_s.inverse() * (accelerationAt(t_mid) - imu::kGravityW) + options.bias.accel;
+    sample.t_ns = toNs(t);
+    sample.gyro_s = SO3d::rightJacobian(phiAt(t)) * phiDotAt(t) + options.bias.gyro;
+    sample.accel_s = R_w_s.inverse() * (accelerationAt(t) - imu::kGravityW) + options.bias.accel;
     s.imu.push_back(sample);
   }
 

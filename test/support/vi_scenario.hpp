@@ -19,8 +19,7 @@ struct ViScenarioOptions {
   int keyframes = 8;
   double keyframe_interval_s = 0.5;
   int points = 300;
-  // Each sample holds the value at the middle of its interval, so that Forster's hold-constant integration
-  // is exact to second order and the preintegrated deltas match the truth closely.
+  // Samples are instantaneous readings, as a real IMU's and EuRoC's are.
   double imu_rate_hz = 1000.0;
   imu::ImuBias bias;         // added to every IMU sample
   double pixel_sigma = 0.0;  // Gaussian noise on the observations
