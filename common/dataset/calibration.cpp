@@ -278,10 +278,41 @@ Result<ImuCalibration> readImuCalibration(const std::filesystem::path& sensor_ya
   return imu;
 }
 
+namespace {
+
+// A YAML double-quoted scalar: free text (a comment may hold ':' or '#') survives the round trip.
+std::string yamlQuoted(const std::string& value) {
+  std::string out = "\"";
+  for (const char c : value) {
+    switch (c) {
+      case '"':
+        out += "\\\"";
+        break;
+      case '\\':
+        out += "\\\\";
+        break;
+      case '\n':
+        out += "\\n";
+        break;
+      case '\t':
+        out += "\\t";
+        break;
+      case '\r':
+        out += "\\r";
+        break;
+      default:
+        out += c;
+    }
+  }
+  return out + "\"";
+}
+
+}  // namespace
+
 Status writeCameraCalibration(const std::filesystem::path& sensor_yaml, const CameraCalibration& camera) {
   if (Status st = validate(camera); !st) return st;
   std::string out = "%YAML:1.0\n# General sensor definitions.\nsensor_type: camera\n";
-  out += "comment: " + (camera.comment.empty() ? camera.name : camera.comment) + "\n\n";
+  out += "comment: " + yamlQuoted(camera.comment.empty() ? camera.name : camera.comment) + "\n\n";
   out += "# Sensor extrinsics wrt. the body-frame.\n" + extrinsicsYaml(camera.T_b_c) + "\n";
   out += "# Camera specific definitions.\n";
   out += "rate_hz: " + text::formatDouble(camera.rate_hz) + "\n";
@@ -297,7 +328,7 @@ Status writeCameraCalibration(const std::filesystem::path& sensor_yaml, const Ca
 Status writeImuCalibration(const std::filesystem::path& sensor_yaml, const ImuCalibration& imu) {
   if (Status st = validate(imu); !st) return st;
   std::string out = "%YAML:1.0\nsensor_type: imu\n";
-  out += "comment: " + (imu.comment.empty() ? std::string("imu0") : imu.comment) + "\n\n";
+  out += "comment: " + yamlQuoted(imu.comment.empty() ? std::string("imu0") : imu.comment) + "\n\n";
   out += "# Sensor extrinsics wrt. the body-frame.\n" + extrinsicsYaml(imu.T_b_i);
   out += "rate_hz: " + text::formatDouble(imu.rate_hz) + "\n\n";
   out += "# inertial sensor noise model parameters (static)\n";

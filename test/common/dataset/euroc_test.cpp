@@ -149,6 +149,23 @@ TEST(EurocWriter, WhatItWritesReadsBackExactly) {
   EXPECT_EQ(image->at(10, 20), static_cast<std::uint8_t>((10 * 7 + 20 * 3 + 4 * 11 + 1) & 0xff));
 }
 
+TEST(EurocWriter, CommentsWithYamlSyntaxRoundTrip) {
+  test::TempDir dir;
+  const std::string comment = "cam0: EuRoC # \"MT9M034\", back\\slash\nsecond line";
+  CameraCalibration camera;
+  camera.comment = comment;
+  ASSERT_TRUE(writeCameraCalibration(dir / "cam.yaml", camera).ok());
+  auto camera_back = readCameraCalibration(dir / "cam.yaml", "cam0");
+  ASSERT_TRUE(camera_back.ok()) << camera_back.error().toString();
+  EXPECT_EQ(camera_back->comment, comment);
+  ImuCalibration imu;
+  imu.comment = comment;
+  ASSERT_TRUE(writeImuCalibration(dir / "imu.yaml", imu).ok());
+  auto imu_back = readImuCalibration(dir / "imu.yaml");
+  ASSERT_TRUE(imu_back.ok()) << imu_back.error().toString();
+  EXPECT_EQ(imu_back->comment, comment);
+}
+
 TEST(EurocWriter, OutputIsByteIdenticalAcrossRuns) {
   test::TempDir dir;
   test::writeSmallSequence(dir / "a");
