@@ -10,8 +10,9 @@
 #include <opencv2/core.hpp>
 #include <opencv2/features2d.hpp>
 
+#include "common/camera/camera_model.hpp"
+#include "common/dataset/euroc_calibration.hpp"
 #include "common/dataset/image.hpp"
-#include "test/sim/camera_model.hpp"
 #include "test/sim/presets.hpp"
 #include "test/sim/renderer.hpp"
 #include "test/support/test_data.hpp"
@@ -68,7 +69,7 @@ TEST_P(OrbOnPresets, AtLeast500WellSpreadKeypointsIn95PercentOfFrames) {
   WorldOptions world_options;
   world_options.seed = options.seed;
   const World world(plan->layout, world_options);
-  auto model = CameraModel::create(eurocCam0());
+  auto model = camera::CameraModel::create(dataset::eurocCam0());
   ASSERT_TRUE(model.ok());
   const Renderer renderer(*model);
   // ORB as the paper's front end uses it: 1000 features over 8 levels at scale 1.2 (OpenCV defaults otherwise).

@@ -9,8 +9,9 @@
 
 #include <gtest/gtest.h>
 
+#include "common/camera/camera_model.hpp"
 #include "common/dataset/euroc.hpp"
-#include "test/sim/camera_model.hpp"
+#include "common/dataset/euroc_calibration.hpp"
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
 #include "test/support/temp_dir.hpp"
@@ -150,7 +151,7 @@ TEST(SimulatedImu, NoiseFreeReadingsIntegrateToTheGroundTruthForEveryPreset) {
     ASSERT_TRUE(plan.ok()) << plan.error().toString();
     ImuSimulatorOptions imu_options;
     imu_options.noise = false;
-    const dataset::ImuCalibration calibration = eurocImu();
+    const dataset::ImuCalibration calibration = dataset::eurocImu();
     for (const AgentPlan& agent : plan->agents) {
       ImuSimulator sut(calibration, imu_options, 1);
       std::vector<dataset::ImuSample> imu;
@@ -171,7 +172,7 @@ TEST(SimulatedImu, NoiseFreeReadingsIntegrateToTheGroundTruthForEveryPreset) {
 }
 
 TEST(SimulatedImu, NoiseAndBiasRandomWalkHaveTheEurocFigures) {
-  const dataset::ImuCalibration calibration = eurocImu();
+  const dataset::ImuCalibration calibration = dataset::eurocImu();
   ImuSimulator sut(calibration, ImuSimulatorOptions{}, 99);
   ImuSimulatorOptions exact_options;
   exact_options.noise = false;

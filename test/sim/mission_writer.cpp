@@ -4,9 +4,10 @@
 #include <fstream>
 #include <numbers>
 
+#include "common/camera/camera_model.hpp"
 #include "common/core/text.hpp"
+#include "common/dataset/euroc_calibration.hpp"
 #include "common/dataset/euroc_writer.hpp"
-#include "test/sim/camera_model.hpp"
 #include "test/sim/random.hpp"
 #include "test/sim/renderer.hpp"
 
@@ -64,9 +65,9 @@ Status writeMissionYaml(const MissionPlan& plan, const MissionWriterOptions& opt
 
 MissionWriterOptions defaultWriterOptions() {
   MissionWriterOptions o;
-  o.cam0 = eurocCam0();
-  o.cam1 = eurocCam1();
-  o.imu = eurocImu();
+  o.cam0 = dataset::eurocCam0();
+  o.cam1 = dataset::eurocCam1();
+  o.imu = dataset::eurocImu();
   return o;
 }
 
@@ -100,7 +101,7 @@ Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options
   std::vector<dataset::CameraCalibration> cameras = {options.cam0};
   if (options.stereo) cameras.push_back(options.cam1);
   for (const dataset::CameraCalibration& cal : cameras) {
-    Result<CameraModel> model = CameraModel::create(cal);
+    Result<camera::CameraModel> model = camera::CameraModel::create(cal);
     if (!model) return model.error();
     renderers.emplace_back(std::move(model).value());
   }

@@ -2,7 +2,8 @@
 // Run: build/default/bin/sim_render_bench --benchmark_repetitions=5 --benchmark_report_aggregates_only=true
 #include <benchmark/benchmark.h>
 
-#include "test/sim/camera_model.hpp"
+#include "common/camera/camera_model.hpp"
+#include "common/dataset/euroc_calibration.hpp"
 #include "test/sim/presets.hpp"
 #include "test/sim/renderer.hpp"
 
@@ -22,7 +23,7 @@ void renderFrames(benchmark::State& state, const char* preset) {
   WorldOptions world_options;
   world_options.seed = options.seed;
   const World world(plan->layout, world_options);
-  const Renderer renderer(CameraModel::create(eurocCam0()).value());
+  const Renderer renderer(camera::CameraModel::create(dataset::eurocCam0()).value());
   const geometry::SE3d T_b_c = renderer.camera().calibration().T_b_c;
   dataset::GrayImage image;
   double t = 0.0;

@@ -47,7 +47,7 @@ TEST(Renderer, DrawnSurfacePointsReprojectOntoTheirPixelsWithTheWrittenGroundTru
     ASSERT_TRUE(seq.ok()) << seq.error().toString();
     for (int cam = 0; cam < 2; ++cam) {
       const dataset::CameraStream& stream = seq->camera(cam);
-      auto written_model = CameraModel::create(stream.calibration);
+      auto written_model = camera::CameraModel::create(stream.calibration);
       ASSERT_TRUE(written_model.ok());
       const Renderer sut(*written_model);
       for (std::size_t frame = 0; frame < stream.frames.size(); frame += 7) {
@@ -123,7 +123,7 @@ TEST(Renderer, AKnownPointOnABoxCornerProjectsToWhereTheBoxSilhouetteIs) {
   WorldOptions world_options;
   world_options.texture.texel_size_m = 0.05;
   const World world(layout, world_options);
-  auto model = CameraModel::create(eurocCam0());
+  auto model = camera::CameraModel::create(dataset::eurocCam0());
   ASSERT_TRUE(model.ok());
   const Renderer sut(*model);
   // Camera at 1.5 m height looking along +x (camera z = world x, camera x = world -y, camera y = world -z).

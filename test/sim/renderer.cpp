@@ -5,7 +5,7 @@
 
 namespace cvislam::sim {
 
-Renderer::Renderer(CameraModel camera, const RendererOptions& options) : camera_(std::move(camera)) {
+Renderer::Renderer(camera::CameraModel camera, const RendererOptions& options) : camera_(std::move(camera)) {
   const int w = camera_.width(), h = camera_.height();
   rays_.resize(static_cast<std::size_t>(w) * static_cast<std::size_t>(h));
   for (int y = 0; y < h; ++y) {

@@ -9,9 +9,10 @@
 
 #include <Eigen/Core>
 
+#include "common/camera/camera_model.hpp"
+#include "common/dataset/euroc_calibration.hpp"
 #include "common/dataset/image.hpp"
 #include "common/geometry/lie.hpp"
-#include "test/sim/camera_model.hpp"
 #include "test/sim/world.hpp"
 
 namespace cvislam::sim {
@@ -22,14 +23,14 @@ struct RendererOptions {
 
 class Renderer {
  public:
-  explicit Renderer(CameraModel camera, const RendererOptions& options = {});
+  explicit Renderer(camera::CameraModel camera, const RendererOptions& options = {});
 
   // Renders into `image` (resized as needed); gain scales intensities (exposure), 1 = nominal.
   void render(const World& world, const geometry::SE3d& T_w_c, double gain, dataset::GrayImage& image) const;
   // What the renderer sees through pixel (x, y) (the same code path as render()).
   [[nodiscard]] RayHit castPixel(const World& world, const geometry::SE3d& T_w_c, int x, int y) const;
 
-  [[nodiscard]] const CameraModel& camera() const { return camera_; }
+  [[nodiscard]] const camera::CameraModel& camera() const { return camera_; }
   [[nodiscard]] Eigen::Vector3d ray(int x, int y) const {
     return rays_[static_cast<std::size_t>(y) * static_cast<std::size_t>(camera_.width()) + static_cast<std::size_t>(x)];
   }
@@ -46,7 +47,7 @@ class Renderer {
   [[nodiscard]] float shadePixel(const World& world, const Eigen::Vector3d& o_w, const Eigen::Matrix3d& R_w_c,
                                  std::size_t pixel, const std::vector<int>& candidates) const;
 
-  CameraModel camera_;
+  camera::CameraModel camera_;
   std::vector<Eigen::Vector3d> rays_;  // unit rays in the camera frame, row-major
   std::vector<Tile> tiles_;
   double inv_focal_ = 0.0;  // angle of one pixel [rad]

@@ -5,6 +5,8 @@
 
 #include <ceres/loss_function.h>
 
+#include "common/dataset/euroc_calibration.hpp"
+
 #include "common/factors/imu_factor.hpp"
 #include "common/factors/manifolds.hpp"
 
@@ -20,11 +22,7 @@ constexpr double kImageHeight = 480.0;
 
 // EuRoC cam0 T_BS (body = IMU).
 geometry::SE3d eurocCam0Extrinsics() {
-  Eigen::Matrix3d R;
-  R << 0.0148655429818, -0.999880929698, 0.00414029679422,  //
-      0.999557249008, 0.0149672133247, 0.025715529948,      //
-      -0.0257744366974, 0.00375618835797, 0.999660727178;
-  return {SO3d(R), Vector3d(-0.0216401454975, -0.064676986768, 0.00981073058949)};
+  return dataset::eurocCam0().T_b_c;
 }
 
 // Fixed rotation that makes the camera look along world +x (image x to world -y, image y to world -z)

@@ -9,8 +9,9 @@
 
 #include <gtest/gtest.h>
 
+#include "common/camera/camera_model.hpp"
+#include "common/dataset/euroc_calibration.hpp"
 #include "common/imu/preintegration.hpp"
-#include "test/sim/camera_model.hpp"
 #include "test/sim/imu_simulator.hpp"
 #include "test/sim/presets.hpp"
 
@@ -36,7 +37,7 @@ SimulatedFlight simulate(const std::string& preset, double duration_s, bool nois
   if (!plan.ok()) return flight;
   sim::ImuSimulatorOptions imu_options;
   imu_options.noise = noise;
-  sim::ImuSimulator simulator(sim::eurocImu(), imu_options, seed);
+  sim::ImuSimulator simulator(dataset::eurocImu(), imu_options, seed);
   const sim::BodyTrajectory& trajectory = plan->agents.front().trajectory;
   constexpr std::int64_t kPeriodNs = 5'000'000;  // 200 Hz
   for (std::int64_t t_ns = 0; static_cast<double>(t_ns) * 1e-9 <= trajectory.duration(); t_ns += kPeriodNs) {
@@ -59,7 +60,7 @@ struct WindowErrors {
 
 WindowErrors preintegrateWindows(const SimulatedFlight& flight, std::size_t window_samples) {
   WindowErrors out;
-  const ImuNoise noise = ImuNoise::fromCalibration(sim::eurocImu());
+  const ImuNoise noise = ImuNoise::fromCalibration(dataset::eurocImu());
   for (std::size_t i = 0; i + window_samples < flight.gt.size(); i += window_samples / 2) {
     const std::size_t j = i + window_samples;
     const dataset::GroundTruthState& gi = flight.gt[i];

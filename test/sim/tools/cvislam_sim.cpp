@@ -13,8 +13,9 @@
 
 #include <CLI/CLI.hpp>
 
+#include "common/camera/camera_model.hpp"
 #include "common/dataset/calibration.hpp"
-#include "test/sim/camera_model.hpp"
+#include "common/dataset/euroc_calibration.hpp"
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
 
