@@ -3,7 +3,6 @@
 //
 //   build/default/bin/bench_factors --benchmark_out=factors.json --benchmark_out_format=json
 #include <algorithm>
-#include <cmath>
 #include <vector>
 
 #include <benchmark/benchmark.h>
@@ -12,25 +11,16 @@
 #include "common/factors/imu_factor.hpp"
 #include "common/factors/prior_factor.hpp"
 #include "common/factors/reprojection_factor.hpp"
+#include "test/bench/percentiles.hpp"
 #include "test/support/cost_evaluation.hpp"
 #include "test/support/vi_scenario.hpp"
 
 namespace cvislam {
 namespace {
 
-double percentile(const std::vector<double>& values, double p) {
-  std::vector<double> v = values;
-  std::sort(v.begin(), v.end());
-  return v.empty() ? 0.0 : v[static_cast<std::size_t>(std::lround(p * static_cast<double>(v.size() - 1)))];
-}
-
-// Repetitions with p50 and p99 aggregates; every run stays on one thread.
 void withPercentiles(benchmark::internal::Benchmark* b, int repetitions) {
-  b->Repetitions(repetitions)
-      ->ReportAggregatesOnly(true)
-      ->ComputeStatistics("p50", [](const std::vector<double>& v) { return percentile(v, 0.5); })
-      ->ComputeStatistics("p99", [](const std::vector<double>& v) { return percentile(v, 0.99); })
-      ->Unit(benchmark::kMicrosecond);
+  bench::withPercentiles(b, repetitions);
+  b->Unit(benchmark::kMicrosecond);
 }
 
 const test::ViScenario& scenario() {
