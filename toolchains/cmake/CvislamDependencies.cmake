@@ -3,6 +3,8 @@
 
 find_package(Eigen3 3.4 REQUIRED CONFIG)              # libeigen3-dev
 find_package(Ceres 2.1 REQUIRED CONFIG)              # libceres-dev (static libceres.a; pulls glog, gflags, SuiteSparse)
+find_package(iceoryx_hoofs REQUIRED CONFIG)         # libiceoryx-hoofs-dev
+find_package(iceoryx_posh REQUIRED CONFIG)          # libiceoryx-posh-dev (+ libacl1-dev for the RouDi headers)
 find_package(yaml-cpp REQUIRED CONFIG)                # libyaml-cpp-dev  (target: yaml-cpp, no namespace in 0.7)
 find_package(fmt REQUIRED CONFIG)                     # libfmt-dev
 find_package(nlohmann_json 3.10 REQUIRED CONFIG)      # nlohmann-json3-dev
