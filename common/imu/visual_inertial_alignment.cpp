@@ -1,0 +1,170 @@
+#include "common/imu/visual_inertial_alignment.hpp"
+
+#include <cmath>
+#include <string>
+
+#include <Eigen/Dense>
+
+#include "common/geometry/unit_sphere.hpp"
+
+namespace cvislam::imu {
+
+using Eigen::Matrix3d;
+using Eigen::MatrixXd;
+using Eigen::Vector3d;
+using Eigen::VectorXd;
+using geometry::SO3d;
+
+Status VisualInertialAlignmentOptions::validate() const {
+  if (!(gravity_magnitude > 0.0)) return Error{ErrorCode::kInvalidArgument, "gravity_magnitude must be > 0"};
+  if (gravity_refinement_iterations < 0 || gyro_bias_iterations < 1) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "gyro_bias_iterations must be >= 1 and gravity_refinement_iterations >= 0"};
+  }
+  if (!(max_gravity_magnitude_error > 0.0)) {
+    return Error{ErrorCode::kInvalidArgument, "max_gravity_magnitude_error must be > 0"};
+  }
+  return Status::Ok();
+}
+
+namespace {
+
+// Step 1: the gyroscope bias that makes the preintegrated rotations agree with the visual ones.
+Vector3d estimateGyroBias(const std::vector<SO3d>& R_v_s, const std::vector<Preintegration>& pre, int iterations) {
+  Vector3d bias = pre.front().biasLin().gyro;
+  for (int it = 0; it < iterations; ++it) {
+    Matrix3d H = Matrix3d::Zero();
+    Vector3d g = Vector3d::Zero();
+    for (std::size_t k = 0; k < pre.size(); ++k) {
+      ImuBias b = pre[k].biasLin();
+      b.gyro = bias;
+      const Vector3d correction = pre[k].dR_dbg() * (bias - pre[k].biasLin().gyro);
+      const SO3d E = pre[k].correctedDeltaR(b).inverse() * R_v_s[k].inverse() * R_v_s[k + 1];
+      const Vector3d r = E.log();
+      const Matrix3d J =
+          -SO3d::rightJacobianInverse(r) * E.inverse().matrix() * SO3d::rightJacobian(correction) * pre[k].dR_dbg();
+      H += J.transpose() * J;
+      g += J.transpose() * r;
+    }
+    bias -= H.ldlt().solve(g);
+  }
+  return bias;
+}
+
+struct LinearSystem {
+  MatrixXd A;
+  VectorXd b;
+};
+
+// Step 2 and 3's equations: for each keyframe pair, 3 position rows and 3 velocity rows in the unknowns
+// [v_0 .. v_{N-1}, gravity columns, s]. `gravity_basis` (3 x m) maps the m gravity unknowns to g_v, and
+// `gravity_offset` is the part of g_v that is known.
+LinearSystem buildSystem(const std::vector<SO3d>& R_v_s, const std::vector<Vector3d>& c_v,
+                         const std::vector<Matrix3d>& R_v_c, const Vector3d& t_c_s,
+                         const std::vector<Preintegration>& pre, const ImuBias& bias,
+                         const Eigen::Matrix<double, 3, Eigen::Dynamic>& gravity_basis,
+                         const Vector3d& gravity_offset) {
+  const auto n = static_cast<Eigen::Index>(R_v_s.size());
+  const Eigen::Index m = gravity_basis.cols();
+  const Eigen::Index cols = 3 * n + m + 1;
+  LinearSystem sys{MatrixXd::Zero(6 * (n - 1), cols), VectorXd::Zero(6 * (n - 1))};
+  for (Eigen::Index i = 0; i + 1 < n; ++i) {
+    const auto k = static_cast<std::size_t>(i);
+    const double dt = pre[k].dt();
+    const Matrix3d Rt = R_v_s[k].matrix().transpose();
+    const Eigen::Index row = 6 * i;
+    // Position: R_i^T (s (c_j - c_i) + (R_cj - R_ci) t_cs - v_i dt - g dt^2 / 2) = dp
+    sys.A.block<3, 3>(row, 3 * i) = -Rt * dt;
+    sys.A.block(row, 3 * n, 3, m) = -0.5 * Rt * gravity_basis * dt * dt;
+    sys.A.block<3, 1>(row, cols - 1) = Rt * (c_v[k + 1] - c_v[k]);
+    sys.b.segment<3>(row) =
+        pre[k].correctedDeltaP(bias) - Rt * (R_v_c[k + 1] - R_v_c[k]) * t_c_s + 0.5 * Rt * gravity_offset * dt * dt;
+    // Velocity: R_i^T (v_j - v_i - g dt) = dv
+    sys.A.block<3, 3>(row + 3, 3 * i) = -Rt;
+    sys.A.block<3, 3>(row + 3, 3 * (i + 1)) = Rt;
+    sys.A.block(row + 3, 3 * n, 3, m) = -Rt * gravity_basis * dt;
+    sys.b.segment<3>(row + 3) = pre[k].correctedDeltaV(bias) + Rt * gravity_offset * dt;
+  }
+  return sys;
+}
+
+}  // namespace
+
+Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyframe>& keyframes,
+                                                    const std::vector<Preintegration>& preintegrations,
+                                                    const geometry::SE3d& T_s_c,
+                                                    const VisualInertialAlignmentOptions& options) {
+  if (Status status = options.validate(); !status.ok()) return status.error();
+  if (keyframes.size() < 4) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "IMU initialisation needs at least 4 keyframes, got " + std::to_string(keyframes.size())};
+  }
+  if (preintegrations.size() + 1 != keyframes.size()) {
+    return Error{ErrorCode::kInvalidArgument, "IMU initialisation needs one preintegration between each pair of " +
+                                                  std::to_string(keyframes.size()) + " keyframes, got " +
+                                                  std::to_string(preintegrations.size())};
+  }
+  const geometry::SE3d T_c_s = T_s_c.inverse();
+  std::vector<SO3d> R_v_s;
+  std::vector<Matrix3d> R_v_c;
+  std::vector<Vector3d> c_v;
+  for (const VisualKeyframe& kf : keyframes) {
+    R_v_s.push_back(kf.T_v_c.so3() * T_c_s.so3());
+    R_v_c.push_back(kf.T_v_c.rotationMatrix());
+    c_v.push_back(kf.T_v_c.translation());
+  }
+  const auto n = static_cast<Eigen::Index>(keyframes.size());
+
+  VisualInertialAlignment out;
+  out.gyro_bias = estimateGyroBias(R_v_s, preintegrations, options.gyro_bias_iterations);
+  ImuBias bias = preintegrations.front().biasLin();
+  bias.gyro = out.gyro_bias;
+
+  // Step 2: gravity free (3 unknowns).
+  const LinearSystem free = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), preintegrations, bias,
+                                        Matrix3d::Identity(), Vector3d::Zero());
+  const Eigen::JacobiSVD<MatrixXd> svd(free.A, Eigen::ComputeThinU | Eigen::ComputeThinV);
+  const VectorXd& sv = svd.singularValues();
+  if (sv(sv.size() - 1) < options.min_scale_observability * sv(0)) {
+    return Error{ErrorCode::kDegenerate,
+                 "IMU initialisation: the motion does not observe scale and gravity (too little acceleration or "
+                 "translation); waiting for more keyframes"};
+  }
+  VectorXd x = svd.solve(free.b);
+  Vector3d g_v = x.segment<3>(3 * n);
+  double scale = x(x.size() - 1);
+  const double g_error = std::abs(g_v.norm() - options.gravity_magnitude) / options.gravity_magnitude;
+  if (!(scale > 0.0) || g_error > options.max_gravity_magnitude_error) {
+    return Error{ErrorCode::kDegenerate, "IMU initialisation: implausible solution (scale " + std::to_string(scale) +
+                                             ", |g| " + std::to_string(g_v.norm()) +
+                                             " m/s^2); waiting for more keyframes"};
+  }
+
+  // Step 3: gravity on the sphere of radius |g|, two unknowns about the current direction.
+  for (int it = 0; it < options.gravity_refinement_iterations; ++it) {
+    const Vector3d g_dir = g_v.normalized();
+    const Eigen::Matrix<double, 3, 2> B = geometry::bearingTangentBasis(g_dir);
+    const LinearSystem refined = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), preintegrations, bias, B,
+                                             options.gravity_magnitude * g_dir);
+    x = refined.A.colPivHouseholderQr().solve(refined.b);
+    g_v = (options.gravity_magnitude * g_dir + B * x.segment<2>(3 * n)).normalized() * options.gravity_magnitude;
+    scale = x(x.size() - 1);
+  }
+  if (!(scale > 0.0)) {
+    return Error{ErrorCode::kDegenerate, "IMU initialisation: negative scale after gravity refinement"};
+  }
+
+  out.scale = scale;
+  out.g_v = g_v;
+  // The smallest rotation that turns gravity down: the yaw of v is kept.
+  out.R_w_v = SO3d::exp(geometry::greatCircleRotation(g_v.normalized(), -Vector3d::UnitZ()));
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const auto k = static_cast<std::size_t>(i);
+    const Vector3d p_v_s = scale * c_v[k] + R_v_c[k] * T_c_s.translation();
+    out.T_w_s.emplace_back(out.R_w_v * R_v_s[k], out.R_w_v * p_v_s);
+    out.v_w.push_back(out.R_w_v * Vector3d(x.segment<3>(3 * i)));
+  }
+  return out;
+}
+
+}  // namespace cvislam::imu
