@@ -1,0 +1,101 @@
+// ORB extraction (500 features, 8x6 grid) and brute-force matching on real EuRoC V1_01 frames, p50/p99,
+// with the heap allocations OpenCV makes per frame (this binary counts operator new).
+//
+//   taskset -c 0 build/default/bin/bench_features
+#include <atomic>
+#include <cstdlib>
+#include <new>
+#include <vector>
+
+#include <benchmark/benchmark.h>
+
+#include "common/dataset/euroc.hpp"
+#include "common/features/orb.hpp"
+#include "test/bench/percentiles.hpp"
+#include "test/support/test_data.hpp"
+
+namespace {
+std::atomic<long> g_allocations{0};
+}  // namespace
+
+void* operator new(std::size_t size) {
+  g_allocations.fetch_add(1, std::memory_order_relaxed);
+  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
+  throw std::bad_alloc();
+}
+void operator delete(void* p) noexcept {
+  std::free(p);
+}
+void operator delete(void* p, std::size_t /*size*/) noexcept {
+  std::free(p);
+}
+
+namespace cvislam {
+namespace {
+
+std::vector<dataset::GrayImage> loadFrames() {
+  std::vector<dataset::GrayImage> frames;
+  const auto path = test::findData("euroc-v101-excerpt");
+  if (path.empty()) return frames;
+  auto seq = dataset::EurocSequence::open(path);
+  if (!seq.ok()) return frames;
+  for (std::size_t i = 0; i < seq->rigFrames().size(); i += 4) {
+    auto image = seq->loadImage(0, i);
+    if (image.ok()) frames.push_back(std::move(*image));
+  }
+  return frames;
+}
+
+const std::vector<dataset::GrayImage>& frames() {
+  static const std::vector<dataset::GrayImage> f = loadFrames();
+  return f;
+}
+
+void BM_OrbExtract500(benchmark::State& state) {
+  if (frames().empty()) {
+    state.SkipWithError("euroc-v101-excerpt not found (set CVISLAM_DATA_DIR)");
+    return;
+  }
+  auto extractor = features::OrbExtractor::create({});
+  std::vector<features::Keypoint> keypoints(500);
+  std::vector<features::Descriptor> descriptors(500);
+  std::size_t i = 0;
+  long allocations = 0;
+  for (auto _ : state) {
+    const dataset::GrayImage& image = frames()[i++ % frames().size()];
+    const long before = g_allocations.load();
+    benchmark::DoNotOptimize(extractor->extract(image.pixels, image.width, image.height, keypoints, descriptors));
+    allocations += g_allocations.load() - before;
+  }
+  state.counters["allocations_per_frame"] =
+      benchmark::Counter(static_cast<double>(allocations), benchmark::Counter::kAvgIterations);
+}
+BENCHMARK(BM_OrbExtract500)->Unit(benchmark::kMillisecond)->Apply([](auto* b) { bench::withPercentiles(b, 20); });
+
+void BM_MatchBruteForce500x500(benchmark::State& state) {
+  if (frames().size() < 2) {
+    state.SkipWithError("euroc-v101-excerpt not found (set CVISLAM_DATA_DIR)");
+    return;
+  }
+  auto extractor = features::OrbExtractor::create({});
+  std::vector<features::Keypoint> k0(500);
+  std::vector<features::Keypoint> k1(500);
+  std::vector<features::Descriptor> d0(500);
+  std::vector<features::Descriptor> d1(500);
+  const int n0 = extractor->extract(frames()[0].pixels, frames()[0].width, frames()[0].height, k0, d0);
+  const int n1 = extractor->extract(frames()[1].pixels, frames()[1].width, frames()[1].height, k1, d1);
+  std::vector<features::DescriptorMatch> matches(500);
+  for (auto _ : state) {
+    benchmark::DoNotOptimize(features::matchDescriptors(std::span(d0).first(static_cast<std::size_t>(n0)),
+                                                        std::span(d1).first(static_cast<std::size_t>(n1)), {},
+                                                        matches));
+  }
+}
+BENCHMARK(BM_MatchBruteForce500x500)->Unit(benchmark::kMillisecond)->Apply([](auto* b) {
+  bench::withPercentiles(b, 20);
+});
+
+}  // namespace
+}  // namespace cvislam
+
+BENCHMARK_MAIN();
