@@ -1,0 +1,107 @@
+#include "agent_rt/tracking/pose_optimizer.hpp"
+
+#include <cmath>
+#include <string>
+
+#include <Eigen/Cholesky>
+
+namespace cvislam::agent {
+
+using Eigen::Matrix3d;
+using Eigen::Vector2d;
+using Eigen::Vector3d;
+using geometry::SE3d;
+using geometry::SO3d;
+using Mat6 = Eigen::Matrix<double, 6, 6>;
+using Vec6 = Eigen::Matrix<double, 6, 1>;
+
+Status PoseOptimizerOptions::validate() const {
+  const auto bad = [](const std::string& what) {
+    return Error{ErrorCode::kInvalidArgument, "pose optimizer options: " + what};
+  };
+  if (rounds < 1 || iterations_per_round < 1) return bad("rounds and iterations_per_round must be >= 1");
+  if (!(chi2_threshold > 0.0) || !(huber_delta > 0.0)) return bad("chi2_threshold and huber_delta must be > 0");
+  if (min_inliers < 3) return bad("min_inliers must be >= 3 (a pose has 6 degrees of freedom)");
+  return Status::Ok();
+}
+
+bool poseReprojectionResidual(const PoseObservation& o, const SE3d& T_w_s, const SE3d& T_s_c,
+                              const factors::PinholeIntrinsics& K, Vector2d& residual, Eigen::Matrix<double, 2, 6>* J) {
+  const Matrix3d R_s_w = T_w_s.rotationMatrix().transpose();
+  const Matrix3d R_c_s = T_s_c.rotationMatrix().transpose();
+  const Vector3d p_s = R_s_w * (o.p_w - T_w_s.translation());  // the point in the IMU frame
+  const Vector3d p_c = R_c_s * (p_s - T_s_c.translation());
+  if (!(p_c.z() > 1e-3)) return false;
+  const double inv_z = 1.0 / p_c.z();
+  residual = Vector2d(K.fx * p_c.x() * inv_z + K.cx, K.fy * p_c.y() * inv_z + K.cy) - o.keypoint_px;
+  if (J != nullptr) {
+    Eigen::Matrix<double, 2, 3> d_px_d_pc;
+    d_px_d_pc << K.fx * inv_z, 0.0, -K.fx * p_c.x() * inv_z * inv_z,  //
+        0.0, K.fy * inv_z, -K.fy * p_c.y() * inv_z * inv_z;
+    const Eigen::Matrix<double, 2, 3> d_px_d_ps = d_px_d_pc * R_c_s;
+    J->leftCols<3>() = -d_px_d_ps * R_s_w;                  // p_w_s moves the point the other way
+    J->rightCols<3>() = d_px_d_ps * geometry::hatSO3(p_s);  // R_w_s Exp(dphi): p_s -> p_s + [p_s]x dphi
+  }
+  return true;
+}
+
+Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observations, const SE3d& T_w_s_initial,
+                                         const SE3d& T_s_c, const factors::PinholeIntrinsics& intrinsics,
+                                         const PoseOptimizerOptions& options, std::span<std::uint8_t> is_outlier) {
+  if (Status status = options.validate(); !status.ok()) return status.error();
+  if (is_outlier.size() != observations.size()) {
+    return Error{ErrorCode::kInvalidArgument, "optimizePose: is_outlier must be as long as observations"};
+  }
+  for (std::uint8_t& flag : is_outlier) flag = 0;
+
+  PoseOptimizerResult result;
+  result.T_w_s = T_w_s_initial;
+  for (int round = 0; round < options.rounds; ++round) {
+    for (int it = 0; it < options.iterations_per_round; ++it) {
+      Mat6 H = Mat6::Zero();
+      Vec6 g = Vec6::Zero();
+      int used = 0;
+      for (std::size_t i = 0; i < observations.size(); ++i) {
+        if (is_outlier[i] != 0) continue;
+        Vector2d r;
+        Eigen::Matrix<double, 2, 6> J;
+        if (!poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, &J)) continue;
+        const double inv_sigma = 1.0 / observations[i].sigma_px;
+        r *= inv_sigma;
+        J *= inv_sigma;
+        const double e = r.norm();  // Huber weight
+        const double w = e <= options.huber_delta ? 1.0 : options.huber_delta / e;
+        H.noalias() += w * J.transpose() * J;
+        g.noalias() += w * J.transpose() * r;
+        ++used;
+      }
+      if (used < options.min_inliers) break;
+      const Vec6 dx = -H.ldlt().solve(g);
+      if (!dx.allFinite()) break;
+      result.T_w_s = SE3d(result.T_w_s.so3() * SO3d::exp(dx.tail<3>()), result.T_w_s.translation() + dx.head<3>());
+      ++result.iterations;
+      if (dx.norm() < options.min_step) break;
+    }
+    // Classify every observation again, so that a wrongly rejected one can come back.
+    result.inliers = 0;
+    result.final_chi2 = 0.0;
+    for (std::size_t i = 0; i < observations.size(); ++i) {
+      Vector2d r;
+      const bool in_front = poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, nullptr);
+      const double chi2 = in_front ? r.squaredNorm() / (observations[i].sigma_px * observations[i].sigma_px) : 1e30;
+      is_outlier[i] = chi2 > options.chi2_threshold ? 1 : 0;
+      if (is_outlier[i] == 0) {
+        ++result.inliers;
+        result.final_chi2 += chi2;
+      }
+    }
+  }
+  if (result.inliers < options.min_inliers) {
+    return Error{ErrorCode::kDegenerate, "pose optimisation kept " + std::to_string(result.inliers) +
+                                             " inliers, fewer than the " + std::to_string(options.min_inliers) +
+                                             " required: tracking is lost"};
+  }
+  return result;
+}
+
+}  // namespace cvislam::agent

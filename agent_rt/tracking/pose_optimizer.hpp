@@ -1,0 +1,58 @@
+// Motion-only pose optimisation for tracking: the IMU pose T_w_s of one frame that best reprojects a set of
+// fixed map points onto their matched (undistorted) keypoints, robust to wrong matches.
+//
+// Gauss-Newton on the 6-dof pose (right perturbation of the rotation, world-frame translation, as everywhere in
+// cvislam) with a Huber kernel, in rounds: after each round, observations whose chi-square exceeds the 2-dof
+// 95 % bound (5.991) are marked outliers and left out of the next round, and outliers that fit again come
+// back (as ORB-SLAM does). Fixed-size maths only: nothing allocates, so tracking can call it every frame.
+#pragma once
+
+#include <cstdint>
+#include <span>
+
+#include <Eigen/Core>
+
+#include "common/core/result.hpp"
+#include "common/factors/reprojection_factor.hpp"
+#include "common/geometry/lie.hpp"
+
+namespace cvislam::agent {
+
+struct PoseObservation {
+  Eigen::Vector3d p_w = Eigen::Vector3d::Zero();          // map point, held fixed
+  Eigen::Vector2d keypoint_px = Eigen::Vector2d::Zero();  // undistorted keypoint
+  double sigma_px = 1.0;                                  // keypoint noise (grows with the pyramid level)
+};
+
+struct PoseOptimizerOptions {
+  int rounds = 4;                 // outlier classification rounds
+  int iterations_per_round = 10;  // Gauss-Newton iterations per round
+  double chi2_threshold = 5.991;  // 2-dof, 95 %
+  double huber_delta = 2.447;     // sqrt(5.991): the kernel turns linear where outliers begin
+  double min_step = 1e-8;         // stop a round when the update is this small
+  int min_inliers = 10;           // fewer and the result is refused
+
+  [[nodiscard]] Status validate() const;
+};
+
+struct PoseOptimizerResult {
+  geometry::SE3d T_w_s;
+  int inliers = 0;
+  int iterations = 0;
+  double final_chi2 = 0.0;  // sum over inliers
+};
+
+// Refines `T_w_s_initial`. `is_outlier` (same length as `observations`) receives the classification. Fails
+// when fewer than min_inliers remain, naming the count.
+Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observations,
+                                         const geometry::SE3d& T_w_s_initial, const geometry::SE3d& T_s_c,
+                                         const factors::PinholeIntrinsics& intrinsics,
+                                         const PoseOptimizerOptions& options, std::span<std::uint8_t> is_outlier);
+
+// The residual of one observation (pixels, unwhitened) and, when J is given, its Jacobian with respect to
+// the pose tangent [dp, dphi]. False when the point is not in front of the camera.
+bool poseReprojectionResidual(const PoseObservation& observation, const geometry::SE3d& T_w_s,
+                              const geometry::SE3d& T_s_c, const factors::PinholeIntrinsics& intrinsics,
+                              Eigen::Vector2d& residual, Eigen::Matrix<double, 2, 6>* J);
+
+}  // namespace cvislam::agent
