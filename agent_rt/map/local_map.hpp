@@ -1,0 +1,106 @@
+// The agent's local map: keyframes and map points in fixed-capacity pools (capacities from CMake), owned by
+// the mapping thread. Observations live in the keyframes (keypoint -> map point); a map point is stored as
+// a bearing and inverse depth in the camera of its reference keyframe, as the reprojection factor wants it.
+//
+// Capacity policy: insertKeyframe() and createMapPoint() report kCapacityExceeded instead of growing. The
+// mapping thread then evicts the oldest keyframe that is not an anchor (evictOldestKeyframe()) and culls map
+// points (cullMapPoints()). Removing a keyframe moves the reference of each of its map points to another
+// observing keyframe, or removes the point when none is left.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+
+#include <Eigen/Core>
+
+#include "agent_rt/map/capacities.hpp"
+#include "agent_rt/map/fixed_pool.hpp"
+#include "common/core/ids.hpp"
+#include "common/core/result.hpp"
+#include "common/features/orb.hpp"
+#include "common/geometry/lie.hpp"
+#include "common/imu/preintegration.hpp"
+
+namespace cvislam::agent {
+
+inline constexpr std::uint16_t kNoKeypoint = 0xFFFF;
+
+struct KeyframeData {
+  KeyframeId id;
+  std::uint64_t sequence = 0;  // insertion order in this map, set by insertKeyframe()
+  std::int64_t t_ns = 0;
+  geometry::SE3d T_w_s;
+  Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
+  imu::ImuBias bias;
+  bool anchor = false;  // held fixed in local BA (covisible keyframes, keyframes from the server)
+  std::uint16_t keypoint_count = 0;
+  std::array<features::Keypoint, kMaxKeypointsPerKeyframe> keypoints{};
+  std::array<features::Descriptor, kMaxKeypointsPerKeyframe> descriptors{};
+  std::array<Eigen::Vector2d, kMaxKeypointsPerKeyframe> undistorted_px{};
+  std::array<PoolHandle, kMaxKeypointsPerKeyframe> map_point{};  // valid only where has_map_point
+  std::array<bool, kMaxKeypointsPerKeyframe> has_map_point{};
+};
+
+struct MapPointData {
+  MapPointId id;
+  PoolHandle reference;  // keyframe whose camera holds the bearing and inverse depth
+  Eigen::Vector3d bearing_c = Eigen::Vector3d::UnitZ();
+  double inverse_depth = 1.0;  // [1/m]
+  features::Descriptor descriptor{};
+  std::uint64_t created_at_sequence = 0;  // the newest keyframe's sequence when the point was made
+  std::uint32_t visible = 0;              // frames in whose view the point projected
+  std::uint32_t found = 0;                // frames in which it was matched
+  std::uint16_t observation_count = 0;    // keyframes observing it
+};
+
+struct CullOptions {
+  double min_found_ratio = 0.25;  // found / visible, once visible at least min_visible times
+  std::uint32_t min_visible = 10;
+  std::uint64_t keyframes_to_prove = 2;  // after this many newer keyframes a point needs...
+  std::uint16_t min_observations = 2;    // ...at least this many observing keyframes
+};
+
+class LocalMap {
+ public:
+  using KeyframePool = FixedPool<KeyframeData, kMaxKeyframes>;
+  using MapPointPool = FixedPool<MapPointData, kMaxMapPoints>;
+
+  explicit LocalMap(const geometry::SE3d& T_s_c);
+
+  // Copies the keyframe in (map point links are cleared). kCapacityExceeded when the pool is full.
+  Result<PoolHandle> insertKeyframe(const KeyframeData& keyframe);
+  // Removes the keyframe and its observations; its map points move to another observing keyframe, or go.
+  Status removeKeyframe(PoolHandle keyframe);
+  // Removes the oldest keyframe that is not an anchor; kNotFound if there is none.
+  Status evictOldestKeyframe();
+
+  // A new map point observed by `keypoint` of `reference`, at `depth_m` along that keypoint's bearing.
+  Result<PoolHandle> createMapPoint(PoolHandle reference, std::uint16_t keypoint, const Eigen::Vector3d& bearing_c,
+                                    double depth_m, MapPointId id);
+  Status addObservation(PoolHandle keyframe, std::uint16_t keypoint, PoolHandle map_point);
+  // Removes the point and every observation of it.
+  Status removeMapPoint(PoolHandle map_point);
+
+  // Removes points that tracking rarely finds, and young points that too few keyframes observe. Returns how
+  // many were removed.
+  int cullMapPoints(const CullOptions& options);
+
+  [[nodiscard]] Result<Eigen::Vector3d> pointInWorld(PoolHandle map_point) const;
+
+  [[nodiscard]] const KeyframePool& keyframes() const { return *keyframes_; }
+  [[nodiscard]] KeyframePool& keyframes() { return *keyframes_; }
+  [[nodiscard]] const MapPointPool& mapPoints() const { return *map_points_; }
+  [[nodiscard]] MapPointPool& mapPoints() { return *map_points_; }
+  [[nodiscard]] const geometry::SE3d& extrinsics() const { return T_s_c_; }  // T_s_c
+
+ private:
+  Status detach(PoolHandle keyframe, std::uint16_t keypoint);
+
+  geometry::SE3d T_s_c_;
+  std::unique_ptr<KeyframePool> keyframes_;  // megabytes: on the heap, allocated once here
+  std::unique_ptr<MapPointPool> map_points_;
+  std::uint64_t next_sequence_ = 0;
+};
+
+}  // namespace cvislam::agent

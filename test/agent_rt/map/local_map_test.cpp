@@ -1,0 +1,127 @@
+// LocalMap: capacity reporting and eviction, re-anchoring of map points when their reference keyframe goes,
+// anchors that stay, and the culling policy.
+#include "agent_rt/map/local_map.hpp"
+
+#include <memory>
+
+#include <gtest/gtest.h>
+
+#include "common/dataset/euroc_calibration.hpp"
+
+namespace cvislam::agent {
+namespace {
+
+using Eigen::Vector3d;
+using geometry::SE3d;
+
+class LocalMapTest : public ::testing::Test {
+ protected:
+  LocalMapTest() : sut_(std::make_unique<LocalMap>(dataset::eurocCam0().T_b_c)) {}
+
+  // A keyframe at x = position along the world x axis, looking along world +x like the EuRoC camera does
+  // when the body is turned so; 10 keypoints.
+  PoolHandle addKeyframe(double x, bool anchor = false) {
+    auto kf = std::make_unique<KeyframeData>();
+    kf->id = ids_.next();
+    kf->T_w_s = SE3d(geometry::SO3d(), Vector3d(x, 0.0, 0.0));
+    kf->anchor = anchor;
+    kf->keypoint_count = 10;
+    auto handle = sut_->insertKeyframe(*kf);
+    EXPECT_TRUE(handle.ok()) << handle.error().toString();
+    return handle.ok() ? *handle : PoolHandle{};
+  }
+
+  std::unique_ptr<LocalMap> sut_;
+  IdCounter<KeyframeId> ids_{0};
+  IdCounter<MapPointId> point_ids_{0};
+};
+
+TEST_F(LocalMapTest, AFullMapRefusesAKeyframeUntilTheOldestIsEvicted) {
+  for (std::size_t i = 0; i < kMaxKeyframes; ++i) addKeyframe(static_cast<double>(i));
+  auto extra = std::make_unique<KeyframeData>();
+  extra->id = ids_.next();
+  extra->T_w_s = SE3d(geometry::SO3d(), Vector3d(1000.0, 0.0, 0.0));
+  auto refused = sut_->insertKeyframe(*extra);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.error().code(), ErrorCode::kCapacityExceeded);
+  EXPECT_NE(refused.error().message().find("evict"), std::string::npos);
+
+  ASSERT_TRUE(sut_->evictOldestKeyframe().ok());
+  EXPECT_TRUE(sut_->insertKeyframe(*extra).ok());
+  // The oldest (x = 0) went, the one at x = 1 stayed.
+  bool has_first = false;
+  bool has_second = false;
+  sut_->keyframes().forEach([&](PoolHandle, const KeyframeData& kf) {
+    has_first = has_first || kf.T_w_s.translation().x() == 0.0;
+    has_second = has_second || kf.T_w_s.translation().x() == 1.0;
+  });
+  EXPECT_FALSE(has_first);
+  EXPECT_TRUE(has_second);
+}
+
+TEST_F(LocalMapTest, RemovingTheReferenceKeyframeReanchorsItsPointsOrRemovesThem) {
+  const PoolHandle kf0 = addKeyframe(0.0);
+  const PoolHandle kf1 = addKeyframe(0.5);
+  auto shared = sut_->createMapPoint(kf0, 3, Vector3d(0.1, -0.05, 1.0), 4.0, point_ids_.next());
+  auto lonely = sut_->createMapPoint(kf0, 4, Vector3d(-0.2, 0.1, 1.0), 6.0, point_ids_.next());
+  ASSERT_TRUE(shared.ok() && lonely.ok());
+  ASSERT_TRUE(sut_->addObservation(kf1, 7, *shared).ok());
+  const Vector3d p_w_before = *sut_->pointInWorld(*shared);
+
+  ASSERT_TRUE(sut_->removeKeyframe(kf0).ok());
+  ASSERT_TRUE(sut_->mapPoints().valid(*shared));
+  EXPECT_EQ(sut_->mapPoints().get(*shared)->reference, kf1);
+  EXPECT_EQ(sut_->mapPoints().get(*shared)->observation_count, 1);
+  EXPECT_LT((*sut_->pointInWorld(*shared) - p_w_before).norm(), 1e-9);
+  EXPECT_FALSE(sut_->mapPoints().valid(*lonely));  // nobody else saw it
+  EXPECT_FALSE(sut_->keyframes().valid(kf0));
+}
+
+TEST_F(LocalMapTest, AnchorsAreNeverEvicted) {
+  addKeyframe(0.0, true);
+  const PoolHandle own = addKeyframe(1.0);
+  ASSERT_TRUE(sut_->evictOldestKeyframe().ok());
+  EXPECT_FALSE(sut_->keyframes().valid(own));  // the older keyframe is an anchor, so the newer one went
+  const Status none = sut_->evictOldestKeyframe();
+  ASSERT_FALSE(none.ok());
+  EXPECT_NE(none.error().message().find("anchor"), std::string::npos);
+}
+
+TEST_F(LocalMapTest, CullingRemovesRarelyFoundAndUnconfirmedPointsOnly) {
+  const PoolHandle kf0 = addKeyframe(0.0);
+  const PoolHandle kf1 = addKeyframe(0.5);
+  auto rarely_found = sut_->createMapPoint(kf0, 0, Vector3d(0.0, 0.0, 1.0), 5.0, point_ids_.next());
+  auto confirmed = sut_->createMapPoint(kf0, 1, Vector3d(0.1, 0.0, 1.0), 5.0, point_ids_.next());
+  auto unconfirmed = sut_->createMapPoint(kf1, 2, Vector3d(0.0, 0.1, 1.0), 5.0, point_ids_.next());
+  ASSERT_TRUE(rarely_found.ok() && confirmed.ok() && unconfirmed.ok());
+  ASSERT_TRUE(sut_->addObservation(kf1, 0, *rarely_found).ok());
+  ASSERT_TRUE(sut_->addObservation(kf1, 1, *confirmed).ok());
+  sut_->mapPoints().get(*rarely_found)->visible = 20;
+  sut_->mapPoints().get(*rarely_found)->found = 3;  // 15 % < 25 %
+  sut_->mapPoints().get(*confirmed)->visible = 20;
+  sut_->mapPoints().get(*confirmed)->found = 12;
+
+  EXPECT_EQ(sut_->cullMapPoints({}), 1);  // only the rarely found one: the others are young
+  EXPECT_FALSE(sut_->mapPoints().valid(*rarely_found));
+  addKeyframe(1.0);
+  addKeyframe(1.5);  // two keyframes newer than the unconfirmed point, which still has one observation
+  EXPECT_EQ(sut_->cullMapPoints({}), 1);
+  EXPECT_FALSE(sut_->mapPoints().valid(*unconfirmed));
+  EXPECT_TRUE(sut_->mapPoints().valid(*confirmed));
+  EXPECT_FALSE(sut_->keyframes().get(kf1)->has_map_point[2]);  // the observation went with the point
+}
+
+TEST_F(LocalMapTest, BadObservationsAreRefusedWithTheirReason) {
+  const PoolHandle kf0 = addKeyframe(0.0);
+  auto point = sut_->createMapPoint(kf0, 0, Vector3d(0.0, 0.0, 1.0), 5.0, point_ids_.next());
+  ASSERT_TRUE(point.ok());
+  const Status twice = sut_->addObservation(kf0, 1, *point);
+  ASSERT_FALSE(twice.ok());
+  EXPECT_NE(twice.error().message().find("already observed"), std::string::npos);
+  EXPECT_FALSE(sut_->addObservation(kf0, 0, *point).ok());    // keypoint taken
+  EXPECT_FALSE(sut_->addObservation(kf0, 500, *point).ok());  // out of range
+  EXPECT_FALSE(sut_->createMapPoint(kf0, 2, Vector3d(0.0, 0.0, 1.0), -1.0, point_ids_.next()).ok());
+}
+
+}  // namespace
+}  // namespace cvislam::agent
