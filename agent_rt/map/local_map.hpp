@@ -34,6 +34,9 @@ struct KeyframeData {
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
   imu::ImuBias bias;
   bool anchor = false;  // held fixed in local BA (covisible keyframes, keyframes from the server)
+  // The IMU from the previous keyframe of this agent (by sequence) to this one, when there is one.
+  bool has_preintegration = false;
+  imu::Preintegration preintegration;
   std::uint16_t keypoint_count = 0;
   std::array<features::Keypoint, kMaxKeypointsPerKeyframe> keypoints{};
   std::array<features::Descriptor, kMaxKeypointsPerKeyframe> descriptors{};

@@ -1,0 +1,201 @@
+#include "agent_rt/mapping/local_bundle_adjustment.hpp"
+
+#include <algorithm>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include <ceres/ceres.h>
+
+#include "common/factors/imu_factor.hpp"
+#include "common/factors/manifolds.hpp"
+#include "common/factors/state_layout.hpp"
+
+namespace cvislam::agent {
+
+using Eigen::Vector3d;
+
+Status LocalBundleAdjustmentOptions::validate() const {
+  const auto bad = [](const std::string& what) {
+    return Error{ErrorCode::kInvalidArgument, "local BA options: " + what};
+  };
+  if (window < 1) return bad("window must be >= 1");
+  if (min_covisible < 1) return bad("min_covisible must be >= 1");
+  if (max_iterations < 1) return bad("max_iterations must be >= 1");
+  if (!(cauchy_scale > 0.0) || !(sigma_px > 0.0)) return bad("cauchy_scale and sigma_px must be > 0");
+  if (!(intrinsics.fx > 0.0) || !(intrinsics.fy > 0.0)) return bad("intrinsics fx, fy must be > 0");
+  return noise.validate();
+}
+
+namespace {
+
+std::uint64_t handleKey(PoolHandle h) {
+  return (static_cast<std::uint64_t>(h.index) << 32U) | h.generation;
+}
+
+struct KeyframeState {
+  PoolHandle handle;
+  factors::PoseBlock pose;
+  Vector3d velocity;
+  Eigen::Matrix<double, 6, 1> bias;
+  bool in_window = false;
+};
+
+struct PointState {
+  PoolHandle handle;
+  Vector3d bearing;
+  double inverse_depth = 1.0;
+};
+
+}  // namespace
+
+Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
+                                                              const LocalBundleAdjustmentOptions& options) {
+  if (Status status = options.validate(); !status.ok()) return status.error();
+  LocalBundleAdjustmentSummary summary;
+
+  // The window: the newest non-anchor keyframes, by sequence.
+  std::vector<std::pair<std::uint64_t, PoolHandle>> by_sequence;
+  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
+    if (!kf.anchor) by_sequence.emplace_back(kf.sequence, h);
+  });
+  std::sort(by_sequence.begin(), by_sequence.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  if (by_sequence.empty()) return Error{ErrorCode::kNotFound, "local BA: no keyframe to optimise"};
+  const std::size_t first = by_sequence.size() > static_cast<std::size_t>(options.window)
+                                ? by_sequence.size() - static_cast<std::size_t>(options.window)
+                                : 0;
+
+  std::unordered_map<std::uint64_t, std::size_t> keyframe_index;  // handle -> index in `keyframes`
+  std::vector<KeyframeState> keyframes;
+  const auto add_keyframe = [&](PoolHandle h, bool in_window) -> std::size_t {
+    const auto [it, inserted] = keyframe_index.emplace(handleKey(h), keyframes.size());
+    if (inserted) {
+      const KeyframeData& kf = *map.keyframes().get(h);
+      KeyframeState s;
+      s.handle = h;
+      s.pose = factors::poseToBlock(kf.T_w_s);
+      s.velocity = kf.v_w;
+      s.bias << kf.bias.gyro, kf.bias.accel;
+      s.in_window = in_window;
+      keyframes.push_back(s);
+    }
+    return it->second;
+  };
+  for (std::size_t i = first; i < by_sequence.size(); ++i) add_keyframe(by_sequence[i].second, true);
+  summary.window_keyframes = static_cast<int>(keyframes.size());
+
+  // The points the window observes, and how many of them every other keyframe shares.
+  std::unordered_map<std::uint64_t, std::size_t> point_index;
+  std::vector<PointState> points;
+  for (std::size_t i = 0; i < keyframes.size(); ++i) {
+    const KeyframeData& kf = *map.keyframes().get(keyframes[i].handle);
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (!kf.has_map_point[k]) continue;
+      const MapPointData* mp = map.mapPoints().get(kf.map_point[k]);
+      if (mp == nullptr) continue;
+      if (point_index.emplace(handleKey(kf.map_point[k]), points.size()).second) {
+        points.push_back({kf.map_point[k], mp->bearing_c, mp->inverse_depth});
+      }
+    }
+  }
+  std::unordered_map<std::uint64_t, int> shared;
+  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
+    if (keyframe_index.count(handleKey(h)) != 0) return;
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (kf.has_map_point[k] && point_index.count(handleKey(kf.map_point[k])) != 0) ++shared[handleKey(h)];
+    }
+  });
+  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
+    if (keyframe_index.count(handleKey(h)) != 0) return;
+    const auto it = shared.find(handleKey(h));
+    if (kf.anchor || (it != shared.end() && it->second >= options.min_covisible)) add_keyframe(h, false);
+  });
+  for (const PointState& p : points) {  // reference keyframes are needed as fixed poses at least
+    const PoolHandle ref = map.mapPoints().get(p.handle)->reference;
+    if (map.keyframes().valid(ref)) add_keyframe(ref, false);
+  }
+  summary.fixed_keyframes = static_cast<int>(keyframes.size()) - summary.window_keyframes;
+  summary.map_points = static_cast<int>(points.size());
+
+  ceres::Problem problem;
+  auto* pose_manifold = new factors::PoseManifold();  // owned by the problem, as are the cost functions
+  auto* bearing_manifold = new factors::UnitBearingManifold();
+  factors::PoseBlock extrinsics = factors::poseToBlock(map.extrinsics());
+  problem.AddParameterBlock(extrinsics.data(), factors::kPoseSize, pose_manifold);
+  problem.SetParameterBlockConstant(extrinsics.data());
+  for (KeyframeState& s : keyframes) {
+    problem.AddParameterBlock(s.pose.data(), factors::kPoseSize, pose_manifold);
+    if (!s.in_window) problem.SetParameterBlockConstant(s.pose.data());
+  }
+  for (PointState& p : points) problem.AddParameterBlock(p.bearing.data(), 3, bearing_manifold);
+
+  // Reprojection factors: every observation of a window point from a keyframe in the problem.
+  for (KeyframeState& s : keyframes) {
+    const KeyframeData& kf = *map.keyframes().get(s.handle);
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (!kf.has_map_point[k]) continue;
+      const auto pit = point_index.find(handleKey(kf.map_point[k]));
+      if (pit == point_index.end()) continue;
+      PointState& p = points[pit->second];
+      const PoolHandle ref = map.mapPoints().get(p.handle)->reference;
+      const double sigma = options.sigma_px * std::pow(1.2, kf.keypoints[k].octave);
+      auto* loss = new ceres::CauchyLoss(options.cauchy_scale);
+      if (ref == s.handle) {
+        problem.AddResidualBlock(new factors::ReprojectionHostFactor(kf.undistorted_px[k], options.intrinsics, sigma),
+                                 loss, p.bearing.data());
+      } else {
+        KeyframeState& r = keyframes[keyframe_index.at(handleKey(ref))];
+        problem.AddResidualBlock(new factors::ReprojectionFactor(kf.undistorted_px[k], options.intrinsics, sigma), loss,
+                                 s.pose.data(), r.pose.data(), extrinsics.data(), p.bearing.data(), &p.inverse_depth);
+      }
+      ++summary.reprojection_factors;
+    }
+  }
+
+  // IMU and bias random-walk factors between consecutive window keyframes.
+  if (options.use_imu) {
+    for (std::size_t i = first + 1; i < by_sequence.size(); ++i) {
+      const KeyframeData& kf = *map.keyframes().get(by_sequence[i].second);
+      if (!kf.has_preintegration) continue;
+      KeyframeState& a = keyframes[keyframe_index.at(handleKey(by_sequence[i - 1].second))];
+      KeyframeState& b = keyframes[keyframe_index.at(handleKey(by_sequence[i].second))];
+      problem.AddResidualBlock(new factors::ImuFactor(kf.preintegration), nullptr, a.pose.data(), a.velocity.data(),
+                               a.bias.data(), b.pose.data(), b.velocity.data());
+      problem.AddResidualBlock(new factors::BiasRandomWalkFactor(options.noise, kf.preintegration.dt()), nullptr,
+                               a.bias.data(), b.bias.data());
+      ++summary.imu_factors;
+    }
+  }
+  if (summary.fixed_keyframes == 0) problem.SetParameterBlockConstant(keyframes.front().pose.data());  // gauge
+
+  ceres::Solver::Options solver_options;
+  solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
+  solver_options.max_num_iterations = options.max_iterations;
+  solver_options.num_threads = 1;
+  ceres::Solver::Summary ceres_summary;
+  ceres::Solve(solver_options, &problem, &ceres_summary);
+  if (!ceres_summary.IsSolutionUsable()) {
+    return Error{ErrorCode::kDegenerate, "local BA failed: " + ceres_summary.message};
+  }
+  summary.iterations = static_cast<int>(ceres_summary.iterations.size()) - 1;
+  summary.initial_cost = ceres_summary.initial_cost;
+  summary.final_cost = ceres_summary.final_cost;
+
+  // Write back what was optimised.
+  for (const KeyframeState& s : keyframes) {
+    if (!s.in_window) continue;
+    KeyframeData& kf = *map.keyframes().get(s.handle);
+    kf.T_w_s = factors::poseFromBlock(s.pose.data());
+    kf.v_w = s.velocity;
+    kf.bias.gyro = s.bias.head<3>();
+    kf.bias.accel = s.bias.tail<3>();
+  }
+  for (const PointState& p : points) {
+    MapPointData& mp = *map.mapPoints().get(p.handle);
+    mp.bearing_c = p.bearing.normalized();
+    mp.inverse_depth = p.inverse_depth;
+  }
+  return summary;
+}
+
+}  // namespace cvislam::agent

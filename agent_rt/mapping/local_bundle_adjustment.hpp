@@ -1,0 +1,45 @@
+// Local bundle adjustment of the mapping thread (CVI-SLAM Eq. 10): the newest `window` keyframes (pose,
+// velocity, biases) and the map points they observe are optimised; keyframes outside the window that share
+// at least `min_covisible` points with it, anchors (which may come from other agents), and the reference
+// keyframes of the points are held fixed. Reprojection factors with a Cauchy loss, IMU and bias random-walk
+// factors between consecutive window keyframes. When nothing is held fixed, the oldest window keyframe's pose
+// is, for the gauge.
+//
+// Runs in the mapping thread and allocates (Ceres does); tracking never waits for it.
+#pragma once
+
+#include "agent_rt/map/local_map.hpp"
+#include "common/core/result.hpp"
+#include "common/factors/reprojection_factor.hpp"
+#include "common/imu/preintegration.hpp"
+
+namespace cvislam::agent {
+
+struct LocalBundleAdjustmentOptions {
+  int window = 10;         // M
+  int min_covisible = 15;  // shared points that make an outside keyframe a fixed anchor
+  int max_iterations = 10;
+  double cauchy_scale = 1.0;  // on whitened residuals
+  double sigma_px = 1.0;      // keypoint noise at pyramid level 0
+  bool use_imu = true;
+  factors::PinholeIntrinsics intrinsics;
+  imu::ImuNoise noise;
+
+  [[nodiscard]] Status validate() const;
+};
+
+struct LocalBundleAdjustmentSummary {
+  int window_keyframes = 0;
+  int fixed_keyframes = 0;
+  int map_points = 0;
+  int reprojection_factors = 0;
+  int imu_factors = 0;
+  int iterations = 0;
+  double initial_cost = 0.0;
+  double final_cost = 0.0;
+};
+
+Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
+                                                              const LocalBundleAdjustmentOptions& options);
+
+}  // namespace cvislam::agent

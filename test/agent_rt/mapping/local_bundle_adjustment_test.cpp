@@ -1,0 +1,152 @@
+// Local BA on a local map built from the synthetic visual-inertial scene: the window converges to the truth,
+// keyframes outside it that share enough points stay fixed, and bad options are named.
+#include "agent_rt/mapping/local_bundle_adjustment.hpp"
+
+#include <cmath>
+#include <cstdio>
+#include <memory>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "common/factors/manifolds.hpp"
+#include "test/support/vi_scenario.hpp"
+
+namespace cvislam::agent {
+namespace {
+
+using Eigen::Vector3d;
+using geometry::SE3d;
+
+struct Fixture {
+  test::ViScenario scenario;
+  std::unique_ptr<LocalMap> map;
+  std::vector<PoolHandle> keyframes;
+  std::vector<PoolHandle> points;
+};
+
+// The scene as a local map, keyframes in time order, every state but the first perturbed.
+Fixture makeMap(bool perturb) {
+  Fixture f;
+  test::ViScenarioOptions options;
+  options.keyframes = 8;
+  options.points = 300;
+  options.bias.gyro = Vector3d(0.004, -0.003, 0.002);
+  options.bias.accel = Vector3d(0.03, -0.02, 0.04);
+  f.scenario = test::makeViScenario(options);
+  test::ViBaState state = test::trueViBaState(f.scenario);
+  if (perturb) test::perturbViBaState(state, 0.1, 2.0 * M_PI / 180.0, 3);
+  f.map = std::make_unique<LocalMap>(f.scenario.T_s_c);
+  IdCounter<KeyframeId> keyframe_ids(0);
+  IdCounter<MapPointId> point_ids(0);
+
+  // Keypoints: each keyframe's observations in scene order.
+  std::vector<std::vector<const test::ViObservation*>> per_keyframe(f.scenario.keyframe_states.size());
+  for (const auto& o : f.scenario.observations) per_keyframe[static_cast<std::size_t>(o.keyframe)].push_back(&o);
+  for (std::size_t k = 0; k < f.scenario.keyframe_states.size(); ++k) {
+    auto kf = std::make_unique<KeyframeData>();
+    kf->id = keyframe_ids.next();
+    kf->t_ns = f.scenario.keyframe_t_ns[k];
+    kf->T_w_s = factors::poseFromBlock(state.poses[k].data());
+    kf->v_w = state.velocities[k];
+    kf->keypoint_count = static_cast<std::uint16_t>(per_keyframe[k].size());
+    for (std::size_t i = 0; i < per_keyframe[k].size(); ++i) {
+      kf->undistorted_px[i] = per_keyframe[k][i]->keypoint_px;
+      kf->keypoints[i].px = per_keyframe[k][i]->keypoint_px.cast<float>();
+    }
+    if (k > 0) {
+      kf->has_preintegration = true;
+      kf->preintegration = f.scenario.preintegrations[k - 1];
+    }
+    f.keyframes.push_back(*f.map->insertKeyframe(*kf));
+  }
+  f.points.resize(f.scenario.points.size());
+  for (std::size_t k = 0; k < per_keyframe.size(); ++k) {
+    for (std::size_t i = 0; i < per_keyframe[k].size(); ++i) {
+      const auto j = static_cast<std::size_t>(per_keyframe[k][i]->point);
+      const auto keypoint = static_cast<std::uint16_t>(i);
+      if (f.scenario.points[j].reference_keyframe == static_cast<int>(k)) {
+        f.points[j] = *f.map->createMapPoint(f.keyframes[k], keypoint, state.bearings[j], 1.0 / state.inverse_depths[j],
+                                             point_ids.next());
+      }
+    }
+  }
+  for (std::size_t k = 0; k < per_keyframe.size(); ++k) {
+    for (std::size_t i = 0; i < per_keyframe[k].size(); ++i) {
+      const auto j = static_cast<std::size_t>(per_keyframe[k][i]->point);
+      if (f.scenario.points[j].reference_keyframe != static_cast<int>(k)) {
+        EXPECT_TRUE(f.map->addObservation(f.keyframes[k], static_cast<std::uint16_t>(i), f.points[j]).ok());
+      }
+    }
+  }
+  return f;
+}
+
+LocalBundleAdjustmentOptions baOptions(const test::ViScenario& s, int window) {
+  LocalBundleAdjustmentOptions options;
+  options.window = window;
+  options.intrinsics = s.intrinsics;
+  options.noise = s.noise;
+  options.max_iterations = 50;
+  return options;
+}
+
+TEST(LocalBundleAdjustment, TheWholeWindowConvergesToTheTruth) {
+  Fixture f = makeMap(true);
+  auto summary = runLocalBundleAdjustment(*f.map, baOptions(f.scenario, 8));
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  std::printf("window %d, fixed %d, points %d, reprojection %d, imu %d: cost %.3e -> %.3e in %d iterations\n",
+              summary->window_keyframes, summary->fixed_keyframes, summary->map_points, summary->reprojection_factors,
+              summary->imu_factors, summary->initial_cost, summary->final_cost, summary->iterations);
+  EXPECT_EQ(summary->window_keyframes, 8);
+  EXPECT_EQ(summary->imu_factors, 7);
+  for (std::size_t k = 0; k < f.keyframes.size(); ++k) {
+    const KeyframeData& kf = *f.map->keyframes().get(f.keyframes[k]);
+    const SE3d& truth = f.scenario.keyframe_states[k].T_w_s;
+    EXPECT_LT((kf.T_w_s.translation() - truth.translation()).norm(), 1e-3) << "keyframe " << k;
+    EXPECT_LT((truth.so3().inverse() * kf.T_w_s.so3()).log().norm(), 1e-4) << "keyframe " << k;
+    EXPECT_LT((kf.v_w - f.scenario.keyframe_states[k].v_w).norm(), 1e-3) << "keyframe " << k;
+  }
+  for (std::size_t j = 0; j < f.points.size(); ++j) {
+    const Vector3d p_w = *f.map->pointInWorld(f.points[j]);
+    EXPECT_LT((p_w - f.scenario.points[j].p_w).norm(), 5e-3) << "point " << j;
+  }
+}
+
+TEST(LocalBundleAdjustment, CovisibleKeyframesOutsideTheWindowStayFixed) {
+  Fixture f = makeMap(false);
+  // Perturb only the newest three keyframes; the older ones share many points with them.
+  for (std::size_t k = 5; k < 8; ++k) {
+    KeyframeData& kf = *f.map->keyframes().get(f.keyframes[k]);
+    kf.T_w_s = SE3d(kf.T_w_s.so3() * geometry::SO3d::exp(Vector3d(0.01, -0.02, 0.015)),
+                    kf.T_w_s.translation() + Vector3d(0.05, -0.04, 0.03));
+  }
+  std::vector<SE3d> before;
+  for (const PoolHandle h : f.keyframes) before.push_back(f.map->keyframes().get(h)->T_w_s);
+  auto summary = runLocalBundleAdjustment(*f.map, baOptions(f.scenario, 3));
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  EXPECT_EQ(summary->window_keyframes, 3);
+  EXPECT_GE(summary->fixed_keyframes, 2);
+  for (std::size_t k = 0; k < 5; ++k) {  // outside the window: untouched
+    EXPECT_EQ(f.map->keyframes().get(f.keyframes[k])->T_w_s.translation(), before[k].translation()) << k;
+  }
+  for (std::size_t k = 5; k < 8; ++k) {  // inside: back to the truth
+    EXPECT_LT((f.map->keyframes().get(f.keyframes[k])->T_w_s.translation() -
+               f.scenario.keyframe_states[k].T_w_s.translation())
+                  .norm(),
+              1e-3)
+        << k;
+  }
+}
+
+TEST(LocalBundleAdjustmentOptions, ValidateNamesTheBadField) {
+  LocalBundleAdjustmentOptions options;
+  EXPECT_TRUE(options.validate().ok());
+  options.window = 0;
+  const Status status = options.validate();
+  ASSERT_FALSE(status.ok());
+  EXPECT_NE(status.error().message().find("window"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace cvislam::agent
