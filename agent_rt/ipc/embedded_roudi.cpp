@@ -14,16 +14,34 @@
 
 namespace cvislam::agent {
 
+namespace {
+// iceoryx wants chunk sizes in multiples of its chunk alignment; payloads are rounded up to them.
+std::uint32_t alignedPayload(std::uint32_t bytes) {
+  constexpr auto kAlignment = static_cast<std::uint32_t>(iox::mepoo::MemPool::CHUNK_MEMORY_ALIGNMENT);
+  return (bytes + kAlignment - 1) / kAlignment * kAlignment;
+}
+}  // namespace
+
 Status EmbeddedRouDiOptions::validate() const {
   if (runtime_name.empty() || runtime_name.size() > iox::MAX_RUNTIME_NAME_LENGTH) {
     return Error{ErrorCode::kInvalidArgument,
                  "iceoryx runtime_name must have 1 to " + std::to_string(iox::MAX_RUNTIME_NAME_LENGTH) + " characters"};
   }
-  if (mempools.empty()) return Error{ErrorCode::kInvalidArgument, "iceoryx mempools: give at least one pool"};
+  if (mempools.empty() || mempools.size() > iox::MAX_NUMBER_OF_MEMPOOLS) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "iceoryx mempools: give 1 to " + std::to_string(iox::MAX_NUMBER_OF_MEMPOOLS) + " pools"};
+  }
   for (std::size_t i = 0; i < mempools.size(); ++i) {
     if (mempools[i].chunk_payload_bytes == 0 || mempools[i].chunk_count == 0) {
       return Error{ErrorCode::kInvalidArgument,
                    "iceoryx mempools[" + std::to_string(i) + "]: chunk_payload_bytes and chunk_count must be > 0"};
+    }
+    // iceoryx aborts unless the (aligned) sizes increase strictly.
+    if (i > 0 &&
+        alignedPayload(mempools[i].chunk_payload_bytes) <= alignedPayload(mempools[i - 1].chunk_payload_bytes)) {
+      return Error{ErrorCode::kInvalidArgument,
+                   "iceoryx mempools[" + std::to_string(i) + "]: sizes must increase strictly, in steps of at least " +
+                       std::to_string(iox::mepoo::MemPool::CHUNK_MEMORY_ALIGNMENT) + " bytes"};
     }
   }
   return Status::Ok();
@@ -61,14 +79,11 @@ Result<std::unique_ptr<EmbeddedRouDi>> EmbeddedRouDi::start(const EmbeddedRouDiO
                                             std::string(iox::roudi::ROUDI_LOCK_NAME) +
                                             ".lock in the temp folder): check that it is writable"};
     }
-  }  // released here; RouDi takes it again below
+  }  // released here; RouDi takes it again below (a RouDi started in between still makes iceoryx abort)
 
   iox::mepoo::MePooConfig mempool_config;
   for (const MemPoolSpec& pool : options.mempools) {
-    // iceoryx wants chunk sizes in multiples of its chunk alignment; round the payload up.
-    constexpr std::uint32_t kAlignment = iox::mepoo::MemPool::CHUNK_MEMORY_ALIGNMENT;
-    const std::uint32_t payload = (pool.chunk_payload_bytes + kAlignment - 1) / kAlignment * kAlignment;
-    mempool_config.addMemPool({payload, pool.chunk_count});
+    mempool_config.addMemPool({alignedPayload(pool.chunk_payload_bytes), pool.chunk_count});
   }
   iox::RouDiConfig_t config;
   const auto group = iox::posix::PosixGroup::getGroupOfCurrentProcess().getName();

@@ -31,7 +31,8 @@ struct EmbeddedRouDiOptions {
   // for what publishers hold loaned plus what subscribers keep queued.
   std::vector<MemPoolSpec> mempools = {{128, 1000}, {1024, 500}, {16 * 1024, 200}, {1024 * 1024, 32}};
 
-  // Names the bad field: empty name, no pools, a pool of zero size or count.
+  // Names the bad field: empty name, no pools or too many, a pool of zero size or count, sizes that do not
+  // increase strictly (iceoryx would abort).
   [[nodiscard]] Status validate() const;
 };
 

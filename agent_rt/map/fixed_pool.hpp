@@ -17,6 +17,7 @@
 
 namespace cvislam::agent {
 
+// A default-constructed handle (generation 0) refers to nothing.
 struct PoolHandle {
   std::uint32_t index = 0;
   std::uint32_t generation = 0;
@@ -32,6 +33,7 @@ class FixedPool {
   using Handle = PoolHandle;
 
   FixedPool() noexcept {
+    generation_.fill(1);  // generation 0 is never issued, so a default PoolHandle{} is never valid
     for (std::size_t i = 0; i < Capacity; ++i) {
       free_[i] = static_cast<std::uint32_t>(Capacity - 1 - i);  // pop() hands out index 0 first
     }

@@ -34,8 +34,11 @@ struct KeyframeData {
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
   imu::ImuBias bias;
   bool anchor = false;  // held fixed in local BA (covisible keyframes, keyframes from the server)
-  // The IMU from the previous keyframe of this agent (by sequence) to this one, when there is one.
+  // The IMU from keyframe `preintegration_from` of this agent to this one, when there is one. Local BA joins
+  // the two only when that keyframe is the previous one in the map (by sequence); after a keyframe in
+  // between was removed, the link is simply not used.
   bool has_preintegration = false;
+  KeyframeId preintegration_from;
   imu::Preintegration preintegration;
   std::uint16_t keypoint_count = 0;
   std::array<features::Keypoint, kMaxKeypointsPerKeyframe> keypoints{};

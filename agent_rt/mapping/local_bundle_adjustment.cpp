@@ -1,6 +1,7 @@
 #include "agent_rt/mapping/local_bundle_adjustment.hpp"
 
 #include <algorithm>
+#include <cmath>
 #include <string>
 #include <unordered_map>
 #include <vector>
@@ -23,6 +24,7 @@ Status LocalBundleAdjustmentOptions::validate() const {
   if (min_covisible < 1) return bad("min_covisible must be >= 1");
   if (max_iterations < 1) return bad("max_iterations must be >= 1");
   if (!(cauchy_scale > 0.0) || !(sigma_px > 0.0)) return bad("cauchy_scale and sigma_px must be > 0");
+  if (!(pyramid_scale_factor >= 1.0)) return bad("pyramid_scale_factor must be >= 1");
   if (!(intrinsics.fx > 0.0) || !(intrinsics.fy > 0.0)) return bad("intrinsics fx, fy must be > 0");
   return noise.validate();
 }
@@ -119,7 +121,7 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
 
   ceres::Problem problem;
   auto* pose_manifold = new factors::PoseManifold();  // owned by the problem, as are the cost functions
-  auto* bearing_manifold = new factors::UnitBearingManifold();
+  ceres::Manifold* bearing_manifold = points.empty() ? nullptr : new factors::UnitBearingManifold();
   factors::PoseBlock extrinsics = factors::poseToBlock(map.extrinsics());
   problem.AddParameterBlock(extrinsics.data(), factors::kPoseSize, pose_manifold);
   problem.SetParameterBlockConstant(extrinsics.data());
@@ -127,7 +129,11 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
     problem.AddParameterBlock(s.pose.data(), factors::kPoseSize, pose_manifold);
     if (!s.in_window) problem.SetParameterBlockConstant(s.pose.data());
   }
-  for (PointState& p : points) problem.AddParameterBlock(p.bearing.data(), 3, bearing_manifold);
+  for (PointState& p : points) {
+    problem.AddParameterBlock(p.bearing.data(), 3, bearing_manifold);
+    problem.AddParameterBlock(&p.inverse_depth, 1);
+    problem.SetParameterLowerBound(&p.inverse_depth, 0, 1e-8);  // in front of the reference camera, finite
+  }
 
   // Reprojection factors: every observation of a window point from a keyframe in the problem.
   for (KeyframeState& s : keyframes) {
@@ -138,7 +144,7 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
       if (pit == point_index.end()) continue;
       PointState& p = points[pit->second];
       const PoolHandle ref = map.mapPoints().get(p.handle)->reference;
-      const double sigma = options.sigma_px * std::pow(1.2, kf.keypoints[k].octave);
+      const double sigma = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.keypoints[k].octave);
       auto* loss = new ceres::CauchyLoss(options.cauchy_scale);
       if (ref == s.handle) {
         problem.AddResidualBlock(new factors::ReprojectionHostFactor(kf.undistorted_px[k], options.intrinsics, sigma),
@@ -156,7 +162,10 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   if (options.use_imu) {
     for (std::size_t i = first + 1; i < by_sequence.size(); ++i) {
       const KeyframeData& kf = *map.keyframes().get(by_sequence[i].second);
-      if (!kf.has_preintegration) continue;
+      const KeyframeData& previous = *map.keyframes().get(by_sequence[i - 1].second);
+      // The preintegration must start at exactly the previous window keyframe: an anchor in between, or a
+      // removed keyframe, breaks the chain.
+      if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) continue;
       KeyframeState& a = keyframes[keyframe_index.at(handleKey(by_sequence[i - 1].second))];
       KeyframeState& b = keyframes[keyframe_index.at(handleKey(by_sequence[i].second))];
       problem.AddResidualBlock(new factors::ImuFactor(kf.preintegration), nullptr, a.pose.data(), a.velocity.data(),
@@ -166,7 +175,11 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
       ++summary.imu_factors;
     }
   }
-  if (summary.fixed_keyframes == 0) problem.SetParameterBlockConstant(keyframes.front().pose.data());  // gauge
+  if (summary.fixed_keyframes == 0) {  // the gauge
+    problem.SetParameterBlockConstant(keyframes.front().pose.data());
+    // Without the IMU (or with no IMU link), scale is free as well: hold a second pose.
+    if (summary.imu_factors == 0 && keyframes.size() > 1) problem.SetParameterBlockConstant(keyframes[1].pose.data());
+  }
 
   ceres::Solver::Options solver_options;
   solver_options.linear_solver_type = ceres::SPARSE_SCHUR;

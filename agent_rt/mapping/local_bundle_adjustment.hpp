@@ -19,8 +19,9 @@ struct LocalBundleAdjustmentOptions {
   int window = 10;         // M
   int min_covisible = 15;  // shared points that make an outside keyframe a fixed anchor
   int max_iterations = 10;
-  double cauchy_scale = 1.0;  // on whitened residuals
-  double sigma_px = 1.0;      // keypoint noise at pyramid level 0
+  double cauchy_scale = 1.0;          // on whitened residuals
+  double sigma_px = 1.0;              // keypoint noise at pyramid level 0
+  double pyramid_scale_factor = 1.2;  // the ORB pyramid's (OrbOptions::scale_factor): noise grows per level
   bool use_imu = true;
   factors::PinholeIntrinsics intrinsics;
   imu::ImuNoise noise;

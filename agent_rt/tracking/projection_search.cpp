@@ -54,8 +54,8 @@ int ProjectionMatcher::search(std::span<const ProjectedMapPoint> points, const K
     });
     if (best_keypoint < 0 || best > options.max_distance) continue;
     if (second != std::numeric_limits<int>::max() &&
-        static_cast<float>(best) > options.ratio * static_cast<float>(second)) {
-      continue;
+        (best == second || static_cast<float>(best) > options.ratio * static_cast<float>(second))) {
+      continue;  // ambiguous, a tie included
     }
     const auto k = static_cast<std::size_t>(best_keypoint);
     if (owner_[k] >= 0) {

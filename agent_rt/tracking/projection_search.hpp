@@ -1,8 +1,8 @@
 // Guided matching of projected map points to a frame's keypoints (tracking's projection search): each
 // map point, projected with the predicted pose, is matched to the keypoint with the closest descriptor
 // within a radius of its projection, if unambiguous; a keypoint goes to at most one map point (the closest
-// in descriptor space). A grid over the image makes the radius queries cheap. Fixed-capacity storage: nothing
-// allocates after construction.
+// in descriptor space; the other point stays unmatched in this pass, with no second try). A grid over the image makes
+// the radius queries cheap. Fixed-capacity storage: nothing allocates after construction.
 #pragma once
 
 #include <array>
@@ -47,8 +47,9 @@ class KeypointGrid {
 
  private:
   [[nodiscard]] int cellOf(double coordinate, int cells) const {
-    const int c = static_cast<int>(coordinate / static_cast<double>(cell_px_));
-    return c < 0 ? 0 : (c >= cells ? cells - 1 : c);
+    const double c = coordinate / static_cast<double>(cell_px_);
+    if (!(c >= 0.0)) return 0;  // negative or NaN
+    return c >= static_cast<double>(cells - 1) ? cells - 1 : static_cast<int>(c);
   }
 
   std::span<const features::Keypoint> keypoints_;

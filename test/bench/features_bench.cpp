@@ -2,9 +2,6 @@
 // with the heap allocations OpenCV makes per frame (this binary counts operator new).
 //
 //   taskset -c 0 build/default/bin/bench_features
-#include <atomic>
-#include <cstdlib>
-#include <new>
 #include <vector>
 
 #include <benchmark/benchmark.h>
@@ -12,23 +9,8 @@
 #include "common/dataset/euroc.hpp"
 #include "common/features/orb.hpp"
 #include "test/bench/percentiles.hpp"
+#include "test/support/allocation_counter.hpp"
 #include "test/support/test_data.hpp"
-
-namespace {
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-void* operator new(std::size_t size) {
-  g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept {
-  std::free(p);
-}
-void operator delete(void* p, std::size_t /*size*/) noexcept {
-  std::free(p);
-}
 
 namespace cvislam {
 namespace {
@@ -63,9 +45,9 @@ void BM_OrbExtract500(benchmark::State& state) {
   long allocations = 0;
   for (auto _ : state) {
     const dataset::GrayImage& image = frames()[i++ % frames().size()];
-    const long before = g_allocations.load();
+    const long before = test::allocationCount();
     benchmark::DoNotOptimize(extractor->extract(image.pixels, image.width, image.height, keypoints, descriptors));
-    allocations += g_allocations.load() - before;
+    allocations += test::allocationCount() - before;
   }
   state.counters["allocations_per_frame"] =
       benchmark::Counter(static_cast<double>(allocations), benchmark::Counter::kAvgIterations);

@@ -115,6 +115,13 @@ TEST(EmbeddedRouDiOptions, ValidateNamesTheBadField) {
   options = {};
   options.runtime_name.clear();
   EXPECT_FALSE(options.validate().ok());
+  options = {};
+  options.mempools = {{1024, 10}, {128, 10}};  // decreasing: iceoryx would abort
+  const Status unordered = options.validate();
+  ASSERT_FALSE(unordered.ok());
+  EXPECT_NE(unordered.error().message().find("increase strictly"), std::string::npos);
+  options.mempools = {{121, 10}, {128, 10}};  // both round up to 128
+  EXPECT_FALSE(options.validate().ok());
 }
 
 }  // namespace

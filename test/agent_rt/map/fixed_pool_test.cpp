@@ -2,10 +2,7 @@
 // replaces global operator new to count allocations.
 #include "agent_rt/map/fixed_pool.hpp"
 
-#include <atomic>
-#include <cstdlib>
 #include <memory>
-#include <new>
 #include <unordered_set>
 #include <vector>
 
@@ -13,22 +10,7 @@
 
 #include "agent_rt/map/capacities.hpp"
 #include "common/core/ids.hpp"
-
-namespace {
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-void* operator new(std::size_t size) {
-  g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept {
-  std::free(p);
-}
-void operator delete(void* p, std::size_t /*size*/) noexcept {
-  std::free(p);
-}
+#include "test/support/allocation_counter.hpp"
 
 namespace cvislam::agent {
 namespace {
@@ -62,6 +44,8 @@ TEST(FixedPool, InsertWhenFullReturnsNothingAndKeepsWhatItHolds) {
 TEST(FixedPool, EraseFreesTheSlotAndTheOldHandleBecomesStale) {
   FixedPool<Payload, kCapacity> sut;
   const PoolHandle first = *sut.insert({KeyframeId{1, 0}, 1.0});
+  EXPECT_EQ(first.index, 0U);
+  EXPECT_FALSE(first == PoolHandle{});
   ASSERT_TRUE(sut.erase(first));
   EXPECT_FALSE(sut.erase(first));  // twice is refused
   EXPECT_EQ(sut.get(first), nullptr);
@@ -70,7 +54,8 @@ TEST(FixedPool, EraseFreesTheSlotAndTheOldHandleBecomesStale) {
   EXPECT_EQ(sut.get(first), nullptr);    // ...but the old handle does not alias the new object
   ASSERT_NE(sut.get(reused), nullptr);
   EXPECT_EQ(sut.get(reused)->value, 2.0);
-  EXPECT_FALSE(sut.valid(PoolHandle{static_cast<std::uint32_t>(kCapacity), 0}));  // out of range
+  EXPECT_FALSE(sut.valid(PoolHandle{static_cast<std::uint32_t>(kCapacity), 1}));  // out of range
+  EXPECT_FALSE(sut.valid(PoolHandle{}));  // an unset handle never refers to an object, even in slot 0
 }
 
 TEST(FixedPool, ForEachVisitsExactlyTheLiveObjectsInSlotOrder) {
@@ -92,20 +77,20 @@ TEST(FixedPool, ChurnAtTheConfiguredCapacityNeverAllocates) {
   IdCounter<KeyframeId> ids(7);
   std::vector<PoolHandle> handles;
   handles.reserve(kMaxKeyframes);
-  const long before = g_allocations.load();
+  const long before = test::allocationCount();
   for (int round = 0; round < 100; ++round) {
     handles.clear();  // capacity reserved above: no allocation
     while (auto handle = sut->insert({ids.next(), 0.0})) handles.push_back(*handle);
     EXPECT_EQ(sut->size(), kMaxKeyframes);
     for (std::size_t i = 0; i < handles.size(); i += 2) sut->erase(handles[i]);
   }
-  EXPECT_EQ(g_allocations.load() - before, 0);
+  EXPECT_EQ(test::allocationCount() - before, 0);
 }
 
 TEST(FixedPool, TheCounterSeesAnAllocation) {
-  const long before = g_allocations.load();
+  const long before = test::allocationCount();
   auto p = std::make_unique<int>(1);
-  EXPECT_GE(g_allocations.load() - before, 1);
+  EXPECT_GE(test::allocationCount() - before, 1);
 }
 
 TEST(ObjectIds, TwoAgentsCountingIndependentlyNeverCollide) {

@@ -56,6 +56,7 @@ Fixture makeMap(bool perturb) {
     }
     if (k > 0) {
       kf->has_preintegration = true;
+      kf->preintegration_from = f.map->keyframes().get(f.keyframes.back())->id;
       kf->preintegration = f.scenario.preintegrations[k - 1];
     }
     f.keyframes.push_back(*f.map->insertKeyframe(*kf));
@@ -113,30 +114,36 @@ TEST(LocalBundleAdjustment, TheWholeWindowConvergesToTheTruth) {
   }
 }
 
-TEST(LocalBundleAdjustment, CovisibleKeyframesOutsideTheWindowStayFixed) {
+TEST(LocalBundleAdjustment, CovisibleKeyframesOutsideTheWindowAreHeldFixed) {
   Fixture f = makeMap(false);
-  // Perturb only the newest three keyframes; the older ones share many points with them.
+  // Shift the five older keyframes (and with them the points they hold) by 10 cm, and perturb the newest
+  // three. Held fixed, the older ones define where the map is: the window must converge to the truth shifted
+  // by the same 10 cm. Were they free, the window's own first pose would be held instead (the gauge), and the
+  // window would not move by the shift.
+  const Vector3d shift(0.1, 0.0, 0.0);
+  for (std::size_t k = 0; k < 5; ++k) f.map->keyframes().get(f.keyframes[k])->T_w_s.translation() += shift;
   for (std::size_t k = 5; k < 8; ++k) {
     KeyframeData& kf = *f.map->keyframes().get(f.keyframes[k]);
     kf.T_w_s = SE3d(kf.T_w_s.so3() * geometry::SO3d::exp(Vector3d(0.01, -0.02, 0.015)),
                     kf.T_w_s.translation() + Vector3d(0.05, -0.04, 0.03));
   }
-  std::vector<SE3d> before;
-  for (const PoolHandle h : f.keyframes) before.push_back(f.map->keyframes().get(h)->T_w_s);
   auto summary = runLocalBundleAdjustment(*f.map, baOptions(f.scenario, 3));
   ASSERT_TRUE(summary.ok()) << summary.error().toString();
   EXPECT_EQ(summary->window_keyframes, 3);
-  EXPECT_GE(summary->fixed_keyframes, 2);
-  for (std::size_t k = 0; k < 5; ++k) {  // outside the window: untouched
-    EXPECT_EQ(f.map->keyframes().get(f.keyframes[k])->T_w_s.translation(), before[k].translation()) << k;
+  EXPECT_EQ(summary->fixed_keyframes, 5);
+  for (std::size_t k = 5; k < 8; ++k) {
+    const Vector3d expected = f.scenario.keyframe_states[k].T_w_s.translation() + shift;
+    EXPECT_LT((f.map->keyframes().get(f.keyframes[k])->T_w_s.translation() - expected).norm(), 1e-3) << k;
   }
-  for (std::size_t k = 5; k < 8; ++k) {  // inside: back to the truth
-    EXPECT_LT((f.map->keyframes().get(f.keyframes[k])->T_w_s.translation() -
-               f.scenario.keyframe_states[k].T_w_s.translation())
-                  .norm(),
-              1e-3)
-        << k;
-  }
+}
+
+TEST(LocalBundleAdjustment, AnImuLinkThatSkipsARemovedKeyframeIsNotUsed) {
+  Fixture f = makeMap(false);
+  ASSERT_TRUE(f.map->removeKeyframe(f.keyframes[3]).ok());  // keyframe 4's IMU now starts at a missing keyframe
+  auto summary = runLocalBundleAdjustment(*f.map, baOptions(f.scenario, 8));
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  EXPECT_EQ(summary->window_keyframes, 7);
+  EXPECT_EQ(summary->imu_factors, 5);  // 0-1, 1-2, 4-5, 5-6, 6-7: not 2-4, whose IMU covers only 3-4
 }
 
 TEST(LocalBundleAdjustmentOptions, ValidateNamesTheBadField) {

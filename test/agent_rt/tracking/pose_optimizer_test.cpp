@@ -2,33 +2,15 @@
 // with noise and 20 % wrong matches, and no heap allocation (this binary counts operator new).
 #include "agent_rt/tracking/pose_optimizer.hpp"
 
-#include <atomic>
 #include <cmath>
-#include <cstdlib>
-#include <new>
 #include <random>
 #include <vector>
 
 #include <gtest/gtest.h>
 
+#include "test/support/allocation_counter.hpp"
 #include "test/support/numeric_diff.hpp"
 #include "test/support/vi_scenario.hpp"
-
-namespace {
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-void* operator new(std::size_t size) {
-  g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept {
-  std::free(p);
-}
-void operator delete(void* p, std::size_t /*size*/) noexcept {
-  std::free(p);
-}
 
 namespace cvislam::agent {
 namespace {
@@ -135,9 +117,9 @@ TEST(PoseOptimizer, DoesNotAllocate) {
   std::vector<std::uint8_t> outlier(c.observations.size());
   const SE3d initial = plus(c.T_w_s_true, (Vec6() << 0.02, 0.0, 0.01, 0.01, 0.0, 0.0).finished());
   const PoseOptimizerOptions options;
-  const long before = g_allocations.load();
+  const long before = test::allocationCount();
   auto sut = optimizePose(c.observations, initial, c.scenario.T_s_c, c.scenario.intrinsics, options, outlier);
-  const long after = g_allocations.load();
+  const long after = test::allocationCount();
   ASSERT_TRUE(sut.ok());
   EXPECT_EQ(after - before, 0);
 }
