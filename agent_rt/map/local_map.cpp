@@ -27,14 +27,13 @@ Result<PoolHandle> LocalMap::insertKeyframe(const KeyframeData& keyframe) {
   return *handle;
 }
 
-Status LocalMap::detach(PoolHandle keyframe, std::uint16_t keypoint) {
+void LocalMap::detach(PoolHandle keyframe, std::uint16_t keypoint) {
   KeyframeData* kf = keyframes_->get(keyframe);
-  if (kf == nullptr || keypoint >= kf->keypoint_count || !kf->has_map_point[keypoint]) return Status::Ok();
+  if (kf == nullptr || keypoint >= kf->keypoint_count || !kf->has_map_point[keypoint]) return;
   if (MapPointData* mp = map_points_->get(kf->map_point[keypoint]); mp != nullptr && mp->observation_count > 0) {
     --mp->observation_count;
   }
   kf->has_map_point[keypoint] = false;
-  return Status::Ok();
 }
 
 Status LocalMap::removeKeyframe(PoolHandle keyframe) {
@@ -67,7 +66,7 @@ Status LocalMap::removeKeyframe(PoolHandle keyframe) {
         continue;
       }
     }
-    if (Status status = detach(keyframe, k); !status.ok()) return status;
+    detach(keyframe, k);
   }
   keyframes_->erase(keyframe);
   return Status::Ok();

@@ -101,7 +101,8 @@ class LocalMap {
   [[nodiscard]] const geometry::SE3d& extrinsics() const { return T_s_c_; }  // T_s_c
 
  private:
-  Status detach(PoolHandle keyframe, std::uint16_t keypoint);
+  // Unlinks one observation and counts it off its map point.
+  void detach(PoolHandle keyframe, std::uint16_t keypoint);
 
   geometry::SE3d T_s_c_;
   std::unique_ptr<KeyframePool> keyframes_;  // megabytes: on the heap, allocated once here

@@ -23,9 +23,6 @@ class ImuFactor final
 
   bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override;
 
-  [[nodiscard]] const imu::Preintegration& preintegration() const { return preintegration_; }
-  [[nodiscard]] const Eigen::Matrix<double, 9, 9>& sqrtInformation() const { return sqrt_information_; }
-
  private:
   imu::Preintegration preintegration_;
   Eigen::Vector3d g_w_;

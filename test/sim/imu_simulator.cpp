@@ -38,4 +38,19 @@ void ImuSimulator::step(const KinematicState& state, std::int64_t t_ns, dataset:
   for (int i = 0; i < 3; ++i) accel_bias_(i) += calibration_.accel_random_walk * sqrt_dt * rng_.normal();
 }
 
+SimulatedImu simulateImu(const BodyTrajectory& trajectory, double end_s, const dataset::ImuCalibration& calibration,
+                         const ImuSimulatorOptions& options, std::uint64_t seed) {
+  ImuSimulator simulator(calibration, options, seed);
+  const auto period_ns = static_cast<std::int64_t>(std::llround(1e9 / calibration.rate_hz));
+  SimulatedImu out;
+  for (std::int64_t t_ns = 0; static_cast<double>(t_ns) * 1e-9 <= end_s + 1e-12; t_ns += period_ns) {
+    dataset::ImuSample sample;
+    dataset::GroundTruthState state;
+    simulator.step(trajectory.state(static_cast<double>(t_ns) * 1e-9), t_ns, sample, state);
+    out.imu.push_back(sample);
+    out.ground_truth.push_back(state);
+  }
+  return out;
+}
+
 }  // namespace cvislam::sim

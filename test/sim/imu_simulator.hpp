@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
 
 #include "common/dataset/types.hpp"
 #include "test/sim/random.hpp"
@@ -37,6 +38,15 @@ class ImuSimulator {
   Eigen::Vector3d gyro_bias_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d accel_bias_ = Eigen::Vector3d::Zero();
 };
+
+// Readings and ground truth at every IMU tick of [0, end_s], stamped from 0 ns, held in memory (for tests that
+// need the IMU of a flight without writing a dataset).
+struct SimulatedImu {
+  std::vector<dataset::ImuSample> imu;
+  std::vector<dataset::GroundTruthState> ground_truth;
+};
+SimulatedImu simulateImu(const BodyTrajectory& trajectory, double end_s, const dataset::ImuCalibration& calibration,
+                         const ImuSimulatorOptions& options, std::uint64_t seed);
 
 // The noise-free specific force and angular rate in the body (IMU) frame.
 Eigen::Vector3d specificForce(const KinematicState& state);

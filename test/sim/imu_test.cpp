@@ -153,17 +153,8 @@ TEST(SimulatedImu, NoiseFreeReadingsIntegrateToTheGroundTruthForEveryPreset) {
     imu_options.noise = false;
     const dataset::ImuCalibration calibration = dataset::eurocImu();
     for (const AgentPlan& agent : plan->agents) {
-      ImuSimulator sut(calibration, imu_options, 1);
-      std::vector<dataset::ImuSample> imu;
-      std::vector<dataset::GroundTruthState> gt;
-      for (int k = 0; k <= 8 * 200; ++k) {
-        dataset::ImuSample sample;
-        dataset::GroundTruthState state;
-        sut.step(agent.trajectory.state(k / 200.0), std::int64_t{5'000'000} * k, sample, state);
-        imu.push_back(sample);
-        gt.push_back(state);
-      }
-      const IncrementErrors e = worstIncrementError(imu, gt);
+      const SimulatedImu sut = simulateImu(agent.trajectory, 8.0, calibration, imu_options, 1);
+      const IncrementErrors e = worstIncrementError(sut.imu, sut.ground_truth);
       EXPECT_LT(e.rotation_rad, kMaxRotationErrorRad) << preset << " " << agent.name;
       EXPECT_LT(e.velocity_mps, kMaxVelocityErrorMps) << preset << " " << agent.name;
       EXPECT_LT(e.position_m, kMaxPositionErrorM) << preset << " " << agent.name;

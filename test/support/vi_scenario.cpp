@@ -20,11 +20,6 @@ namespace {
 constexpr double kImageWidth = 752.0;
 constexpr double kImageHeight = 480.0;
 
-// EuRoC cam0 T_BS (body = IMU).
-geometry::SE3d eurocCam0Extrinsics() {
-  return dataset::eurocCam0().T_b_c;
-}
-
 // Fixed rotation that makes the camera look along world +x (image x to world -y, image y to world -z)
 // when phi = 0.
 SO3d baseRotation() {
@@ -32,7 +27,7 @@ SO3d baseRotation() {
   R_w_c.col(0) = -Vector3d::UnitY();
   R_w_c.col(1) = -Vector3d::UnitZ();
   R_w_c.col(2) = Vector3d::UnitX();
-  return SO3d(R_w_c) * eurocCam0Extrinsics().so3().inverse();
+  return SO3d(R_w_c) * dataset::eurocCam0().T_b_c.so3().inverse();
 }
 
 // Rotation R_w_s(t) = R_base Exp(phi(t)) and position p_w(t), with analytic derivatives.
@@ -68,7 +63,7 @@ imu::NavState trueViState(double t_s) {
 ViScenario makeViScenario(const ViScenarioOptions& options) {
   ViScenario s;
   s.options = options;
-  s.T_s_c = eurocCam0Extrinsics();
+  s.T_s_c = dataset::eurocCam0().T_b_c;
   std::mt19937_64 rng(options.seed);
 
   // IMU: d/dt Exp(phi) = Exp(phi) [Jr(phi) phi_dot]x, so the body rate is Jr(phi) phi_dot.

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -37,16 +38,11 @@ SimulatedFlight simulate(const std::string& preset, double duration_s, bool nois
   if (!plan.ok()) return flight;
   sim::ImuSimulatorOptions imu_options;
   imu_options.noise = noise;
-  sim::ImuSimulator simulator(dataset::eurocImu(), imu_options, seed);
   const sim::BodyTrajectory& trajectory = plan->agents.front().trajectory;
-  constexpr std::int64_t kPeriodNs = 5'000'000;  // 200 Hz
-  for (std::int64_t t_ns = 0; static_cast<double>(t_ns) * 1e-9 <= trajectory.duration(); t_ns += kPeriodNs) {
-    dataset::ImuSample sample;
-    dataset::GroundTruthState gt;
-    simulator.step(trajectory.state(static_cast<double>(t_ns) * 1e-9), t_ns, sample, gt);
-    flight.imu.push_back(sample);
-    flight.gt.push_back(gt);
-  }
+  sim::SimulatedImu simulated =
+      sim::simulateImu(trajectory, trajectory.duration(), dataset::eurocImu(), imu_options, seed);
+  flight.imu = std::move(simulated.imu);
+  flight.gt = std::move(simulated.ground_truth);
   return flight;
 }
 

@@ -46,21 +46,13 @@ Scenario makeScenario(const std::string& preset, bool noise, double start_s, std
   s.T_s_c = cam0.T_b_c;
   sim::ImuSimulatorOptions imu_options;
   imu_options.noise = noise;
-  sim::ImuSimulator simulator(dataset::eurocImu(), imu_options, seed);
-  const sim::BodyTrajectory& trajectory = plan->agents.front().trajectory;
-
-  std::vector<dataset::ImuSample> imu;
-  std::vector<dataset::GroundTruthState> gt;
-  constexpr std::int64_t kPeriodNs = 5'000'000;
+  constexpr std::int64_t kPeriodNs = 5'000'000;  // EuRoC's 200 Hz
   const auto start_ns = static_cast<std::int64_t>(start_s * 1e9);
   const std::int64_t end_ns = start_ns + kKeyframes * kKeyframeIntervalNs + kPeriodNs;
-  for (std::int64_t t_ns = 0; t_ns <= end_ns; t_ns += kPeriodNs) {
-    dataset::ImuSample sample;
-    dataset::GroundTruthState state;
-    simulator.step(trajectory.state(static_cast<double>(t_ns) * 1e-9), t_ns, sample, state);
-    imu.push_back(sample);
-    gt.push_back(state);
-  }
+  const sim::SimulatedImu simulated = sim::simulateImu(
+      plan->agents.front().trajectory, static_cast<double>(end_ns) * 1e-9, dataset::eurocImu(), imu_options, seed);
+  const std::vector<dataset::ImuSample>& imu = simulated.imu;
+  const std::vector<dataset::GroundTruthState>& gt = simulated.ground_truth;
   const auto state_at = [&](std::int64_t t_ns) { return gt[static_cast<std::size_t>(t_ns / kPeriodNs)]; };
 
   // The visual frame: the first keyframe's camera, with positions shrunk by kTrueScale.
