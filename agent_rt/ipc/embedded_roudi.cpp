@@ -5,11 +5,13 @@
 
 #include "iceoryx_hoofs/posix_wrapper/file_lock.hpp"
 #include "iceoryx_hoofs/posix_wrapper/posix_access_rights.hpp"
+#include "iceoryx_hoofs/log/logmanager.hpp"
 #include "iceoryx_posh/iceoryx_posh_config.hpp"
 #include "iceoryx_posh/iceoryx_posh_types.hpp"
 #include "iceoryx_posh/internal/mepoo/mem_pool.hpp"
 #include "iceoryx_posh/internal/roudi/roudi.hpp"
 #include "iceoryx_posh/roudi/iceoryx_roudi_components.hpp"
+#include "iceoryx_posh/runtime/posh_runtime.hpp"
 #include "iceoryx_posh/runtime/posh_runtime_single_process.hpp"
 
 namespace cvislam::agent {
@@ -63,8 +65,34 @@ EmbeddedRouDi::~EmbeddedRouDi() {
   if (impl_) impl_->runtime.reset();  // the runtime goes before RouDi
 }
 
+namespace {
+// iceoryx logs every port it creates at debug level; the agent wants its warnings and errors only.
+void quietIceoryxLog() {
+  iox::log::LogManager::GetLogManager().SetDefaultLogLevel(iox::log::LogLevel::kWarn);
+}
+}  // namespace
+
+Status attachToExternalRouDi(const std::string& runtime_name) {
+  quietIceoryxLog();
+  if (runtime_name.empty() || runtime_name.size() > iox::MAX_RUNTIME_NAME_LENGTH) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "iceoryx runtime name must have 1 to " + std::to_string(iox::MAX_RUNTIME_NAME_LENGTH) + " characters"};
+  }
+  {
+    auto lock = iox::posix::FileLock::create(iox::roudi::ROUDI_LOCK_NAME);
+    if (!lock.has_error()) {
+      return Error{ErrorCode::kNotFound,
+                   "no iox-roudi runs on this machine: start one first (iox-roudi -m off -c deploy/roudi_config.toml) "
+                   "or let the agent embed RouDi"};
+    }
+  }
+  iox::runtime::PoshRuntime::initRuntime(iox::RuntimeName_t(iox::cxx::TruncateToCapacity, runtime_name));
+  return Status::Ok();
+}
+
 Result<std::unique_ptr<EmbeddedRouDi>> EmbeddedRouDi::start(const EmbeddedRouDiOptions& options) {
   if (Status status = options.validate(); !status.ok()) return status.error();
+  quietIceoryxLog();
 
   // iceoryx aborts the process when a second RouDi starts; take its lock first to fail gracefully instead.
   {

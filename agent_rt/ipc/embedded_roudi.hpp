@@ -36,6 +36,10 @@ struct EmbeddedRouDiOptions {
   [[nodiscard]] Status validate() const;
 };
 
+// Attaches this process to an external iox-roudi (deploy/roudi_config.toml) as `runtime_name`. Fails at once,
+// saying what to start, when none runs (iceoryx itself would wait 60 s and abort).
+Status attachToExternalRouDi(const std::string& runtime_name);
+
 class EmbeddedRouDi {
  public:
   // Starts RouDi and this process's iceoryx runtime; publishers and subscribers may be created afterwards,

@@ -104,6 +104,7 @@ Result<PoolHandle> LocalMap::createMapPoint(PoolHandle reference, std::uint16_t 
   point.bearing_c = bearing_c.normalized();
   point.inverse_depth = 1.0 / depth_m;
   point.descriptor = kf->descriptors[keypoint];
+  point.octave = kf->keypoints[keypoint].octave;
   point.created_at_sequence = next_sequence_ == 0 ? 0 : next_sequence_ - 1;
   point.observation_count = 1;
   auto handle = map_points_->insert(point);

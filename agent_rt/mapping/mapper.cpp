@@ -1,0 +1,593 @@
+#include "agent_rt/mapping/mapper.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "agent_rt/mapping/two_view_initialiser.hpp"
+#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/tracking/projection_search.hpp"
+
+namespace cvislam::agent {
+
+using Eigen::Vector2d;
+using Eigen::Vector3d;
+using geometry::SE3d;
+using geometry::SO3d;
+
+Status MapperOptions::validate() const {
+  const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "mapping: " + what}; };
+  if (max_keyframes < 2 || static_cast<std::size_t>(max_keyframes) > kMaxKeyframes) {
+    return bad("max_keyframes must be in [2, " + std::to_string(kMaxKeyframes) + "] (CVISLAM_MAX_KEYFRAMES)");
+  }
+  if (ba.window > max_keyframes) return bad("the BA window must not exceed max_keyframes");
+  if (triangulation_neighbours < 0) return bad("triangulation_neighbours must be >= 0");
+  if (!(fuse_radius_px > 0.0)) return bad("fuse_radius_px must be > 0");
+  if (imu_init_keyframes < 4 || imu_init_max_keyframes < imu_init_keyframes) {
+    return bad("imu_init_keyframes must be >= 4 and imu_init_max_keyframes >= imu_init_keyframes");
+  }
+  if (imu_init_max_keyframes > max_keyframes) return bad("imu_init_max_keyframes must not exceed max_keyframes");
+  if (!(stereo.min_depth_m > 0.0) || !(stereo.max_depth_m > stereo.min_depth_m)) {
+    return bad("stereo depths must satisfy 0 < min_depth_m < max_depth_m");
+  }
+  if (Status s = orb.validate(); !s.ok()) return s;
+  if (Status s = triangulation.validate(); !s.ok()) return s;
+  if (Status s = alignment.validate(); !s.ok()) return s;
+  return ba.validate();
+}
+
+struct Mapper::State {
+  State(const MapperOptions& o, const camera::CameraModel& l, const camera::CameraModel* r, const SE3d& extrinsics,
+        const SE3d& stereo_extrinsics)
+      : options(o), left(l), T_s_c(extrinsics), T_c0_c1(stereo_extrinsics), map(extrinsics), point_ids(o.agent) {
+    if (r != nullptr) right.emplace(*r);
+    level_scale[0] = 1.0;
+    for (std::size_t i = 1; i < level_scale.size(); ++i) level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
+  }
+
+  MapperOptions options;
+  camera::CameraModel left;
+  std::optional<camera::CameraModel> right;
+  std::optional<features::OrbExtractor> right_orb;
+  SE3d T_s_c;
+  SE3d T_c0_c1;
+  LocalMap map;
+  IdCounter<MapPointId> point_ids;
+  std::array<double, 32> level_scale{};
+
+  std::uint32_t map_id = 0;
+  std::uint32_t epoch = 0;
+  double epoch_scale = 1.0;
+  SE3d epoch_transform;
+  bool imu_initialised = false;
+  bool mono_initialised = false;
+  std::optional<PoolHandle> mono_reference;
+  std::uint64_t expected_sequence = 0;
+  bool seen_message = false;
+
+  // Scratch (mapping may allocate, but reuses).
+  KeyframeData scratch;
+  std::vector<dataset::ImuSample> imu_samples;
+  std::unordered_map<std::uint64_t, PoolHandle> point_index;
+  std::vector<features::Keypoint> right_keypoints;
+  std::vector<features::Descriptor> right_descriptors;
+  KeypointGrid grid;
+
+  static std::uint64_t key(const MapPointId& id) { return (static_cast<std::uint64_t>(id.agent) << 32U) | id.counter; }
+
+  void rebuildPointIndex() {
+    point_index.clear();
+    map.mapPoints().forEach([&](PoolHandle h, const MapPointData& p) { point_index[key(p.id)] = h; });
+  }
+
+  void clearMap() {
+    std::vector<PoolHandle> all;
+    map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) { all.push_back(h); });
+    for (PoolHandle h : all) (void)map.removeKeyframe(h);
+    std::vector<PoolHandle> points;
+    map.mapPoints().forEach([&](PoolHandle h, const MapPointData&) { points.push_back(h); });
+    for (PoolHandle h : points) (void)map.removeMapPoint(h);
+    imu_initialised = false;
+    mono_initialised = false;
+    mono_reference.reset();
+  }
+
+  // Own keyframes by sequence, oldest first.
+  [[nodiscard]] std::vector<PoolHandle> keyframesBySequence() const {
+    std::vector<std::pair<std::uint64_t, PoolHandle>> order;
+    map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) { order.emplace_back(kf.sequence, h); });
+    std::sort(order.begin(), order.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+    std::vector<PoolHandle> out;
+    out.reserve(order.size());
+    for (const auto& [sequence, h] : order) out.push_back(h);
+    return out;
+  }
+
+  [[nodiscard]] SE3d cameraPose(const KeyframeData& kf) const { return kf.T_w_s * T_s_c; }
+
+  [[nodiscard]] double levelScale(std::uint8_t octave) const {
+    return level_scale[std::min<std::size_t>(octave, level_scale.size() - 1)];
+  }
+};
+
+Mapper::Mapper(std::unique_ptr<State> state) : s_(std::move(state)) {}
+Mapper::~Mapper() = default;
+const LocalMap& Mapper::map() const { return s_->map; }
+bool Mapper::imuInitialised() const { return s_->imu_initialised; }
+
+Result<std::unique_ptr<Mapper>> Mapper::create(const MapperOptions& options, const camera::CameraModel& left,
+                                               const camera::CameraModel* right, const SE3d& T_s_c,
+                                               const SE3d& T_c0_c1) {
+  if (Status status = options.validate(); !status.ok()) return status.error();
+  auto state = std::make_unique<State>(options, left, right, T_s_c, T_c0_c1);
+  if (right != nullptr) {
+    auto orb = features::OrbExtractor::create(options.orb);
+    if (!orb) return orb.error();
+    state->right_orb.emplace(std::move(orb.value()));
+    state->right_keypoints.resize(static_cast<std::size_t>(options.orb.max_features));
+    state->right_descriptors.resize(static_cast<std::size_t>(options.orb.max_features));
+  }
+  state->imu_samples.reserve(kMaxImuSamplesPerKeyframe);
+  state->point_index.reserve(kMaxMapPoints * 2);
+  return std::unique_ptr<Mapper>(new Mapper(std::move(state)));
+}
+
+namespace {
+
+// Distance (in pixels of a camera with focal length f) of the normalised point x1 from the epipolar line of
+// x0, for the relative pose T_c1_c0.
+double epipolarDistancePx(const Vector3d& b0, const Vector3d& b1, const SE3d& T_c1_c0, double f) {
+  const Vector3d l = geometry::hatSO3(T_c1_c0.translation()) * (T_c1_c0.so3() * b0);  // E b0
+  const Vector3d x1 = b1 / b1.z();
+  const double norm = std::hypot(l.x(), l.y());
+  if (norm < 1e-12) return 1e9;
+  return std::abs(l.dot(x1)) / norm * f;
+}
+
+// Stereo depth for the keypoints of `kf` without a map point, from the second camera's image.
+int addStereoPoints(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg) {
+  if (!s.right || !s.right_orb || msg.right_width == 0) return 0;
+  const auto pixels = static_cast<std::size_t>(msg.right_width) * msg.right_height;
+  const int n_right = s.right_orb->extract(std::span(msg.right_pixels.data(), pixels), msg.right_width,
+                                           msg.right_height, s.right_keypoints, s.right_descriptors);
+  std::vector<Vector3d> right_bearings(static_cast<std::size_t>(n_right));
+  for (int j = 0; j < n_right; ++j) {
+    right_bearings[static_cast<std::size_t>(j)] =
+        s.right->unproject(s.right_keypoints[static_cast<std::size_t>(j)].px.cast<double>());
+  }
+  const SE3d T_c1_c0 = s.T_c0_c1.inverse();
+  const StereoOptions& o = s.options.stereo;
+  const double f = s.right->calibration().fx;
+  KeyframeData& kf = *s.map.keyframes().get(handle);
+  int created = 0;
+  for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+    if (kf.has_map_point[k]) continue;
+    const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>());
+    int best = o.max_distance + 1;
+    int second = 256;
+    int best_j = -1;
+    for (int j = 0; j < n_right; ++j) {
+      const auto& rk = s.right_keypoints[static_cast<std::size_t>(j)];
+      if (std::abs(static_cast<int>(rk.octave) - static_cast<int>(kf.keypoints[k].octave)) > 1) continue;
+      if (epipolarDistancePx(b0, right_bearings[static_cast<std::size_t>(j)], T_c1_c0, f) >
+          o.max_epipolar_error_px * s.levelScale(rk.octave)) {
+        continue;
+      }
+      const int d = features::hammingDistance(kf.descriptors[k], s.right_descriptors[static_cast<std::size_t>(j)]);
+      if (d < best) {
+        second = best;
+        best = d;
+        best_j = j;
+      } else if (d < second) {
+        second = d;
+      }
+    }
+    if (best_j < 0 || best > o.max_distance || static_cast<float>(best) > o.ratio * static_cast<float>(second)) continue;
+    const Vector3d& b1 = right_bearings[static_cast<std::size_t>(best_j)];
+    auto p = geometry::triangulateMidpoint(SE3d(), b0.normalized(), s.T_c0_c1, b1.normalized());
+    if (!p) continue;
+    const double depth = p->norm();
+    if (p->z() < o.min_depth_m || depth > o.max_depth_m) continue;
+    const double tolerance = 2.0 * s.levelScale(kf.keypoints[k].octave) / f;
+    if (geometry::rayAngle(*p, b0) > tolerance || geometry::rayAngle(T_c1_c0 * *p, b1) > tolerance) continue;
+    if (s.map.createMapPoint(handle, k, b0.normalized(), depth, s.point_ids.next()).ok()) ++created;
+  }
+  return created;
+}
+
+// New points between the keyframe and its previous neighbours, from keypoints neither has linked yet.
+int triangulateWithNeighbours(Mapper::State& s, PoolHandle handle, const std::vector<PoolHandle>& order) {
+  int created = 0;
+  const double f = s.left.calibration().fx;
+  int used = 0;
+  for (auto it = order.rbegin(); it != order.rend() && used < s.options.triangulation_neighbours; ++it) {
+    if (*it == handle) continue;
+    ++used;
+    KeyframeData& kf = *s.map.keyframes().get(handle);
+    KeyframeData& other = *s.map.keyframes().get(*it);
+    const SE3d T_w_c0 = s.cameraPose(kf);
+    const SE3d T_w_c1 = s.cameraPose(other);
+    if ((T_w_c0.translation() - T_w_c1.translation()).norm() < 1e-3) continue;  // no baseline
+    const SE3d T_c1_c0 = T_w_c1.inverse() * T_w_c0;
+    std::vector<Vector3d> b1(other.keypoint_count);
+    for (std::uint16_t j = 0; j < other.keypoint_count; ++j) b1[j] = s.left.unproject(other.keypoints[j].px.cast<double>());
+    std::vector<std::uint8_t> taken(other.keypoint_count, 0);
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (kf.has_map_point[k]) continue;
+      const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>());
+      int best = s.options.stereo.max_distance + 1;
+      int second = 256;
+      int best_j = -1;
+      for (std::uint16_t j = 0; j < other.keypoint_count; ++j) {
+        if (other.has_map_point[j] || taken[j] != 0) continue;
+        if (epipolarDistancePx(b0, b1[j], T_c1_c0, f) > 2.0 * s.levelScale(other.keypoints[j].octave)) continue;
+        const int d = features::hammingDistance(kf.descriptors[k], other.descriptors[j]);
+        if (d < best) {
+          second = best;
+          best = d;
+          best_j = j;
+        } else if (d < second) {
+          second = d;
+        }
+      }
+      if (best_j < 0 || static_cast<float>(best) > s.options.stereo.ratio * static_cast<float>(second)) continue;
+      const std::array<SE3d, 2> T_c_w{T_w_c0.inverse(), T_w_c1.inverse()};
+      const std::array<Vector3d, 2> bearings{b0, b1[static_cast<std::size_t>(best_j)]};
+      auto p_w = geometry::triangulateLinear(T_c_w, bearings, s.options.triangulation);
+      if (!p_w) continue;
+      const Vector3d p_c0 = T_c_w[0] * *p_w;
+      auto point = s.map.createMapPoint(handle, k, p_c0.normalized(), p_c0.norm(), s.point_ids.next());
+      if (!point) continue;
+      (void)s.map.addObservation(*it, static_cast<std::uint16_t>(best_j), *point);
+      taken[static_cast<std::size_t>(best_j)] = 1;
+      ++created;
+    }
+  }
+  return created;
+}
+
+// Existing points found again in the keyframe: projected with its pose and matched by descriptor near the
+// projection. Counts visibility for culling.
+int fusePoints(Mapper::State& s, PoolHandle handle) {
+  KeyframeData& kf = *s.map.keyframes().get(handle);
+  s.grid.build(std::span(kf.keypoints.data(), kf.keypoint_count), s.left.width(), s.left.height());
+  const SE3d T_c_w = s.cameraPose(kf).inverse();
+  std::vector<std::uint8_t> observed_here(kMaxMapPoints, 0);
+  for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+    if (kf.has_map_point[k]) observed_here[kf.map_point[k].index] = 1;
+  }
+  int fused = 0;
+  std::vector<std::pair<PoolHandle, std::uint16_t>> links;
+  s.map.mapPoints().forEach([&](PoolHandle h, MapPointData& p) {
+    if (observed_here[h.index] != 0) {
+      ++p.visible;
+      ++p.found;
+      return;
+    }
+    const auto p_w = s.map.pointInWorld(h);
+    if (!p_w) return;
+    const Vector3d p_c = T_c_w * *p_w;
+    if (p_c.z() < 0.1) return;
+    const auto px = s.left.project(p_c);
+    if (!px || px->x() < 0 || px->y() < 0 || px->x() >= s.left.width() || px->y() >= s.left.height()) return;
+    ++p.visible;
+    int best = s.options.fuse_max_distance + 1;
+    int best_k = -1;
+    s.grid.forEachWithin(*px, s.options.fuse_radius_px * s.levelScale(p.octave), [&](int k) {
+      if (kf.has_map_point[static_cast<std::size_t>(k)]) return;
+      const int d = features::hammingDistance(p.descriptor, kf.descriptors[static_cast<std::size_t>(k)]);
+      if (d < best) {
+        best = d;
+        best_k = k;
+      }
+    });
+    if (best_k >= 0) links.emplace_back(h, static_cast<std::uint16_t>(best_k));
+  });
+  for (const auto& [point, k] : links) {
+    if (kf.has_map_point[k]) continue;  // two points wanted the same keypoint: the first keeps it
+    if (s.map.addObservation(handle, k, point).ok()) {
+      ++fused;
+      if (MapPointData* p = s.map.mapPoints().get(point)) ++p->found;
+    }
+  }
+  return fused;
+}
+
+void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessage& out) {
+  out.map_epoch = s.epoch;
+  out.map_id = s.map_id;
+  out.epoch_scale = s.epoch_scale;
+  out.epoch_transform = toMsg(s.epoch_transform);
+  out.imu_initialised = s.imu_initialised ? 1 : 0;
+  out.newest_keyframe = newest;
+  out.keyframe_count = 0;
+  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) {
+    KeyframeStateMsg& m = out.keyframes[out.keyframe_count++];
+    m.id = kf.id;
+    m.t_ns = kf.t_ns;
+    m.T_w_s = toMsg(kf.T_w_s);
+    m.v_w = toArray(kf.v_w);
+    m.bias = toMsg(kf.bias);
+  });
+  out.point_count = 0;
+  const bool ready = !s.right ? s.mono_initialised : true;
+  if (!ready) return;
+  s.map.mapPoints().forEach([&](PoolHandle h, const MapPointData& p) {
+    if (p.observation_count < 1) return;
+    const auto p_w = s.map.pointInWorld(h);
+    if (!p_w || !p_w->allFinite()) return;
+    MapPointMsg& m = out.points[out.point_count++];
+    m.id = p.id;
+    m.p_w = {static_cast<float>(p_w->x()), static_cast<float>(p_w->y()), static_cast<float>(p_w->z())};
+    m.descriptor = p.descriptor;
+    m.octave = p.octave;
+  });
+}
+
+// Applies a similarity to the whole map: camera positions and orientations, velocities and point depths.
+void transformMap(Mapper::State& s, double scale, const SO3d& R_w_v) {
+  s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) {
+    const SE3d T_w_c = kf.T_w_s * s.T_s_c;
+    const SE3d T_w_c_new(R_w_v * T_w_c.so3(), scale * (R_w_v * T_w_c.translation()));
+    kf.T_w_s = T_w_c_new * s.T_s_c.inverse();
+    kf.v_w = scale * (R_w_v * kf.v_w);
+  });
+  s.map.mapPoints().forEach([&](PoolHandle, MapPointData& p) { p.inverse_depth /= scale; });
+  s.epoch_scale = scale;
+  s.epoch_transform = SE3d(R_w_v, Vector3d::Zero());
+  ++s.epoch;
+}
+
+// The paper's IMU initialisation over the trailing run of IMU-linked keyframes.
+Status initialiseImu(Mapper::State& s, MapperReport& report) {
+  const std::vector<PoolHandle> order = s.keyframesBySequence();
+  std::vector<PoolHandle> chain;
+  for (auto it = order.rbegin(); it != order.rend(); ++it) {
+    chain.insert(chain.begin(), *it);
+    const KeyframeData& kf = *s.map.keyframes().get(*it);
+    if (std::next(it) == order.rend()) break;
+    const KeyframeData& previous = *s.map.keyframes().get(*std::next(it));
+    if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) break;
+  }
+  if (static_cast<int>(chain.size()) < s.options.imu_init_keyframes) {
+    return Error{ErrorCode::kNotFound, std::to_string(chain.size()) + " IMU-linked keyframes"};
+  }
+  std::vector<imu::VisualKeyframe> visual;
+  std::vector<imu::Preintegration> preintegrations;
+  for (std::size_t i = 0; i < chain.size(); ++i) {
+    const KeyframeData& kf = *s.map.keyframes().get(chain[i]);
+    visual.push_back({s.cameraPose(kf)});
+    if (i > 0) preintegrations.push_back(kf.preintegration);
+  }
+  auto aligned = imu::alignVisualInertial(visual, preintegrations, s.T_s_c, s.options.alignment);
+  if (!aligned) return aligned.error();
+  double scale = aligned->scale;
+  if (s.right) {
+    if (std::abs(scale - 1.0) > s.options.max_stereo_scale_error) {
+      return Error{ErrorCode::kDegenerate, "IMU initialisation: scale " + std::to_string(scale) +
+                                               " disagrees with the stereo map's metric scale"};
+    }
+    scale = 1.0;  // the stereo map is metric already
+  }
+  transformMap(s, scale, aligned->R_w_v);
+  for (std::size_t i = 0; i < chain.size(); ++i) {
+    KeyframeData& kf = *s.map.keyframes().get(chain[i]);
+    kf.v_w = aligned->v_w[i] * (s.right ? 1.0 / aligned->scale : 1.0);
+    kf.bias.gyro = aligned->gyro_bias;
+  }
+  s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) { kf.bias.gyro = aligned->gyro_bias; });
+  s.imu_initialised = true;
+  report.imu_initialised_now = true;
+  report.note = "IMU initialised over " + std::to_string(chain.size()) + " keyframes: scale " +
+                std::to_string(aligned->scale) + ", gyro bias " + std::to_string(aligned->gyro_bias.norm()) + " rad/s";
+  return Status::Ok();
+}
+
+// Monocular: the first map from the reference keyframe and this one, when they see enough of the same
+// scene with enough parallax.
+Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& report) {
+  KeyframeData& kf1 = *s.map.keyframes().get(handle);
+  KeyframeData* kf0p = s.map.keyframes().get(*s.mono_reference);
+  if (kf0p == nullptr) return Error{ErrorCode::kNotFound, "monocular initialisation: reference keyframe gone"};
+  KeyframeData& kf0 = *kf0p;
+  std::vector<features::DescriptorMatch> matches(kf0.keypoint_count);
+  features::MatchOptions match_options;
+  match_options.ratio = 0.8F;
+  const int count = features::matchDescriptors(std::span(kf0.descriptors.data(), kf0.keypoint_count),
+                                               std::span(kf1.descriptors.data(), kf1.keypoint_count), match_options,
+                                               matches);
+  std::vector<Vector3d> b0;
+  std::vector<Vector3d> b1;
+  for (int i = 0; i < count; ++i) {
+    b0.push_back(s.left.unproject(kf0.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].query)].px.cast<double>()));
+    b1.push_back(s.left.unproject(kf1.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].train)].px.cast<double>()));
+  }
+  TwoViewOptions two_view;
+  two_view.focal_px = s.left.calibration().fx;
+  two_view.min_inliers = s.options.mono_init_min_matches;
+  two_view.min_median_parallax_deg = s.options.mono_init_min_parallax_deg;
+  auto geometry = initialiseTwoView(b0, b1, two_view);
+  if (!geometry) return geometry.error();
+  // Median depth 2 (arbitrary units until the IMU gives the scale).
+  std::vector<double> depths;
+  for (std::size_t i = 0; i < geometry->inlier.size(); ++i) {
+    if (geometry->inlier[i] != 0) depths.push_back(geometry->p_c0[i].norm());
+  }
+  std::nth_element(depths.begin(), depths.begin() + static_cast<std::ptrdiff_t>(depths.size() / 2), depths.end());
+  const double scale = 2.0 / depths[depths.size() / 2];
+  const SE3d T_w_c0 = s.cameraPose(kf0);
+  SE3d T_c0_c1 = geometry->T_c0_c1;
+  T_c0_c1.translation() *= scale;
+  kf1.T_w_s = T_w_c0 * T_c0_c1 * s.T_s_c.inverse();
+  const double dt = static_cast<double>(kf1.t_ns - kf0.t_ns) * 1e-9;
+  kf1.v_w = dt > 0 ? Vector3d((kf1.T_w_s.translation() - kf0.T_w_s.translation()) / dt) : Vector3d::Zero();
+  int created = 0;
+  for (std::size_t i = 0; i < geometry->inlier.size(); ++i) {
+    if (geometry->inlier[i] == 0) continue;
+    const auto& m = matches[i];
+    const Vector3d p_c0 = geometry->p_c0[i] * scale;
+    auto point = s.map.createMapPoint(*s.mono_reference, static_cast<std::uint16_t>(m.query), p_c0.normalized(),
+                                      p_c0.norm(), s.point_ids.next());
+    if (!point) continue;
+    (void)s.map.addObservation(handle, static_cast<std::uint16_t>(m.train), *point);
+    ++created;
+  }
+  // The keyframes between the two carry no points: remove them (the IMU chain restarts at kf1).
+  std::vector<PoolHandle> between;
+  s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) {
+    if (!(h == handle) && !(h == *s.mono_reference)) between.push_back(h);
+  });
+  for (PoolHandle h : between) (void)s.map.removeKeyframe(h);
+  s.mono_initialised = true;
+  report.mono_initialised_now = true;
+  report.triangulated += created;
+  report.note = "monocular map from two views: " + std::to_string(created) + " points, median parallax " +
+                std::to_string(geometry->median_parallax_deg) + " deg";
+  return Status::Ok();
+}
+
+}  // namespace
+
+Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot) {
+  State& s = *s_;
+  MapperReport report;
+  if (s.seen_message && msg.sequence > s.expected_sequence) report.lost_messages = msg.sequence - s.expected_sequence;
+  s.seen_message = true;
+  s.expected_sequence = msg.sequence + 1;
+  if (msg.keypoint_count > kMaxKeypointsPerKeyframe) {
+    return Error{ErrorCode::kDataError, "keyframe message with " + std::to_string(msg.keypoint_count) +
+                                            " keypoints, more than the capacity " +
+                                            std::to_string(kMaxKeypointsPerKeyframe)};
+  }
+
+  if (msg.kind == KeyframeKind::kNewMap) {
+    s.clearMap();
+    ++s.map_id;
+    s.epoch_scale = 1.0;
+    s.epoch_transform = SE3d();
+    report.new_map = true;
+  }
+
+  // The keyframe.
+  KeyframeData& kf = s.scratch;
+  kf.id = msg.state.id;
+  kf.t_ns = msg.state.t_ns;
+  kf.T_w_s = fromMsg(msg.state.T_w_s);
+  kf.v_w = toVector3(msg.state.v_w);
+  kf.bias = biasFromMsg(msg.state.bias);
+  kf.anchor = false;
+  kf.keypoint_count = msg.keypoint_count;
+  for (std::uint16_t k = 0; k < msg.keypoint_count; ++k) {
+    const KeypointMsg& m = msg.keypoints[k];
+    kf.keypoints[k] = features::Keypoint{Eigen::Vector2f(m.x, m.y), m.response, m.angle_deg, m.octave};
+    kf.descriptors[k] = msg.descriptors[k];
+    kf.undistorted_px[k] = s.left.undistortPixel(kf.keypoints[k].px.cast<double>());
+  }
+  if (msg.map_epoch + 1 == s.epoch && s.epoch > 0) {
+    // Tracking made this keyframe before it heard of the last change of frame: move it over.
+    const SE3d T = s.epoch_transform;
+    kf.T_w_s = SE3d(T.so3() * kf.T_w_s.so3(), s.epoch_scale * (T.so3() * kf.T_w_s.translation()));
+    kf.v_w = s.epoch_scale * (T.so3() * kf.v_w);
+  }
+  kf.has_preintegration = false;
+  std::vector<PoolHandle> order = s.keyframesBySequence();
+  if (!order.empty() && msg.imu_count > 1 && msg.kind == KeyframeKind::kTracked) {
+    const KeyframeData& previous = *s.map.keyframes().get(order.back());
+    s.imu_samples.clear();
+    for (std::uint32_t i = 0; i < msg.imu_count; ++i) s.imu_samples.push_back(fromMsg(msg.imu[i]));
+    kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
+    if (kf.preintegration.integrateInterval(s.imu_samples, previous.t_ns, kf.t_ns).ok()) {
+      kf.has_preintegration = true;
+      kf.preintegration_from = previous.id;
+    }
+  }
+
+  // The window: at most N own keyframes (the oldest goes), and room in the pool.
+  int own = 0;
+  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& k) { own += k.anchor ? 0 : 1; });
+  while (own >= s.options.max_keyframes || s.map.keyframes().size() >= kMaxKeyframes) {
+    if (s.mono_reference && !s.mono_initialised) break;
+    if (!s.map.evictOldestKeyframe().ok()) break;
+    ++report.evicted;
+    --own;
+  }
+  auto inserted = s.map.insertKeyframe(kf);
+  if (!inserted) return inserted.error();
+  const PoolHandle handle = *inserted;
+  order = s.keyframesBySequence();
+
+  // Tracking's matches.
+  s.rebuildPointIndex();
+  for (std::uint16_t k = 0; k < msg.keypoint_count; ++k) {
+    if (msg.has_match[k] == 0) continue;
+    const auto found = s.point_index.find(State::key(msg.matched[k]));
+    if (found == s.point_index.end()) continue;  // culled since tracking saw it
+    if (s.map.addObservation(handle, k, found->second).ok()) ++report.linked;
+  }
+
+  const bool stereo = s.right.has_value();
+  if (!stereo && !s.mono_initialised) {
+    // Monocular start: the first keyframe is the reference; later ones try the two-view initialisation.
+    if (!s.mono_reference || s.map.keyframes().get(*s.mono_reference) == nullptr) {
+      s.mono_reference = handle;
+    } else if (Status st = initialiseMonocular(s, handle, report); !st.ok()) {
+      report.note = st.error().message();
+      // Too old a reference (far apart views match badly): start over from this keyframe.
+      const KeyframeData* ref = s.map.keyframes().get(*s.mono_reference);
+      if (ref != nullptr && kf.t_ns - ref->t_ns > 2'000'000'000) {
+        std::vector<PoolHandle> others;
+        s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) {
+          if (!(h == handle)) others.push_back(h);
+        });
+        for (PoolHandle h : others) (void)s.map.removeKeyframe(h);
+        s.mono_reference = handle;
+      }
+    }
+  } else {
+    report.fused = fusePoints(s, handle);
+    if (stereo) report.stereo_points = addStereoPoints(s, handle, msg);
+    report.triangulated += triangulateWithNeighbours(s, handle, order);
+    report.culled = s.map.cullMapPoints(s.options.cull);
+  }
+
+  // Local BA, then the IMU initialisation when due.
+  const bool map_ready = stereo || s.mono_initialised;
+  if (map_ready && s.map.keyframes().size() >= 2) {
+    LocalBundleAdjustmentOptions ba = s.options.ba;
+    ba.use_imu = s.imu_initialised && s.options.use_imu;
+    const auto t0 = std::chrono::steady_clock::now();
+    auto summary = runLocalBundleAdjustment(s.map, ba);
+    report.ba_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - t0).count();
+    if (summary) {
+      report.ba_ran = true;
+      report.ba = *summary;
+    }
+  }
+  if (map_ready && s.options.use_imu && !s.imu_initialised) {
+    if (Status st = initialiseImu(s, report); st.ok()) {
+      LocalBundleAdjustmentOptions ba = s.options.ba;
+      ba.use_imu = true;
+      ba.window = s.options.max_keyframes;
+      (void)runLocalBundleAdjustment(s.map, ba);
+    } else if (st.error().code() != ErrorCode::kNotFound) {
+      report.imu_initialisation_failed = true;
+      report.note = st.error().message();
+      int linked = 0;
+      for (PoolHandle h : s.keyframesBySequence()) linked += s.map.keyframes().get(h)->has_preintegration ? 1 : 0;
+      if (!stereo && linked + 1 >= s.options.imu_init_max_keyframes) {
+        // Monocular: the paper reinitialises when 20 keyframes did not give the IMU.
+        s.clearMap();
+        ++s.map_id;
+        report.map_restarted = true;
+      }
+    }
+  }
+  writeSnapshot(s, msg.state.id, snapshot);
+  return report;
+}
+
+}  // namespace cvislam::agent

@@ -1,0 +1,100 @@
+// The agent's mapping thread, one keyframe at a time (CVI-SLAM IV-C): insert the keyframe into the
+// fixed-capacity local map (bounded to N own keyframes), link the map points tracking matched, fuse existing
+// points into it by projection and descriptor, make new points (stereo depth from the second camera;
+// triangulation against the previous keyframes), cull points that are seldom found, run local BA over the
+// newest M keyframes, initialise the IMU once enough keyframes are there, and write the refined local map
+// into a snapshot message for tracking.
+//
+// Monocular maps start from two views (essential matrix, two_view_initialiser); stereo maps from the first
+// keyframe alone.
+//
+// Runs in the mapping thread; it may allocate (Ceres does), tracking never waits for it.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+
+#include "agent_rt/map/local_map.hpp"
+#include "agent_rt/mapping/local_bundle_adjustment.hpp"
+#include "agent_rt/runtime/messages.hpp"
+#include "common/camera/camera_model.hpp"
+#include "common/core/result.hpp"
+#include "common/features/orb.hpp"
+#include "common/geometry/triangulation.hpp"
+#include "common/imu/visual_inertial_alignment.hpp"
+
+namespace cvislam::agent {
+
+struct StereoOptions {
+  double max_epipolar_error_px = 2.0;  // distance of a right keypoint from the epipolar curve, in cam1 pixels
+  int max_distance = 50;               // Hamming bits
+  float ratio = 0.8F;                  // best / second best
+  double min_depth_m = 0.2;
+  double max_depth_m = 40.0;
+};
+
+struct MapperOptions {
+  AgentId agent = 0;
+  int max_keyframes = 20;  // N: the agent's own keyframes kept in the local map
+  LocalBundleAdjustmentOptions ba;  // window = M
+  CullOptions cull;
+  features::OrbOptions orb;  // for the second camera's image (stereo)
+  StereoOptions stereo;
+  geometry::TriangulationOptions triangulation;
+  int triangulation_neighbours = 2;  // previous keyframes searched for new points
+  double fuse_radius_px = 4.0;       // at level 0
+  int fuse_max_distance = 40;        // Hamming bits
+  bool use_imu = true;
+  int imu_init_keyframes = 15;       // keyframes before the IMU initialisation is tried (paper: 15)
+  int imu_init_max_keyframes = 20;   // monocular: still failing then, the map is started again
+  imu::VisualInertialAlignmentOptions alignment;
+  double max_stereo_scale_error = 0.1;  // stereo: alignment's scale must be this close to 1, and is then not applied
+  int mono_init_min_matches = 80;
+  double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
+
+  [[nodiscard]] Status validate() const;
+};
+
+struct MapperReport {
+  bool new_map = false;
+  bool imu_initialised_now = false;
+  bool imu_initialisation_failed = false;
+  bool map_restarted = false;  // monocular IMU initialisation failed up to the limit
+  bool mono_initialised_now = false;
+  int linked = 0;     // tracking's matches linked
+  int fused = 0;      // existing points found again by projection
+  int stereo_points = 0;
+  int triangulated = 0;
+  int culled = 0;
+  int evicted = 0;
+  bool ba_ran = false;
+  LocalBundleAdjustmentSummary ba;
+  std::int64_t ba_ns = 0;
+  std::uint64_t lost_messages = 0;  // keyframe messages missing before this one
+  std::string note;                 // why an initialisation did not succeed, for the log
+};
+
+class Mapper {
+ public:
+  // `right` and T_c0_c1 only for stereo.
+  static Result<std::unique_ptr<Mapper>> create(const MapperOptions& options, const camera::CameraModel& left,
+                                                const camera::CameraModel* right, const geometry::SE3d& T_s_c,
+                                                const geometry::SE3d& T_c0_c1);
+  ~Mapper();
+  Mapper(const Mapper&) = delete;
+  Mapper& operator=(const Mapper&) = delete;
+
+  // Processes one keyframe and writes the resulting local map into `snapshot`.
+  Result<MapperReport> process(const KeyframeMessage& keyframe, MapSnapshotMessage& snapshot);
+
+  [[nodiscard]] const LocalMap& map() const;
+  [[nodiscard]] bool imuInitialised() const;
+
+  struct State;  // the implementation's, in mapper.cpp
+
+ private:
+  explicit Mapper(std::unique_ptr<State> state);
+  std::unique_ptr<State> s_;
+};
+
+}  // namespace cvislam::agent

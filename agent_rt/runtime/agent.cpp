@@ -1,0 +1,647 @@
+#include "agent_rt/runtime/agent.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <memory>
+#include <optional>
+#include <thread>
+
+#include <nlohmann/json.hpp>
+
+#include "agent_rt/ipc/embedded_roudi.hpp"
+#include "agent_rt/runtime/message_conversions.hpp"
+#include "common/dataset/euroc.hpp"
+#include "common/dataset/trajectory_io.hpp"
+#include "iceoryx_posh/popo/publisher.hpp"
+#include "iceoryx_posh/popo/subscriber.hpp"
+
+namespace cvislam::agent {
+
+using geometry::SE3d;
+using Clock = std::chrono::steady_clock;
+
+Result<AgentMode> parseAgentMode(const std::string& name) {
+  if (name == "auto") return AgentMode::kAuto;
+  if (name == "mono") return AgentMode::kMono;
+  if (name == "stereo") return AgentMode::kStereo;
+  return Error{ErrorCode::kInvalidArgument, "mode '" + name + "': use mono, stereo or auto"};
+}
+Result<RouDiMode> parseRouDiMode(const std::string& name) {
+  if (name == "embedded") return RouDiMode::kEmbedded;
+  if (name == "external") return RouDiMode::kExternal;
+  return Error{ErrorCode::kInvalidArgument, "roudi '" + name + "': use embedded or external"};
+}
+Result<Pace> parsePace(const std::string& name) {
+  if (name == "realtime") return Pace::kRealtime;
+  if (name == "fast") return Pace::kFast;
+  if (name == "sync") return Pace::kSync;
+  return Error{ErrorCode::kInvalidArgument, "pace '" + name + "': use realtime, fast or sync"};
+}
+const char* toString(AgentMode mode) {
+  switch (mode) {
+    case AgentMode::kAuto: return "auto";
+    case AgentMode::kMono: return "mono";
+    case AgentMode::kStereo: return "stereo";
+  }
+  return "?";
+}
+const char* toString(Pace pace) {
+  switch (pace) {
+    case Pace::kRealtime: return "realtime";
+    case Pace::kFast: return "fast";
+    case Pace::kSync: return "sync";
+  }
+  return "?";
+}
+
+Status AgentOptions::validate() const {
+  const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, what}; };
+  if (dataset.empty()) return bad("no dataset given (--dataset SEQ_DIR, the folder that holds mav0)");
+  if (output.empty()) return bad("no output folder given (--output OUT_DIR)");
+  if (imu_noise_inflation < 0.0 || !std::isfinite(imu_noise_inflation)) {
+    return bad("imu_noise_inflation must be >= 0 (0 = automatic)");
+  }
+  if (!(rate > 0.0)) return bad("rate must be > 0");
+  if (!(progress_interval_s > 0.0)) return bad("progress_interval_s must be > 0");
+  if (frame_ring_size < 2 || frame_ring_size > 64) return bad("frame_ring_size must be in [2, 64]");
+  if (Status s = tracking.validate(); !s.ok()) return s;
+  return mapping.validate();
+}
+
+namespace {
+
+std::int64_t steadyNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch()).count();
+}
+
+// Frames read ahead by the loader thread into buffers allocated at start-up; one producer, one consumer.
+class FrameRing {
+ public:
+  struct Slot {
+    std::vector<std::uint8_t> left;
+    std::vector<std::uint8_t> right;
+    std::int64_t t_ns = 0;
+    std::size_t frame = 0;
+    bool ok = true;
+    std::string error;
+  };
+
+  FrameRing(int size, std::size_t pixels, bool stereo) : slots_(static_cast<std::size_t>(size)) {
+    for (Slot& s : slots_) {
+      s.left.resize(pixels);
+      if (stereo) s.right.resize(pixels);
+      s.error.reserve(256);
+    }
+  }
+
+  Slot* producerSlot() {
+    const std::size_t head = head_.load(std::memory_order_relaxed);
+    if (head - tail_.load(std::memory_order_acquire) >= slots_.size()) return nullptr;
+    return &slots_[head % slots_.size()];
+  }
+  void produced() { head_.fetch_add(1, std::memory_order_release); }
+  Slot* consumerSlot() {
+    const std::size_t tail = tail_.load(std::memory_order_relaxed);
+    if (tail == head_.load(std::memory_order_acquire)) return nullptr;
+    return &slots_[tail % slots_.size()];
+  }
+  void consumed() { tail_.fetch_add(1, std::memory_order_release); }
+  void finish() { done_.store(true, std::memory_order_release); }
+  [[nodiscard]] bool finished() const { return done_.load(std::memory_order_acquire); }
+
+ private:
+  std::vector<Slot> slots_;
+  std::atomic<std::size_t> head_{0};
+  std::atomic<std::size_t> tail_{0};
+  std::atomic<bool> done_{false};
+};
+
+iox::capro::ServiceDescription service(AgentId agent, const char* event) {
+  const std::string instance = "agent" + std::to_string(agent);
+  return {"cvislam", iox::capro::IdString_t(iox::cxx::TruncateToCapacity, instance.c_str()),
+          iox::capro::IdString_t(iox::cxx::TruncateToCapacity, event)};
+}
+
+class IceoryxKeyframeSink final : public KeyframeSink {
+ public:
+  explicit IceoryxKeyframeSink(iox::popo::Publisher<KeyframeMessage>& publisher) : publisher_(publisher) {}
+  KeyframeMessage* loan() override {
+    auto sample = publisher_.loan();
+    if (sample.has_error()) return nullptr;
+    sample_.emplace(std::move(sample.value()));
+    return sample_->get();
+  }
+  void publish() override {
+    if (sample_) {
+      sample_->publish();
+      sample_.reset();
+    }
+  }
+
+ private:
+  iox::popo::Publisher<KeyframeMessage>& publisher_;
+  std::optional<iox::popo::Sample<KeyframeMessage>> sample_;
+};
+
+// Per-frame results kept for the trajectories, and the newest refined pose of every keyframe.
+class TrajectoryRecorder {
+ public:
+  explicit TrajectoryRecorder(std::size_t frames) {
+    frames_.reserve(frames);
+    keyframes_.resize(frames + 1);
+  }
+
+  void addFrame(std::int64_t t_ns, const FrameResult& r) {
+    if (frames_.size() == frames_.capacity()) return;
+    frames_.push_back({t_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U, r.has_reference,
+                       r.tracked || r.keyframe, r.map_id, r.map_epoch});
+  }
+
+  void addSnapshot(const MapSnapshotMessage& s) {
+    if (s.map_id == map_id_ && s.map_epoch == epoch_ + 1) {
+      // The world frame changed (IMU initialisation): move what was recorded in the old one.
+      const SE3d T = fromMsg(s.epoch_transform);
+      const double scale = s.epoch_scale;
+      for (Keyframe& kf : keyframes_) {
+        if (kf.valid && kf.map_id == s.map_id && kf.epoch == epoch_) {
+          kf.T_w_s = SE3d(T.so3() * kf.T_w_s.so3(), scale * (T.so3() * kf.T_w_s.translation()) + T.translation());
+          kf.epoch = s.map_epoch;
+        }
+      }
+      for (Frame& f : frames_) {
+        if (f.map_id == s.map_id && f.epoch == epoch_) {
+          f.T_ref_s.translation() *= scale;
+          f.T_w_s = SE3d(T.so3() * f.T_w_s.so3(), scale * (T.so3() * f.T_w_s.translation()) + T.translation());
+          f.epoch = s.map_epoch;
+        }
+      }
+    }
+    map_id_ = s.map_id;
+    epoch_ = s.map_epoch;
+    for (std::uint16_t i = 0; i < s.keyframe_count; ++i) {
+      const KeyframeStateMsg& m = s.keyframes[i];
+      if (m.id.counter >= keyframes_.size()) continue;
+      Keyframe& kf = keyframes_[m.id.counter];
+      kf = {true, m.t_ns, fromMsg(m.T_w_s), s.map_id, s.map_epoch};
+    }
+  }
+
+  // The trajectory of tracked frames with every frame hung from its keyframe's newest pose, the trajectory
+  // as tracked live, and the keyframe trajectory.
+  void build(dataset::Trajectory& refined, dataset::Trajectory& online, dataset::Trajectory& keyframes) const {
+    for (const Frame& f : frames_) {
+      if (!f.tracked) continue;
+      online.push_back({f.t_ns, f.T_w_s});
+      SE3d T = f.T_w_s;
+      if (f.has_reference && f.reference < keyframes_.size() && keyframes_[f.reference].valid &&
+          keyframes_[f.reference].map_id == f.map_id && keyframes_[f.reference].epoch == f.epoch) {
+        T = keyframes_[f.reference].T_w_s * f.T_ref_s;
+      }
+      refined.push_back({f.t_ns, T});
+    }
+    for (const Keyframe& kf : keyframes_) {
+      if (kf.valid) keyframes.push_back({kf.t_ns, kf.T_w_s});
+    }
+    std::sort(keyframes.begin(), keyframes.end(), [](const auto& a, const auto& b) { return a.t_ns < b.t_ns; });
+  }
+
+ private:
+  struct Frame {
+    std::int64_t t_ns;
+    SE3d T_w_s;
+    SE3d T_ref_s;
+    std::uint32_t reference;
+    bool has_reference;
+    bool tracked;
+    std::uint32_t map_id;
+    std::uint32_t epoch;
+  };
+  struct Keyframe {
+    bool valid = false;
+    std::int64_t t_ns = 0;
+    SE3d T_w_s;
+    std::uint32_t map_id = 0;
+    std::uint32_t epoch = 0;
+  };
+  std::vector<Frame> frames_;
+  std::vector<Keyframe> keyframes_;
+  std::uint32_t map_id_ = 0;
+  std::uint32_t epoch_ = 0;
+};
+
+struct MappingStats {
+  std::size_t keyframes = 0;
+  std::uint64_t lost_messages = 0;
+  double imu_initialised_at_s = -1.0;
+  std::size_t new_maps = 0;
+};
+
+void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool>& tracking_done,
+                   const std::atomic<bool>& stop, LatencyRecorder& receive, LatencyRecorder& local_ba,
+                   LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready) {
+  iox::popo::SubscriberOptions sub_options;
+  sub_options.queueCapacity = 32;
+  iox::popo::Subscriber<KeyframeMessage> keyframes(service(options.agent, "keyframes"), sub_options);
+  iox::popo::PublisherOptions pub_options;
+  iox::popo::Publisher<MapSnapshotMessage> snapshots(service(options.agent, "map_snapshot"), pub_options);
+  ready.store(true);
+  std::unique_ptr<MapSnapshotMessage> fallback;  // only if no chunk can be loaned
+  std::uint64_t sequence = 0;
+  while (true) {
+    auto taken = keyframes.take();
+    if (taken.has_error()) {
+      if (tracking_done.load() || stop.load()) {
+        if (!keyframes.hasData()) break;
+        continue;
+      }
+      std::this_thread::sleep_for(std::chrono::microseconds(200));
+      continue;
+    }
+    const KeyframeMessage& msg = *taken.value();
+    const std::int64_t t0 = steadyNs();
+    receive.add(t0 - msg.publish_steady_ns);
+    auto loaned = snapshots.loan();
+    MapSnapshotMessage* out = nullptr;
+    if (!loaned.has_error()) {
+      out = loaned.value().get();
+    } else {
+      if (!fallback) fallback = std::make_unique<MapSnapshotMessage>();
+      out = fallback.get();
+      std::fprintf(stderr, "[mapping] no free snapshot chunk: this keyframe's map is not sent\n");
+    }
+    auto report = mapper.process(msg, *out);
+    const std::int64_t t1 = steadyNs();
+    mapping_total.add(t1 - t0);
+    const double t_s = static_cast<double>(msg.state.t_ns) * 1e-9;
+    if (!report) {
+      std::fprintf(stderr, "[mapping] keyframe %s refused: %s\n", msg.state.id.toString().c_str(),
+                   report.error().toString().c_str());
+      continue;
+    }
+    ++stats.keyframes;
+    stats.lost_messages += report->lost_messages;
+    if (report->ba_ran) local_ba.add(report->ba_ns);
+    if (report->new_map) ++stats.new_maps;
+    if (report->imu_initialised_now && stats.imu_initialised_at_s < 0) stats.imu_initialised_at_s = t_s;
+    if (!options.quiet && (report->imu_initialised_now || report->mono_initialised_now || report->map_restarted ||
+                           report->new_map || report->lost_messages > 0)) {
+      std::fprintf(stderr, "[mapping] t=%.2f s keyframe %s: %s%s%s%s\n", t_s, msg.state.id.toString().c_str(),
+                   report->new_map ? "new map. " : "", report->map_restarted ? "IMU initialisation failed 20 times: map restarted. " : "",
+                   report->lost_messages > 0 ? "keyframe messages lost before this one. " : "", report->note.c_str());
+    }
+    if (out != fallback.get()) {
+      out->sequence = sequence++;
+      out->publish_steady_ns = steadyNs();
+      loaned.value().publish();
+    }
+  }
+}
+
+}  // namespace
+
+Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atomic<bool>& stop) {
+  AgentOptions options = options_in;
+  if (Status s = options.validate(); !s.ok()) return s.error();
+  auto sequence = dataset::EurocSequence::open(options.dataset);
+  if (!sequence) return sequence.error().withContext("dataset " + options.dataset.string());
+  const dataset::EurocSequence& seq = *sequence;
+  if (!seq.diagnostics().empty() && !options.quiet) {
+    std::fprintf(stderr, "[agent] the dataset has %zu finding(s); the agent goes on without the bad rows:\n",
+                 seq.diagnostics().findings().size());
+    seq.diagnostics().print(std::cerr, 10);
+  }
+  const bool has_cam1 = seq.cam1() != nullptr;
+  if (options.mode == AgentMode::kStereo && !has_cam1) {
+    return Error{ErrorCode::kInvalidArgument, "stereo mode needs mav0/cam1, which " + options.dataset.string() +
+                                                  " does not have: use --mode mono"};
+  }
+  const bool stereo = options.mode == AgentMode::kStereo || (options.mode == AgentMode::kAuto && has_cam1);
+  if (options.use_imu && !seq.imuCalibration()) {
+    return Error{ErrorCode::kInvalidArgument, "the dataset has no imu0/sensor.yaml; run with use_imu: false"};
+  }
+
+  // Calibration.
+  auto left = camera::CameraModel::create(seq.cam0().calibration);
+  if (!left) return left.error().withContext("cam0 calibration");
+  std::optional<camera::CameraModel> right;
+  if (stereo) {
+    auto r = camera::CameraModel::create(seq.cam1()->calibration);
+    if (!r) return r.error().withContext("cam1 calibration");
+    right.emplace(*r);
+  }
+  const dataset::ImuCalibration imu_calibration = seq.imuCalibration().value_or(dataset::ImuCalibration{});
+  const SE3d T_s_c = imu_calibration.T_b_i.inverse() * seq.cam0().calibration.T_b_c;
+  const SE3d T_c0_c1 = stereo ? seq.cam0().calibration.T_b_c.inverse() * seq.cam1()->calibration.T_b_c : SE3d();
+  double inflation = options.imu_noise_inflation;
+  if (inflation == 0.0) {
+    // The simulator writes mission.yaml beside its agents' folders.
+    const bool simulated = std::filesystem::exists(options.dataset / "mission.yaml") ||
+                           std::filesystem::exists(options.dataset.parent_path() / "mission.yaml");
+    inflation = simulated ? 1.0 : 10.0;
+  }
+  imu::ImuNoise noise = imu::ImuNoise::fromCalibration(imu_calibration);
+  noise.gyro_noise_density *= inflation;
+  noise.accel_noise_density *= inflation;
+  noise.gyro_random_walk *= inflation;
+  noise.accel_random_walk *= inflation;
+  const auto& c = seq.cam0().calibration;
+  options.tracking.agent = options.agent;
+  options.tracking.use_imu = options.use_imu;
+  options.tracking.noise = noise;
+  options.mapping.agent = options.agent;
+  options.mapping.use_imu = options.use_imu;
+  options.mapping.ba.noise = noise;
+  options.mapping.ba.intrinsics = {c.fx, c.fy, c.cx, c.cy};
+  options.mapping.ba.pyramid_scale_factor = options.tracking.orb.scale_factor;
+  options.mapping.orb = options.tracking.orb;
+  if (stereo && options.mapping.imu_init_keyframes > 10) {
+    options.mapping.imu_init_keyframes = 10;  // stereo: the map is metric, fewer keyframes observe the rest
+  }
+
+  auto tracker = Tracker::create(options.tracking, *left, right ? &*right : nullptr, T_s_c);
+  if (!tracker) return tracker.error();
+  auto mapper = Mapper::create(options.mapping, *left, right ? &*right : nullptr, T_s_c, T_c0_c1);
+  if (!mapper) return mapper.error();
+
+  std::vector<dataset::RigFrame> frames;
+  if (stereo) {
+    for (const dataset::RigFrame& f : seq.rigFrames()) {
+      if (f.cam1) frames.push_back(f);
+    }
+  } else {
+    for (std::size_t i = 0; i < seq.cam0().frames.size(); ++i) frames.push_back({seq.cam0().frames[i].t_ns, i, {}});
+  }
+  if (options.max_frames > 0 && frames.size() > options.max_frames) frames.resize(options.max_frames);
+  if (frames.empty()) return Error{ErrorCode::kDataError, "the dataset has no usable camera frames"};
+
+  std::error_code ec;
+  std::filesystem::create_directories(options.output, ec);
+  if (ec) return Error{ErrorCode::kIoError, "cannot create the output folder " + options.output.string() + ": " + ec.message()};
+
+  // iceoryx: RouDi in this process, or an external iox-roudi.
+  std::unique_ptr<EmbeddedRouDi> roudi;
+  const std::string runtime_name =
+      options.runtime_name.empty() ? "cvislam_agent_" + std::to_string(options.agent) : options.runtime_name;
+  if (options.roudi == RouDiMode::kEmbedded) {
+    EmbeddedRouDiOptions roudi_options;
+    roudi_options.runtime_name = runtime_name;
+    const auto keyframe_bytes = static_cast<std::uint32_t>(sizeof(KeyframeMessage));
+    const auto snapshot_bytes = static_cast<std::uint32_t>(sizeof(MapSnapshotMessage));
+    roudi_options.mempools = {{128, 64}, {std::min(keyframe_bytes, snapshot_bytes), 48},
+                              {std::max(keyframe_bytes, snapshot_bytes) + 64, 48}};
+    auto started = EmbeddedRouDi::start(roudi_options);
+    if (!started) return started.error();
+    roudi = std::move(started.value());
+  } else if (Status s = attachToExternalRouDi(runtime_name); !s.ok()) {
+    return s.error();
+  }
+
+  const std::size_t n_frames = frames.size();
+  LatencyRecorder orb_ms("orb_extraction", n_frames);
+  LatencyRecorder matching_ms("matching", n_frames);
+  LatencyRecorder pose_ms("pose_optimisation", n_frames);
+  LatencyRecorder motion_ms("motion_ba", n_frames);
+  LatencyRecorder keyframe_ms("keyframe_write", n_frames);
+  LatencyRecorder tracking_ms("tracking_total", n_frames);
+  LatencyRecorder receive_ms("keyframe_publish_to_receive", n_frames);
+  LatencyRecorder ba_ms("local_ba", n_frames);
+  LatencyRecorder mapping_ms("mapping_total", n_frames);
+  MappingStats mapping_stats;
+
+  AgentRunSummary summary;
+  TrajectoryRecorder recorder(n_frames);
+  const int width = seq.cam0().calibration.width;
+  const int height = seq.cam0().calibration.height;
+  const auto pixels = static_cast<std::size_t>(width) * static_cast<std::size_t>(height);
+  FrameRing ring(options.frame_ring_size, pixels, stereo);
+  std::atomic<bool> loader_stop{false};
+  std::atomic<bool> tracking_done{false};
+  std::atomic<bool> mapping_ready{false};
+
+  std::thread loader([&] {
+    for (std::size_t i = 0; i < frames.size(); ++i) {
+      FrameRing::Slot* slot = nullptr;
+      while ((slot = ring.producerSlot()) == nullptr) {
+        if (loader_stop.load() || stop.load()) {
+          ring.finish();
+          return;
+        }
+        std::this_thread::sleep_for(std::chrono::microseconds(200));
+      }
+      slot->t_ns = frames[i].t_ns;
+      slot->frame = i;
+      slot->ok = true;
+      slot->error.clear();
+      Status st = seq.loadImageInto(0, frames[i].cam0, slot->left);
+      if (st.ok() && stereo) st = seq.loadImageInto(1, *frames[i].cam1, slot->right);
+      if (!st.ok()) {
+        slot->ok = false;
+        slot->error = st.error().toString();
+      }
+      ring.produced();
+    }
+    ring.finish();
+  });
+
+  std::thread mapping([&] {
+    mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats,
+                  mapping_ready);
+  });
+
+  {
+    iox::popo::PublisherOptions pub_options;
+    iox::popo::Publisher<KeyframeMessage> keyframe_pub(service(options.agent, "keyframes"), pub_options);
+    iox::popo::SubscriberOptions sub_options;
+    sub_options.queueCapacity = 8;
+    iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub(service(options.agent, "map_snapshot"), sub_options);
+    IceoryxKeyframeSink sink(keyframe_pub);
+    std::optional<iox::popo::Sample<const MapSnapshotMessage>> held;
+
+    // Both sides must be connected before the first keyframe (RouDi connects them asynchronously).
+    const auto connect_deadline = Clock::now() + std::chrono::seconds(10);
+    while ((!mapping_ready.load() || !keyframe_pub.hasSubscribers()) && Clock::now() < connect_deadline) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    if (!keyframe_pub.hasSubscribers()) std::fprintf(stderr, "[agent] warning: mapping did not subscribe within 10 s\n");
+
+    const auto drain_snapshots = [&] {
+      while (true) {
+        auto taken = snapshot_sub.take();
+        if (taken.has_error()) break;
+        held.emplace(std::move(taken.value()));
+        tracker.value()->adoptSnapshot(held->get());
+        recorder.addSnapshot(*held->get());
+      }
+    };
+
+    const std::vector<dataset::ImuSample>& imu = seq.imu();
+    const auto wall_start = Clock::now();
+    auto last_progress = wall_start;
+    std::size_t frames_at_progress = 0;
+    std::int64_t previous_t_ns = -1;
+    std::size_t tracked_points_sum = 0;
+    while (true) {
+      if (stop.load()) {
+        summary.interrupted = true;
+        break;
+      }
+      FrameRing::Slot* slot = ring.consumerSlot();
+      if (slot == nullptr) {
+        if (ring.finished() && ring.consumerSlot() == nullptr) break;
+        std::this_thread::sleep_for(std::chrono::microseconds(100));
+        continue;
+      }
+      if (options.pace == Pace::kRealtime) {
+        const auto due = wall_start + std::chrono::nanoseconds(static_cast<std::int64_t>(
+                                          static_cast<double>(slot->t_ns - frames.front().t_ns) / options.rate));
+        std::this_thread::sleep_until(due);
+      }
+      drain_snapshots();
+      ++summary.frames;
+      if (!slot->ok) {
+        ++summary.unreadable_frames;
+        if (!options.quiet) std::fprintf(stderr, "[tracking] frame %zu skipped: %s\n", slot->frame, slot->error.c_str());
+        ring.consumed();
+        continue;
+      }
+      // The IMU covering [previous frame, this frame].
+      std::span<const dataset::ImuSample> imu_span;
+      if (options.use_imu && !imu.empty()) {
+        const std::int64_t from = previous_t_ns < 0 ? slot->t_ns : previous_t_ns;
+        auto first = std::upper_bound(imu.begin(), imu.end(), from,
+                                      [](std::int64_t t, const dataset::ImuSample& s) { return t < s.t_ns; });
+        if (first != imu.begin()) --first;
+        auto last = std::lower_bound(imu.begin(), imu.end(), slot->t_ns,
+                                     [](const dataset::ImuSample& s, std::int64_t t) { return s.t_ns < t; });
+        if (last != imu.end()) ++last;
+        if (first < last) imu_span = std::span(&*first, static_cast<std::size_t>(last - first));
+      }
+      FrameInput input;
+      input.t_ns = slot->t_ns;
+      input.width = width;
+      input.height = height;
+      input.left = slot->left;
+      if (stereo) input.right = slot->right;
+      input.imu = imu_span;
+      const FrameResult r = tracker.value()->track(input, sink);
+      previous_t_ns = slot->t_ns;
+      ring.consumed();
+
+      orb_ms.add(r.times.orb_ns);
+      if (r.times.matching_ns > 0) matching_ms.add(r.times.matching_ns);
+      if (r.times.pose_ns > 0) pose_ms.add(r.times.pose_ns);
+      if (r.times.motion_ba_ns > 0) motion_ms.add(r.times.motion_ba_ns);
+      if (r.keyframe) keyframe_ms.add(r.times.keyframe_ns);
+      tracking_ms.add(r.times.total_ns);
+      recorder.addFrame(input.t_ns, r);
+      if (r.tracked) {
+        ++summary.tracked_frames;
+        tracked_points_sum += static_cast<std::size_t>(r.inliers);
+      }
+      if (r.keyframe) ++summary.keyframes;
+      if (r.issue == FrameIssue::kImuGap) {
+        ++summary.imu_gaps;
+        if (!options.quiet) std::fprintf(stderr, "[tracking] t=%.3f s: IMU gap; this frame predicts without it\n", input.t_ns * 1e-9);
+      }
+      if (r.issue == FrameIssue::kKeyframeDropped) ++summary.dropped_keyframes;
+      if (!r.tracked && r.status != TrackingStatus::kWaitingForMap) {
+        ++summary.lost_frames;
+        if (!options.quiet && r.status == TrackingStatus::kRelocalising) {
+          std::fprintf(stderr, "[tracking] t=%.3f s: %s (%d keypoints, %d matches); relocalising\n", input.t_ns * 1e-9,
+                       toString(r.issue), r.keypoints, r.matches);
+        }
+      }
+      if (options.pace == Pace::kSync && r.keyframe) {
+        const auto deadline = Clock::now() + std::chrono::seconds(30);
+        while (tracker.value()->awaitingKeyframe(nullptr) && Clock::now() < deadline && !stop.load()) {
+          std::this_thread::sleep_for(std::chrono::microseconds(200));
+          drain_snapshots();
+        }
+      }
+
+      const auto now = Clock::now();
+      if (!options.quiet && std::chrono::duration<double>(now - last_progress).count() >= options.progress_interval_s) {
+        const double fps = static_cast<double>(summary.frames - frames_at_progress) /
+                           std::chrono::duration<double>(now - last_progress).count();
+        const MapSnapshotMessage* map = held ? held->get() : nullptr;
+        std::fprintf(stderr,
+                     "[agent] frame %zu/%zu  t=%.1f s  %.1f fps  %-15s  inliers %3d  map %2u KF %5u pts  IMU %s\n",
+                     summary.frames, n_frames, static_cast<double>(input.t_ns - frames.front().t_ns) * 1e-9, fps,
+                     toString(r.status), r.inliers, map ? map->keyframe_count : 0U, map ? map->point_count : 0U,
+                     tracker.value()->imuInitialised() ? "initialised" : "not yet");
+        last_progress = now;
+        frames_at_progress = summary.frames;
+      }
+    }
+    summary.wall_s = std::chrono::duration<double>(Clock::now() - wall_start).count();
+    summary.mean_tracked_points =
+        summary.tracked_frames > 0 ? static_cast<double>(tracked_points_sum) / summary.tracked_frames : 0.0;
+    loader_stop.store(true);
+    tracking_done.store(true);
+    mapping.join();
+    loader.join();
+    drain_snapshots();  // the last refinements
+  }
+
+  summary.new_maps = mapping_stats.new_maps;
+  summary.lost_keyframe_messages = mapping_stats.lost_messages;
+  summary.imu_initialised_at_s =
+      mapping_stats.imu_initialised_at_s < 0 ? -1.0
+                                             : mapping_stats.imu_initialised_at_s - static_cast<double>(frames.front().t_ns) * 1e-9;
+  for (const LatencyRecorder* r : {&orb_ms, &matching_ms, &pose_ms, &motion_ms, &keyframe_ms, &tracking_ms,
+                                   &receive_ms, &ba_ms, &mapping_ms}) {
+    summary.stages.push_back(summarise(*r));
+  }
+
+  // Outputs, on every path that got here (end of data, SIGINT/SIGTERM).
+  dataset::Trajectory refined;
+  dataset::Trajectory online;
+  dataset::Trajectory keyframes;
+  recorder.build(refined, online, keyframes);
+  summary.trajectory = options.output / "trajectory.txt";
+  summary.keyframe_trajectory = options.output / "keyframes.txt";
+  summary.latency_json = options.output / "latency.json";
+  for (const auto& [path, trajectory] : {std::pair{summary.trajectory, &refined},
+                                         std::pair{options.output / "trajectory_online.txt", &online},
+                                         std::pair{summary.keyframe_trajectory, &keyframes}}) {
+    if (Status s = dataset::writeTrajectory(path, *trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) {
+      return s.error();
+    }
+  }
+  std::ofstream latency(summary.latency_json);
+  latency << latencyJson(summary.stages);
+  if (!latency) return Error{ErrorCode::kIoError, "cannot write " + summary.latency_json.string()};
+  nlohmann::json j = {{"frames", summary.frames},
+                      {"tracked_frames", summary.tracked_frames},
+                      {"keyframes", summary.keyframes},
+                      {"new_maps", summary.new_maps},
+                      {"lost_frames", summary.lost_frames},
+                      {"unreadable_frames", summary.unreadable_frames},
+                      {"imu_gaps", summary.imu_gaps},
+                      {"dropped_keyframes", summary.dropped_keyframes},
+                      {"imu_initialised_at_s", summary.imu_initialised_at_s},
+                      {"mean_tracked_points", summary.mean_tracked_points},
+                      {"mode", stereo ? "stereo" : "mono"},
+                      {"imu_noise_inflation", inflation},
+                      {"interrupted", summary.interrupted},
+                      {"wall_s", summary.wall_s}};
+  std::ofstream(options.output / "summary.json") << j.dump(2) << "\n";
+  return summary;
+}
+
+std::string formatSummary(const AgentRunSummary& s) {
+  char text[1024];
+  std::snprintf(text, sizeof(text),
+                "frames %zu, tracked %zu (%.1f %%), keyframes %zu, maps %zu, mean tracked points %.0f\n"
+                "IMU initialised at %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, keyframes dropped %zu\n",
+                s.frames, s.tracked_frames, s.frames > 0 ? 100.0 * s.tracked_frames / s.frames : 0.0, s.keyframes,
+                s.new_maps, s.mean_tracked_points,
+                s.imu_initialised_at_s < 0 ? "never" : (std::to_string(s.imu_initialised_at_s) + " s").c_str(),
+                s.unreadable_frames, s.imu_gaps, s.lost_frames, s.dropped_keyframes);
+  return std::string(text) + formatLatencyTable(s.stages);
+}
+
+}  // namespace cvislam::agent

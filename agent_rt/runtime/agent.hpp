@@ -1,0 +1,90 @@
+// The agent process: reads a EuRoC-format sequence, runs tracking (the calling thread) and mapping (its own
+// thread) joined by iceoryx, and writes the trajectory, the keyframe trajectory and the latency profile.
+//
+//   loader thread --(bounded ring of preallocated frames)--> tracking --KeyframeMessage (iceoryx)--> mapping
+//                                                            tracking <--MapSnapshotMessage (iceoryx)-- mapping
+//
+// iceoryx headers stay in agent.cpp.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "agent_rt/mapping/mapper.hpp"
+#include "agent_rt/runtime/latency_profile.hpp"
+#include "agent_rt/tracking/tracker.hpp"
+#include "common/core/result.hpp"
+
+namespace cvislam::agent {
+
+enum class AgentMode { kAuto, kMono, kStereo };  // auto: stereo when the sequence has cam1
+enum class RouDiMode { kEmbedded, kExternal };
+enum class Pace {
+  kRealtime,  // frames at the sensor's rate (times `rate`); tracking never waits on mapping
+  kFast,      // as fast as tracking goes; tracking never waits on mapping
+  kSync,      // after each keyframe, tracking waits for mapping's answer: reproducible runs for tests
+};
+
+Result<AgentMode> parseAgentMode(const std::string& name);
+Result<RouDiMode> parseRouDiMode(const std::string& name);
+Result<Pace> parsePace(const std::string& name);
+const char* toString(AgentMode mode);
+const char* toString(Pace pace);
+
+struct AgentOptions {
+  std::filesystem::path dataset;  // the folder that holds mav0
+  std::filesystem::path output;
+  AgentMode mode = AgentMode::kAuto;
+  AgentId agent = 0;
+  bool use_imu = true;
+  // The sensor.yaml noise densities are multiplied by this. 0 = automatic: 1 on the project's simulated
+  // sequences (their noise is exactly the stated model), 10 on real ones (EuRoC's densities are too small
+  // by a factor of 6-12 for preintegration; see the factors issue's closing note).
+  double imu_noise_inflation = 0.0;
+  TrackerOptions tracking;
+  MapperOptions mapping;
+  RouDiMode roudi = RouDiMode::kEmbedded;
+  std::string runtime_name;  // default cvislam_agent_<agent>
+  Pace pace = Pace::kRealtime;
+  double rate = 1.0;  // realtime pace: 2 plays the sequence twice as fast
+  double progress_interval_s = 2.0;
+  bool quiet = false;
+  std::size_t max_frames = 0;  // 0 = all
+  int frame_ring_size = 4;     // frames the loader reads ahead
+
+  [[nodiscard]] Status validate() const;
+};
+
+// Reads a YAML config (see deploy/agent_config.yaml) over `options`; names unknown keys and bad values.
+Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& options);
+
+struct AgentRunSummary {
+  std::size_t frames = 0;
+  std::size_t tracked_frames = 0;
+  std::size_t keyframes = 0;
+  std::size_t new_maps = 0;
+  std::size_t lost_frames = 0;
+  std::size_t unreadable_frames = 0;
+  std::size_t imu_gaps = 0;
+  std::size_t dropped_keyframes = 0;
+  std::size_t lost_keyframe_messages = 0;
+  double imu_initialised_at_s = -1.0;  // sequence time of the IMU initialisation; -1 never
+  double mean_tracked_points = 0.0;
+  double wall_s = 0.0;
+  bool interrupted = false;
+  std::vector<StageSummary> stages;
+  std::filesystem::path trajectory;
+  std::filesystem::path keyframe_trajectory;
+  std::filesystem::path latency_json;
+};
+
+// Runs the agent to the end of the sequence or until `stop` becomes true; the outputs are written on every
+// path that gets past start-up.
+Result<AgentRunSummary> runAgent(const AgentOptions& options, const std::atomic<bool>& stop);
+
+std::string formatSummary(const AgentRunSummary& summary);
+
+}  // namespace cvislam::agent

@@ -1,0 +1,133 @@
+// The agent's YAML config: sections mirror the Options structs. Unknown keys are errors, so that a typo does
+// not silently leave a default in place.
+#include <set>
+#include <string>
+
+#include <yaml-cpp/yaml.h>
+
+#include "agent_rt/runtime/agent.hpp"
+
+namespace cvislam::agent {
+
+namespace {
+
+class Section {
+ public:
+  Section(const YAML::Node& node, std::string name) : node_(node), name_(std::move(name)) {}
+
+  template <typename T>
+  void read(const char* key, T& value) {
+    known_.insert(key);
+    if (!node_[key]) return;
+    try {
+      value = node_[key].as<T>();
+    } catch (const YAML::Exception&) {
+      error_ = name_ + "." + key + ": cannot read '" + YAML::Dump(node_[key]) + "' as the expected type";
+    }
+  }
+
+  Status finish() const {
+    if (!error_.empty()) return Error{ErrorCode::kInvalidArgument, error_};
+    if (!node_.IsMap()) return Status::Ok();
+    for (const auto& item : node_) {
+      const auto key = item.first.as<std::string>();
+      if (known_.count(key) == 0) {
+        return Error{ErrorCode::kInvalidArgument, "unknown config key " + name_ + "." + key};
+      }
+    }
+    return Status::Ok();
+  }
+
+ private:
+  YAML::Node node_;
+  std::string name_;
+  std::set<std::string> known_;
+  std::string error_;
+};
+
+}  // namespace
+
+Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(file.string());
+  } catch (const YAML::Exception& e) {
+    return Error{ErrorCode::kIoError, file.string() + ": " + e.what()};
+  }
+  if (!root.IsMap()) return Error{ErrorCode::kInvalidArgument, file.string() + ": expected a YAML map at the top"};
+  const std::set<std::string> sections = {"agent", "imu", "orb", "tracking", "mapping", "runtime"};
+  for (const auto& item : root) {
+    const auto key = item.first.as<std::string>();
+    if (sections.count(key) == 0) {
+      return Error{ErrorCode::kInvalidArgument,
+                   file.string() + ": unknown section '" + key + "' (agent, imu, orb, tracking, mapping, runtime)"};
+    }
+  }
+  auto section = [&](const char* name) { return Section(root[name] ? root[name] : YAML::Node(YAML::NodeType::Map), name); };
+  const auto in_file = [&](Status s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
+
+  Section agent = section("agent");
+  int agent_id = o.agent;
+  std::string mode = toString(o.mode);
+  agent.read("id", agent_id);
+  agent.read("mode", mode);
+  if (Status s = agent.finish(); !s.ok()) return in_file(s);
+  if (agent_id < 0 || agent_id > 65535) return in_file(Error{ErrorCode::kInvalidArgument, "agent.id must be in [0, 65535]"});
+  o.agent = static_cast<AgentId>(agent_id);
+  auto parsed_mode = parseAgentMode(mode);
+  if (!parsed_mode) return in_file(parsed_mode.error());
+  o.mode = *parsed_mode;
+
+  Section imu = section("imu");
+  imu.read("use", o.use_imu);
+  imu.read("noise_inflation", o.imu_noise_inflation);
+  imu.read("init_keyframes", o.mapping.imu_init_keyframes);
+  imu.read("init_max_keyframes", o.mapping.imu_init_max_keyframes);
+  if (Status s = imu.finish(); !s.ok()) return in_file(s);
+
+  Section orb = section("orb");
+  orb.read("max_features", o.tracking.orb.max_features);
+  orb.read("pyramid_levels", o.tracking.orb.pyramid_levels);
+  orb.read("scale_factor", o.tracking.orb.scale_factor);
+  orb.read("fast_threshold", o.tracking.orb.fast_threshold);
+  orb.read("grid_columns", o.tracking.orb.grid_columns);
+  orb.read("grid_rows", o.tracking.orb.grid_rows);
+  if (Status s = orb.finish(); !s.ok()) return in_file(s);
+
+  Section tracking = section("tracking");
+  tracking.read("search_radius_px", o.tracking.search_radius_px);
+  tracking.read("refine_radius_px", o.tracking.refine_radius_px);
+  tracking.read("relocalisation_radius_px", o.tracking.relocalisation_radius_px);
+  tracking.read("max_frames_between_keyframes", o.tracking.keyframe.max_frames_between);
+  tracking.read("min_coverage_ratio", o.tracking.keyframe.min_coverage_ratio);
+  tracking.read("min_tracked_points", o.tracking.keyframe.min_tracked_points);
+  tracking.read("max_lost_frames", o.tracking.max_lost_frames);
+  tracking.read("min_inliers", o.tracking.pose.min_inliers);
+  if (Status s = tracking.finish(); !s.ok()) return in_file(s);
+
+  Section mapping = section("mapping");
+  mapping.read("max_keyframes", o.mapping.max_keyframes);
+  mapping.read("ba_window", o.mapping.ba.window);
+  mapping.read("ba_iterations", o.mapping.ba.max_iterations);
+  mapping.read("min_covisible", o.mapping.ba.min_covisible);
+  mapping.read("triangulation_neighbours", o.mapping.triangulation_neighbours);
+  if (Status s = mapping.finish(); !s.ok()) return in_file(s);
+
+  Section runtime = section("runtime");
+  std::string pace = toString(o.pace);
+  std::string roudi = o.roudi == RouDiMode::kEmbedded ? "embedded" : "external";
+  runtime.read("pace", pace);
+  runtime.read("rate", o.rate);
+  runtime.read("roudi", roudi);
+  runtime.read("progress_interval_s", o.progress_interval_s);
+  if (Status s = runtime.finish(); !s.ok()) return in_file(s);
+  auto parsed_pace = parsePace(pace);
+  if (!parsed_pace) return in_file(parsed_pace.error());
+  o.pace = *parsed_pace;
+  auto parsed_roudi = parseRouDiMode(roudi);
+  if (!parsed_roudi) return in_file(parsed_roudi.error());
+  o.roudi = *parsed_roudi;
+  return Status::Ok();
+}
+
+}  // namespace cvislam::agent

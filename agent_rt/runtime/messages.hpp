@@ -1,0 +1,108 @@
+// The messages between the agent's tracking and mapping threads. They travel through iceoryx shared memory,
+// zero-copy: the sender loans a chunk, writes the message in place and publishes; the receiver reads the same
+// memory. So every message is fixed-size and trivially copyable (plain arrays, no Eigen, no pointers), with
+// capacities from CMake (agent_rt/map/capacities.hpp).
+//
+//   tracking --KeyframeMessage-->  mapping    a new keyframe: its keypoints, descriptors, the map points
+//                                             tracking matched, the IMU since the previous keyframe and, in
+//                                             stereo, the second camera's image (mapping does the stereo work)
+//   mapping  --MapSnapshotMessage--> tracking the refined local map after local BA: points with descriptors,
+//                                             keyframe states, and any change of the world frame (IMU
+//                                             initialisation rescales and rotates it)
+//
+// Tracking never waits on mapping: it takes the newest snapshot when one is there and keeps using the one it
+// holds otherwise.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <type_traits>
+
+#include "agent_rt/map/capacities.hpp"
+#include "common/core/ids.hpp"
+
+namespace cvislam::agent {
+
+// IMU samples one keyframe message carries: the samples since the previous keyframe (1024 = 5 s at 200 Hz).
+inline constexpr std::size_t kMaxImuSamplesPerKeyframe = 1024;
+
+struct PoseMsg {
+  std::array<double, 3> p{};            // translation
+  std::array<double, 4> q{0, 0, 0, 1};  // rotation quaternion x y z w
+};
+
+struct KeyframeStateMsg {
+  KeyframeId id;
+  std::int64_t t_ns = 0;
+  PoseMsg T_w_s;
+  std::array<double, 3> v_w{};
+  std::array<double, 6> bias{};  // b_g, b_a
+};
+
+struct KeypointMsg {
+  float x = 0.0F;  // distorted pixel, level-0 coordinates
+  float y = 0.0F;
+  float response = 0.0F;
+  float angle_deg = 0.0F;
+  std::uint8_t octave = 0;
+};
+
+struct ImuSampleMsg {
+  std::int64_t t_ns = 0;
+  std::array<double, 3> gyro{};
+  std::array<double, 3> accel{};
+};
+
+enum class KeyframeKind : std::uint8_t {
+  kTracked = 0,  // tracked against the map; `matched` links keypoints to map points
+  kNewMap = 1,   // the first keyframe of a new map (start, or tracking lost beyond relocalisation)
+};
+
+struct KeyframeMessage {
+  std::uint64_t sequence = 0;           // per agent, from 0: mapping spots lost messages by gaps
+  std::int64_t publish_steady_ns = 0;   // steady clock at publish, for the publish-to-receive latency
+  std::uint32_t map_epoch = 0;          // the world frame the state is expressed in (see MapSnapshotMessage)
+  KeyframeKind kind = KeyframeKind::kTracked;
+  KeyframeStateMsg state;
+  std::uint16_t keypoint_count = 0;
+  std::array<KeypointMsg, kMaxKeypointsPerKeyframe> keypoints{};
+  std::array<std::array<std::uint8_t, 32>, kMaxKeypointsPerKeyframe> descriptors{};
+  std::array<MapPointId, kMaxKeypointsPerKeyframe> matched{};  // valid where has_match
+  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> has_match{};
+  // IMU from the previous keyframe's time to this one's (inclusive of one sample either side).
+  std::uint32_t imu_count = 0;
+  std::array<ImuSampleMsg, kMaxImuSamplesPerKeyframe> imu{};
+  // The second camera's image at the same time, when stereo.
+  std::uint16_t right_width = 0;
+  std::uint16_t right_height = 0;
+  std::array<std::uint8_t, kMaxImagePixels> right_pixels{};
+};
+
+struct MapPointMsg {
+  MapPointId id;
+  std::array<float, 3> p_w{};
+  std::array<std::uint8_t, 32> descriptor{};
+  std::uint8_t octave = 0;  // pyramid level it was seen at, for the search radius and pixel noise
+};
+
+struct MapSnapshotMessage {
+  std::uint64_t sequence = 0;
+  std::int64_t publish_steady_ns = 0;
+  // The world frame. It changes when IMU initialisation rescales the map and rotates it to gravity (and when
+  // a new map starts): states of epoch e map into epoch e+1 by p' = s R p + t, v' = s R v.
+  std::uint32_t map_epoch = 0;
+  std::uint32_t map_id = 0;  // counts new maps
+  double epoch_scale = 1.0;
+  PoseMsg epoch_transform;  // R, t of the change into this epoch
+  std::uint8_t imu_initialised = 0;
+  KeyframeId newest_keyframe;  // the newest keyframe mapping has processed
+  std::uint16_t keyframe_count = 0;
+  std::array<KeyframeStateMsg, kMaxKeyframes> keyframes{};
+  std::uint32_t point_count = 0;
+  std::array<MapPointMsg, kMaxMapPoints> points{};
+};
+
+static_assert(std::is_trivially_copyable_v<KeyframeMessage>);
+static_assert(std::is_trivially_copyable_v<MapSnapshotMessage>);
+
+}  // namespace cvislam::agent

@@ -1,0 +1,632 @@
+#include "agent_rt/tracking/tracker.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <optional>
+#include <string>
+
+#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/tracking/inertial_pose_optimizer.hpp"
+
+namespace cvislam::agent {
+
+using Eigen::Vector2d;
+using Eigen::Vector3d;
+using geometry::SE3d;
+using geometry::SO3d;
+
+namespace {
+
+std::int64_t nowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+constexpr std::size_t kRingSize = 64;  // keyframes published and perhaps not yet refined by mapping
+
+}  // namespace
+
+Status TrackerOptions::validate() const {
+  if (Status s = orb.validate(); !s.ok()) return s;
+  if (orb.max_features > static_cast<int>(kMaxKeypointsPerKeyframe)) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: orb.max_features = " + std::to_string(orb.max_features) +
+                                                  " exceeds the keyframe capacity " +
+                                                  std::to_string(kMaxKeypointsPerKeyframe) +
+                                                  " (raise CVISLAM_MAX_KEYPOINTS_PER_KEYFRAME)"};
+  }
+  if (!(search_radius_px > 0.0) || !(refine_radius_px > 0.0) || !(relocalisation_radius_px > 0.0)) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: search radii must be > 0"};
+  }
+  if (!(sigma_px > 0.0)) return Error{ErrorCode::kInvalidArgument, "tracker: sigma_px must be > 0"};
+  if (initialisation_max_frames_between < 1) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: initialisation_max_frames_between must be >= 1"};
+  }
+  if (max_lost_frames < 1) return Error{ErrorCode::kInvalidArgument, "tracker: max_lost_frames must be >= 1"};
+  if (Status s = pose.validate(); !s.ok()) return s;
+  return keyframe.validate();
+}
+
+const char* toString(TrackingStatus status) {
+  switch (status) {
+    case TrackingStatus::kWaitingForMap: return "WAITING_FOR_MAP";
+    case TrackingStatus::kTracking: return "TRACKING";
+    case TrackingStatus::kRelocalising: return "RELOCALISING";
+  }
+  return "?";
+}
+
+const char* toString(FrameIssue issue) {
+  switch (issue) {
+    case FrameIssue::kNone: return "none";
+    case FrameIssue::kImuGap: return "IMU gap";
+    case FrameIssue::kFewFeatures: return "too few features";
+    case FrameIssue::kPoseRefused: return "pose refused";
+    case FrameIssue::kKeyframeDropped: return "keyframe dropped (no free message)";
+  }
+  return "?";
+}
+
+struct Tracker::State {
+  State(const TrackerOptions& o, features::OrbExtractor&& extractor, const camera::CameraModel& l,
+        const camera::CameraModel* r, const SE3d& extrinsics)
+      : options(o), orb(std::move(extractor)), left(l), T_s_c(extrinsics), keyframe_ids(o.agent) {
+    if (r != nullptr) right.emplace(*r);
+    const auto& c = l.calibration();
+    intrinsics = {c.fx, c.fy, c.cx, c.cy};
+    pre_frame = imu::Preintegration(imu::ImuBias{}, o.noise);
+    pre_keyframe = imu::Preintegration(imu::ImuBias{}, o.noise);
+    level_scale[0] = 1.0;
+    for (std::size_t i = 1; i < level_scale.size(); ++i) level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
+  }
+
+  TrackerOptions options;
+  features::OrbExtractor orb;
+  camera::CameraModel left;
+  std::optional<camera::CameraModel> right;
+  SE3d T_s_c;
+  factors::PinholeIntrinsics intrinsics;
+  std::array<double, 32> level_scale{};
+
+  // Frame buffers.
+  int keypoint_count = 0;
+  std::array<features::Keypoint, kMaxKeypointsPerKeyframe> keypoints{};
+  std::array<features::Descriptor, kMaxKeypointsPerKeyframe> descriptors{};
+  std::array<Vector2d, kMaxKeypointsPerKeyframe> undistorted{};
+  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> keypoint_taken{};
+  std::array<MapPointId, kMaxKeypointsPerKeyframe> keypoint_point{};
+  KeypointGrid grid;
+  ProjectionMatcher matcher;
+  std::array<ProjectedMapPoint, kMaxMapPoints> projected{};
+  std::array<std::uint32_t, kMaxMapPoints> projected_source{};
+  std::array<int, kMaxMapPoints> match_of_point{};
+  std::array<std::uint8_t, kMaxMapPoints> point_matched{};
+  std::array<PoseObservation, kMaxKeypointsPerKeyframe> observations{};
+  std::array<std::uint32_t, kMaxKeypointsPerKeyframe> observation_point{};
+  std::array<std::uint16_t, kMaxKeypointsPerKeyframe> observation_keypoint{};
+  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> outlier{};
+  std::array<Eigen::Vector2f, kMaxKeypointsPerKeyframe> coverage_px{};
+  int observation_count = 0;
+
+  // The map.
+  const MapSnapshotMessage* snapshot = nullptr;
+  TrackingStatus status = TrackingStatus::kWaitingForMap;
+  std::uint32_t map_id = 0;            // the map tracked against
+  std::uint32_t requested_map_id = 0;  // the new map asked for, while waiting
+  bool new_map_requested = false;
+  std::uint32_t epoch = 0;
+  bool imu_initialised = false;
+
+  // Frame state.
+  bool started = false;
+  std::int64_t last_t_ns = 0;
+  SE3d T_w_s;
+  Vector3d v_w = Vector3d::Zero();
+  imu::ImuBias bias;
+  int lost_frames = 0;
+  int waiting_frames = 0;  // frames since the new map was asked for
+  imu::Preintegration pre_frame;
+
+  // The newest keyframe published.
+  IdCounter<KeyframeId> keyframe_ids;
+  std::uint64_t keyframe_sequence = 0;
+  bool has_keyframe = false;
+  KeyframeId keyframe_id;
+  std::int64_t keyframe_t_ns = 0;
+  SE3d keyframe_T_w_s;
+  Vector3d keyframe_v_w = Vector3d::Zero();
+  imu::ImuBias keyframe_bias;
+  int frames_since_keyframe = 0;
+  double keyframe_coverage = 0.0;
+  imu::Preintegration pre_keyframe;
+  bool imu_ok_since_keyframe = true;
+  std::uint32_t keyframe_imu_count = 0;
+  std::array<ImuSampleMsg, kMaxImuSamplesPerKeyframe> keyframe_imu{};
+  std::int64_t last_imu_t_ns = std::numeric_limits<std::int64_t>::min();
+  bool awaiting = false;
+  KeyframeId awaiting_id;
+
+  struct Published {
+    KeyframeId id;
+    SE3d T_w_s;
+    bool valid = false;
+  };
+  std::array<Published, kRingSize> published{};
+  std::size_t published_next = 0;
+
+  void appendImu(std::span<const dataset::ImuSample> samples) {
+    for (const dataset::ImuSample& s : samples) {
+      if (s.t_ns <= last_imu_t_ns) continue;
+      last_imu_t_ns = s.t_ns;
+      if (keyframe_imu_count >= keyframe_imu.size()) {
+        imu_ok_since_keyframe = false;  // more IMU than a keyframe message carries: the link is dropped
+        continue;
+      }
+      ImuSampleMsg& m = keyframe_imu[keyframe_imu_count++];
+      m.t_ns = s.t_ns;
+      for (int i = 0; i < 3; ++i) {
+        m.gyro[static_cast<std::size_t>(i)] = s.gyro_s[i];
+        m.accel[static_cast<std::size_t>(i)] = s.accel_s[i];
+      }
+    }
+  }
+
+  // Keeps the samples the next keyframe interval needs: the last at or before t, and those after.
+  void restartKeyframeImu(std::int64_t t_ns) {
+    std::uint32_t first = 0;
+    for (std::uint32_t i = 0; i < keyframe_imu_count; ++i) {
+      if (keyframe_imu[i].t_ns <= t_ns) first = i;
+    }
+    const std::uint32_t kept = keyframe_imu_count - first;
+    std::memmove(keyframe_imu.data(), keyframe_imu.data() + first, kept * sizeof(ImuSampleMsg));
+    keyframe_imu_count = kept;
+  }
+
+  void applyToTrackedStates(const SE3d& delta_left) {
+    T_w_s = delta_left * T_w_s;
+    v_w = delta_left.so3() * v_w;
+  }
+
+  // Moves every stored state from the previous epoch into the snapshot's: p' = s R p + t, v' = s R v.
+  void changeEpoch(const MapSnapshotMessage& s) {
+    const double scale = s.epoch_scale;
+    const SE3d T = fromMsg(s.epoch_transform);
+    auto apply = [&](SE3d& pose) { pose = SE3d(T.so3() * pose.so3(), scale * (T.so3() * pose.translation()) + T.translation()); };
+    apply(T_w_s);
+    v_w = scale * (T.so3() * v_w);
+    apply(keyframe_T_w_s);
+    keyframe_v_w = scale * (T.so3() * keyframe_v_w);
+    for (Published& p : published) {
+      if (p.valid) apply(p.T_w_s);
+    }
+  }
+
+  Published* findPublished(const KeyframeId& id) {
+    for (Published& p : published) {
+      if (p.valid && p.id == id) return &p;
+    }
+    return nullptr;
+  }
+
+  void adopt(const MapSnapshotMessage* s) {
+    if (s == nullptr) return;
+    if (s->map_id != map_id || new_map_requested) {
+      if (s->map_id < map_id || (new_map_requested && s->map_id < requested_map_id)) return;  // an old map's
+      if (s->point_count == 0) {
+        // Mapping has started this map (on request, or itself after a failed monocular IMU initialisation)
+        // but not built it yet: keep feeding it keyframes.
+        if (!new_map_requested || s->map_id > requested_map_id) {
+          status = TrackingStatus::kWaitingForMap;
+          new_map_requested = true;
+          requested_map_id = s->map_id;
+          imu_initialised = false;
+        }
+        map_id = s->map_id;
+        snapshot = s;
+        if (awaiting && awaiting_id == s->newest_keyframe) awaiting = false;
+        return;
+      }
+      map_id = s->map_id;
+      epoch = s->map_epoch;
+      new_map_requested = false;
+      status = TrackingStatus::kTracking;
+      lost_frames = 0;
+      waiting_frames = 0;
+    } else if (s->map_epoch != epoch) {
+      if (s->map_epoch == epoch + 1) {
+        changeEpoch(*s);
+      } else {
+        status = TrackingStatus::kRelocalising;  // missed a change of frame: find the map again
+      }
+      epoch = s->map_epoch;
+    }
+    imu_initialised = s->imu_initialised != 0;
+    snapshot = s;
+
+    const KeyframeStateMsg* newest = nullptr;
+    for (std::uint16_t i = 0; i < s->keyframe_count; ++i) {
+      if (s->keyframes[i].id == s->newest_keyframe) newest = &s->keyframes[i];
+    }
+    if (newest == nullptr) return;
+    const SE3d T_new = fromMsg(newest->T_w_s);
+    const imu::ImuBias bias_new = biasFromMsg(newest->bias);
+    Published* entry = findPublished(newest->id);
+    if (entry != nullptr) {
+      const SE3d delta = T_new * entry->T_w_s.inverse();
+      applyToTrackedStates(delta);
+      for (Published& p : published) {
+        if (p.valid && p.id.counter > newest->id.counter) p.T_w_s = delta * p.T_w_s;
+      }
+      entry->T_w_s = T_new;
+      if (has_keyframe && keyframe_id == newest->id) {
+        keyframe_T_w_s = T_new;
+        keyframe_v_w = toVector3(newest->v_w);
+        keyframe_bias = bias_new;
+      } else if (has_keyframe) {
+        keyframe_T_w_s = delta * keyframe_T_w_s;
+        keyframe_v_w = delta.so3() * keyframe_v_w;
+      }
+    }
+    bias = bias_new;
+    if (awaiting && awaiting_id == newest->id) awaiting = false;
+  }
+};
+
+Tracker::Tracker(std::unique_ptr<State> state) : s_(std::move(state)) {}
+Tracker::~Tracker() = default;
+
+Result<std::unique_ptr<Tracker>> Tracker::create(const TrackerOptions& options, const camera::CameraModel& left,
+                                                 const camera::CameraModel* right, const SE3d& T_s_c) {
+  if (Status status = options.validate(); !status.ok()) return status.error();
+  if (static_cast<std::size_t>(left.width()) * static_cast<std::size_t>(left.height()) > kMaxImagePixels) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: " + std::to_string(left.width()) + "x" +
+                                                  std::to_string(left.height()) +
+                                                  " images exceed CVISLAM_MAX_IMAGE_PIXELS = " +
+                                                  std::to_string(kMaxImagePixels)};
+  }
+  auto orb = features::OrbExtractor::create(options.orb);
+  if (!orb) return orb.error();
+  return std::unique_ptr<Tracker>(
+      new Tracker(std::make_unique<State>(options, std::move(orb.value()), left, right, T_s_c)));
+}
+
+void Tracker::adoptSnapshot(const MapSnapshotMessage* snapshot) { s_->adopt(snapshot); }
+TrackingStatus Tracker::status() const { return s_->status; }
+bool Tracker::imuInitialised() const { return s_->imu_initialised; }
+bool Tracker::awaitingKeyframe(KeyframeId* id) const {
+  if (id != nullptr) *id = s_->awaiting_id;
+  return s_->awaiting;
+}
+
+namespace {
+
+// Projects the snapshot's points with the pose into `projected`; returns how many landed in the image.
+int projectPoints(Tracker::State& s, const SE3d& T_w_s, double radius_px, bool skip_matched) {
+  const MapSnapshotMessage& map = *s.snapshot;
+  const SE3d T_c_w = (T_w_s * s.T_s_c).inverse();
+  const double w = s.left.width();
+  const double h = s.left.height();
+  int count = 0;
+  for (std::uint32_t i = 0; i < map.point_count; ++i) {
+    if (skip_matched && s.point_matched[i] != 0) continue;
+    const MapPointMsg& mp = map.points[i];
+    const Vector3d p_c = T_c_w * Vector3d(mp.p_w[0], mp.p_w[1], mp.p_w[2]);
+    if (!(p_c.z() > 0.1)) continue;
+    const auto px = s.left.project(p_c);
+    if (!px || px->x() < 0.0 || px->y() < 0.0 || px->x() >= w || px->y() >= h) continue;
+    ProjectedMapPoint& p = s.projected[static_cast<std::size_t>(count)];
+    p.px = *px;
+    p.descriptor = mp.descriptor;
+    p.radius_px = radius_px * s.level_scale[std::min<std::size_t>(mp.octave, s.level_scale.size() - 1)];
+    s.projected_source[static_cast<std::size_t>(count)] = i;
+    ++count;
+  }
+  return count;
+}
+
+// Adds the matches of one search as pose observations (a keypoint is used once).
+void collectMatches(Tracker::State& s, int projected_count) {
+  for (int j = 0; j < projected_count; ++j) {
+    const int k = s.match_of_point[static_cast<std::size_t>(j)];
+    if (k < 0 || s.keypoint_taken[static_cast<std::size_t>(k)] != 0) continue;
+    if (s.observation_count >= static_cast<int>(s.observations.size())) break;
+    const std::uint32_t point = s.projected_source[static_cast<std::size_t>(j)];
+    const MapPointMsg& mp = s.snapshot->points[point];
+    const features::Keypoint& kp = s.keypoints[static_cast<std::size_t>(k)];
+    PoseObservation& o = s.observations[static_cast<std::size_t>(s.observation_count)];
+    o.p_w = Vector3d(mp.p_w[0], mp.p_w[1], mp.p_w[2]);
+    o.keypoint_px = s.undistorted[static_cast<std::size_t>(k)];
+    o.sigma_px = s.options.sigma_px * s.level_scale[std::min<std::size_t>(kp.octave, s.level_scale.size() - 1)];
+    s.observation_point[static_cast<std::size_t>(s.observation_count)] = point;
+    s.observation_keypoint[static_cast<std::size_t>(s.observation_count)] = static_cast<std::uint16_t>(k);
+    s.keypoint_taken[static_cast<std::size_t>(k)] = 1;
+    s.point_matched[point] = 1;
+    ++s.observation_count;
+  }
+}
+
+}  // namespace
+
+FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
+  State& s = *s_;
+  FrameResult result;
+  const std::int64_t t_start = nowNs();
+  const TrackerOptions& o = s.options;
+
+  // 1. IMU since the previous frame, and the prediction.
+  bool imu_frame_ok = false;
+  double dt_s = 0.0;
+  if (s.started) {
+    dt_s = static_cast<double>(frame.t_ns - s.last_t_ns) * 1e-9;
+    s.pre_frame.reset(s.bias);
+    if (!frame.imu.empty() && frame.t_ns > s.last_t_ns) {
+      if (s.pre_frame.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok()) {
+        imu_frame_ok = true;
+        if (s.imu_ok_since_keyframe && s.has_keyframe) {
+          if (!s.pre_keyframe.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok()) s.imu_ok_since_keyframe = false;
+        }
+      } else {
+        result.issue = FrameIssue::kImuGap;
+        s.imu_ok_since_keyframe = false;
+      }
+    }
+  }
+  s.appendImu(frame.imu);
+  SE3d T_pred = s.T_w_s;
+  Vector3d v_pred = s.v_w;
+  if (s.started) {
+    if (s.imu_initialised && o.use_imu && imu_frame_ok) {
+      const imu::NavState next = s.pre_frame.predict(imu::NavState{s.T_w_s, s.v_w}, s.bias);
+      T_pred = next.T_w_s;
+      v_pred = next.v_w;
+    } else {
+      const SO3d dR = imu_frame_ok ? s.pre_frame.correctedDeltaR(s.bias) : SO3d();
+      T_pred = SE3d(s.T_w_s.so3() * dR, s.T_w_s.translation() + s.v_w * dt_s);
+    }
+  }
+
+  // 2. Features.
+  const std::int64_t t_orb = nowNs();
+  s.keypoint_count =
+      s.orb.extract(frame.left, frame.width, frame.height,
+                    std::span(s.keypoints.data(), static_cast<std::size_t>(o.orb.max_features)),
+                    std::span(s.descriptors.data(), static_cast<std::size_t>(o.orb.max_features)));
+  const auto n = static_cast<std::size_t>(s.keypoint_count);
+  for (std::size_t k = 0; k < n; ++k) s.undistorted[k] = s.left.undistortPixel(s.keypoints[k].px.cast<double>());
+  result.keypoints = s.keypoint_count;
+  const std::int64_t t_matching = nowNs();
+  result.times.orb_ns = t_matching - t_orb;
+
+  auto finish = [&](const SE3d& T, const Vector3d& v) {
+    s.T_w_s = T;
+    s.v_w = v;
+    s.last_t_ns = frame.t_ns;
+    s.started = true;
+    ++s.frames_since_keyframe;
+    result.status = s.status;
+    result.T_w_s = T;
+    result.v_w = v;
+    result.map_id = s.map_id;
+    result.map_epoch = s.epoch;
+    result.has_reference = s.has_keyframe;
+    result.reference = s.keyframe_id;
+    result.T_ref_s = s.keyframe_T_w_s.inverse() * T;
+    result.times.total_ns = nowNs() - t_start;
+  };
+
+  auto publishKeyframe = [&](KeyframeKind kind, const SE3d& T, const Vector3d& v) {
+    const std::int64_t t0 = nowNs();
+    KeyframeMessage* m = keyframes.loan();
+    if (m == nullptr) {
+      result.issue = FrameIssue::kKeyframeDropped;
+      return false;
+    }
+    m->sequence = s.keyframe_sequence++;
+    m->map_epoch = s.epoch;
+    m->kind = kind;
+    m->state.id = s.keyframe_ids.next();
+    m->state.t_ns = frame.t_ns;
+    m->state.T_w_s = toMsg(T);
+    m->state.v_w = toArray(v);
+    m->state.bias = toMsg(s.bias);
+    m->keypoint_count = static_cast<std::uint16_t>(n);
+    for (std::size_t k = 0; k < n; ++k) {
+      const features::Keypoint& kp = s.keypoints[k];
+      m->keypoints[k] = KeypointMsg{kp.px.x(), kp.px.y(), kp.response, kp.angle_deg, kp.octave};
+      m->descriptors[k] = s.descriptors[k];
+      m->has_match[k] = 0;
+    }
+    if (kind == KeyframeKind::kTracked) {
+      for (int i = 0; i < s.observation_count; ++i) {
+        if (s.outlier[static_cast<std::size_t>(i)] != 0) continue;
+        const std::uint16_t k = s.observation_keypoint[static_cast<std::size_t>(i)];
+        m->matched[k] = s.snapshot->points[s.observation_point[static_cast<std::size_t>(i)]].id;
+        m->has_match[k] = 1;
+      }
+    }
+    const bool imu_link = s.imu_ok_since_keyframe && s.has_keyframe && kind == KeyframeKind::kTracked;
+    m->imu_count = imu_link || kind == KeyframeKind::kNewMap ? s.keyframe_imu_count : 0;
+    std::memcpy(m->imu.data(), s.keyframe_imu.data(), m->imu_count * sizeof(ImuSampleMsg));
+    if (!frame.right.empty() && frame.right.size() <= m->right_pixels.size()) {
+      m->right_width = static_cast<std::uint16_t>(frame.width);
+      m->right_height = static_cast<std::uint16_t>(frame.height);
+      std::memcpy(m->right_pixels.data(), frame.right.data(), frame.right.size());
+    } else {
+      m->right_width = 0;
+      m->right_height = 0;
+    }
+    m->publish_steady_ns = nowNs();
+    const KeyframeId id = m->state.id;
+    keyframes.publish();
+
+    s.published[s.published_next] = State::Published{id, T, true};
+    s.published_next = (s.published_next + 1) % s.published.size();
+    s.has_keyframe = true;
+    s.keyframe_id = id;
+    s.keyframe_t_ns = frame.t_ns;
+    s.keyframe_T_w_s = T;
+    s.keyframe_v_w = v;
+    s.keyframe_bias = s.bias;
+    s.frames_since_keyframe = -1;  // finish() counts this frame
+    s.pre_keyframe.reset(s.bias);
+    s.imu_ok_since_keyframe = true;
+    s.restartKeyframeImu(frame.t_ns);
+    s.awaiting = true;
+    s.awaiting_id = id;
+    result.keyframe = true;
+    result.times.keyframe_ns = nowNs() - t0;
+    return true;
+  };
+
+  // 3. No map yet: ask for one (stereo: one keyframe; mono: keyframes every few frames until mapping has
+  // initialised from two views).
+  const bool have_map = s.snapshot != nullptr && s.snapshot->map_id == s.map_id && !s.new_map_requested &&
+                        s.status != TrackingStatus::kWaitingForMap;
+  if (!have_map) {
+    s.status = TrackingStatus::kWaitingForMap;
+    const SE3d T = s.started ? SE3d(T_pred.so3(), s.T_w_s.translation()) : SE3d();
+    ++s.waiting_frames;
+    // Stereo maps answer at once; ask again when the first keyframe gave no map (a black frame, say).
+    const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames;
+    if (!s.new_map_requested || ask_again) {
+      if (s.keypoint_count >= o.pose.min_inliers) {
+        s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
+        s.waiting_frames = 0;
+        s.new_map_requested = true;
+        s.observation_count = 0;
+        publishKeyframe(KeyframeKind::kNewMap, T, Vector3d::Zero());
+      } else {
+        result.issue = FrameIssue::kFewFeatures;
+      }
+    } else if (!s.right && s.frames_since_keyframe + 1 >= o.initialisation_max_frames_between &&
+               s.keypoint_count >= o.pose.min_inliers) {
+      s.observation_count = 0;
+      publishKeyframe(KeyframeKind::kTracked, T, Vector3d::Zero());
+    }
+    finish(T, Vector3d::Zero());
+    return result;
+  }
+
+  // 4. Guided search with the prediction, pose, second search, pose again.
+  const bool relocalising = s.status == TrackingStatus::kRelocalising;
+  s.observation_count = 0;
+  std::fill_n(s.keypoint_taken.begin(), n, std::uint8_t{0});
+  std::fill_n(s.point_matched.begin(), s.snapshot->point_count, std::uint8_t{0});
+  s.grid.build(std::span(s.keypoints.data(), n), frame.width, frame.height);
+  const double radius = relocalising ? o.relocalisation_radius_px : o.search_radius_px;
+  int projected = projectPoints(s, T_pred, radius, false);
+  s.matcher.search(std::span(s.projected.data(), static_cast<std::size_t>(projected)), s.grid,
+                   std::span(s.descriptors.data(), n), o.search,
+                   std::span(s.match_of_point.data(), static_cast<std::size_t>(projected)));
+  collectMatches(s, projected);
+  result.times.matching_ns = nowNs() - t_matching;
+
+  std::int64_t t_pose = nowNs();
+  const auto observations = [&] { return std::span(s.observations.data(), static_cast<std::size_t>(s.observation_count)); };
+  const auto outliers = [&] { return std::span(s.outlier.data(), static_cast<std::size_t>(s.observation_count)); };
+  auto first = optimizePose(observations(), T_pred, s.T_s_c, s.intrinsics, o.pose, outliers());
+  std::int64_t pose_ns = nowNs() - t_pose;
+
+  auto lost = [&]() {
+    result.issue = s.keypoint_count < o.pose.min_inliers ? FrameIssue::kFewFeatures : FrameIssue::kPoseRefused;
+    s.status = TrackingStatus::kRelocalising;
+    ++s.lost_frames;
+    result.matches = s.observation_count;
+    result.times.pose_ns = pose_ns;
+    if (s.lost_frames > o.max_lost_frames && s.keypoint_count >= o.pose.min_inliers) {
+      // Relocalisation failed for too long: start a new map here, and say so.
+      s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
+      s.waiting_frames = 0;
+      s.new_map_requested = true;
+      s.status = TrackingStatus::kWaitingForMap;
+      s.observation_count = 0;
+      s.imu_initialised = false;
+      publishKeyframe(KeyframeKind::kNewMap, T_pred, Vector3d::Zero());
+    }
+    // Dead reckoning meanwhile: the IMU when initialised, otherwise the rotation alone.
+    finish(T_pred, s.imu_initialised ? v_pred : Vector3d::Zero());
+    return result;
+  };
+  if (!first) return lost();
+
+  // Second search: points not matched yet, around their projection with the refined pose.
+  const std::int64_t t_second = nowNs();
+  for (int i = 0; i < s.observation_count; ++i) {  // outliers give their keypoints and points back
+    if (s.outlier[static_cast<std::size_t>(i)] == 0) continue;
+    s.keypoint_taken[s.observation_keypoint[static_cast<std::size_t>(i)]] = 0;
+  }
+  projected = projectPoints(s, first->T_w_s, o.refine_radius_px, true);
+  s.matcher.search(std::span(s.projected.data(), static_cast<std::size_t>(projected)), s.grid,
+                   std::span(s.descriptors.data(), n), o.search,
+                   std::span(s.match_of_point.data(), static_cast<std::size_t>(projected)));
+  // Drop the first round's outliers before adding the new matches.
+  int kept = 0;
+  for (int i = 0; i < s.observation_count; ++i) {
+    if (s.outlier[static_cast<std::size_t>(i)] != 0) continue;
+    const auto src = static_cast<std::size_t>(i);
+    const auto dst = static_cast<std::size_t>(kept++);
+    s.observations[dst] = s.observations[src];
+    s.observation_point[dst] = s.observation_point[src];
+    s.observation_keypoint[dst] = s.observation_keypoint[src];
+  }
+  s.observation_count = kept;
+  collectMatches(s, projected);
+  result.times.matching_ns += nowNs() - t_second;
+
+  t_pose = nowNs();
+  auto second = optimizePose(observations(), first->T_w_s, s.T_s_c, s.intrinsics, o.pose, outliers());
+  pose_ns += nowNs() - t_pose;
+  result.times.pose_ns = pose_ns;
+  if (!second) return lost();
+  SE3d T = second->T_w_s;
+  Vector3d v = dt_s > 0.0 ? Vector3d((T.translation() - s.T_w_s.translation()) / dt_s) : s.v_w;
+  result.matches = s.observation_count;
+  result.inliers = second->inliers;
+
+  // 5. Motion-only visual-inertial BA against the newest keyframe.
+  if (s.imu_initialised && o.use_imu && s.has_keyframe && s.imu_ok_since_keyframe && s.pre_keyframe.dt() > 0.0) {
+    const std::int64_t t_ba = nowNs();
+    const InertialAnchor anchor{s.keyframe_T_w_s, s.keyframe_v_w, s.keyframe_bias, &s.pre_keyframe};
+    auto inertial = optimizePoseInertial(observations(), T, v_pred, anchor, s.T_s_c, s.intrinsics, o.pose, outliers());
+    if (inertial) {
+      T = inertial->T_w_s;
+      v = inertial->v_w;
+      result.inliers = inertial->inliers;
+    } else {
+      // Keep the visual pose; the outlier flags are recomputed for the keyframe's matches.
+      (void)optimizePose(observations(), T, s.T_s_c, s.intrinsics, o.pose, outliers());
+    }
+    result.times.motion_ba_ns = nowNs() - t_ba;
+  }
+  s.status = TrackingStatus::kTracking;
+  s.lost_frames = 0;
+
+  // 6. Keyframe decision.
+  int covered = 0;
+  for (int i = 0; i < s.observation_count; ++i) {
+    if (s.outlier[static_cast<std::size_t>(i)] != 0) continue;
+    s.coverage_px[static_cast<std::size_t>(covered++)] =
+        s.keypoints[s.observation_keypoint[static_cast<std::size_t>(i)]].px;
+  }
+  TrackingState tracking_state;
+  tracking_state.frames_since_keyframe = s.frames_since_keyframe + 1;
+  tracking_state.tracked_points = result.inliers;
+  tracking_state.coverage =
+      gridCoverage(std::span(s.coverage_px.data(), static_cast<std::size_t>(covered)), frame.width, frame.height,
+                   o.keyframe.grid_columns, o.keyframe.grid_rows);
+  if (s.keyframe_coverage <= 0.0) s.keyframe_coverage = tracking_state.coverage;  // first frame on a new map
+  tracking_state.keyframe_coverage = s.keyframe_coverage;
+  KeyframeDecisionOptions decision_options = o.keyframe;
+  if (!s.imu_initialised && o.use_imu) decision_options.max_frames_between = o.initialisation_max_frames_between;
+  result.keyframe_reason = decideKeyframe(tracking_state, decision_options);
+  if (result.keyframe_reason != KeyframeReason::kNone) {
+    if (publishKeyframe(KeyframeKind::kTracked, T, v)) s.keyframe_coverage = tracking_state.coverage;
+  }
+  result.tracked = true;
+  finish(T, v);
+  return result;
+}
+
+}  // namespace cvislam::agent
