@@ -408,7 +408,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     result.status = s.status;
     result.T_w_s = T;
     result.v_w = v;
-    result.map_id = s.map_id;
+    result.map_id = s.new_map_requested ? s.requested_map_id : s.map_id;
     result.map_epoch = s.epoch;
     result.has_reference = s.has_keyframe;
     result.reference = s.keyframe_id;
