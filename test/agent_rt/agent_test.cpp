@@ -1,0 +1,231 @@
+// The whole agent on a simulated sequence rendered at test time (loop preset, fixed seed): real iceoryx
+// (in-process RouDi), real threads, real Ceres. Accuracy against the simulator's ground truth, bad input
+// (an IMU gap, a missing image, a black frame, an unreadable image), an interrupted run, and config errors.
+#include "agent_rt/runtime/agent.hpp"
+
+#include <atomic>
+#include <chrono>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "common/core/diagnostics.hpp"
+#include "common/dataset/image.hpp"
+#include "common/dataset/trajectory_io.hpp"
+#include "common/eval/trajectory_eval.hpp"
+#include "test/sim/mission_writer.hpp"
+#include "test/sim/presets.hpp"
+#include "test/support/temp_dir.hpp"
+
+namespace cvislam::agent {
+namespace {
+
+namespace fs = std::filesystem;
+
+class AgentTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new test::TempDir();
+    sim::MissionPlanOptions plan_options;
+    plan_options.preset = "loop";
+    plan_options.seed = 11;
+    plan_options.duration_s = 12.0;
+    auto plan = sim::planMission(plan_options);
+    ASSERT_TRUE(plan.ok()) << plan.error().toString();
+    sim::MissionWriterOptions writer = sim::defaultWriterOptions();
+    writer.out_dir = dir_->path() / "sim";
+    writer.seed = 11;
+    writer.stereo = true;
+    ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+
+  static fs::path sequence() { return dir_->path() / "sim" / "agent0"; }
+
+  static AgentOptions options(const fs::path& dataset, const std::string& name) {
+    AgentOptions o;
+    o.dataset = dataset;
+    o.output = dir_->path() / name;
+    o.pace = Pace::kSync;
+    o.quiet = true;
+    return o;
+  }
+
+  // ATE (SE3 alignment, RMSE) and the Sim3 scale error of a trajectory against the sequence's ground truth.
+  static std::pair<double, double> evaluate(const fs::path& trajectory, const fs::path& dataset) {
+    Diagnostics diagnostics;
+    auto estimate = dataset::readTrajectory(trajectory, {}, diagnostics);
+    auto truth = dataset::readTrajectory(dataset, {}, diagnostics);
+    EXPECT_TRUE(estimate.ok() && truth.ok());
+    if (!estimate.ok() || !truth.ok()) return {1e9, 1e9};
+    auto evaluation = eval::evaluate(*estimate, *truth, {});
+    EXPECT_TRUE(evaluation.ok());
+    if (!evaluation.ok()) return {1e9, 1e9};
+    const eval::AbsoluteError* se3 = evaluation->find(eval::Alignment::kSE3);
+    return {se3 != nullptr ? se3->translation_m.rmse : 1e9, evaluation->scale_error_percent.value_or(1e9)};
+  }
+
+  static test::TempDir* dir_;
+};
+
+test::TempDir* AgentTest::dir_ = nullptr;
+
+TEST_F(AgentTest, StereoInertialTracksTheSimulatedLoop) {
+  const std::atomic<bool> stop{false};
+  AgentOptions o = options(sequence(), "stereo");
+  o.mode = AgentMode::kStereo;
+  auto summary = runAgent(o, stop);
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  std::printf("%s", formatSummary(*summary).c_str());
+  EXPECT_EQ(summary->frames, 241u);
+  EXPECT_GE(summary->tracked_frames, summary->frames - 2);  // all but the first, which starts the map
+  EXPECT_EQ(summary->new_maps, 1u);
+  EXPECT_GE(summary->imu_initialised_at_s, 0.0);
+  EXPECT_LT(summary->imu_initialised_at_s, 10.0);
+  const auto [ate_m, scale_error] = evaluate(summary->trajectory, sequence());
+  std::printf("stereo-inertial, 12 s loop: ATE %.3f m, scale error %.2f %%\n", ate_m, scale_error);
+  EXPECT_LT(ate_m, 0.05);
+  EXPECT_LT(std::abs(scale_error), 2.0);
+  for (const char* file : {"trajectory.txt", "trajectory_online.txt", "keyframes.txt", "latency.json", "summary.json"}) {
+    EXPECT_TRUE(fs::exists(o.output / file)) << file;
+  }
+  std::ifstream latency(summary->latency_json);
+  const std::string json((std::istreambuf_iterator<char>(latency)), std::istreambuf_iterator<char>());
+  for (const char* stage : {"orb_extraction", "matching", "pose_optimisation", "motion_ba",
+                            "keyframe_publish_to_receive", "local_ba"}) {
+    EXPECT_NE(json.find(stage), std::string::npos) << stage;
+  }
+}
+
+// A copy of the sequence (images hard-linked) with an IMU gap, a missing image, a black frame and an
+// unreadable image.
+fs::path damagedCopy(const fs::path& source, const fs::path& target) {
+  fs::create_directories(target);
+  fs::copy(source, target, fs::copy_options::recursive | fs::copy_options::create_hard_links);
+  const fs::path mav0 = target / "mav0";
+  // IMU: drop 0.3 s of samples at t0 + 6 s.
+  const fs::path imu_csv = mav0 / "imu0" / "data.csv";
+  std::ifstream in(imu_csv);
+  std::vector<std::string> lines;
+  std::string line;
+  std::int64_t t0 = -1;
+  while (std::getline(in, line)) {
+    if (!line.empty() && line[0] != '#') {
+      const std::int64_t t = std::stoll(line.substr(0, line.find(',')));
+      if (t0 < 0) t0 = t;
+      if (t > t0 + 6'000'000'000 && t < t0 + 6'300'000'000) continue;
+    }
+    lines.push_back(line);
+  }
+  in.close();
+  fs::remove(imu_csv);  // a hard link: write a new file instead of through it
+  std::ofstream out(imu_csv);
+  for (const std::string& l : lines) out << l << "\n";
+  out.close();
+  // Images: frame 100 of cam0 missing, frame 120 black (both cameras), frame 140 not a PNG.
+  std::vector<fs::path> cam0;
+  for (const auto& e : fs::directory_iterator(mav0 / "cam0" / "data")) cam0.push_back(e.path());
+  std::sort(cam0.begin(), cam0.end());
+  fs::remove(cam0[100]);
+  for (const char* cam : {"cam0", "cam1"}) {
+    const fs::path black = mav0 / cam / "data" / cam0[120].filename();
+    fs::remove(black);
+    EXPECT_TRUE(dataset::writeGrayPng(black, dataset::GrayImage(752, 480, 0)).ok());
+  }
+  const fs::path garbage = mav0 / "cam0" / "data" / cam0[140].filename();
+  fs::remove(garbage);
+  std::ofstream(garbage) << "this is not a PNG";
+  return target;
+}
+
+TEST_F(AgentTest, BadInputIsReportedAndTrackingGoesOn) {
+  const fs::path damaged = damagedCopy(sequence(), dir_->path() / "damaged" / "agent0");
+  const std::atomic<bool> stop{false};
+  AgentOptions o = options(damaged, "damaged_out");
+  o.mode = AgentMode::kStereo;
+  auto summary = runAgent(o, stop);
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  std::printf("%s", formatSummary(*summary).c_str());
+  EXPECT_EQ(summary->frames, 240u);  // the missing image's frame is dropped when the dataset is opened
+  EXPECT_GE(summary->imu_gaps, 1u);
+  EXPECT_EQ(summary->unreadable_frames, 1u);
+  // The black frame and the IMU gap cost a frame or two; the rest is tracked on the same map.
+  EXPECT_GE(summary->tracked_frames, summary->frames - 6);
+  EXPECT_EQ(summary->new_maps, 1u);
+  const auto [ate_m, scale_error] = evaluate(summary->trajectory, damaged);
+  std::printf("damaged sequence: ATE %.3f m, scale error %.2f %%\n", ate_m, scale_error);
+  EXPECT_LT(ate_m, 0.1);
+}
+
+TEST_F(AgentTest, InterruptedRunStillWritesItsOutputs) {
+  std::atomic<bool> stop{false};
+  AgentOptions o = options(sequence(), "interrupted");
+  o.pace = Pace::kRealtime;
+  std::thread stopper([&] {
+    std::this_thread::sleep_for(std::chrono::seconds(3));
+    stop.store(true);
+  });
+  auto summary = runAgent(o, stop);
+  stopper.join();
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  EXPECT_TRUE(summary->interrupted);
+  EXPECT_LT(summary->frames, 241u);
+  EXPECT_GT(summary->tracked_frames, 20u);
+  Diagnostics diagnostics;
+  auto written = dataset::readTrajectory(summary->trajectory, {}, diagnostics);
+  ASSERT_TRUE(written.ok()) << written.error().toString();
+  // Every tracked frame, and the frame that started the map (its keyframe is the map's origin).
+  EXPECT_EQ(written->size(), summary->tracked_frames + summary->new_maps);
+}
+
+TEST_F(AgentTest, RefusesWhatCannotWork) {
+  const std::atomic<bool> stop{false};
+  AgentOptions o = options(dir_->path() / "no-such-sequence", "refused");
+  auto missing = runAgent(o, stop);
+  ASSERT_FALSE(missing.ok());
+  EXPECT_NE(missing.error().message().find("no-such-sequence"), std::string::npos) << missing.error().message();
+
+  AgentOptions bad = options(sequence(), "refused");
+  bad.tracking.orb.max_features = 100000;
+  auto refused = runAgent(bad, stop);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_NE(refused.error().message().find("max_features"), std::string::npos) << refused.error().message();
+}
+
+TEST(AgentConfig, NamesUnknownKeysAndBadValues) {
+  test::TempDir dir;
+  const auto write = [&](const std::string& text) {
+    std::ofstream(dir.path() / "agent.yaml") << text;
+    return dir.path() / "agent.yaml";
+  };
+  AgentOptions o;
+  EXPECT_TRUE(loadAgentConfig(write("orb:\n  max_features: 400\nmapping:\n  max_keyframes: 16\n"), o).ok());
+  EXPECT_EQ(o.tracking.orb.max_features, 400);
+  EXPECT_EQ(o.mapping.max_keyframes, 16);
+
+  auto unknown = loadAgentConfig(write("tracking:\n  serch_radius_px: 9\n"), o);
+  ASSERT_FALSE(unknown.ok());
+  EXPECT_NE(unknown.error().message().find("tracking.serch_radius_px"), std::string::npos);
+
+  auto wrong_type = loadAgentConfig(write("orb:\n  max_features: many\n"), o);
+  ASSERT_FALSE(wrong_type.ok());
+  EXPECT_NE(wrong_type.error().message().find("orb.max_features"), std::string::npos);
+
+  auto wrong_pace = loadAgentConfig(write("runtime:\n  pace: slow\n"), o);
+  ASSERT_FALSE(wrong_pace.ok());
+  EXPECT_NE(wrong_pace.error().message().find("slow"), std::string::npos);
+
+  auto section = loadAgentConfig(write("trackin:\n  x: 1\n"), o);
+  ASSERT_FALSE(section.ok());
+  EXPECT_NE(section.error().message().find("trackin"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace cvislam::agent
