@@ -291,7 +291,10 @@ int fusePoints(Mapper::State& s, PoolHandle handle) {
     if (kf.has_map_point[k]) continue;  // two points wanted the same keypoint: the first keeps it
     if (s.map.addObservation(handle, k, point).ok()) {
       ++fused;
-      if (MapPointData* p = s.map.mapPoints().get(point)) ++p->found;
+      if (MapPointData* p = s.map.mapPoints().get(point)) {
+        ++p->found;
+        p->descriptor = kf.descriptors[k];
+      }
     }
   }
   return fused;
@@ -526,7 +529,12 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     if (msg.has_match[k] == 0) continue;
     const auto found = s.point_index.find(State::key(msg.matched[k]));
     if (found == s.point_index.end()) continue;  // culled since tracking saw it
-    if (s.map.addObservation(handle, k, found->second).ok()) ++report.linked;
+    if (s.map.addObservation(handle, k, found->second).ok()) {
+      ++report.linked;
+      // The newest view's descriptor: tracking compares frames with it, and the newest is the closest to
+      // what the camera sees next.
+      if (MapPointData* p = s.map.mapPoints().get(found->second)) p->descriptor = msg.descriptors[k];
+    }
   }
 
   const bool stereo = s.right.has_value();

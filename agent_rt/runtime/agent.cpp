@@ -157,7 +157,7 @@ class TrajectoryRecorder {
   void addFrame(std::int64_t t_ns, const FrameResult& r) {
     if (frames_.size() == frames_.capacity()) return;
     frames_.push_back({t_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U, r.has_reference,
-                       r.tracked || r.keyframe, r.map_id, r.map_epoch});
+                       r.tracked, r.keyframe, r.map_id, r.map_epoch});
   }
 
   void addSnapshot(const MapSnapshotMessage& s) {
@@ -193,14 +193,13 @@ class TrajectoryRecorder {
   // as tracked live, and the keyframe trajectory.
   void build(dataset::Trajectory& refined, dataset::Trajectory& online, dataset::Trajectory& keyframes) const {
     for (const Frame& f : frames_) {
-      if (!f.tracked) continue;
+      const bool refinable = f.has_reference && f.reference < keyframes_.size() && keyframes_[f.reference].valid &&
+                             keyframes_[f.reference].map_id == f.map_id && keyframes_[f.reference].epoch == f.epoch;
+      // Tracked frames, and keyframes made before the map existed once mapping has placed them (a monocular
+      // start drops the keyframes between its two views: those are left out).
+      if (!f.tracked && !(f.keyframe && refinable)) continue;
       online.push_back({f.t_ns, f.T_w_s});
-      SE3d T = f.T_w_s;
-      if (f.has_reference && f.reference < keyframes_.size() && keyframes_[f.reference].valid &&
-          keyframes_[f.reference].map_id == f.map_id && keyframes_[f.reference].epoch == f.epoch) {
-        T = keyframes_[f.reference].T_w_s * f.T_ref_s;
-      }
-      refined.push_back({f.t_ns, T});
+      refined.push_back({f.t_ns, refinable ? keyframes_[f.reference].T_w_s * f.T_ref_s : f.T_w_s});
     }
     for (const Keyframe& kf : keyframes_) {
       if (kf.valid) keyframes.push_back({kf.t_ns, kf.T_w_s});
@@ -216,6 +215,7 @@ class TrajectoryRecorder {
     std::uint32_t reference;
     bool has_reference;
     bool tracked;
+    bool keyframe;
     std::uint32_t map_id;
     std::uint32_t epoch;
   };
