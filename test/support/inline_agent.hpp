@@ -1,0 +1,64 @@
+// Tracking and mapping of the agent in one thread, over a EuRoC-format sequence: for tests and benchmarks
+// that look at Tracker::track() alone (allocations, latency). Mapping answers every keyframe at once, as a
+// perfectly fast mapping thread would; images are read before track() is called, as a camera driver would
+// deliver them.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "agent_rt/mapping/mapper.hpp"
+#include "agent_rt/tracking/tracker.hpp"
+#include "common/dataset/euroc.hpp"
+
+namespace cvislam::test {
+
+class InlineAgent {
+ public:
+  // Stereo uses cam1 (which the sequence must have). Options get the sequence's calibration and IMU noise.
+  static Result<std::unique_ptr<InlineAgent>> create(const dataset::EurocSequence& sequence, bool stereo,
+                                                     agent::TrackerOptions tracker_options = {},
+                                                     agent::MapperOptions mapper_options = {});
+
+  [[nodiscard]] std::size_t frameCount() const { return frames_.size(); }
+  // Loads frame i and the IMU since the previous frame into the input (allocates: file reading).
+  Status load(std::size_t i);
+  // Tracks the loaded frame; `around` runs just before and after track() (for counters and clocks).
+  template <typename Before, typename After>
+  agent::FrameResult track(Before&& before, After&& after) {
+    before();
+    const agent::FrameResult result = tracker_->track(input_, sink_);
+    after();
+    answerKeyframe();
+    return result;
+  }
+  [[nodiscard]] bool imuInitialised() const { return tracker_->imuInitialised(); }
+
+ private:
+  class Sink final : public agent::KeyframeSink {
+   public:
+    Sink() : message(std::make_unique<agent::KeyframeMessage>()) {}
+    agent::KeyframeMessage* loan() override { return message.get(); }
+    void publish() override { published = true; }
+    std::unique_ptr<agent::KeyframeMessage> message;
+    bool published = false;
+  };
+
+  InlineAgent(const dataset::EurocSequence& sequence, bool stereo) : sequence_(sequence), stereo_(stereo) {}
+  void answerKeyframe();
+
+  const dataset::EurocSequence& sequence_;
+  bool stereo_;
+  std::vector<dataset::RigFrame> frames_;
+  std::unique_ptr<agent::Tracker> tracker_;
+  std::unique_ptr<agent::Mapper> mapper_;
+  std::unique_ptr<agent::MapSnapshotMessage> snapshot_;
+  Sink sink_;
+  std::vector<std::uint8_t> left_;
+  std::vector<std::uint8_t> right_;
+  agent::FrameInput input_;
+  std::int64_t previous_t_ns_ = -1;
+};
+
+}  // namespace cvislam::test
