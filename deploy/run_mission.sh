@@ -3,8 +3,9 @@
 #
 # Today the richest end-to-end run is the evaluation pipeline on real data: the eight real visual-inertial
 # estimates of rpg_trajectory_evaluation's EuRoC set (MH_01/03/05 and V2_01, mono and stereo) and evo's
-# V1_02 estimate, each scored by cvislam_eval against EuRoC ground truth. It becomes the collaborative
-# mission (server + agents over loopback gRPC) as those parts land.
+# V1_02 estimate, each scored by cvislam_eval against EuRoC ground truth; then cvislam_agent itself,
+# stereo-inertial on the real V1_01 excerpt. It becomes the collaborative mission (server + agents over
+# loopback gRPC) when the server lands.
 #
 #   deploy/run_mission.sh [--out DIR] [--build-dir DIR]
 #
@@ -30,8 +31,9 @@ echo "== build (preset 'default' in $build)"
 if [ ! -f "$build/build.ninja" ]; then
   cmake -S "$repo" --preset default -B "$build" >/dev/null
 fi
-cmake --build "$build" --target cvislam_eval
+cmake --build "$build" --target cvislam_eval cvislam_agent
 eval_bin="$build/bin/cvislam_eval"
+agent_bin="$build/bin/cvislam_agent"
 
 data=${CVISLAM_DATA_DIR:-"$repo/../shared/data"}
 if [ ! -d "$data/peer-rpg" ] || [ ! -d "$data/euroc-groundtruth" ]; then
@@ -71,5 +73,20 @@ awk -F'\t' 'NR == 1 { printf "%-16s %6s %8s %13s %11s %12s %11s %12s\n", "run", 
                       "ATE posyaw[m]", "ATE SE3[m]", "ATE Sim3[m]", "scale err%", "rot SE3[deg]"; next }
             { printf "%-16s %6d %8.1f %13.4f %11.4f %12.4f %+11.2f %12.3f\n", $1, $2, $3, $4, $5, $6, $7, $8 }' \
   "$out/summary.tsv"
+
+# Our own agent on real images: stereo-inertial VIO over the real EuRoC V1_01 excerpt (4.7 s, the drone
+# almost still), tracking and mapping joined by iceoryx inside one process.
+if [ -d "$data/euroc-v101-excerpt/mav0" ]; then
+  echo
+  echo "== cvislam_agent: stereo-inertial on the real EuRoC V1_01 excerpt"
+  "$agent_bin" --dataset "$data/euroc-v101-excerpt" --output "$out/agent_v101" --mode stereo --pace sync --quiet \
+    >"$out/agent_v101.log" 2>&1 || { echo "run_mission: cvislam_agent failed:" >&2; tail -5 "$out/agent_v101.log" >&2; exit 1; }
+  grep -E '^(frames|IMU|stage|orb|matching|pose|motion|keyframe_|tracking|local|mapping)' "$out/agent_v101.log"
+  "$eval_bin" --quiet --estimate "$out/agent_v101/trajectory.txt" --groundtruth "$data/euroc-v101-excerpt" \
+    --json "$out/agent_v101.json" >/dev/null 2>&1 || true
+  jq -r '"ATE (SE3) \(.se3.rmse * 10000 | round / 10) mm over \(.poses) frames, ground-truth path \(.groundtruth_path_m * 100 | round / 100) m"' \
+    "$out/agent_v101.json" 2>/dev/null || echo "(evaluation failed: see $out/agent_v101.log)"
+fi
+
 echo
-echo "results: $out (summary.tsv, per-run JSON and SVG top views)"
+echo "results: $out (summary.tsv, per-run JSON and SVG top views, agent_v101/)"

@@ -483,6 +483,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     std::size_t frames_at_progress = 0;
     std::int64_t previous_t_ns = -1;
     std::size_t tracked_points_sum = 0;
+    TrackingStatus previous_status = TrackingStatus::kWaitingForMap;
     while (true) {
       if (stop.load()) {
         summary.interrupted = true;
@@ -554,6 +555,13 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                        toString(r.issue), r.keypoints, r.matches);
         }
       }
+      if (r.status == TrackingStatus::kWaitingForMap && previous_status == TrackingStatus::kRelocalising &&
+          !options.quiet) {
+        std::fprintf(stderr, "[tracking] t=%.3f s: relocalisation failed for %d frames: starting a new map\n",
+                     static_cast<double>(input.t_ns) * 1e-9, options.tracking.max_lost_frames);
+      }
+      previous_status = r.status;
+
       if (options.pace == Pace::kSync && r.keyframe) {
         const auto deadline = Clock::now() + std::chrono::seconds(30);
         while (tracker.value()->awaitingKeyframe(nullptr) && Clock::now() < deadline && !stop.load()) {
