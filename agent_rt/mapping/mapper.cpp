@@ -46,7 +46,8 @@ struct Mapper::State {
       : options(o), left(l), T_s_c(extrinsics), T_c0_c1(stereo_extrinsics), map(extrinsics), point_ids(o.agent) {
     if (r != nullptr) right.emplace(*r);
     level_scale[0] = 1.0;
-    for (std::size_t i = 1; i < level_scale.size(); ++i) level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
+    for (std::size_t i = 1; i < level_scale.size(); ++i)
+      level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
   }
 
   MapperOptions options;
@@ -116,8 +117,12 @@ struct Mapper::State {
 
 Mapper::Mapper(std::unique_ptr<State> state) : s_(std::move(state)) {}
 Mapper::~Mapper() = default;
-const LocalMap& Mapper::map() const { return s_->map; }
-bool Mapper::imuInitialised() const { return s_->imu_initialised; }
+const LocalMap& Mapper::map() const {
+  return s_->map;
+}
+bool Mapper::imuInitialised() const {
+  return s_->imu_initialised;
+}
 
 Result<std::unique_ptr<Mapper>> Mapper::create(const MapperOptions& options, const camera::CameraModel& left,
                                                const camera::CameraModel* right, const SE3d& T_s_c,
@@ -186,7 +191,8 @@ int addStereoPoints(Mapper::State& s, PoolHandle handle, const KeyframeMessage& 
         second = d;
       }
     }
-    if (best_j < 0 || best > o.max_distance || static_cast<float>(best) > o.ratio * static_cast<float>(second)) continue;
+    if (best_j < 0 || best > o.max_distance || static_cast<float>(best) > o.ratio * static_cast<float>(second))
+      continue;
     const Vector3d& b1 = right_bearings[static_cast<std::size_t>(best_j)];
     auto p = geometry::triangulateMidpoint(SE3d(), b0.normalized(), s.T_c0_c1, b1.normalized());
     if (!p) continue;
@@ -214,7 +220,8 @@ int triangulateWithNeighbours(Mapper::State& s, PoolHandle handle, const std::ve
     if ((T_w_c0.translation() - T_w_c1.translation()).norm() < 1e-3) continue;  // no baseline
     const SE3d T_c1_c0 = T_w_c1.inverse() * T_w_c0;
     std::vector<Vector3d> b1(other.keypoint_count);
-    for (std::uint16_t j = 0; j < other.keypoint_count; ++j) b1[j] = s.left.unproject(other.keypoints[j].px.cast<double>());
+    for (std::uint16_t j = 0; j < other.keypoint_count; ++j)
+      b1[j] = s.left.unproject(other.keypoints[j].px.cast<double>());
     std::vector<std::uint8_t> taken(other.keypoint_count, 0);
     for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
       if (kf.has_map_point[k]) continue;
@@ -400,14 +407,16 @@ Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& re
   std::vector<features::DescriptorMatch> matches(kf0.keypoint_count);
   features::MatchOptions match_options;
   match_options.ratio = 0.8F;
-  const int count = features::matchDescriptors(std::span(kf0.descriptors.data(), kf0.keypoint_count),
-                                               std::span(kf1.descriptors.data(), kf1.keypoint_count), match_options,
-                                               matches);
+  const int count =
+      features::matchDescriptors(std::span(kf0.descriptors.data(), kf0.keypoint_count),
+                                 std::span(kf1.descriptors.data(), kf1.keypoint_count), match_options, matches);
   std::vector<Vector3d> b0;
   std::vector<Vector3d> b1;
   for (int i = 0; i < count; ++i) {
-    b0.push_back(s.left.unproject(kf0.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].query)].px.cast<double>()));
-    b1.push_back(s.left.unproject(kf1.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].train)].px.cast<double>()));
+    b0.push_back(s.left.unproject(
+        kf0.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].query)].px.cast<double>()));
+    b1.push_back(s.left.unproject(
+        kf1.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].train)].px.cast<double>()));
   }
   TwoViewOptions two_view;
   two_view.focal_px = s.left.calibration().fx;

@@ -35,7 +35,7 @@ struct StereoOptions {
 
 struct MapperOptions {
   AgentId agent = 0;
-  int max_keyframes = 20;  // N: the agent's own keyframes kept in the local map
+  int max_keyframes = 20;           // N: the agent's own keyframes kept in the local map
   LocalBundleAdjustmentOptions ba;  // window = M
   CullOptions cull;
   features::OrbOptions orb;  // for the second camera's image (stereo)
@@ -45,8 +45,8 @@ struct MapperOptions {
   double fuse_radius_px = 4.0;       // at level 0
   int fuse_max_distance = 40;        // Hamming bits
   bool use_imu = true;
-  int imu_init_keyframes = 15;       // keyframes before the IMU initialisation is tried (paper: 15)
-  int imu_init_max_keyframes = 20;   // monocular: still failing then, the map is started again
+  int imu_init_keyframes = 15;      // keyframes before the IMU initialisation is tried (paper: 15)
+  int imu_init_max_keyframes = 20;  // monocular: still failing then, the map is started again
   imu::VisualInertialAlignmentOptions alignment;
   double max_stereo_scale_error = 0.1;  // stereo: alignment's scale must be this close to 1, and is then not applied
   int mono_init_min_matches = 80;
@@ -61,8 +61,8 @@ struct MapperReport {
   bool imu_initialisation_failed = false;
   bool map_restarted = false;  // monocular IMU initialisation failed up to the limit
   bool mono_initialised_now = false;
-  int linked = 0;     // tracking's matches linked
-  int fused = 0;      // existing points found again by projection
+  int linked = 0;  // tracking's matches linked
+  int fused = 0;   // existing points found again by projection
   int stereo_points = 0;
   int triangulated = 0;
   int culled = 0;

@@ -62,7 +62,8 @@ Result<TwoViewResult> initialiseTwoView(std::span<const Eigen::Vector3d> bearing
     const Eigen::Vector3d p_c1 = T_c1_c0 * *p;
     const double tolerance = 2.0 / options.focal_px;
     if (p->z() <= 0.0 || p_c1.z() <= 0.0) continue;
-    if (geometry::rayAngle(*p, bearings0[i]) > tolerance || geometry::rayAngle(p_c1, bearings1[i]) > tolerance) continue;
+    if (geometry::rayAngle(*p, bearings0[i]) > tolerance || geometry::rayAngle(p_c1, bearings1[i]) > tolerance)
+      continue;
     parallax.push_back(angle);
     if (angle < 0.5 * options.min_median_parallax_deg * M_PI / 180.0) continue;  // too far to place
     result.inlier[i] = 1;

@@ -24,9 +24,9 @@ struct TwoViewOptions {
 };
 
 struct TwoViewResult {
-  geometry::SE3d T_c0_c1;               // |t| = 1
-  std::vector<std::uint8_t> inlier;     // per match: triangulated, in front of both, enough parallax
-  std::vector<Eigen::Vector3d> p_c0;    // per match (valid where inlier), in camera 0
+  geometry::SE3d T_c0_c1;             // |t| = 1
+  std::vector<std::uint8_t> inlier;   // per match: triangulated, in front of both, enough parallax
+  std::vector<Eigen::Vector3d> p_c0;  // per match (valid where inlier), in camera 0
   int inliers = 0;
   double median_parallax_deg = 0.0;
 };

@@ -42,17 +42,23 @@ Result<Pace> parsePace(const std::string& name) {
 }
 const char* toString(AgentMode mode) {
   switch (mode) {
-    case AgentMode::kAuto: return "auto";
-    case AgentMode::kMono: return "mono";
-    case AgentMode::kStereo: return "stereo";
+    case AgentMode::kAuto:
+      return "auto";
+    case AgentMode::kMono:
+      return "mono";
+    case AgentMode::kStereo:
+      return "stereo";
   }
   return "?";
 }
 const char* toString(Pace pace) {
   switch (pace) {
-    case Pace::kRealtime: return "realtime";
-    case Pace::kFast: return "fast";
-    case Pace::kSync: return "sync";
+    case Pace::kRealtime:
+      return "realtime";
+    case Pace::kFast:
+      return "fast";
+    case Pace::kSync:
+      return "sync";
   }
   return "?";
 }
@@ -156,8 +162,8 @@ class TrajectoryRecorder {
 
   void addFrame(std::int64_t t_ns, const FrameResult& r) {
     if (frames_.size() == frames_.capacity()) return;
-    frames_.push_back({t_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U, r.has_reference,
-                       r.tracked, r.keyframe, r.map_id, r.map_epoch});
+    frames_.push_back({t_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U, r.has_reference, r.tracked,
+                       r.keyframe, r.map_id, r.map_epoch});
   }
 
   void addSnapshot(const MapSnapshotMessage& s) {
@@ -289,7 +295,8 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     if (!options.quiet && (report->imu_initialised_now || report->mono_initialised_now || report->map_restarted ||
                            report->new_map || report->lost_messages > 0)) {
       std::fprintf(stderr, "[mapping] t=%.2f s keyframe %s: %s%s%s%s\n", t_s, msg.state.id.toString().c_str(),
-                   report->new_map ? "new map. " : "", report->map_restarted ? "IMU initialisation failed 20 times: map restarted. " : "",
+                   report->new_map ? "new map. " : "",
+                   report->map_restarted ? "IMU initialisation failed 20 times: map restarted. " : "",
                    report->lost_messages > 0 ? "keyframe messages lost before this one. " : "", report->note.c_str());
     }
     if (out != fallback.get()) {
@@ -315,8 +322,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   }
   const bool has_cam1 = seq.cam1() != nullptr;
   if (options.mode == AgentMode::kStereo && !has_cam1) {
-    return Error{ErrorCode::kInvalidArgument, "stereo mode needs mav0/cam1, which " + options.dataset.string() +
-                                                  " does not have: use --mode mono"};
+    return Error{ErrorCode::kInvalidArgument,
+                 "stereo mode needs mav0/cam1, which " + options.dataset.string() + " does not have: use --mode mono"};
   }
   const bool stereo = options.mode == AgentMode::kStereo || (options.mode == AgentMode::kAuto && has_cam1);
   if (options.use_imu && !seq.imuCalibration()) {
@@ -379,7 +386,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   std::error_code ec;
   std::filesystem::create_directories(options.output, ec);
-  if (ec) return Error{ErrorCode::kIoError, "cannot create the output folder " + options.output.string() + ": " + ec.message()};
+  if (ec)
+    return Error{ErrorCode::kIoError,
+                 "cannot create the output folder " + options.output.string() + ": " + ec.message()};
 
   // iceoryx: RouDi in this process, or an external iox-roudi.
   std::unique_ptr<EmbeddedRouDi> roudi;
@@ -390,8 +399,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     roudi_options.runtime_name = runtime_name;
     const auto keyframe_bytes = static_cast<std::uint32_t>(sizeof(KeyframeMessage));
     const auto snapshot_bytes = static_cast<std::uint32_t>(sizeof(MapSnapshotMessage));
-    roudi_options.mempools = {{128, 64}, {std::min(keyframe_bytes, snapshot_bytes), 48},
-                              {std::max(keyframe_bytes, snapshot_bytes) + 64, 48}};
+    roudi_options.mempools = {
+        {128, 64}, {std::min(keyframe_bytes, snapshot_bytes), 48}, {std::max(keyframe_bytes, snapshot_bytes) + 64, 48}};
     auto started = EmbeddedRouDi::start(roudi_options);
     if (!started) return started.error();
     roudi = std::move(started.value());
@@ -447,8 +456,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   });
 
   std::thread mapping([&] {
-    mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats,
-                  mapping_ready);
+    mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready);
   });
 
   {
@@ -465,7 +473,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     while ((!mapping_ready.load() || !keyframe_pub.hasSubscribers()) && Clock::now() < connect_deadline) {
       std::this_thread::sleep_for(std::chrono::milliseconds(5));
     }
-    if (!keyframe_pub.hasSubscribers()) std::fprintf(stderr, "[agent] warning: mapping did not subscribe within 10 s\n");
+    if (!keyframe_pub.hasSubscribers())
+      std::fprintf(stderr, "[agent] warning: mapping did not subscribe within 10 s\n");
 
     const auto drain_snapshots = [&] {
       while (true) {
@@ -504,7 +513,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       ++summary.frames;
       if (!slot->ok) {
         ++summary.unreadable_frames;
-        if (!options.quiet) std::fprintf(stderr, "[tracking] frame %zu skipped: %s\n", slot->frame, slot->error.c_str());
+        if (!options.quiet)
+          std::fprintf(stderr, "[tracking] frame %zu skipped: %s\n", slot->frame, slot->error.c_str());
         ring.consumed();
         continue;
       }
@@ -545,7 +555,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       if (r.keyframe) ++summary.keyframes;
       if (r.issue == FrameIssue::kImuGap) {
         ++summary.imu_gaps;
-        if (!options.quiet) std::fprintf(stderr, "[tracking] t=%.3f s: IMU gap; this frame predicts without it\n", input.t_ns * 1e-9);
+        if (!options.quiet)
+          std::fprintf(stderr, "[tracking] t=%.3f s: IMU gap; this frame predicts without it\n", input.t_ns * 1e-9);
       }
       if (r.issue == FrameIssue::kKeyframeDropped) ++summary.dropped_keyframes;
       if (!r.tracked && r.status != TrackingStatus::kWaitingForMap) {
@@ -597,10 +608,11 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   summary.new_maps = mapping_stats.new_maps;
   summary.lost_keyframe_messages = mapping_stats.lost_messages;
   summary.imu_initialised_at_s =
-      mapping_stats.imu_initialised_at_s < 0 ? -1.0
-                                             : mapping_stats.imu_initialised_at_s - static_cast<double>(frames.front().t_ns) * 1e-9;
-  for (const LatencyRecorder* r : {&orb_ms, &matching_ms, &pose_ms, &motion_ms, &keyframe_ms, &tracking_ms,
-                                   &receive_ms, &ba_ms, &mapping_ms}) {
+      mapping_stats.imu_initialised_at_s < 0
+          ? -1.0
+          : mapping_stats.imu_initialised_at_s - static_cast<double>(frames.front().t_ns) * 1e-9;
+  for (const LatencyRecorder* r :
+       {&orb_ms, &matching_ms, &pose_ms, &motion_ms, &keyframe_ms, &tracking_ms, &receive_ms, &ba_ms, &mapping_ms}) {
     summary.stages.push_back(summarise(*r));
   }
 
@@ -612,9 +624,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   summary.trajectory = options.output / "trajectory.txt";
   summary.keyframe_trajectory = options.output / "keyframes.txt";
   summary.latency_json = options.output / "latency.json";
-  for (const auto& [path, trajectory] : {std::pair{summary.trajectory, &refined},
-                                         std::pair{options.output / "trajectory_online.txt", &online},
-                                         std::pair{summary.keyframe_trajectory, &keyframes}}) {
+  for (const auto& [path, trajectory] :
+       {std::pair{summary.trajectory, &refined}, std::pair{options.output / "trajectory_online.txt", &online},
+        std::pair{summary.keyframe_trajectory, &keyframes}}) {
     if (Status s = dataset::writeTrajectory(path, *trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) {
       return s.error();
     }

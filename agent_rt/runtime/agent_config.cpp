@@ -63,7 +63,9 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
                    file.string() + ": unknown section '" + key + "' (agent, imu, orb, tracking, mapping, runtime)"};
     }
   }
-  auto section = [&](const char* name) { return Section(root[name] ? root[name] : YAML::Node(YAML::NodeType::Map), name); };
+  auto section = [&](const char* name) {
+    return Section(root[name] ? root[name] : YAML::Node(YAML::NodeType::Map), name);
+  };
   const auto in_file = [&](Status s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
 
   Section agent = section("agent");
@@ -72,7 +74,8 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   agent.read("id", agent_id);
   agent.read("mode", mode);
   if (Status s = agent.finish(); !s.ok()) return in_file(s);
-  if (agent_id < 0 || agent_id > 65535) return in_file(Error{ErrorCode::kInvalidArgument, "agent.id must be in [0, 65535]"});
+  if (agent_id < 0 || agent_id > 65535)
+    return in_file(Error{ErrorCode::kInvalidArgument, "agent.id must be in [0, 65535]"});
   o.agent = static_cast<AgentId>(agent_id);
   auto parsed_mode = parseAgentMode(mode);
   if (!parsed_mode) return in_file(parsed_mode.error());

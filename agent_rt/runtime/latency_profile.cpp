@@ -46,8 +46,8 @@ std::string formatLatencyTable(const std::vector<StageSummary>& stages) {
 std::string latencyJson(const std::vector<StageSummary>& stages) {
   nlohmann::json j = nlohmann::json::object();
   for (const StageSummary& s : stages) {
-    j[s.name] = {{"count", s.count}, {"p50_ms", s.p50_ms}, {"p90_ms", s.p90_ms}, {"p99_ms", s.p99_ms},
-                 {"max_ms", s.max_ms}, {"mean_ms", s.mean_ms}};
+    j[s.name] = {{"count", s.count},   {"p50_ms", s.p50_ms}, {"p90_ms", s.p90_ms},
+                 {"p99_ms", s.p99_ms}, {"max_ms", s.max_ms}, {"mean_ms", s.mean_ms}};
   }
   return j.dump(2) + "\n";
 }

@@ -21,8 +21,12 @@ inline geometry::SE3d fromMsg(const PoseMsg& m) {
   return {Eigen::Quaterniond(m.q[3], m.q[0], m.q[1], m.q[2]).normalized(), Eigen::Vector3d(m.p[0], m.p[1], m.p[2])};
 }
 
-inline std::array<double, 3> toArray(const Eigen::Vector3d& v) { return {v.x(), v.y(), v.z()}; }
-inline Eigen::Vector3d toVector3(const std::array<double, 3>& a) { return {a[0], a[1], a[2]}; }
+inline std::array<double, 3> toArray(const Eigen::Vector3d& v) {
+  return {v.x(), v.y(), v.z()};
+}
+inline Eigen::Vector3d toVector3(const std::array<double, 3>& a) {
+  return {a[0], a[1], a[2]};
+}
 
 inline std::array<double, 6> toMsg(const imu::ImuBias& b) {
   return {b.gyro.x(), b.gyro.y(), b.gyro.z(), b.accel.x(), b.accel.y(), b.accel.z()};

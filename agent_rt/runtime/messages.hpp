@@ -59,9 +59,9 @@ enum class KeyframeKind : std::uint8_t {
 };
 
 struct KeyframeMessage {
-  std::uint64_t sequence = 0;           // per agent, from 0: mapping spots lost messages by gaps
-  std::int64_t publish_steady_ns = 0;   // steady clock at publish, for the publish-to-receive latency
-  std::uint32_t map_epoch = 0;          // the world frame the state is expressed in (see MapSnapshotMessage)
+  std::uint64_t sequence = 0;          // per agent, from 0: mapping spots lost messages by gaps
+  std::int64_t publish_steady_ns = 0;  // steady clock at publish, for the publish-to-receive latency
+  std::uint32_t map_epoch = 0;         // the world frame the state is expressed in (see MapSnapshotMessage)
   KeyframeKind kind = KeyframeKind::kTracked;
   KeyframeStateMsg state;
   std::uint16_t keypoint_count = 0;

@@ -19,7 +19,9 @@
 
 namespace {
 std::atomic<bool> g_stop{false};
-extern "C" void onSignal(int /*signal*/) { g_stop.store(true); }
+extern "C" void onSignal(int /*signal*/) {
+  g_stop.store(true);
+}
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -103,7 +105,8 @@ int main(int argc, char** argv) {
     return 1;
   }
   std::cout << cvislam::agent::formatSummary(*summary);
-  std::cout << "trajectory: " << summary->trajectory.string() << "\nkeyframes: " << summary->keyframe_trajectory.string()
+  std::cout << "trajectory: " << summary->trajectory.string()
+            << "\nkeyframes: " << summary->keyframe_trajectory.string()
             << "\nlatency: " << summary->latency_json.string() << "\n";
   if (summary->interrupted) std::cout << "interrupted: the outputs hold what was tracked until then\n";
   return 0;

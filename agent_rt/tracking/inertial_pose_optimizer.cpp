@@ -30,8 +30,8 @@ Vec9 inertialResidual(const InertialAnchor& anchor, const SE3d& T_w_s, const Vec
   if (J != nullptr) {
     J->setZero();
     J->block<3, 3>(0, 3) = SO3d::rightJacobianInverse(r.segment<3>(0));  // r_R wrt dphi
-    J->block<3, 3>(3, 6) = R_i_t;                                         // r_v wrt dv
-    J->block<3, 3>(6, 0) = R_i_t;                                         // r_p wrt dp
+    J->block<3, 3>(3, 6) = R_i_t;                                        // r_v wrt dv
+    J->block<3, 3>(6, 0) = R_i_t;                                        // r_p wrt dp
   }
   return r;
 }

@@ -41,9 +41,8 @@ Eigen::Matrix<double, 9, 1> inertialResidual(const InertialAnchor& anchor, const
                                              const Eigen::Vector3d& v_w, Eigen::Matrix<double, 9, 9>* J);
 
 Result<InertialPoseResult> optimizePoseInertial(std::span<const PoseObservation> observations,
-                                                const geometry::SE3d& T_w_s_initial,
-                                                const Eigen::Vector3d& v_w_initial, const InertialAnchor& anchor,
-                                                const geometry::SE3d& T_s_c,
+                                                const geometry::SE3d& T_w_s_initial, const Eigen::Vector3d& v_w_initial,
+                                                const InertialAnchor& anchor, const geometry::SE3d& T_s_c,
                                                 const factors::PinholeIntrinsics& intrinsics,
                                                 const PoseOptimizerOptions& options,
                                                 std::span<std::uint8_t> is_outlier);

@@ -32,10 +32,9 @@ constexpr std::size_t kRingSize = 64;  // keyframes published and perhaps not ye
 Status TrackerOptions::validate() const {
   if (Status s = orb.validate(); !s.ok()) return s;
   if (orb.max_features > static_cast<int>(kMaxKeypointsPerKeyframe)) {
-    return Error{ErrorCode::kInvalidArgument, "tracker: orb.max_features = " + std::to_string(orb.max_features) +
-                                                  " exceeds the keyframe capacity " +
-                                                  std::to_string(kMaxKeypointsPerKeyframe) +
-                                                  " (raise CVISLAM_MAX_KEYPOINTS_PER_KEYFRAME)"};
+    return Error{ErrorCode::kInvalidArgument,
+                 "tracker: orb.max_features = " + std::to_string(orb.max_features) + " exceeds the keyframe capacity " +
+                     std::to_string(kMaxKeypointsPerKeyframe) + " (raise CVISLAM_MAX_KEYPOINTS_PER_KEYFRAME)"};
   }
   if (!(search_radius_px > 0.0) || !(refine_radius_px > 0.0) || !(relocalisation_radius_px > 0.0)) {
     return Error{ErrorCode::kInvalidArgument, "tracker: search radii must be > 0"};
@@ -51,20 +50,28 @@ Status TrackerOptions::validate() const {
 
 const char* toString(TrackingStatus status) {
   switch (status) {
-    case TrackingStatus::kWaitingForMap: return "WAITING_FOR_MAP";
-    case TrackingStatus::kTracking: return "TRACKING";
-    case TrackingStatus::kRelocalising: return "RELOCALISING";
+    case TrackingStatus::kWaitingForMap:
+      return "WAITING_FOR_MAP";
+    case TrackingStatus::kTracking:
+      return "TRACKING";
+    case TrackingStatus::kRelocalising:
+      return "RELOCALISING";
   }
   return "?";
 }
 
 const char* toString(FrameIssue issue) {
   switch (issue) {
-    case FrameIssue::kNone: return "none";
-    case FrameIssue::kImuGap: return "IMU gap";
-    case FrameIssue::kFewFeatures: return "too few features";
-    case FrameIssue::kPoseRefused: return "pose refused";
-    case FrameIssue::kKeyframeDropped: return "keyframe dropped (no free message)";
+    case FrameIssue::kNone:
+      return "none";
+    case FrameIssue::kImuGap:
+      return "IMU gap";
+    case FrameIssue::kFewFeatures:
+      return "too few features";
+    case FrameIssue::kPoseRefused:
+      return "pose refused";
+    case FrameIssue::kKeyframeDropped:
+      return "keyframe dropped (no free message)";
   }
   return "?";
 }
@@ -79,7 +86,8 @@ struct Tracker::State {
     pre_frame = imu::Preintegration(imu::ImuBias{}, o.noise);
     pre_keyframe = imu::Preintegration(imu::ImuBias{}, o.noise);
     level_scale[0] = 1.0;
-    for (std::size_t i = 1; i < level_scale.size(); ++i) level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
+    for (std::size_t i = 1; i < level_scale.size(); ++i)
+      level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
   }
 
   TrackerOptions options;
@@ -193,7 +201,9 @@ struct Tracker::State {
   void changeEpoch(const MapSnapshotMessage& s) {
     const double scale = s.epoch_scale;
     const SE3d T = fromMsg(s.epoch_transform);
-    auto apply = [&](SE3d& pose) { pose = SE3d(T.so3() * pose.so3(), scale * (T.so3() * pose.translation()) + T.translation()); };
+    auto apply = [&](SE3d& pose) {
+      pose = SE3d(T.so3() * pose.so3(), scale * (T.so3() * pose.translation()) + T.translation());
+    };
     apply(T_w_s);
     v_w = scale * (T.so3() * v_w);
     apply(keyframe_T_w_s);
@@ -281,10 +291,9 @@ Result<std::unique_ptr<Tracker>> Tracker::create(const TrackerOptions& options, 
                                                  const camera::CameraModel* right, const SE3d& T_s_c) {
   if (Status status = options.validate(); !status.ok()) return status.error();
   if (static_cast<std::size_t>(left.width()) * static_cast<std::size_t>(left.height()) > kMaxImagePixels) {
-    return Error{ErrorCode::kInvalidArgument, "tracker: " + std::to_string(left.width()) + "x" +
-                                                  std::to_string(left.height()) +
-                                                  " images exceed CVISLAM_MAX_IMAGE_PIXELS = " +
-                                                  std::to_string(kMaxImagePixels)};
+    return Error{ErrorCode::kInvalidArgument,
+                 "tracker: " + std::to_string(left.width()) + "x" + std::to_string(left.height()) +
+                     " images exceed CVISLAM_MAX_IMAGE_PIXELS = " + std::to_string(kMaxImagePixels)};
   }
   auto orb = features::OrbExtractor::create(options.orb);
   if (!orb) return orb.error();
@@ -292,9 +301,15 @@ Result<std::unique_ptr<Tracker>> Tracker::create(const TrackerOptions& options, 
       new Tracker(std::make_unique<State>(options, std::move(orb.value()), left, right, T_s_c)));
 }
 
-void Tracker::adoptSnapshot(const MapSnapshotMessage* snapshot) { s_->adopt(snapshot); }
-TrackingStatus Tracker::status() const { return s_->status; }
-bool Tracker::imuInitialised() const { return s_->imu_initialised; }
+void Tracker::adoptSnapshot(const MapSnapshotMessage* snapshot) {
+  s_->adopt(snapshot);
+}
+TrackingStatus Tracker::status() const {
+  return s_->status;
+}
+bool Tracker::imuInitialised() const {
+  return s_->imu_initialised;
+}
 bool Tracker::awaitingKeyframe(KeyframeId* id) const {
   if (id != nullptr) *id = s_->awaiting_id;
   return s_->awaiting;
@@ -365,7 +380,8 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       if (s.pre_frame.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok()) {
         imu_frame_ok = true;
         if (s.imu_ok_since_keyframe && s.has_keyframe) {
-          if (!s.pre_keyframe.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok()) s.imu_ok_since_keyframe = false;
+          if (!s.pre_keyframe.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok())
+            s.imu_ok_since_keyframe = false;
         }
       } else {
         result.issue = FrameIssue::kImuGap;
@@ -389,10 +405,9 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
 
   // 2. Features.
   const std::int64_t t_orb = nowNs();
-  s.keypoint_count =
-      s.orb.extract(frame.left, frame.width, frame.height,
-                    std::span(s.keypoints.data(), static_cast<std::size_t>(o.orb.max_features)),
-                    std::span(s.descriptors.data(), static_cast<std::size_t>(o.orb.max_features)));
+  s.keypoint_count = s.orb.extract(frame.left, frame.width, frame.height,
+                                   std::span(s.keypoints.data(), static_cast<std::size_t>(o.orb.max_features)),
+                                   std::span(s.descriptors.data(), static_cast<std::size_t>(o.orb.max_features)));
   const auto n = static_cast<std::size_t>(s.keypoint_count);
   for (std::size_t k = 0; k < n; ++k) s.undistorted[k] = s.left.undistortPixel(s.keypoints[k].px.cast<double>());
   result.keypoints = s.keypoint_count;
@@ -524,7 +539,9 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   result.times.matching_ns = nowNs() - t_matching;
 
   std::int64_t t_pose = nowNs();
-  const auto observations = [&] { return std::span(s.observations.data(), static_cast<std::size_t>(s.observation_count)); };
+  const auto observations = [&] {
+    return std::span(s.observations.data(), static_cast<std::size_t>(s.observation_count));
+  };
   const auto outliers = [&] { return std::span(s.outlier.data(), static_cast<std::size_t>(s.observation_count)); };
   auto first = optimizePose(observations(), T_pred, s.T_s_c, s.intrinsics, o.pose, outliers());
   std::int64_t pose_ns = nowNs() - t_pose;
@@ -613,9 +630,8 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   TrackingState tracking_state;
   tracking_state.frames_since_keyframe = s.frames_since_keyframe + 1;
   tracking_state.tracked_points = result.inliers;
-  tracking_state.coverage =
-      gridCoverage(std::span(s.coverage_px.data(), static_cast<std::size_t>(covered)), frame.width, frame.height,
-                   o.keyframe.grid_columns, o.keyframe.grid_rows);
+  tracking_state.coverage = gridCoverage(std::span(s.coverage_px.data(), static_cast<std::size_t>(covered)),
+                                         frame.width, frame.height, o.keyframe.grid_columns, o.keyframe.grid_rows);
   if (s.keyframe_coverage <= 0.0) s.keyframe_coverage = tracking_state.coverage;  // first frame on a new map
   tracking_state.keyframe_coverage = s.keyframe_coverage;
   KeyframeDecisionOptions decision_options = o.keyframe;

@@ -36,10 +36,10 @@ struct TrackerOptions {
   AgentId agent = 0;
   features::OrbOptions orb;  // max_features <= kMaxKeypointsPerKeyframe
   ProjectionSearchOptions search;
-  double search_radius_px = 15.0;           // first search around the predicted projection, at pyramid level 0
-  double refine_radius_px = 4.0;            // second search, after the first pose
-  double relocalisation_radius_px = 60.0;   // search radius while relocalising
-  double sigma_px = 1.0;                    // keypoint noise at level 0; x scale_factor per level
+  double search_radius_px = 15.0;          // first search around the predicted projection, at pyramid level 0
+  double refine_radius_px = 4.0;           // second search, after the first pose
+  double relocalisation_radius_px = 60.0;  // search radius while relocalising
+  double sigma_px = 1.0;                   // keypoint noise at level 0; x scale_factor per level
   PoseOptimizerOptions pose;
   KeyframeDecisionOptions keyframe;
   int initialisation_max_frames_between = 3;  // keyframe spacing until the IMU is initialised (paper: 3)

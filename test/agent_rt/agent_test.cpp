@@ -93,13 +93,14 @@ TEST_F(AgentTest, StereoInertialTracksTheSimulatedLoop) {
   std::printf("stereo-inertial, 12 s loop: ATE %.3f m, scale error %.2f %%\n", ate_m, scale_error);
   EXPECT_LT(ate_m, 0.05);
   EXPECT_LT(std::abs(scale_error), 2.0);
-  for (const char* file : {"trajectory.txt", "trajectory_online.txt", "keyframes.txt", "latency.json", "summary.json"}) {
+  for (const char* file :
+       {"trajectory.txt", "trajectory_online.txt", "keyframes.txt", "latency.json", "summary.json"}) {
     EXPECT_TRUE(fs::exists(o.output / file)) << file;
   }
   std::ifstream latency(summary->latency_json);
   const std::string json((std::istreambuf_iterator<char>(latency)), std::istreambuf_iterator<char>());
-  for (const char* stage : {"orb_extraction", "matching", "pose_optimisation", "motion_ba",
-                            "keyframe_publish_to_receive", "local_ba"}) {
+  for (const char* stage :
+       {"orb_extraction", "matching", "pose_optimisation", "motion_ba", "keyframe_publish_to_receive", "local_ba"}) {
     EXPECT_NE(json.find(stage), std::string::npos) << stage;
   }
 }

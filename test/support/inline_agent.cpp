@@ -62,8 +62,8 @@ Status InlineAgent::load(std::size_t i) {
   input_.t_ns = frame.t_ns;
   input_.left = left_;
   input_.right = stereo_ ? std::span<const std::uint8_t>(right_) : std::span<const std::uint8_t>();
-  input_.imu = first < last ? std::span(&*first, static_cast<std::size_t>(last - first))
-                            : std::span<const dataset::ImuSample>();
+  input_.imu =
+      first < last ? std::span(&*first, static_cast<std::size_t>(last - first)) : std::span<const dataset::ImuSample>();
   previous_t_ns_ = frame.t_ns;
   return Status::Ok();
 }

@@ -5,9 +5,9 @@
 #include <cstddef>
 
 extern "C" {
-void* __libc_malloc(std::size_t size);                        // NOLINT(bugprone-reserved-identifier)
-void* __libc_calloc(std::size_t count, std::size_t size);     // NOLINT(bugprone-reserved-identifier)
-void* __libc_realloc(void* pointer, std::size_t size);        // NOLINT(bugprone-reserved-identifier)
+void* __libc_malloc(std::size_t size);                           // NOLINT(bugprone-reserved-identifier)
+void* __libc_calloc(std::size_t count, std::size_t size);        // NOLINT(bugprone-reserved-identifier)
+void* __libc_realloc(void* pointer, std::size_t size);           // NOLINT(bugprone-reserved-identifier)
 void* __libc_memalign(std::size_t alignment, std::size_t size);  // NOLINT(bugprone-reserved-identifier)
 }
 
@@ -16,7 +16,9 @@ std::atomic<long> g_calls{0};
 }
 
 namespace cvislam::test {
-long mallocCount() { return g_calls.load(std::memory_order_relaxed); }
+long mallocCount() {
+  return g_calls.load(std::memory_order_relaxed);
+}
 }  // namespace cvislam::test
 
 // NOLINTBEGIN(cppcoreguidelines-no-malloc, readability-inconsistent-declaration-parameter-name)

@@ -21,7 +21,9 @@ using geometry::SE3d;
 using geometry::SO3d;
 using Vec9 = Eigen::Matrix<double, 9, 1>;
 
-SE3d plus(const SE3d& T, const Vec9& d) { return {T.so3() * SO3d::exp(d.segment<3>(3)), T.translation() + d.head<3>()}; }
+SE3d plus(const SE3d& T, const Vec9& d) {
+  return {T.so3() * SO3d::exp(d.segment<3>(3)), T.translation() + d.head<3>()};
+}
 
 struct InertialCase {
   test::ViScenario scenario;
@@ -63,7 +65,8 @@ InertialCase makeCase(double outlier_fraction, std::uint64_t seed) {
 
 TEST(InertialPoseOptimizer, ImuJacobianMatchesNumericDifferentiation) {
   const InertialCase c = makeCase(0.0, 1);
-  for (const Vec9& offset : {Vec9::Zero().eval(), (Vec9() << 0.1, -0.2, 0.05, 0.2, -0.3, 0.25, 0.3, -0.1, 0.2).finished()}) {
+  for (const Vec9& offset :
+       {Vec9::Zero().eval(), (Vec9() << 0.1, -0.2, 0.05, 0.2, -0.3, 0.25, 0.3, -0.1, 0.2).finished()}) {
     const SE3d T = plus(c.truth.T_w_s, offset);
     const Vector3d v = c.truth.v_w + offset.tail<3>();
     Eigen::Matrix<double, 9, 9> J;
@@ -77,9 +80,9 @@ TEST(InertialPoseOptimizer, ImuJacobianMatchesNumericDifferentiation) {
 TEST(InertialPoseOptimizer, ResidualVanishesAtTheTruth) {
   const InertialCase c = makeCase(0.0, 2);
   const Vec9 r = inertialResidual(c.anchor, c.truth.T_w_s, c.truth.v_w, nullptr);
-  EXPECT_LT(r.head<3>().norm(), 1e-4);  // rad
+  EXPECT_LT(r.head<3>().norm(), 1e-4);      // rad
   EXPECT_LT(r.segment<3>(3).norm(), 1e-3);  // m/s
-  EXPECT_LT(r.tail<3>().norm(), 1e-3);  // m
+  EXPECT_LT(r.tail<3>().norm(), 1e-3);      // m
 }
 
 TEST(InertialPoseOptimizer, RecoversPoseAndVelocityWithWrongMatches) {
