@@ -332,7 +332,7 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
     if (!p_w || !p_w->allFinite()) return;
     MapPointMsg& m = out.points[out.point_count++];
     m.id = p.id;
-    m.p_w = {static_cast<float>(p_w->x()), static_cast<float>(p_w->y()), static_cast<float>(p_w->z())};
+    m.p_w = {p_w->x(), p_w->y(), p_w->z()};
     m.descriptor = p.descriptor;
     m.octave = p.octave;
   });

@@ -362,7 +362,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   options.mapping.use_imu = options.use_imu;
   options.mapping.ba.noise = noise;
   options.mapping.ba.intrinsics = {c.fx, c.fy, c.cx, c.cy};
-  options.mapping.ba.pyramid_scale_factor = options.tracking.orb.scale_factor;
+  options.mapping.ba.pyramid_scale_factor = static_cast<double>(options.tracking.orb.scale_factor);
   options.mapping.orb = options.tracking.orb;
   if (stereo && options.mapping.imu_init_keyframes > 10) {
     options.mapping.imu_init_keyframes = 10;  // stereo: the map is metric, fewer keyframes observe the rest
@@ -386,9 +386,10 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   std::error_code ec;
   std::filesystem::create_directories(options.output, ec);
-  if (ec)
+  if (ec) {
     return Error{ErrorCode::kIoError,
                  "cannot create the output folder " + options.output.string() + ": " + ec.message()};
+  }
 
   // iceoryx: RouDi in this process, or an external iox-roudi.
   std::unique_ptr<EmbeddedRouDi> roudi;

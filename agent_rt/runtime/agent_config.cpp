@@ -66,7 +66,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   auto section = [&](const char* name) {
     return Section(root[name] ? root[name] : YAML::Node(YAML::NodeType::Map), name);
   };
-  const auto in_file = [&](Status s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
+  const auto in_file = [&](const Status& s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
 
   Section agent = section("agent");
   int agent_id = o.agent;

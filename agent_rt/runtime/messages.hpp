@@ -80,7 +80,7 @@ struct KeyframeMessage {
 
 struct MapPointMsg {
   MapPointId id;
-  std::array<float, 3> p_w{};
+  std::array<double, 3> p_w{};
   std::array<std::uint8_t, 32> descriptor{};
   std::uint8_t octave = 0;  // pyramid level it was seen at, for the search radius and pixel noise
 };

@@ -431,7 +431,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     result.times.total_ns = nowNs() - t_start;
   };
 
-  auto publishKeyframe = [&](KeyframeKind kind, const SE3d& T, const Vector3d& v) {
+  auto publish_keyframe = [&](KeyframeKind kind, const SE3d& T, const Vector3d& v) {
     const std::int64_t t0 = nowNs();
     KeyframeMessage* m = keyframes.loan();
     if (m == nullptr) {
@@ -511,14 +511,14 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
         s.waiting_frames = 0;
         s.new_map_requested = true;
         s.observation_count = 0;
-        publishKeyframe(KeyframeKind::kNewMap, T, Vector3d::Zero());
+        publish_keyframe(KeyframeKind::kNewMap, T, Vector3d::Zero());
       } else {
         result.issue = FrameIssue::kFewFeatures;
       }
     } else if (!s.right && s.frames_since_keyframe + 1 >= o.initialisation_max_frames_between &&
                s.keypoint_count >= o.pose.min_inliers) {
       s.observation_count = 0;
-      publishKeyframe(KeyframeKind::kTracked, T, Vector3d::Zero());
+      publish_keyframe(KeyframeKind::kTracked, T, Vector3d::Zero());
     }
     finish(T, Vector3d::Zero());
     return result;
@@ -560,7 +560,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       s.status = TrackingStatus::kWaitingForMap;
       s.observation_count = 0;
       s.imu_initialised = false;
-      publishKeyframe(KeyframeKind::kNewMap, T_pred, Vector3d::Zero());
+      publish_keyframe(KeyframeKind::kNewMap, T_pred, Vector3d::Zero());
     }
     // Dead reckoning meanwhile: the IMU when initialised, otherwise the rotation alone.
     finish(T_pred, s.imu_initialised ? v_pred : Vector3d::Zero());
@@ -638,7 +638,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   if (!s.imu_initialised && o.use_imu) decision_options.max_frames_between = o.initialisation_max_frames_between;
   result.keyframe_reason = decideKeyframe(tracking_state, decision_options);
   if (result.keyframe_reason != KeyframeReason::kNone) {
-    if (publishKeyframe(KeyframeKind::kTracked, T, v)) s.keyframe_coverage = tracking_state.coverage;
+    if (publish_keyframe(KeyframeKind::kTracked, T, v)) s.keyframe_coverage = tracking_state.coverage;
   }
   result.tracked = true;
   finish(T, v);
