@@ -301,9 +301,8 @@ struct OrbExtractor::Impl {
   std::array<const std::uint8_t*, kMaxLevels> image{};
 
   // Scratch rows.
-  std::array<std::vector<std::int32_t>, 2> resize_rows;  // horizontally interpolated source rows
-  std::vector<std::uint16_t> blur_row;                   // vertically blurred row
-  std::array<std::vector<std::uint8_t>, 3> score_rows;   // FAST scores of three consecutive rows
+  std::vector<std::uint16_t> blur_row;                  // a row blended or blurred vertically
+  std::array<std::vector<std::uint8_t>, 3> score_rows;  // FAST scores of three consecutive rows
 
   // Corners of the level being detected, then the candidates kept from all levels, then the selection.
   std::vector<std::uint64_t> level_corners;
@@ -381,7 +380,6 @@ Result<OrbExtractor> OrbExtractor::create(const OrbOptions& options) {
   m.x_index.resize(taps);
   m.x_weight.resize(taps);
   const auto row = static_cast<std::size_t>(options.max_width) + kPad;
-  for (auto& r : m.resize_rows) r.resize(row);
   m.blur_row.resize(row);
   for (auto& r : m.score_rows) r.resize(row);
   m.level_corners.resize(largest_corner_count);
@@ -406,8 +404,8 @@ void OrbExtractor::Impl::setImageSize(int w, int h) {
   }
 }
 
-// Bilinear downsampling of the previous level: each source row is interpolated horizontally once (rows are
-// shared by consecutive output rows), then two such rows are blended.
+// Bilinear downsampling of the previous level: the two source rows are blended vertically (8 pixels at a time),
+// then the blended row is sampled horizontally.
 void OrbExtractor::Impl::buildLevel(int level) {
   const auto L = static_cast<std::size_t>(level);
   const LevelSize src_size = size[L - 1];
@@ -417,41 +415,34 @@ void OrbExtractor::Impl::buildLevel(int level) {
   image[L] = dst;
   const std::int32_t* xi = x_index.data() + x_tap_offset[L];
   const std::int32_t* xw = x_weight.data() + x_tap_offset[L];
-  const auto interpolate_row = [&](int y, std::int32_t* out) {
-    const std::uint8_t* s = src + static_cast<std::ptrdiff_t>(y) * src_size.width;
-    for (int x = 0; x < dst_size.width; ++x) {
-      const std::int32_t i = xi[x];
-      const std::int32_t w = xw[x];
-      out[x] = s[i] * (256 - w) + s[i + (src_size.width > 1 ? 1 : 0)] * w;
-    }
-  };
-  std::int32_t* row0 = resize_rows[0].data();
-  std::int32_t* row1 = resize_rows[1].data();
-  int row0_y = -1;
-  int row1_y = -1;
+  const int step = src_size.width > 1 ? 1 : 0;
+  std::uint16_t* blended = blur_row.data();
   const double ratio = static_cast<double>(src_size.height) / static_cast<double>(dst_size.height);
   for (int y = 0; y < dst_size.height; ++y) {
     const double s = std::clamp((y + 0.5) * ratio - 0.5, 0.0, static_cast<double>(src_size.height - 1));
     int y0 = static_cast<int>(s);
     if (y0 >= src_size.height - 1) y0 = std::max(0, src_size.height - 2);
     const int y1 = std::min(y0 + 1, src_size.height - 1);
-    const int wy = src_size.height < 2 ? 0 : std::clamp(static_cast<int>(std::lround((s - y0) * 256.0)), 0, 256);
-    if (row0_y != y0) {
-      if (row1_y == y0) {
-        std::swap(row0, row1);
-        std::swap(row0_y, row1_y);
-      } else {
-        interpolate_row(y0, row0);
-        row0_y = y0;
-      }
+    const auto wy = static_cast<std::uint16_t>(
+        src_size.height < 2 ? 0 : std::clamp(static_cast<int>(std::lround((s - y0) * 256.0)), 0, 256));
+    const auto wy0 = static_cast<std::uint16_t>(256 - wy);
+    const std::uint8_t* r0 = src + static_cast<std::ptrdiff_t>(y0) * src_size.width;
+    const std::uint8_t* r1 = src + static_cast<std::ptrdiff_t>(y1) * src_size.width;
+    int x = 0;
+    for (; x + 8 <= src_size.width; x += 8) {
+      // 255 x 256 fits 16 bits; wrap-around at 256 x 256 cannot happen since the weights sum to 256.
+      const U16x8 v = widen8(r0 + x) * wy0 + widen8(r1 + x) * wy;
+      std::memcpy(blended + x, &v, sizeof(v));
     }
-    if (row1_y != y1) {
-      interpolate_row(y1, row1);
-      row1_y = y1;
-    }
+    for (; x < src_size.width; ++x) blended[x] = static_cast<std::uint16_t>(r0[x] * wy0 + r1[x] * wy);
     std::uint8_t* d = dst + static_cast<std::ptrdiff_t>(y) * dst_size.width;
-    for (int x = 0; x < dst_size.width; ++x) {
-      d[x] = static_cast<std::uint8_t>((row0[x] * (256 - wy) + row1[x] * wy + 32768) >> 16);
+    for (int xx = 0; xx < dst_size.width; ++xx) {
+      const std::int32_t i = xi[xx];
+      const std::int32_t w = xw[xx];
+      d[xx] = static_cast<std::uint8_t>((static_cast<std::uint32_t>(blended[i]) * static_cast<std::uint32_t>(256 - w) +
+                                         static_cast<std::uint32_t>(blended[i + step]) * static_cast<std::uint32_t>(w) +
+                                         32768U) >>
+                                        16U);
     }
   }
 }
@@ -465,8 +456,9 @@ int OrbExtractor::Impl::detectLevel(int level) {
   const int h = size[L].height;
   const int edge = options.edge_threshold;
   const int x_begin = edge - 1;
-  const int x_end = w - edge + 1;  // scores over [x_begin, x_end), corners over [edge, w - edge)
-  if (x_end - x_begin < 16 || h - 2 * edge < 1) return 0;  // too small for a row of 16 scores
+  const int x_end = w - edge + 1;     // scores over [x_begin, x_end), corners over [edge, w - edge)
+  const int corner_x_end = w - edge;  // corners over [edge, corner_x_end)
+  if (corner_x_end - edge < 16 || h - 2 * edge < 1) return 0;  // too small for a row of 16 corners
   const std::uint8_t* img = image[L];
   std::array<std::ptrdiff_t, 16> circle{};
   for (std::size_t k = 0; k < 16; ++k) {
@@ -475,7 +467,7 @@ int OrbExtractor::Impl::detectLevel(int level) {
   const U8x16 threshold = U8x16{} + static_cast<std::uint8_t>(options.fast_threshold);
 
   const auto score_row = [&](int y, std::uint8_t* out) {
-    std::memset(out, 0, static_cast<std::size_t>(w));
+    // Only [x_begin, x_end) is written, and only that is read.
     const std::uint8_t* r = img + static_cast<std::ptrdiff_t>(y) * w;
     for (int x = x_begin; x < x_end; x += 16) {
       const int x0 = std::min(x, x_end - 16);  // the last block overlaps the one before: same scores
@@ -493,24 +485,30 @@ int OrbExtractor::Impl::detectLevel(int level) {
   score_row(edge, centre);
   for (int y = edge; y < h - edge; ++y) {
     score_row(y + 1, below);
-    for (int x = edge; x < w - edge;) {
-      // Skip 8 zero scores at a time.
-      if (x + 8 <= w - edge) {
-        std::uint64_t word = 0;
-        std::memcpy(&word, centre + x, 8);
-        if (word == 0) {
-          x += 8;
-          continue;
+    // Ties: a corner must beat its right and lower neighbours and equal at least those left and above, so
+    // that exactly one of two equal neighbours survives. 16 pixels at a time; the last block overlaps the one
+    // before it, whose pixels it skips.
+    for (int x = edge; x < corner_x_end; x += 16) {
+      const int x0 = std::min(x, corner_x_end - 16);
+      const U8x16 c = load16(centre + x0);
+      if (!anyNonZero(c)) continue;
+      const auto at_least = [&c](const std::uint8_t* q) { return vmax(c, load16(q)) == c; };
+      const auto beats = [&c](const std::uint8_t* q) { return vmax(c, load16(q)) != load16(q); };
+      const auto keep = reinterpret_cast<U8x16>(
+          at_least(above + x0 - 1) & at_least(above + x0) & at_least(above + x0 + 1) & at_least(centre + x0 - 1) &
+          beats(centre + x0 + 1) & beats(below + x0 - 1) & beats(below + x0) & beats(below + x0 + 1));
+      std::array<std::uint64_t, 2> words{};
+      std::memcpy(words.data(), &keep, sizeof(keep));
+      for (std::size_t half = 0; half < 2; ++half) {
+        std::uint64_t bits = words[half] & 0x8080808080808080ULL;
+        while (bits != 0) {
+          const int lane = static_cast<int>(half) * 8 + std::countr_zero(bits) / 8;
+          bits &= bits - 1;
+          const int xx = x0 + lane;
+          if (xx < x || count >= capacity) continue;
+          level_corners[count++] = packKey(centre[xx], level, xx, y);
         }
       }
-      const std::uint8_t s = centre[x];
-      // Ties: a corner must beat its right and lower neighbours and equal at least those left and above, so
-      // that exactly one of two equal neighbours survives.
-      if (s != 0 && s >= above[x - 1] && s >= above[x] && s >= above[x + 1] && s >= centre[x - 1] &&
-          s > centre[x + 1] && s > below[x - 1] && s > below[x] && s > below[x + 1] && count < capacity) {
-        level_corners[count++] = packKey(s, level, x, y);
-      }
-      ++x;
     }
     std::uint8_t* recycled = above;
     above = centre;
