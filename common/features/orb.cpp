@@ -20,7 +20,6 @@ namespace {
 constexpr int kMaxLevels = 16;
 constexpr int kMaxImageSide = 4096;  // x and y are packed into 12 bits each in a candidate key
 constexpr int kPatchRadius = 15;     // orientation disc and descriptor test points
-constexpr int kFastRadius = 3;
 constexpr int kBlurRadius = 3;
 // Gaussian of sigma 2 sampled at -3..3, scaled to sum to 256.
 constexpr std::array<std::uint16_t, 7> kBlurWeights = {18, 33, 49, 56, 49, 33, 18};
@@ -74,8 +73,11 @@ class SplitMix64 {
   std::uint64_t state_;
 };
 
+// Rounds half away from zero (std::lround is not constexpr).
 constexpr int roundToInt(double v) {
-  return v >= 0.0 ? static_cast<int>(v + 0.5) : -static_cast<int>(-v + 0.5);
+  const int whole = static_cast<int>(v);  // towards zero
+  const double fraction = v - whole;
+  return fraction >= 0.5 ? whole + 1 : fraction <= -0.5 ? whole - 1 : whole;
 }
 
 // BRIEF's sampling rule G II (Calonder et al., ECCV 2010): both points of a test drawn independently from an
@@ -198,8 +200,9 @@ inline bool anyNonZero(U8x16 v) {
 // Pixels whose score is <= threshold (not FAST-9 corners at that threshold) get 0.
 inline U8x16 fastScores(const std::uint8_t* p, const std::array<std::ptrdiff_t, 16>& circle, U8x16 threshold) {
   const U8x16 centre = load16(p);
-  std::array<U8x16, 16> bright;
-  std::array<U8x16, 16> dark;
+  // Filled in stages below, each element before it is read; zeroing them first would cost in the hot loop.
+  std::array<U8x16, 16> bright;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+  std::array<U8x16, 16> dark;    // NOLINT(cppcoreguidelines-pro-type-member-init)
   // A 9-arc covers two neighbouring compass points (0, 4, 8, 12): test them first, as FAST does.
   for (std::size_t k = 0; k < 16; k += 4) {
     const U8x16 v = load16(p + circle[k]);
@@ -219,8 +222,8 @@ inline U8x16 fastScores(const std::uint8_t* p, const std::array<std::ptrdiff_t, 
   }
   // Minimum over every arc of 9 by doubling: arcs of 2, 4, 8, then 9.
   const auto best_arc = [](const std::array<U8x16, 16>& d) {
-    std::array<U8x16, 16> m2;
-    std::array<U8x16, 16> m4;
+    std::array<U8x16, 16> m2;  // NOLINT(cppcoreguidelines-pro-type-member-init): filled by the loops below
+    std::array<U8x16, 16> m4;  // NOLINT(cppcoreguidelines-pro-type-member-init)
     for (std::size_t k = 0; k < 16; ++k) m2[k] = vmin(d[k], d[(k + 1) & 15U]);
     for (std::size_t k = 0; k < 16; ++k) m4[k] = vmin(m2[k], m2[(k + 2) & 15U]);
     U8x16 best{};
