@@ -537,9 +537,10 @@ void OrbExtractor::Impl::smoothRows(int level, int y_begin, int y_end) {
     }
     // Vertical pass: the weights sum to 256, so 255 x 256 fits 16 bits; rounded back to 8 bits of range.
     int x = 0;
-    for (; x + 8 <= w; x += 8) {
-      U16x8 acc = widen8(rows[0] + x) * kBlurWeights[0];
-      for (std::size_t i = 1; i < 7; ++i) acc += widen8(rows[i] + x) * kBlurWeights[i];
+    for (; x + 8 <= w; x += 8) {  // symmetric weights: pairs of rows share a multiplication
+      U16x8 acc = (widen8(rows[0] + x) + widen8(rows[6] + x)) * kBlurWeights[0] +
+                  (widen8(rows[1] + x) + widen8(rows[5] + x)) * kBlurWeights[1] +
+                  (widen8(rows[2] + x) + widen8(rows[4] + x)) * kBlurWeights[2] + widen8(rows[3] + x) * kBlurWeights[3];
       acc = (acc + 128) >> 8;
       std::memcpy(v + x, &acc, sizeof(acc));
     }
@@ -559,8 +560,9 @@ void OrbExtractor::Impl::smoothRows(int level, int y_begin, int y_end) {
     x = 0;
     for (; x < std::min(kBlurRadius, w); ++x) scalar(x);
     for (; x + 8 + kBlurRadius <= w; x += 8) {
-      U16x8 acc = load8x16(v + x - 3) * kBlurWeights[0];
-      for (int i = 1; i < 7; ++i) acc += load8x16(v + x - 3 + i) * kBlurWeights[static_cast<std::size_t>(i)];
+      U16x8 acc = (load8x16(v + x - 3) + load8x16(v + x + 3)) * kBlurWeights[0] +
+                  (load8x16(v + x - 2) + load8x16(v + x + 2)) * kBlurWeights[1] +
+                  (load8x16(v + x - 1) + load8x16(v + x + 1)) * kBlurWeights[2] + load8x16(v + x) * kBlurWeights[3];
       acc = (acc + 128) >> 8;
       const U8x8 narrow = __builtin_convertvector(acc, U8x8);
       std::memcpy(o + x, &narrow, sizeof(narrow));
