@@ -117,6 +117,23 @@ constexpr std::array<TestPair, 256> makeTestPattern() {
 
 constexpr std::array<TestPair, 256> kTestPattern = makeTestPattern();
 
+// The pattern's points as floats, both points of test i at 2i and 2i + 1, for rotating four at a time.
+struct PatternPoints {
+  std::array<float, 512> x{};
+  std::array<float, 512> y{};
+};
+constexpr PatternPoints makePatternPoints() {
+  PatternPoints p;
+  for (std::size_t i = 0; i < kTestPattern.size(); ++i) {
+    p.x[2 * i] = kTestPattern[i].x1;
+    p.y[2 * i] = kTestPattern[i].y1;
+    p.x[2 * i + 1] = kTestPattern[i].x2;
+    p.y[2 * i + 1] = kTestPattern[i].y2;
+  }
+  return p;
+}
+constexpr PatternPoints kPatternPoints = makePatternPoints();
+
 // Half-width of the disc of radius 15 at each row offset: |dx| <= kDiscHalfWidth[|dy|].
 constexpr std::array<int, kPatchRadius + 1> makeDiscHalfWidths() {
   std::array<int, kPatchRadius + 1> half{};
@@ -164,6 +181,8 @@ constexpr int keyX(std::uint64_t key) {
 using U8x16 = std::uint8_t __attribute__((vector_size(16)));
 using U8x8 = std::uint8_t __attribute__((vector_size(8)));
 using U16x8 = std::uint16_t __attribute__((vector_size(16)));
+using F32x4 = float __attribute__((vector_size(16)));
+using I32x4 = std::int32_t __attribute__((vector_size(16)));
 
 inline U8x16 load16(const std::uint8_t* p) {
   U8x16 v;
@@ -606,17 +625,29 @@ void OrbExtractor::Impl::describe(std::uint64_t key, Keypoint& keypoint, Descrip
   }
 
   const std::uint8_t* blurred = smoothed.data() + level_offset[L] + static_cast<std::ptrdiff_t>(y) * w + x;
-  const auto round = [](float v) { return static_cast<int>(v + (v >= 0.0F ? 0.5F : -0.5F)); };
-  const auto sample = [&](int px, int py) {
-    const float fx = static_cast<float>(px);
-    const float fy = static_cast<float>(py);
-    return blurred[static_cast<std::ptrdiff_t>(round(s * fx + c * fy)) * w + round(c * fx - s * fy)];
-  };
+  // Offsets of the rotated test points, rounded half away from zero, four at a time.
+  std::array<std::int32_t, 512> offsets;  // NOLINT(cppcoreguidelines-pro-type-member-init): filled below
+  const F32x4 cos4 = F32x4{} + c;
+  const F32x4 sin4 = F32x4{} + s;
+  const F32x4 half4 = F32x4{} + 0.5F;
+  const I32x4 stride4 = I32x4{} + w;
+  for (std::size_t i = 0; i < offsets.size(); i += 4) {
+    F32x4 px;
+    F32x4 py;
+    std::memcpy(&px, kPatternPoints.x.data() + i, sizeof(px));
+    std::memcpy(&py, kPatternPoints.y.data() + i, sizeof(py));
+    const F32x4 rx = cos4 * px - sin4 * py;
+    const F32x4 ry = sin4 * px + cos4 * py;
+    const I32x4 ix = __builtin_convertvector(rx + (rx >= 0.0F ? half4 : -half4), I32x4);  // truncates
+    const I32x4 iy = __builtin_convertvector(ry + (ry >= 0.0F ? half4 : -half4), I32x4);
+    const I32x4 offset = iy * stride4 + ix;
+    std::memcpy(offsets.data() + i, &offset, sizeof(offset));
+  }
   for (std::size_t byte = 0; byte < descriptor.size(); ++byte) {
     unsigned bits = 0;
+    const std::int32_t* o = offsets.data() + byte * 16;
     for (std::size_t bit = 0; bit < 8; ++bit) {
-      const TestPair& t = kTestPattern[byte * 8 + bit];
-      bits |= (sample(t.x1, t.y1) < sample(t.x2, t.y2) ? 1U : 0U) << bit;
+      bits |= (blurred[o[2 * bit]] < blurred[o[2 * bit + 1]] ? 1U : 0U) << bit;
     }
     descriptor[byte] = static_cast<std::uint8_t>(bits);
   }
