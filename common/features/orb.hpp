@@ -16,8 +16,9 @@
 //   5. orientation by the intensity centroid of a disc of radius 15 around the corner at its level, and a steered
 //      BRIEF descriptor (256 intensity comparisons of point pairs inside that disc, rotated by the orientation) on
 //      the level smoothed by a 7-tap Gaussian (sigma 2).
-// The 256 point pairs are generated at compile time by a fixed-seed generator (isotropic Gaussian, sigma 31/5,
-// both points inside the disc of radius 15), so descriptors do not change between builds or platforms.
+// The 256 point pairs are generated once, at the first create(), by our own fixed-seed generator (isotropic
+// Gaussian, sigma 31/5, both points inside the disc of radius 15, no two tests nearly alike), so descriptors do
+// not change between runs, builds or platforms.
 // Output goes to caller-owned fixed-capacity storage.
 #pragma once
 
