@@ -321,8 +321,9 @@ struct OrbExtractor::Impl {
   std::vector<std::int32_t> x_index;
   std::vector<std::int32_t> x_weight;
 
-  // Level images: level 0 is the caller's pixels; levels >= 1 live in `pyramid`. Both buffers are laid out
-  // for the maximum image size (level_offset), every level with its width as row stride.
+  // Level images: level 0 is the caller's pixels; levels >= 1 live in `pyramid` (from level_offset[l] -
+  // level_offset[1]), the smoothed levels in `smoothed` (from level_offset[l]). Both are laid out for the maximum
+  // image size, every level with its width as row stride.
   std::array<std::size_t, kMaxLevels> level_offset{};
   std::vector<std::uint8_t> pyramid;
   std::vector<std::uint8_t> smoothed;
@@ -337,10 +338,12 @@ struct OrbExtractor::Impl {
   std::vector<std::uint64_t> candidates;
   std::vector<char> taken;
   std::vector<int> per_cell;
+  std::vector<std::uint64_t> cell_best;  // strongest corner of each cell that its level's budget left out
   std::vector<std::uint64_t> selected;
   std::array<int, kMaxLevels> selected_min_y{};
   std::array<int, kMaxLevels> selected_max_y{};
 
+  [[nodiscard]] std::size_t cellOf(std::uint64_t key) const;
   void setImageSize(int w, int h);
   void buildLevel(int level);
   int detectLevel(int level);
@@ -404,7 +407,7 @@ Result<OrbExtractor> OrbExtractor::create(const OrbOptions& options) {
                                                               static_cast<std::size_t>((s.height + 1) / 2));
   }
   constexpr std::size_t kPad = 32;  // vector loads may run up to 16 bytes past a row's last pixel
-  m.pyramid.resize(pixels + kPad);
+  m.pyramid.resize(pixels - m.level_offset[std::min(1, levels - 1)] + kPad);  // level 0 is the caller's
   m.smoothed.resize(pixels + kPad);
   m.x_index.resize(taps);
   m.x_weight.resize(taps);
@@ -412,11 +415,24 @@ Result<OrbExtractor> OrbExtractor::create(const OrbOptions& options) {
   m.blur_row.resize(row);
   for (auto& r : m.score_rows) r.resize(row);
   m.level_corners.resize(largest_corner_count);
-  m.candidates.resize(static_cast<std::size_t>(m.candidate_budget));
-  m.taken.resize(static_cast<std::size_t>(m.candidate_budget));
-  m.per_cell.resize(static_cast<std::size_t>(options.grid_columns) * static_cast<std::size_t>(options.grid_rows));
+  const std::size_t cells =
+      static_cast<std::size_t>(options.grid_columns) * static_cast<std::size_t>(options.grid_rows);
+  m.candidates.resize(static_cast<std::size_t>(m.candidate_budget) + cells);
+  m.taken.resize(m.candidates.size());
+  m.per_cell.resize(cells);
+  m.cell_best.resize(cells);
   m.selected.resize(static_cast<std::size_t>(options.max_features));
   return OrbExtractor(std::move(impl));
+}
+
+// Grid cell of a corner's level-0 position (its pixel centre scaled up).
+std::size_t OrbExtractor::Impl::cellOf(std::uint64_t key) const {
+  const auto L = static_cast<std::size_t>(keyLevel(key));
+  const float px = (static_cast<float>(keyX(key)) + 0.5F) / static_cast<float>(size[L].width);  // in [0, 1)
+  const float py = (static_cast<float>(keyY(key)) + 0.5F) / static_cast<float>(size[L].height);
+  const int cx = std::min(static_cast<int>(px * static_cast<float>(options.grid_columns)), options.grid_columns - 1);
+  const int cy = std::min(static_cast<int>(py * static_cast<float>(options.grid_rows)), options.grid_rows - 1);
+  return static_cast<std::size_t>(cy) * static_cast<std::size_t>(options.grid_columns) + static_cast<std::size_t>(cx);
 }
 
 void OrbExtractor::Impl::setImageSize(int w, int h) {
@@ -440,7 +456,7 @@ void OrbExtractor::Impl::buildLevel(int level) {
   const LevelSize src_size = size[L - 1];
   const LevelSize dst_size = size[L];
   const std::uint8_t* src = image[L - 1];
-  std::uint8_t* dst = pyramid.data() + level_offset[L];
+  std::uint8_t* dst = pyramid.data() + (level_offset[L] - level_offset[1]);
   image[L] = dst;
   const std::int32_t* xi = x_index.data() + x_tap_offset[L];
   const std::int32_t* xw = x_weight.data() + x_tap_offset[L];
@@ -678,8 +694,10 @@ int OrbExtractor::extract(std::span<const std::uint8_t> pixels, int width, int h
   if (pixels.size() < static_cast<std::size_t>(width) * static_cast<std::size_t>(height)) return 0;
   m.setImageSize(width, height);
 
-  // Pyramid and corners, level by level; each level keeps its strongest corners up to its budget.
+  // Pyramid and corners, level by level; each level keeps its strongest corners up to its budget, and each grid
+  // cell remembers the strongest corner left out.
   m.image[0] = pixels.data();
+  std::fill(m.cell_best.begin(), m.cell_best.end(), 0);
   std::size_t candidate_count = 0;
   for (int l = 0; l < o.pyramid_levels; ++l) {
     if (l > 0) m.buildLevel(l);
@@ -689,6 +707,19 @@ int OrbExtractor::extract(std::span<const std::uint8_t> pixels, int width, int h
     if (keep < found) std::nth_element(first, first + keep, first + found, std::greater<>());
     std::copy(first, first + keep, m.candidates.begin() + static_cast<std::ptrdiff_t>(candidate_count));
     candidate_count += static_cast<std::size_t>(keep);
+    for (int i = keep; i < found; ++i) {
+      const std::uint64_t key = m.level_corners[static_cast<std::size_t>(i)];
+      std::uint64_t& best = m.cell_best[m.cellOf(key)];
+      best = std::max(best, key);
+    }
+  }
+  // A cell without candidates (the budgets go to the strongest corners, which texture-rich regions have) gets
+  // the strongest corner it has, so that the grid can cover dark and weakly textured regions too; only one per
+  // cell, since weak corners match worse.
+  std::fill(m.per_cell.begin(), m.per_cell.end(), 0);
+  for (std::size_t i = 0; i < candidate_count; ++i) ++m.per_cell[m.cellOf(m.candidates[i])];
+  for (std::size_t c = 0; c < m.cell_best.size(); ++c) {
+    if (m.per_cell[c] == 0 && m.cell_best[c] != 0) m.candidates[candidate_count++] = m.cell_best[c];
   }
   const auto candidates_end = m.candidates.begin() + static_cast<std::ptrdiff_t>(candidate_count);
   std::sort(m.candidates.begin(), candidates_end, std::greater<>());
@@ -702,18 +733,7 @@ int OrbExtractor::extract(std::span<const std::uint8_t> pixels, int width, int h
   int n = 0;
   for (std::size_t i = 0; i < candidate_count && n < wanted; ++i) {
     const std::uint64_t key = m.candidates[i];
-    const auto L = static_cast<std::size_t>(keyLevel(key));
-    // Cell of the level-0 position (the pixel centre scaled up).
-    const float px =
-        (static_cast<float>(keyX(key)) + 0.5F) * static_cast<float>(width) / static_cast<float>(m.size[L].width);
-    const float py =
-        (static_cast<float>(keyY(key)) + 0.5F) * static_cast<float>(height) / static_cast<float>(m.size[L].height);
-    const int cx = std::clamp(static_cast<int>(px * static_cast<float>(o.grid_columns) / static_cast<float>(width)), 0,
-                              o.grid_columns - 1);
-    const int cy = std::clamp(static_cast<int>(py * static_cast<float>(o.grid_rows) / static_cast<float>(height)), 0,
-                              o.grid_rows - 1);
-    int& count = m.per_cell[static_cast<std::size_t>(cy) * static_cast<std::size_t>(o.grid_columns) +
-                            static_cast<std::size_t>(cx)];
+    int& count = m.per_cell[m.cellOf(key)];
     if (count < quota) {
       ++count;
       m.taken[i] = 1;
