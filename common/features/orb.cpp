@@ -384,8 +384,9 @@ Result<OrbExtractor> OrbExtractor::create(const OrbOptions& options) {
     const double f = 1.0 / static_cast<double>(options.scale_factor);
     double share = m.candidate_budget * (1.0 - f) / (1.0 - std::pow(f, levels));
     int given = 0;
-    for (int l = 0; l < levels - 1; ++l) {
-      m.level_budget[static_cast<std::size_t>(l)] = static_cast<int>(std::lround(share));
+    for (int l = 0; l < levels - 1; ++l) {  // never more than the total, which sizes `candidates`
+      m.level_budget[static_cast<std::size_t>(l)] =
+          std::min(static_cast<int>(std::lround(share)), m.candidate_budget - given);
       given += m.level_budget[static_cast<std::size_t>(l)];
       share *= f;
     }

@@ -299,6 +299,41 @@ TEST_F(OrbRealData, KeypointsAreInsideTheImageOnTheirLevelAndStrongestFirst) {
   EXPECT_GT(per_level[1] + per_level[2] + per_level[3], 0);  // the pyramid contributes
 }
 
+// Other option values than the defaults: few or many levels, few candidates, a coarse or fine grid, smaller output
+// spans than max_features. Run under the asan preset, this checks that extract stays inside its buffers.
+TEST_F(OrbRealData, OtherOptionsGiveAtMostTheRequestedFeatures) {
+  auto image = sequence_->loadImage(0, 50);
+  ASSERT_TRUE(image.ok());
+  struct Case {
+    int max_features, levels, candidates_per_feature, columns, rows;
+    float scale_factor;
+  };
+  for (const Case c : {Case{50, 1, 1, 1, 1, 1.2F}, Case{50, 16, 1, 64, 64, 2.0F}, Case{1000, 4, 3, 16, 12, 1.5F},
+                       Case{3, 8, 100, 2, 2, 1.1F}, Case{2000, 8, 50, 8, 6, 1.2F}}) {
+    OrbOptions options;
+    options.max_features = c.max_features;
+    options.pyramid_levels = c.levels;
+    options.candidates_per_feature = c.candidates_per_feature;
+    options.grid_columns = c.columns;
+    options.grid_rows = c.rows;
+    options.scale_factor = c.scale_factor;
+    options.max_width = image->width;
+    options.max_height = image->height;
+    auto extractor = OrbExtractor::create(options);
+    ASSERT_TRUE(extractor.ok()) << extractor.error().toString();
+    std::vector<Keypoint> keypoints(static_cast<std::size_t>(c.max_features));
+    std::vector<Descriptor> descriptors(keypoints.size());
+    const int n = extractor->extract(image->pixels, image->width, image->height, keypoints, descriptors);
+    EXPECT_GT(n, 0);
+    EXPECT_LE(n, c.max_features);
+    for (int i = 0; i < n; ++i) EXPECT_LT(keypoints[static_cast<std::size_t>(i)].octave, c.levels);
+    // Output spans shorter than max_features bound the count.
+    const int m = extractor->extract(image->pixels, image->width, image->height, std::span(keypoints).first(2),
+                                     std::span(descriptors).first(2));
+    EXPECT_EQ(m, std::min(2, n));
+  }
+}
+
 TEST(OrbExtractor, RefusesImagesLargerThanItsBuffers) {
   OrbOptions options;
   options.max_width = 640;
