@@ -226,36 +226,40 @@ inline bool anyNonZero(U8x16 v) {
 inline U8x16 fastScores(const std::uint8_t* p, const std::array<std::ptrdiff_t, 16>& circle, U8x16 threshold) {
   const U8x16 centre = load16(p);
   // Filled in stages below, each element before it is read; zeroing them first would cost in the hot loop.
-  std::array<U8x16, 16> bright;  // NOLINT(cppcoreguidelines-pro-type-member-init)
-  std::array<U8x16, 16> dark;    // NOLINT(cppcoreguidelines-pro-type-member-init)
-  // A 9-arc covers two neighbouring compass points (0, 4, 8, 12): test them first, as FAST does.
-  for (std::size_t k = 0; k < 16; k += 4) {
-    const U8x16 v = load16(p + circle[k]);
-    bright[k] = saturatingSub(v, centre);
-    dark[k] = saturatingSub(centre, v);
-  }
-  const U8x16 compass_bright = vmax(vmax(vmin(bright[0], bright[4]), vmin(bright[4], bright[8])),
-                                    vmax(vmin(bright[8], bright[12]), vmin(bright[12], bright[0])));
-  const U8x16 compass_dark = vmax(vmax(vmin(dark[0], dark[4]), vmin(dark[4], dark[8])),
-                                  vmax(vmin(dark[8], dark[12]), vmin(dark[12], dark[0])));
-  if (!anyNonZero(reinterpret_cast<U8x16>(vmax(compass_bright, compass_dark) > threshold))) return U8x16{};
+  std::array<U8x16, 16> ring;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+  // A 9-arc covers two neighbouring compass points (0, 4, 8, 12): test them first, as FAST does, and work out
+  // the arcs only of the polarity (brighter or darker) that passes in some pixel.
+  for (std::size_t k = 0; k < 16; k += 4) ring[k] = load16(p + circle[k]);
+  const auto compass = [](U8x16 a, U8x16 b, U8x16 c, U8x16 d) {
+    return vmax(vmax(vmin(a, b), vmin(b, c)), vmax(vmin(c, d), vmin(d, a)));
+  };
+  const bool bright = anyNonZero(
+      reinterpret_cast<U8x16>(compass(saturatingSub(ring[0], centre), saturatingSub(ring[4], centre),
+                                      saturatingSub(ring[8], centre), saturatingSub(ring[12], centre)) > threshold));
+  const bool dark = anyNonZero(
+      reinterpret_cast<U8x16>(compass(saturatingSub(centre, ring[0]), saturatingSub(centre, ring[4]),
+                                      saturatingSub(centre, ring[8]), saturatingSub(centre, ring[12])) > threshold));
+  if (!bright && !dark) return U8x16{};
   for (std::size_t k = 0; k < 16; ++k) {
-    if (k % 4 == 0) continue;
-    const U8x16 v = load16(p + circle[k]);
-    bright[k] = saturatingSub(v, centre);
-    dark[k] = saturatingSub(centre, v);
+    if (k % 4 != 0) ring[k] = load16(p + circle[k]);
   }
   // Minimum over every arc of 9 by doubling: arcs of 2, 4, 8, then 9.
-  const auto best_arc = [](const std::array<U8x16, 16>& d) {
-    std::array<U8x16, 16> m2;  // NOLINT(cppcoreguidelines-pro-type-member-init): filled by the loops below
+  const auto best_arc = [&ring, centre](bool brighter) {
+    std::array<U8x16, 16> d;   // NOLINT(cppcoreguidelines-pro-type-member-init): filled by the loops below
+    std::array<U8x16, 16> m2;  // NOLINT(cppcoreguidelines-pro-type-member-init)
     std::array<U8x16, 16> m4;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+    for (std::size_t k = 0; k < 16; ++k) {
+      d[k] = brighter ? saturatingSub(ring[k], centre) : saturatingSub(centre, ring[k]);
+    }
     for (std::size_t k = 0; k < 16; ++k) m2[k] = vmin(d[k], d[(k + 1) & 15U]);
     for (std::size_t k = 0; k < 16; ++k) m4[k] = vmin(m2[k], m2[(k + 2) & 15U]);
     U8x16 best{};
     for (std::size_t k = 0; k < 16; ++k) best = vmax(best, vmin(vmin(m4[k], m4[(k + 4) & 15U]), d[(k + 8) & 15U]));
     return best;
   };
-  const U8x16 score = vmax(best_arc(bright), best_arc(dark));
+  U8x16 score{};
+  if (bright) score = best_arc(true);
+  if (dark) score = vmax(score, best_arc(false));
   return score & reinterpret_cast<U8x16>(score > threshold);
 }
 
