@@ -96,6 +96,10 @@ std::array<TestPair, 256> makeTestPattern() {
       if (x * x + y * y <= kPatchRadius * kPatchRadius) return;
     }
   };
+  // Each test gets at most kMaxRedraws redraws for nearness, so that the loop ends whatever the constants (with a
+  // separation of 6 px it would not); with these, no test needs more than 24.
+  constexpr int kMaxRedraws = 100000;
+  int redraws = 0;
   std::array<TestPair, 256> pattern{};
   for (std::size_t i = 0; i < pattern.size();) {
     int x1 = 0;
@@ -106,13 +110,17 @@ std::array<TestPair, 256> makeTestPattern() {
     draw(x2, y2);
     if (x1 == x2 && y1 == y2) continue;
     bool repeated = false;
-    for (std::size_t j = 0; j < i && !repeated; ++j) {
+    for (std::size_t j = 0; j < i && !repeated && redraws < kMaxRedraws; ++j) {
       const TestPair& p = pattern[j];
       const auto sq = [](int a) { return a * a; };
       repeated = sq(p.x1 - x1) + sq(p.y1 - y1) + sq(p.x2 - x2) + sq(p.y2 - y2) < kMinTestSeparation2 ||
                  sq(p.x1 - x2) + sq(p.y1 - y2) + sq(p.x2 - x1) + sq(p.y2 - y1) < kMinTestSeparation2;
     }
-    if (repeated) continue;
+    if (repeated) {
+      ++redraws;
+      continue;
+    }
+    redraws = 0;
     pattern[i++] = {static_cast<std::int8_t>(x1), static_cast<std::int8_t>(y1), static_cast<std::int8_t>(x2),
                     static_cast<std::int8_t>(y2)};
   }
