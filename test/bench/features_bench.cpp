@@ -1,7 +1,7 @@
 // ORB extraction (500 features, 8x6 grid) and brute-force matching on real EuRoC V1_01 frames, p50/p99,
-// with the heap allocations OpenCV makes per frame (this binary counts operator new).
+// with the heap allocations per frame (this binary counts operator new; extract must make none).
 //
-//   taskset -c 0 build/default/bin/bench_features
+//   taskset -c 1 build/default/bin/bench_features
 #include <vector>
 
 #include <benchmark/benchmark.h>
