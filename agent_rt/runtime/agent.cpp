@@ -253,6 +253,12 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
   iox::popo::Subscriber<KeyframeMessage> keyframes(service(options.agent, "keyframes"), sub_options);
   iox::popo::PublisherOptions pub_options;
   iox::popo::Publisher<MapSnapshotMessage> snapshots(service(options.agent, "map_snapshot"), pub_options);
+  // RouDi connects publishers and subscribers asynchronously: a snapshot published before tracking's
+  // subscriber is connected would be lost, and tracking would wait for a map that never comes.
+  const auto deadline = Clock::now() + std::chrono::seconds(10);
+  while (!snapshots.hasSubscribers() && Clock::now() < deadline && !stop.load()) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
   ready.store(true);
   std::unique_ptr<MapSnapshotMessage> fallback;  // only if no chunk can be loaned
   std::uint64_t sequence = 0;
