@@ -143,6 +143,26 @@ Result<std::unique_ptr<Mapper>> Mapper::create(const MapperOptions& options, con
 
 namespace {
 
+// The best and second-best descriptor distance among candidates, for the ratio test.
+struct BestTwo {
+  int best = 256;
+  int second = 256;
+  int index = -1;
+
+  void offer(int distance, int candidate) {
+    if (distance < best) {
+      second = best;
+      best = distance;
+      index = candidate;
+    } else if (distance < second) {
+      second = distance;
+    }
+  }
+  [[nodiscard]] bool accepted(int max_distance, float ratio) const {
+    return index >= 0 && best <= max_distance && static_cast<float>(best) <= ratio * static_cast<float>(second);
+  }
+};
+
 // Distance (in pixels of a camera with focal length f) of the normalised point x1 from the epipolar line of
 // x0, for the relative pose T_c1_c0.
 double epipolarDistancePx(const Vector3d& b0, const Vector3d& b1, const SE3d& T_c1_c0, double f) {
@@ -172,9 +192,7 @@ int addStereoPoints(Mapper::State& s, PoolHandle handle, const KeyframeMessage& 
   for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
     if (kf.has_map_point[k]) continue;
     const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>());
-    int best = o.max_distance + 1;
-    int second = 256;
-    int best_j = -1;
+    BestTwo match;
     for (int j = 0; j < n_right; ++j) {
       const auto& rk = s.right_keypoints[static_cast<std::size_t>(j)];
       if (std::abs(static_cast<int>(rk.octave) - static_cast<int>(kf.keypoints[k].octave)) > 1) continue;
@@ -182,17 +200,10 @@ int addStereoPoints(Mapper::State& s, PoolHandle handle, const KeyframeMessage& 
           o.max_epipolar_error_px * s.levelScale(rk.octave)) {
         continue;
       }
-      const int d = features::hammingDistance(kf.descriptors[k], s.right_descriptors[static_cast<std::size_t>(j)]);
-      if (d < best) {
-        second = best;
-        best = d;
-        best_j = j;
-      } else if (d < second) {
-        second = d;
-      }
+      match.offer(features::hammingDistance(kf.descriptors[k], s.right_descriptors[static_cast<std::size_t>(j)]), j);
     }
-    if (best_j < 0 || best > o.max_distance || static_cast<float>(best) > o.ratio * static_cast<float>(second))
-      continue;
+    if (!match.accepted(o.max_distance, o.ratio)) continue;
+    const int best_j = match.index;
     const Vector3d& b1 = right_bearings[static_cast<std::size_t>(best_j)];
     auto p = geometry::triangulateMidpoint(SE3d(), b0.normalized(), s.T_c0_c1, b1.normalized());
     if (!p) continue;
@@ -226,22 +237,14 @@ int triangulateWithNeighbours(Mapper::State& s, PoolHandle handle, const std::ve
     for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
       if (kf.has_map_point[k]) continue;
       const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>());
-      int best = s.options.stereo.max_distance + 1;
-      int second = 256;
-      int best_j = -1;
+      BestTwo match;
       for (std::uint16_t j = 0; j < other.keypoint_count; ++j) {
         if (other.has_map_point[j] || taken[j] != 0) continue;
         if (epipolarDistancePx(b0, b1[j], T_c1_c0, f) > 2.0 * s.levelScale(other.keypoints[j].octave)) continue;
-        const int d = features::hammingDistance(kf.descriptors[k], other.descriptors[j]);
-        if (d < best) {
-          second = best;
-          best = d;
-          best_j = j;
-        } else if (d < second) {
-          second = d;
-        }
+        match.offer(features::hammingDistance(kf.descriptors[k], other.descriptors[j]), j);
       }
-      if (best_j < 0 || static_cast<float>(best) > s.options.stereo.ratio * static_cast<float>(second)) continue;
+      if (!match.accepted(s.options.stereo.max_distance, s.options.stereo.ratio)) continue;
+      const int best_j = match.index;
       const std::array<SE3d, 2> T_c_w{T_w_c0.inverse(), T_w_c1.inverse()};
       const std::array<Vector3d, 2> bearings{b0, b1[static_cast<std::size_t>(best_j)]};
       auto p_w = geometry::triangulateLinear(T_c_w, bearings, s.options.triangulation);

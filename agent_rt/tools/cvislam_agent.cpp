@@ -61,29 +61,21 @@ int main(int argc, char** argv) {
   }
   options.dataset = dataset;
   options.output = output;
-  if (!mode.empty()) {
-    auto m = cvislam::agent::parseAgentMode(mode);
-    if (!m) {
-      std::cerr << "cvislam_agent: --" << m.error().toString() << "\n";
-      return 2;
+  // --mode, --pace, --roudi: parsed by the agent's own parsers, which name the accepted values.
+  const auto parse = [](const std::string& text, const char* flag, auto parser, auto& target) {
+    if (text.empty()) return true;
+    auto value = parser(text);
+    if (!value) {
+      std::cerr << "cvislam_agent: --" << flag << ": " << value.error().message() << "\n";
+      return false;
     }
-    options.mode = *m;
-  }
-  if (!pace.empty()) {
-    auto p = cvislam::agent::parsePace(pace);
-    if (!p) {
-      std::cerr << "cvislam_agent: --" << p.error().toString() << "\n";
-      return 2;
-    }
-    options.pace = *p;
-  }
-  if (!roudi.empty()) {
-    auto r = cvislam::agent::parseRouDiMode(roudi);
-    if (!r) {
-      std::cerr << "cvislam_agent: --" << r.error().toString() << "\n";
-      return 2;
-    }
-    options.roudi = *r;
+    target = *value;
+    return true;
+  };
+  if (!parse(mode, "mode", cvislam::agent::parseAgentMode, options.mode) ||
+      !parse(pace, "pace", cvislam::agent::parsePace, options.pace) ||
+      !parse(roudi, "roudi", cvislam::agent::parseRouDiMode, options.roudi)) {
+    return 2;
   }
   if (rate > 0.0) options.rate = rate;
   if (agent_id >= 0) {

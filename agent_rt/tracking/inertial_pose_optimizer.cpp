@@ -8,7 +8,6 @@
 
 namespace cvislam::agent {
 
-using Eigen::Vector2d;
 using Eigen::Vector3d;
 using geometry::SE3d;
 using geometry::SO3d;
@@ -59,21 +58,12 @@ Result<InertialPoseResult> optimizePoseInertial(std::span<const PoseObservation>
     for (int it = 0; it < options.iterations_per_round; ++it) {
       Mat9 H = Mat9::Zero();
       Vec9 g = Vec9::Zero();
-      int used = 0;
-      for (std::size_t i = 0; i < observations.size(); ++i) {
-        if (is_outlier[i] != 0) continue;
-        Vector2d r;
-        Eigen::Matrix<double, 2, 6> J;
-        if (!poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, &J)) continue;
-        const double inv_sigma = 1.0 / observations[i].sigma_px;
-        r *= inv_sigma;
-        J *= inv_sigma;
-        const double e = r.norm();
-        const double w = e <= options.huber_delta ? 1.0 : options.huber_delta / e;
-        H.topLeftCorner<6, 6>().noalias() += w * J.transpose() * J;
-        g.head<6>().noalias() += w * J.transpose() * r;
-        ++used;
-      }
+      Eigen::Matrix<double, 6, 6> H_pose = Eigen::Matrix<double, 6, 6>::Zero();
+      Eigen::Matrix<double, 6, 1> g_pose = Eigen::Matrix<double, 6, 1>::Zero();
+      const int used = accumulateReprojection(observations, result.T_w_s, T_s_c, intrinsics, options.huber_delta,
+                                              is_outlier, H_pose, g_pose);
+      H.topLeftCorner<6, 6>() = H_pose;
+      g.head<6>() = g_pose;
       if (used < options.min_inliers) break;
       Mat9 J_imu;
       const Vec9 r_imu = S * inertialResidual(anchor, result.T_w_s, result.v_w, &J_imu);
@@ -87,14 +77,8 @@ Result<InertialPoseResult> optimizePoseInertial(std::span<const PoseObservation>
       ++result.iterations;
       if (dx.norm() < options.min_step) break;
     }
-    result.inliers = 0;
-    for (std::size_t i = 0; i < observations.size(); ++i) {
-      Vector2d r;
-      const bool in_front = poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, nullptr);
-      const double chi2 = in_front ? r.squaredNorm() / (observations[i].sigma_px * observations[i].sigma_px) : 1e30;
-      is_outlier[i] = chi2 > options.chi2_threshold ? 1 : 0;
-      if (is_outlier[i] == 0) ++result.inliers;
-    }
+    result.inliers = classifyObservations(observations, result.T_w_s, T_s_c, intrinsics, options.chi2_threshold,
+                                          is_outlier, nullptr);
   }
   result.imu_chi2 = (S * inertialResidual(anchor, result.T_w_s, result.v_w, nullptr)).squaredNorm();
   if (result.inliers < options.min_inliers) {

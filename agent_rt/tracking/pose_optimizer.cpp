@@ -45,6 +45,44 @@ bool poseReprojectionResidual(const PoseObservation& o, const SE3d& T_w_s, const
   return true;
 }
 
+int accumulateReprojection(std::span<const PoseObservation> observations, const SE3d& T_w_s, const SE3d& T_s_c,
+                           const factors::PinholeIntrinsics& intrinsics, double huber_delta,
+                           std::span<const std::uint8_t> is_outlier, Mat6& H, Vec6& g) {
+  int used = 0;
+  for (std::size_t i = 0; i < observations.size(); ++i) {
+    if (is_outlier[i] != 0) continue;
+    Vector2d r;
+    Eigen::Matrix<double, 2, 6> J;
+    if (!poseReprojectionResidual(observations[i], T_w_s, T_s_c, intrinsics, r, &J)) continue;
+    const double inv_sigma = 1.0 / observations[i].sigma_px;
+    r *= inv_sigma;
+    J *= inv_sigma;
+    const double e = r.norm();  // Huber weight
+    const double w = e <= huber_delta ? 1.0 : huber_delta / e;
+    H.noalias() += w * J.transpose() * J;
+    g.noalias() += w * J.transpose() * r;
+    ++used;
+  }
+  return used;
+}
+
+int classifyObservations(std::span<const PoseObservation> observations, const SE3d& T_w_s, const SE3d& T_s_c,
+                         const factors::PinholeIntrinsics& intrinsics, double chi2_threshold,
+                         std::span<std::uint8_t> is_outlier, double* chi2) {
+  int inliers = 0;
+  for (std::size_t i = 0; i < observations.size(); ++i) {
+    Vector2d r;
+    const bool in_front = poseReprojectionResidual(observations[i], T_w_s, T_s_c, intrinsics, r, nullptr);
+    const double e2 = in_front ? r.squaredNorm() / (observations[i].sigma_px * observations[i].sigma_px) : 1e30;
+    is_outlier[i] = e2 > chi2_threshold ? 1 : 0;
+    if (is_outlier[i] == 0) {
+      ++inliers;
+      if (chi2 != nullptr) *chi2 += e2;
+    }
+  }
+  return inliers;
+}
+
 Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observations, const SE3d& T_w_s_initial,
                                          const SE3d& T_s_c, const factors::PinholeIntrinsics& intrinsics,
                                          const PoseOptimizerOptions& options, std::span<std::uint8_t> is_outlier) {
@@ -60,21 +98,8 @@ Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observ
     for (int it = 0; it < options.iterations_per_round; ++it) {
       Mat6 H = Mat6::Zero();
       Vec6 g = Vec6::Zero();
-      int used = 0;
-      for (std::size_t i = 0; i < observations.size(); ++i) {
-        if (is_outlier[i] != 0) continue;
-        Vector2d r;
-        Eigen::Matrix<double, 2, 6> J;
-        if (!poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, &J)) continue;
-        const double inv_sigma = 1.0 / observations[i].sigma_px;
-        r *= inv_sigma;
-        J *= inv_sigma;
-        const double e = r.norm();  // Huber weight
-        const double w = e <= options.huber_delta ? 1.0 : options.huber_delta / e;
-        H.noalias() += w * J.transpose() * J;
-        g.noalias() += w * J.transpose() * r;
-        ++used;
-      }
+      const int used =
+          accumulateReprojection(observations, result.T_w_s, T_s_c, intrinsics, options.huber_delta, is_outlier, H, g);
       if (used < options.min_inliers) break;
       const Vec6 dx = -H.ldlt().solve(g);
       if (!dx.allFinite()) break;
@@ -82,19 +107,9 @@ Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observ
       ++result.iterations;
       if (dx.norm() < options.min_step) break;
     }
-    // Classify every observation again, so that a wrongly rejected one can come back.
-    result.inliers = 0;
     result.final_chi2 = 0.0;
-    for (std::size_t i = 0; i < observations.size(); ++i) {
-      Vector2d r;
-      const bool in_front = poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, nullptr);
-      const double chi2 = in_front ? r.squaredNorm() / (observations[i].sigma_px * observations[i].sigma_px) : 1e30;
-      is_outlier[i] = chi2 > options.chi2_threshold ? 1 : 0;
-      if (is_outlier[i] == 0) {
-        ++result.inliers;
-        result.final_chi2 += chi2;
-      }
-    }
+    result.inliers = classifyObservations(observations, result.T_w_s, T_s_c, intrinsics, options.chi2_threshold,
+                                          is_outlier, &result.final_chi2);
   }
   if (result.inliers < options.min_inliers) {
     return Error{ErrorCode::kDegenerate, "pose optimisation kept " + std::to_string(result.inliers) +

@@ -55,4 +55,18 @@ bool poseReprojectionResidual(const PoseObservation& observation, const geometry
                               const geometry::SE3d& T_s_c, const factors::PinholeIntrinsics& intrinsics,
                               Eigen::Vector2d& residual, Eigen::Matrix<double, 2, 6>* J);
 
+// The robust (Huber) normal equations of the reprojection terms that are not outliers, added to H and g
+// (pose tangent [dp, dphi]); returns how many terms were used. Shared by optimizePose() and the
+// visual-inertial optimisation.
+int accumulateReprojection(std::span<const PoseObservation> observations, const geometry::SE3d& T_w_s,
+                           const geometry::SE3d& T_s_c, const factors::PinholeIntrinsics& intrinsics,
+                           double huber_delta, std::span<const std::uint8_t> is_outlier, Eigen::Matrix<double, 6, 6>& H,
+                           Eigen::Matrix<double, 6, 1>& g);
+
+// Classifies every observation again against the chi-square bound (so that a wrongly rejected one can come
+// back); returns the inliers and adds their chi-square to *chi2 when given.
+int classifyObservations(std::span<const PoseObservation> observations, const geometry::SE3d& T_w_s,
+                         const geometry::SE3d& T_s_c, const factors::PinholeIntrinsics& intrinsics,
+                         double chi2_threshold, std::span<std::uint8_t> is_outlier, double* chi2);
+
 }  // namespace cvislam::agent
