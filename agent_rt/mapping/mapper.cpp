@@ -376,20 +376,15 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
     visual.push_back({s.cameraPose(kf)});
     if (i > 0) preintegrations.push_back(kf.preintegration);
   }
-  auto aligned = imu::alignVisualInertial(visual, preintegrations, s.T_s_c, s.options.alignment);
+  imu::VisualInertialAlignmentOptions alignment = s.options.alignment;
+  if (s.right) alignment.known_scale = 1.0;  // the stereo map is metric already
+  auto aligned = imu::alignVisualInertial(visual, preintegrations, s.T_s_c, alignment);
   if (!aligned) return aligned.error();
-  double scale = aligned->scale;
-  if (s.right) {
-    if (std::abs(scale - 1.0) > s.options.max_stereo_scale_error) {
-      return Error{ErrorCode::kDegenerate, "IMU initialisation: scale " + std::to_string(scale) +
-                                               " disagrees with the stereo map's metric scale"};
-    }
-    scale = 1.0;  // the stereo map is metric already
-  }
+  const double scale = aligned->scale;  // 1 for stereo (known)
   transformMap(s, scale, aligned->R_w_v);
   for (std::size_t i = 0; i < chain.size(); ++i) {
     KeyframeData& kf = *s.map.keyframes().get(chain[i]);
-    kf.v_w = aligned->v_w[i] * (s.right ? 1.0 / aligned->scale : 1.0);
+    kf.v_w = aligned->v_w[i];
     kf.bias.gyro = aligned->gyro_bias;
   }
   s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) { kf.bias.gyro = aligned->gyro_bias; });
@@ -485,6 +480,8 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     s.epoch_scale = 1.0;
     s.epoch_transform = SE3d();
     report.new_map = true;
+    // Stereo with the IMU initialised: the new map continues the metric, gravity-aligned frame.
+    if (msg.continues_frame != 0 && s.right && s.options.use_imu) s.imu_initialised = true;
   }
 
   // The keyframe.

@@ -48,7 +48,6 @@ struct MapperOptions {
   int imu_init_keyframes = 15;      // keyframes before the IMU initialisation is tried (paper: 15)
   int imu_init_max_keyframes = 20;  // monocular: still failing then, the map is started again
   imu::VisualInertialAlignmentOptions alignment;
-  double max_stereo_scale_error = 0.1;  // stereo: alignment's scale must be this close to 1, and is then not applied
   int mono_init_min_matches = 80;
   double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
 

@@ -299,6 +299,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     if (report->new_map) ++stats.new_maps;
     if (report->imu_initialised_now && stats.imu_initialised_at_s < 0) stats.imu_initialised_at_s = t_s;
     if (!options.quiet && (report->imu_initialised_now || report->mono_initialised_now || report->map_restarted ||
+                           report->imu_initialisation_failed ||
                            report->new_map || report->lost_messages > 0)) {
       std::fprintf(stderr, "[mapping] t=%.2f s keyframe %s: %s%s%s%s\n", t_s, msg.state.id.toString().c_str(),
                    report->new_map ? "new map. " : "",

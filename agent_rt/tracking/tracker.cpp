@@ -441,6 +441,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     m->sequence = s.keyframe_sequence++;
     m->map_epoch = s.epoch;
     m->kind = kind;
+    m->continues_frame = kind == KeyframeKind::kNewMap && s.right.has_value() && s.imu_initialised && o.use_imu;
     m->state.id = s.keyframe_ids.next();
     m->state.t_ns = frame.t_ns;
     m->state.T_w_s = toMsg(T);
@@ -501,7 +502,10 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
                         s.status != TrackingStatus::kWaitingForMap;
   if (!have_map) {
     s.status = TrackingStatus::kWaitingForMap;
-    const SE3d T = s.started ? SE3d(T_pred.so3(), s.T_w_s.translation()) : SE3d();
+    // Stereo with the IMU initialised keeps its world frame across a new map: the IMU carries the pose.
+    const bool keep_frame = s.right.has_value() && s.imu_initialised && o.use_imu;
+    const SE3d T = !s.started ? SE3d() : keep_frame ? T_pred : SE3d(T_pred.so3(), s.T_w_s.translation());
+    const Vector3d v = keep_frame ? v_pred : Vector3d::Zero();
     ++s.waiting_frames;
     // Stereo maps answer at once; ask again when the first keyframe gave no map (a black frame, say).
     const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames;
@@ -511,7 +515,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
         s.waiting_frames = 0;
         s.new_map_requested = true;
         s.observation_count = 0;
-        publish_keyframe(KeyframeKind::kNewMap, T, Vector3d::Zero());
+        publish_keyframe(KeyframeKind::kNewMap, T, v);
       } else {
         result.issue = FrameIssue::kFewFeatures;
       }
@@ -520,7 +524,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       s.observation_count = 0;
       publish_keyframe(KeyframeKind::kTracked, T, Vector3d::Zero());
     }
-    finish(T, Vector3d::Zero());
+    finish(T, v);
     return result;
   }
 
@@ -559,8 +563,9 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       s.new_map_requested = true;
       s.status = TrackingStatus::kWaitingForMap;
       s.observation_count = 0;
-      s.imu_initialised = false;
-      publish_keyframe(KeyframeKind::kNewMap, T_pred, Vector3d::Zero());
+      const bool keep_frame = s.right.has_value() && s.imu_initialised && o.use_imu;
+      s.imu_initialised = keep_frame;
+      publish_keyframe(KeyframeKind::kNewMap, T_pred, keep_frame ? v_pred : Vector3d::Zero());
     }
     // Dead reckoning meanwhile: the IMU when initialised, otherwise the rotation alone.
     finish(T_pred, s.imu_initialised ? v_pred : Vector3d::Zero());

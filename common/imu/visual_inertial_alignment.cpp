@@ -24,6 +24,9 @@ Status VisualInertialAlignmentOptions::validate() const {
   if (!(max_gravity_magnitude_error > 0.0)) {
     return Error{ErrorCode::kInvalidArgument, "max_gravity_magnitude_error must be > 0"};
   }
+  if (!(known_scale >= 0.0) || !std::isfinite(known_scale)) {
+    return Error{ErrorCode::kInvalidArgument, "IMU initialisation: known_scale must be >= 0 (0 = estimate it)"};
+  }
   return Status::Ok();
 }
 
@@ -123,14 +126,30 @@ Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyf
   // Step 2: gravity free (3 unknowns).
   const LinearSystem free = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), preintegrations, bias,
                                         Matrix3d::Identity(), Vector3d::Zero());
-  const Eigen::JacobiSVD<MatrixXd> svd(free.A, Eigen::ComputeThinU | Eigen::ComputeThinV);
-  const VectorXd& sv = svd.singularValues();
-  if (sv(sv.size() - 1) < options.min_scale_observability * sv(0)) {
-    return Error{ErrorCode::kDegenerate,
-                 "IMU initialisation: the motion does not observe scale and gravity (too little acceleration or "
-                 "translation); waiting for more keyframes"};
-  }
-  VectorXd x = svd.solve(free.b);
+  // With a known scale (a stereo map is metric) the scale column moves to the right-hand side.
+  const bool fixed_scale = options.known_scale > 0.0;
+  const auto solve = [&](const LinearSystem& sys, bool svd_check) -> Result<VectorXd> {
+    const Eigen::Index cols = fixed_scale ? sys.A.cols() - 1 : sys.A.cols();
+    const VectorXd b = fixed_scale ? VectorXd(sys.b - sys.A.col(sys.A.cols() - 1) * options.known_scale) : sys.b;
+    VectorXd solution(sys.A.cols());
+    if (svd_check) {
+      const Eigen::JacobiSVD<MatrixXd> svd(sys.A.leftCols(cols), Eigen::ComputeThinU | Eigen::ComputeThinV);
+      const VectorXd& sv = svd.singularValues();
+      if (sv(sv.size() - 1) < options.min_scale_observability * sv(0)) {
+        return Error{ErrorCode::kDegenerate,
+                     "IMU initialisation: the motion does not observe scale and gravity (too little acceleration or "
+                     "translation); waiting for more keyframes"};
+      }
+      solution.head(cols) = svd.solve(b);
+    } else {
+      solution.head(cols) = sys.A.leftCols(cols).colPivHouseholderQr().solve(b);
+    }
+    if (fixed_scale) solution(solution.size() - 1) = options.known_scale;
+    return solution;
+  };
+  auto solved = solve(free, true);
+  if (!solved) return solved.error();
+  VectorXd x = *solved;
   Vector3d g_v = x.segment<3>(3 * n);
   double scale = x(x.size() - 1);
   const double g_error = std::abs(g_v.norm() - options.gravity_magnitude) / options.gravity_magnitude;
@@ -146,7 +165,7 @@ Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyf
     const Eigen::Matrix<double, 3, 2> B = geometry::bearingTangentBasis(g_dir);
     const LinearSystem refined = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), preintegrations, bias, B,
                                              options.gravity_magnitude * g_dir);
-    x = refined.A.colPivHouseholderQr().solve(refined.b);
+    x = solve(refined, false).value();
     g_v = (options.gravity_magnitude * g_dir + B * x.segment<2>(3 * n)).normalized() * options.gravity_magnitude;
     scale = x(x.size() - 1);
   }

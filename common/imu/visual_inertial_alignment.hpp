@@ -30,6 +30,9 @@ struct VisualInertialAlignmentOptions {
   double max_gravity_magnitude_error = 0.1;
   // The smallest singular value of step 2's scale column (relative) below which scale is unobservable.
   double min_scale_observability = 1e-6;
+  // > 0: the visual poses are metric up to this known scale (a stereo map: 1), which is then not estimated;
+  // gravity, velocities and the gyro bias are, which short or gentle motion observes far better than scale.
+  double known_scale = 0.0;
 
   [[nodiscard]] Status validate() const;
 };

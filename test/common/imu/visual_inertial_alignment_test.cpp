@@ -127,6 +127,25 @@ TEST(VisualInertialAlignment, WithEurocImuNoiseAndUnknownBiasesScaleIsWithinOneP
   }
 }
 
+TEST(VisualInertialAlignment, AKnownScaleGivesGravityAndVelocitiesWithoutEstimatingIt) {
+  // A stereo map knows its scale: gravity, velocities and gyro bias remain, which noisy IMU over the same
+  // windows gives at least as well as with the scale free, and the scale comes back exactly as given.
+  for (const char* preset : {"loop", "aggressive", "overlap2"}) {
+    for (const std::uint64_t seed : {1U, 2U}) {
+      const Scenario s = makeScenario(preset, true, 0.5, seed);
+      VisualInertialAlignmentOptions options;
+      options.known_scale = 1.0 / kTrueScale;
+      auto sut = alignVisualInertial(s.keyframes, s.preintegrations, s.T_s_c, options);
+      ASSERT_TRUE(sut.ok()) << preset << " seed " << seed << ": " << sut.error().toString();
+      std::printf("%s seed %llu, known scale: ", preset, static_cast<unsigned long long>(seed));
+      const Errors e = compare(s, *sut);
+      EXPECT_EQ(sut->scale, 1.0 / kTrueScale);
+      EXPECT_LT(e.gravity_deg, 0.5) << preset << " seed " << seed;
+      EXPECT_LT(e.worst_velocity_mps, 0.05) << preset << " seed " << seed;
+    }
+  }
+}
+
 TEST(VisualInertialAlignment, AHoveringStartIsRefusedAsUnobservable) {
   // Standing still: no translation, so the scale is unobservable.
   std::vector<VisualKeyframe> keyframes;
@@ -149,6 +168,15 @@ TEST(VisualInertialAlignment, AHoveringStartIsRefusedAsUnobservable) {
   ASSERT_FALSE(sut.ok());
   EXPECT_EQ(sut.error().code(), ErrorCode::kDegenerate);
   EXPECT_NE(sut.error().message().find("waiting for more keyframes"), std::string::npos) << sut.error().message();
+
+  // With the scale known (stereo), standing still observes gravity: the accelerometer alone gives it.
+  VisualInertialAlignmentOptions known;
+  known.known_scale = 1.0;
+  auto stereo = alignVisualInertial(keyframes, preintegrations, T_s_c, known);
+  ASSERT_TRUE(stereo.ok()) << stereo.error().toString();
+  const Vector3d g_true = R_w_s.inverse() * Vector3d(0.0, 0.0, -9.81);  // v is the IMU's axes here
+  const Vector3d g_v = (keyframes.front().T_v_c * T_s_c.inverse()).so3() * g_true;
+  EXPECT_LT(std::acos(std::min(1.0, stereo->g_v.normalized().dot(g_v.normalized()))), 1e-3);
 }
 
 TEST(VisualInertialAlignment, InconsistentInputIsRefusedWithAMessage) {
