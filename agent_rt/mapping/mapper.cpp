@@ -480,8 +480,12 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     s.epoch_scale = 1.0;
     s.epoch_transform = SE3d();
     report.new_map = true;
-    // Stereo with the IMU initialised: the new map continues the metric, gravity-aligned frame.
-    if (msg.continues_frame != 0 && s.right && s.options.use_imu) s.imu_initialised = true;
+    // The IMU was initialised: the new map continues the metric, gravity-aligned frame, and a monocular one
+    // needs no two-view start (its first points are triangulated from the keyframes' IMU-carried poses).
+    if (msg.continues_frame != 0 && s.options.use_imu) {
+      s.imu_initialised = true;
+      s.mono_initialised = true;
+    }
   }
 
   // The keyframe.

@@ -63,8 +63,8 @@ struct KeyframeMessage {
   std::int64_t publish_steady_ns = 0;  // steady clock at publish, for the publish-to-receive latency
   std::uint32_t map_epoch = 0;         // the world frame the state is expressed in (see MapSnapshotMessage)
   KeyframeKind kind = KeyframeKind::kTracked;
-  // A new map that continues the old one's metric, gravity-aligned world frame (stereo with the IMU
-  // initialised): the state's velocity and biases hold, and the IMU needs no new initialisation.
+  // A new map that continues the old one's metric, gravity-aligned world frame (the IMU was initialised):
+  // the state's velocity and biases hold, and the IMU needs no new initialisation.
   std::uint8_t continues_frame = 0;
   KeyframeStateMsg state;
   std::uint16_t keypoint_count = 0;

@@ -441,7 +441,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     m->sequence = s.keyframe_sequence++;
     m->map_epoch = s.epoch;
     m->kind = kind;
-    m->continues_frame = kind == KeyframeKind::kNewMap && s.right.has_value() && s.imu_initialised && o.use_imu;
+    m->continues_frame = kind == KeyframeKind::kNewMap && s.imu_initialised && o.use_imu;
     m->state.id = s.keyframe_ids.next();
     m->state.t_ns = frame.t_ns;
     m->state.T_w_s = toMsg(T);
@@ -502,8 +502,9 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
                         s.status != TrackingStatus::kWaitingForMap;
   if (!have_map) {
     s.status = TrackingStatus::kWaitingForMap;
-    // Stereo with the IMU initialised keeps its world frame across a new map: the IMU carries the pose.
-    const bool keep_frame = s.right.has_value() && s.imu_initialised && o.use_imu;
+    // With the IMU initialised, a new map keeps the world frame: the IMU carries the pose (and, in mono,
+    // mapping triangulates the new map's first points from those poses).
+    const bool keep_frame = s.imu_initialised && o.use_imu;
     const SE3d T = !s.started ? SE3d() : keep_frame ? T_pred : SE3d(T_pred.so3(), s.T_w_s.translation());
     const Vector3d v = keep_frame ? v_pred : Vector3d::Zero();
     ++s.waiting_frames;
@@ -522,7 +523,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     } else if (!s.right && s.frames_since_keyframe + 1 >= o.initialisation_max_frames_between &&
                s.keypoint_count >= o.pose.min_inliers) {
       s.observation_count = 0;
-      publish_keyframe(KeyframeKind::kTracked, T, Vector3d::Zero());
+      publish_keyframe(KeyframeKind::kTracked, T, v);
     }
     finish(T, v);
     return result;
@@ -563,7 +564,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       s.new_map_requested = true;
       s.status = TrackingStatus::kWaitingForMap;
       s.observation_count = 0;
-      const bool keep_frame = s.right.has_value() && s.imu_initialised && o.use_imu;
+      const bool keep_frame = s.imu_initialised && o.use_imu;
       s.imu_initialised = keep_frame;
       publish_keyframe(KeyframeKind::kNewMap, T_pred, keep_frame ? v_pred : Vector3d::Zero());
     }
