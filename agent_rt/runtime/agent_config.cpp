@@ -114,6 +114,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   mapping.read("ba_iterations", o.mapping.ba.max_iterations);
   mapping.read("min_covisible", o.mapping.ba.min_covisible);
   mapping.read("triangulation_neighbours", o.mapping.triangulation_neighbours);
+  mapping.read("stereo_max_depth_m", o.mapping.stereo.max_depth_m);
   if (Status s = mapping.finish(); !s.ok()) return in_file(s);
 
   Section runtime = section("runtime");

@@ -3,7 +3,8 @@
 # cache folder, runs every agent of it alone in mono-inertial and stereo-inertial mode (--pace sync, so the
 # figures are reproducible), and scores the per-frame trajectory with cvislam_eval (SE3 ATE, Sim3 scale).
 #
-#   test/bench/agent_accuracy.sh [BUILD_DIR] [PRESET...]     (default: build/default, loop aggressive euroc-mh)
+#   [MODES="mono stereo"] test/bench/agent_accuracy.sh [BUILD_DIR] [PRESET...]
+#                                                  (default: build/default, loop aggressive euroc-mh)
 #
 # Writes a markdown table to stdout and everything else to $CACHE/results (CACHE=${CVISLAM_SIM_CACHE:-/tmp/cvislam-sim}).
 set -euo pipefail
@@ -28,7 +29,7 @@ for preset in "${presets[@]}"; do
   fi
   for agent_dir in "$cache/$preset"/agent*; do
     agent=$(basename "$agent_dir")
-    for mode in mono stereo; do
+    for mode in ${MODES:-mono stereo}; do
       out=$results/$preset-$agent-$mode
       if ! "$build/bin/cvislam_agent" --dataset "$agent_dir" --output "$out" --mode "$mode" --pace sync --quiet \
           > "$out.log" 2>&1; then
