@@ -4,14 +4,13 @@
 #include "agent_rt/tracking/inertial_pose_optimizer.hpp"
 
 #include <cmath>
-#include <random>
 #include <vector>
 
 #include <gtest/gtest.h>
 
+#include "test/agent_rt/tracking/tracking_case.hpp"
 #include "test/support/allocation_counter.hpp"
 #include "test/support/numeric_diff.hpp"
-#include "test/support/vi_scenario.hpp"
 
 namespace cvislam::agent {
 namespace {
@@ -25,41 +24,25 @@ SE3d plus(const SE3d& T, const Vec9& d) {
   return {T.so3() * SO3d::exp(d.segment<3>(3)), T.translation() + d.head<3>()};
 }
 
+// The tracking case of keyframe 3 plus the IMU: keyframe 2, with its true state and biases, is the anchor.
 struct InertialCase {
-  test::ViScenario scenario;
+  TrackingCase base;
   imu::NavState truth;
   InertialAnchor anchor;
-  std::vector<PoseObservation> observations;
-  std::vector<std::uint8_t> corrupted;
 };
 
-// Keyframe 3 of the synthetic scene is the frame; keyframe 2, with its true state and biases, the anchor.
 InertialCase makeCase(double outlier_fraction, std::uint64_t seed) {
   InertialCase c;
-  test::ViScenarioOptions options;
-  options.pixel_sigma = 0.5;
-  options.seed = seed;
-  options.bias.gyro = Vector3d(0.002, -0.001, 0.003);
-  options.bias.accel = Vector3d(0.05, -0.02, 0.03);
-  c.scenario = test::makeViScenario(options);
-  c.truth = c.scenario.keyframe_states[3];
-  c.anchor.T_w_s = c.scenario.keyframe_states[2].T_w_s;
-  c.anchor.v_w = c.scenario.keyframe_states[2].v_w;
-  c.anchor.bias = options.bias;
-  c.anchor.preintegration = &c.scenario.preintegrations[2];
-  std::mt19937_64 rng(seed + 100);
-  std::uniform_real_distribution<double> unit(0.0, 1.0);
-  for (const test::ViObservation& o : c.scenario.observations) {
-    if (o.keyframe != 3) continue;
-    PoseObservation p;
-    p.p_w = c.scenario.points[static_cast<std::size_t>(o.point)].p_w;
-    p.keypoint_px = o.keypoint_px;
-    p.sigma_px = 0.5;
-    const bool corrupt = unit(rng) < outlier_fraction;
-    if (corrupt) p.keypoint_px += Eigen::Vector2d(40.0 * (unit(rng) - 0.5) + 15.0, 40.0 * (unit(rng) - 0.5) - 15.0);
-    c.observations.push_back(p);
-    c.corrupted.push_back(corrupt ? 1 : 0);
-  }
+  imu::ImuBias bias;
+  bias.gyro = Vector3d(0.002, -0.001, 0.003);
+  bias.accel = Vector3d(0.05, -0.02, 0.03);
+  c.base = makeTrackingCase(outlier_fraction, seed, bias);
+  const test::ViScenario& s = c.base.scenario;
+  c.truth = s.keyframe_states[3];
+  c.anchor.T_w_s = s.keyframe_states[2].T_w_s;
+  c.anchor.v_w = s.keyframe_states[2].v_w;
+  c.anchor.bias = bias;
+  c.anchor.preintegration = &s.preintegrations[2];
   return c;
 }
 
@@ -90,9 +73,9 @@ TEST(InertialPoseOptimizer, RecoversPoseAndVelocityWithWrongMatches) {
     const InertialCase c = makeCase(0.2, seed);
     const SE3d initial = plus(c.truth.T_w_s, (Vec9() << 0.05, -0.04, 0.03, 0.02, -0.025, 0.03, 0, 0, 0).finished());
     const Vector3d v_initial = c.truth.v_w + Vector3d(0.3, -0.2, 0.1);
-    std::vector<std::uint8_t> outlier(c.observations.size());
-    auto sut = optimizePoseInertial(c.observations, initial, v_initial, c.anchor, c.scenario.T_s_c,
-                                    c.scenario.intrinsics, {}, outlier);
+    std::vector<std::uint8_t> outlier(c.base.observations.size());
+    auto sut = optimizePoseInertial(c.base.observations, initial, v_initial, c.anchor, c.base.scenario.T_s_c,
+                                    c.base.scenario.intrinsics, {}, outlier);
     ASSERT_TRUE(sut.ok()) << sut.error().toString();
     const double position_error = (sut->T_w_s.translation() - c.truth.T_w_s.translation()).norm();
     const double rotation_deg = (c.truth.T_w_s.so3().inverse() * sut->T_w_s.so3()).log().norm() * 180.0 / M_PI;
@@ -108,11 +91,11 @@ TEST(InertialPoseOptimizer, RecoversPoseAndVelocityWithWrongMatches) {
 TEST(InertialPoseOptimizer, ImuHoldsThePoseWhenVisionIsWeak) {
   // Twelve observations in one corner of the image constrain the pose poorly; the IMU keeps it close.
   const InertialCase c = makeCase(0.0, 6);
-  std::vector<PoseObservation> few(c.observations.begin(), c.observations.begin() + 12);
+  std::vector<PoseObservation> few(c.base.observations.begin(), c.base.observations.begin() + 12);
   std::vector<std::uint8_t> outlier(few.size());
-  auto visual = optimizePose(few, c.truth.T_w_s, c.scenario.T_s_c, c.scenario.intrinsics, {}, outlier);
-  auto inertial = optimizePoseInertial(few, c.truth.T_w_s, c.truth.v_w, c.anchor, c.scenario.T_s_c,
-                                       c.scenario.intrinsics, {}, outlier);
+  auto visual = optimizePose(few, c.truth.T_w_s, c.base.scenario.T_s_c, c.base.scenario.intrinsics, {}, outlier);
+  auto inertial = optimizePoseInertial(few, c.truth.T_w_s, c.truth.v_w, c.anchor, c.base.scenario.T_s_c,
+                                       c.base.scenario.intrinsics, {}, outlier);
   ASSERT_TRUE(visual.ok());
   ASSERT_TRUE(inertial.ok());
   const double visual_error = (visual->T_w_s.translation() - c.truth.T_w_s.translation()).norm();
@@ -126,20 +109,20 @@ TEST(InertialPoseOptimizer, RefusesAnAnchorWithoutImu) {
   InertialCase c = makeCase(0.0, 7);
   const imu::Preintegration empty;
   c.anchor.preintegration = &empty;
-  std::vector<std::uint8_t> outlier(c.observations.size());
-  auto sut = optimizePoseInertial(c.observations, c.truth.T_w_s, c.truth.v_w, c.anchor, c.scenario.T_s_c,
-                                  c.scenario.intrinsics, {}, outlier);
+  std::vector<std::uint8_t> outlier(c.base.observations.size());
+  auto sut = optimizePoseInertial(c.base.observations, c.truth.T_w_s, c.truth.v_w, c.anchor, c.base.scenario.T_s_c,
+                                  c.base.scenario.intrinsics, {}, outlier);
   ASSERT_FALSE(sut.ok());
   EXPECT_NE(sut.error().message().find("no IMU"), std::string::npos);
 }
 
 TEST(InertialPoseOptimizer, DoesNotAllocate) {
   const InertialCase c = makeCase(0.2, 8);
-  std::vector<std::uint8_t> outlier(c.observations.size());
+  std::vector<std::uint8_t> outlier(c.base.observations.size());
   const PoseOptimizerOptions options;
   const long before = test::allocationCount();
-  auto sut = optimizePoseInertial(c.observations, c.truth.T_w_s, c.truth.v_w, c.anchor, c.scenario.T_s_c,
-                                  c.scenario.intrinsics, options, outlier);
+  auto sut = optimizePoseInertial(c.base.observations, c.truth.T_w_s, c.truth.v_w, c.anchor, c.base.scenario.T_s_c,
+                                  c.base.scenario.intrinsics, options, outlier);
   const long after = test::allocationCount();
   ASSERT_TRUE(sut.ok());
   EXPECT_EQ(after - before, 0);

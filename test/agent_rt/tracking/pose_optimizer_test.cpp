@@ -8,9 +8,9 @@
 
 #include <gtest/gtest.h>
 
+#include "test/agent_rt/tracking/tracking_case.hpp"
 #include "test/support/allocation_counter.hpp"
 #include "test/support/numeric_diff.hpp"
-#include "test/support/vi_scenario.hpp"
 
 namespace cvislam::agent {
 namespace {
@@ -24,40 +24,9 @@ SE3d plus(const SE3d& T, const Vec6& d) {
   return {T.so3() * SO3d::exp(d.tail<3>()), T.translation() + d.head<3>()};
 }
 
-struct TrackingCase {
-  test::ViScenario scenario;
-  SE3d T_w_s_true;
-  std::vector<PoseObservation> observations;
-  std::vector<std::uint8_t> corrupted;
-};
-
-// The observations of keyframe 3 of the synthetic scene, with 0.5 px noise and a share of wrong matches.
-TrackingCase makeCase(double outlier_fraction, std::uint64_t seed) {
-  TrackingCase c;
-  test::ViScenarioOptions options;
-  options.pixel_sigma = 0.5;
-  options.seed = seed;
-  c.scenario = test::makeViScenario(options);
-  c.T_w_s_true = c.scenario.keyframe_states[3].T_w_s;
-  std::mt19937_64 rng(seed + 100);
-  std::uniform_real_distribution<double> unit(0.0, 1.0);
-  for (const test::ViObservation& o : c.scenario.observations) {
-    if (o.keyframe != 3) continue;
-    PoseObservation p;
-    p.p_w = c.scenario.points[static_cast<std::size_t>(o.point)].p_w;
-    p.keypoint_px = o.keypoint_px;
-    p.sigma_px = 0.5;
-    const bool corrupt = unit(rng) < outlier_fraction;
-    if (corrupt) p.keypoint_px = Eigen::Vector2d(752.0 * unit(rng), 480.0 * unit(rng));  // a wrong match
-    c.observations.push_back(p);
-    c.corrupted.push_back(corrupt ? 1 : 0);
-  }
-  return c;
-}
-
 TEST(PoseOptimizer, ResidualJacobianMatchesNumeric) {
-  const TrackingCase c = makeCase(0.0, 1);
-  const SE3d T = plus(c.T_w_s_true, (Vec6() << 0.05, -0.03, 0.02, 0.01, -0.02, 0.015).finished());
+  const TrackingCase c = makeTrackingCase(0.0, 1);
+  const SE3d T = plus(c.truePose(), (Vec6() << 0.05, -0.03, 0.02, 0.01, -0.02, 0.015).finished());
   for (std::size_t i = 0; i < c.observations.size(); i += 7) {
     Eigen::Vector2d r;
     Eigen::Matrix<double, 2, 6> J;
@@ -75,14 +44,14 @@ TEST(PoseOptimizer, ResidualJacobianMatchesNumeric) {
 
 TEST(PoseOptimizer, RecoversThePoseAndFindsTheWrongMatches) {
   for (const std::uint64_t seed : {1U, 2U, 3U}) {
-    const TrackingCase c = makeCase(0.2, seed);
+    const TrackingCase c = makeTrackingCase(0.2, seed);
     ASSERT_GT(c.observations.size(), 100u);
-    const SE3d initial = plus(c.T_w_s_true, (Vec6() << 0.05, -0.04, 0.03, 0.02, -0.025, 0.03).finished());
+    const SE3d initial = plus(c.truePose(), (Vec6() << 0.05, -0.04, 0.03, 0.02, -0.025, 0.03).finished());
     std::vector<std::uint8_t> outlier(c.observations.size());
     auto sut = optimizePose(c.observations, initial, c.scenario.T_s_c, c.scenario.intrinsics, {}, outlier);
     ASSERT_TRUE(sut.ok()) << sut.error().toString();
-    const double position_error = (sut->T_w_s.translation() - c.T_w_s_true.translation()).norm();
-    const double rotation_deg = (c.T_w_s_true.so3().inverse() * sut->T_w_s.so3()).log().norm() * 180.0 / M_PI;
+    const double position_error = (sut->T_w_s.translation() - c.truePose().translation()).norm();
+    const double rotation_deg = (c.truePose().so3().inverse() * sut->T_w_s.so3()).log().norm() * 180.0 / M_PI;
     int caught = 0;
     int corrupted = 0;
     int false_alarms = 0;
@@ -104,18 +73,18 @@ TEST(PoseOptimizer, RecoversThePoseAndFindsTheWrongMatches) {
 }
 
 TEST(PoseOptimizer, TooFewGoodMatchesIsReportedAsLostTracking) {
-  const TrackingCase c = makeCase(0.0, 4);
+  const TrackingCase c = makeTrackingCase(0.0, 4);
   const std::vector<PoseObservation> few(c.observations.begin(), c.observations.begin() + 5);
   std::vector<std::uint8_t> outlier(few.size());
-  auto sut = optimizePose(few, c.T_w_s_true, c.scenario.T_s_c, c.scenario.intrinsics, {}, outlier);
+  auto sut = optimizePose(few, c.truePose(), c.scenario.T_s_c, c.scenario.intrinsics, {}, outlier);
   ASSERT_FALSE(sut.ok());
   EXPECT_NE(sut.error().message().find("tracking is lost"), std::string::npos) << sut.error().message();
 }
 
 TEST(PoseOptimizer, DoesNotAllocate) {
-  const TrackingCase c = makeCase(0.2, 5);
+  const TrackingCase c = makeTrackingCase(0.2, 5);
   std::vector<std::uint8_t> outlier(c.observations.size());
-  const SE3d initial = plus(c.T_w_s_true, (Vec6() << 0.02, 0.0, 0.01, 0.01, 0.0, 0.0).finished());
+  const SE3d initial = plus(c.truePose(), (Vec6() << 0.02, 0.0, 0.01, 0.01, 0.0, 0.0).finished());
   const PoseOptimizerOptions options;
   const long before = test::allocationCount();
   auto sut = optimizePose(c.observations, initial, c.scenario.T_s_c, c.scenario.intrinsics, options, outlier);
