@@ -13,6 +13,7 @@
 
 #include "agent_rt/ipc/embedded_roudi.hpp"
 #include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/runtime/sensor_setup.hpp"
 #include "common/dataset/euroc.hpp"
 #include "common/dataset/trajectory_io.hpp"
 #include "iceoryx_posh/popo/publisher.hpp"
@@ -366,18 +367,6 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     return Error{ErrorCode::kInvalidArgument, "the dataset has no imu0/sensor.yaml; run with use_imu: false"};
   }
 
-  // Calibration.
-  auto left = camera::CameraModel::create(seq.cam0().calibration);
-  if (!left) return left.error().withContext("cam0 calibration");
-  std::optional<camera::CameraModel> right;
-  if (stereo) {
-    auto r = camera::CameraModel::create(seq.cam1()->calibration);
-    if (!r) return r.error().withContext("cam1 calibration");
-    right.emplace(*r);
-  }
-  const dataset::ImuCalibration imu_calibration = seq.imuCalibration().value_or(dataset::ImuCalibration{});
-  const SE3d T_s_c = imu_calibration.T_b_i.inverse() * seq.cam0().calibration.T_b_c;
-  const SE3d T_c0_c1 = stereo ? seq.cam0().calibration.T_b_c.inverse() * seq.cam1()->calibration.T_b_c : SE3d();
   double inflation = options.imu_noise_inflation;
   if (inflation == 0.0) {
     // The simulator writes mission.yaml beside its agents' folders.
@@ -385,38 +374,20 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                            std::filesystem::exists(options.dataset.parent_path() / "mission.yaml");
     inflation = simulated ? 1.0 : 10.0;
   }
-  imu::ImuNoise noise = imu::ImuNoise::fromCalibration(imu_calibration);
-  noise.gyro_noise_density *= inflation;
-  noise.accel_noise_density *= inflation;
-  noise.gyro_random_walk *= inflation;
-  noise.accel_random_walk *= inflation;
-  const auto& c = seq.cam0().calibration;
+  auto setup = makeSensorSetup(seq, stereo, inflation);
+  if (!setup) return setup.error();
   options.tracking.agent = options.agent;
   options.tracking.use_imu = options.use_imu;
-  options.tracking.noise = noise;
   options.mapping.agent = options.agent;
   options.mapping.use_imu = options.use_imu;
-  options.mapping.ba.noise = noise;
-  options.mapping.ba.intrinsics = {c.fx, c.fy, c.cx, c.cy};
-  options.mapping.ba.pyramid_scale_factor = static_cast<double>(options.tracking.orb.scale_factor);
-  options.mapping.orb = options.tracking.orb;
-  if (stereo && options.mapping.imu_init_keyframes > 10) {
-    options.mapping.imu_init_keyframes = 10;  // stereo: the map is metric, fewer keyframes observe the rest
-  }
-
-  auto tracker = Tracker::create(options.tracking, *left, right ? &*right : nullptr, T_s_c);
+  applySensorSetup(*setup, options.tracking, options.mapping);
+  const camera::CameraModel* right = setup->right ? &*setup->right : nullptr;
+  auto tracker = Tracker::create(options.tracking, setup->left, right, setup->T_s_c);
   if (!tracker) return tracker.error();
-  auto mapper = Mapper::create(options.mapping, *left, right ? &*right : nullptr, T_s_c, T_c0_c1);
+  auto mapper = Mapper::create(options.mapping, setup->left, right, setup->T_s_c, setup->T_c0_c1);
   if (!mapper) return mapper.error();
 
-  std::vector<dataset::RigFrame> frames;
-  if (stereo) {
-    for (const dataset::RigFrame& f : seq.rigFrames()) {
-      if (f.cam1) frames.push_back(f);
-    }
-  } else {
-    for (std::size_t i = 0; i < seq.cam0().frames.size(); ++i) frames.push_back({seq.cam0().frames[i].t_ns, i, {}});
-  }
+  std::vector<dataset::RigFrame> frames = framesToRun(seq, stereo);
   if (options.max_frames > 0 && frames.size() > options.max_frames) frames.resize(options.max_frames);
   if (frames.empty()) return Error{ErrorCode::kDataError, "the dataset has no usable camera frames"};
 
@@ -559,16 +530,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       }
       // The IMU covering [previous frame, this frame].
       std::span<const dataset::ImuSample> imu_span;
-      if (options.use_imu && !imu.empty()) {
-        const std::int64_t from = previous_t_ns < 0 ? slot->t_ns : previous_t_ns;
-        auto first = std::upper_bound(imu.begin(), imu.end(), from,
-                                      [](std::int64_t t, const dataset::ImuSample& s) { return t < s.t_ns; });
-        if (first != imu.begin()) --first;
-        auto last = std::lower_bound(imu.begin(), imu.end(), slot->t_ns,
-                                     [](const dataset::ImuSample& s, std::int64_t t) { return s.t_ns < t; });
-        if (last != imu.end()) ++last;
-        if (first < last) imu_span = std::span(&*first, static_cast<std::size_t>(last - first));
-      }
+      if (options.use_imu) imu_span = imuCovering(imu, previous_t_ns < 0 ? slot->t_ns : previous_t_ns, slot->t_ns);
       FrameInput input;
       input.t_ns = slot->t_ns;
       input.width = width;

@@ -38,6 +38,10 @@ inline imu::ImuBias biasFromMsg(const std::array<double, 6>& a) {
   return b;
 }
 
+inline ImuSampleMsg toMsg(const dataset::ImuSample& s) {
+  return {s.t_ns, toArray(s.gyro_s), toArray(s.accel_s)};
+}
+
 inline dataset::ImuSample fromMsg(const ImuSampleMsg& m) {
   dataset::ImuSample s;
   s.t_ns = m.t_ns;

@@ -142,7 +142,6 @@ struct Tracker::State {
   std::uint64_t keyframe_sequence = 0;
   bool has_keyframe = false;
   KeyframeId keyframe_id;
-  std::int64_t keyframe_t_ns = 0;
   SE3d keyframe_T_w_s;
   Vector3d keyframe_v_w = Vector3d::Zero();
   imu::ImuBias keyframe_bias;
@@ -172,12 +171,7 @@ struct Tracker::State {
         imu_ok_since_keyframe = false;  // more IMU than a keyframe message carries: the link is dropped
         continue;
       }
-      ImuSampleMsg& m = keyframe_imu[keyframe_imu_count++];
-      m.t_ns = s.t_ns;
-      for (int i = 0; i < 3; ++i) {
-        m.gyro[static_cast<std::size_t>(i)] = s.gyro_s[i];
-        m.accel[static_cast<std::size_t>(i)] = s.accel_s[i];
-      }
+      keyframe_imu[keyframe_imu_count++] = toMsg(s);
     }
   }
 
@@ -481,7 +475,6 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     s.published_next = (s.published_next + 1) % s.published.size();
     s.has_keyframe = true;
     s.keyframe_id = id;
-    s.keyframe_t_ns = frame.t_ns;
     s.keyframe_T_w_s = T;
     s.keyframe_v_w = v;
     s.keyframe_bias = s.bias;
