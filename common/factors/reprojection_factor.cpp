@@ -34,6 +34,14 @@ ReprojectionFactor::ReprojectionFactor(const Eigen::Vector2d& keypoint_px, const
                                        double sigma_px)
     : keypoint_px_(keypoint_px), intrinsics_(intrinsics), inv_sigma_(1.0 / sigma_px) {}
 
+ReprojectionFactor::ReprojectionFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics,
+                                       double sigma_px, const geometry::SE3d& T_c1_c0)
+    : keypoint_px_(keypoint_px),
+      intrinsics_(intrinsics),
+      inv_sigma_(1.0 / sigma_px),
+      R_obs_c0_(T_c1_c0.rotationMatrix()),
+      t_obs_c0_(T_c1_c0.translation()) {}
+
 bool ReprojectionFactor::Evaluate(double const* const* parameters, double* residuals, double** jacobians) const {
   const double* pose_i = parameters[0];
   const double* pose_r = parameters[1];
@@ -53,11 +61,13 @@ bool ReprojectionFactor::Evaluate(double const* const* parameters, double* resid
   const Vector3d u = R_s_c * b + rho * t_s_c;               // rho X_sr
   const Vector3d w = R_w_sr * u + rho * (p_w_sr - p_w_si);  // rho (X_w - p_w_si)
   const Vector3d m = R_si_w * w;                            // rho X_si
-  const Vector3d h = R_c_s * (m - rho * t_s_c);             // rho X_ci
+  const Vector3d h = R_c_s * (m - rho * t_s_c);             // rho X_ci (cam0)
+  const Vector3d h_obs = R_obs_c0_ * h + rho * t_obs_c0_;   // in the observing camera (cam0 or cam1)
 
-  Eigen::Matrix<double, 2, 3> d_r_d_h;
-  if (!projectWhitened(h, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_h)) return false;
+  Eigen::Matrix<double, 2, 3> d_r_d_h_obs;
+  if (!projectWhitened(h_obs, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_h_obs)) return false;
   if (jacobians == nullptr) return true;
+  const Eigen::Matrix<double, 2, 3> d_r_d_h = d_r_d_h_obs * R_obs_c0_;
 
   const Matrix3d R_c_w = R_c_s * R_si_w;
   if (jacobians[0] != nullptr) {  // observing pose [dp, dphi]
@@ -85,7 +95,7 @@ bool ReprojectionFactor::Evaluate(double const* const* parameters, double* resid
   }
   if (jacobians[4] != nullptr) {  // inverse depth
     const Vector3d d_h_d_rho = R_c_s * (R_si_w * (R_w_sr * t_s_c + p_w_sr - p_w_si) - t_s_c);
-    Eigen::Map<Eigen::Vector2d>{jacobians[4]} = d_r_d_h * d_h_d_rho;
+    Eigen::Map<Eigen::Vector2d>{jacobians[4]} = d_r_d_h * d_h_d_rho + d_r_d_h_obs * t_obs_c0_;
   }
   return true;
 }
@@ -101,6 +111,28 @@ bool ReprojectionHostFactor::Evaluate(double const* const* parameters, double* r
   if (jacobians != nullptr && jacobians[0] != nullptr) {
     Eigen::Map<Eigen::Matrix<double, 2, 3, kRowMajor>>{jacobians[0]} = d_r_d_h;
   }
+  return true;
+}
+
+SecondCameraHostFactor::SecondCameraHostFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics,
+                                               double sigma_px, const geometry::SE3d& T_c1_c0)
+    : keypoint_px_(keypoint_px),
+      intrinsics_(intrinsics),
+      inv_sigma_(1.0 / sigma_px),
+      R_c1_c0_(T_c1_c0.rotationMatrix()),
+      t_c1_c0_(T_c1_c0.translation()) {}
+
+bool SecondCameraHostFactor::Evaluate(double const* const* parameters, double* residuals, double** jacobians) const {
+  const Eigen::Map<const Vector3d> b(parameters[0]);
+  const double rho = parameters[1][0];
+  const Vector3d h1 = R_c1_c0_ * b + rho * t_c1_c0_;  // rho X_c1
+  Eigen::Matrix<double, 2, 3> d_r_d_h1;
+  if (!projectWhitened(h1, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_h1)) return false;
+  if (jacobians == nullptr) return true;
+  if (jacobians[0] != nullptr) {
+    Eigen::Map<Eigen::Matrix<double, 2, 3, kRowMajor>>{jacobians[0]} = d_r_d_h1 * R_c1_c0_;
+  }
+  if (jacobians[1] != nullptr) Eigen::Map<Eigen::Vector2d>{jacobians[1]} = d_r_d_h1 * t_c1_c0_;
   return true;
 }
 

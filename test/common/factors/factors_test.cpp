@@ -310,6 +310,57 @@ TEST_F(ReprojectionFactorTest, HostObservationJacobianMatchesNumeric) {
   }
 }
 
+// cam1 of a stereo rig: EuRoC's 11 cm baseline with a small relative rotation, and cam1's own intrinsics.
+SE3d stereoOffsetT_c1_c0() { return SE3d(SO3d::exp(Vector3d(0.003, -0.01, 0.002)), Vector3d(-0.110, 0.0004, -0.0009)); }
+
+TEST_F(ReprojectionFactorTest, SecondCameraJacobiansMatchNumericAtRandomStatesAndNearInfinity) {
+  const PinholeIntrinsics cam1{457.587, 456.134, 379.999, 255.238};
+  for (int trial = 0; trial < 20; ++trial) {
+    const ReprojectionFactor sut(Eigen::Vector2d(320.0, 210.0), cam1, 1.2, stereoOffsetT_c1_c0());
+    expectJacobiansMatchNumeric(sut, randomCase(random_.uniform(0.1, 1.0), M_PI / std::sqrt(3.0)));
+  }
+  const ReprojectionFactor far(Eigen::Vector2d(320.0, 210.0), cam1, 1.0, stereoOffsetT_c1_c0());
+  expectJacobiansMatchNumeric(far, randomCase(1e-9, 0.5), 1e-6, 1e-7);
+}
+
+TEST_F(ReprojectionFactorTest, SecondCameraResidualIsCam1sPixelErrorAndIdentityOffsetIsCam0) {
+  const std::vector<Block> blocks = randomCase(0.3, 0.4);
+  const SE3d T_w_si = poseFromBlock(blocks[0].value.data());
+  const SE3d T_w_sr = poseFromBlock(blocks[1].value.data());
+  const Vector3d p_cr = blocks[3].value / blocks[4].value(0);
+  const SE3d T_c1_c0 = stereoOffsetT_c1_c0();
+  const Vector3d p_c1 = T_c1_c0 * ((T_w_si * T_s_c_).inverse() * (T_w_sr * T_s_c_ * p_cr));
+  const PinholeIntrinsics cam1{457.587, 456.134, 379.999, 255.238};
+  const Eigen::Vector2d px(cam1.fx * p_c1.x() / p_c1.z() + cam1.cx, cam1.fy * p_c1.y() / p_c1.z() + cam1.cy);
+  const ReprojectionFactor sut(px + Eigen::Vector2d(-2.0, 1.0), cam1, 0.5, T_c1_c0);
+  EXPECT_LT((evaluate(sut, blocks) - Eigen::Vector2d(4.0, -2.0)).norm(), 1e-8);
+  // With the identity offset and cam0's intrinsics it is exactly the cam0 factor.
+  const ReprojectionFactor as_cam0(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5, SE3d());
+  const ReprojectionFactor cam0(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5);
+  EXPECT_LT((evaluate(as_cam0, blocks) - evaluate(cam0, blocks)).norm(), 1e-12);
+}
+
+TEST_F(ReprojectionFactorTest, SecondCameraHostObservationFixesDepthAndItsJacobianMatchesNumeric) {
+  const PinholeIntrinsics cam1{457.587, 456.134, 379.999, 255.238};
+  const SE3d T_c1_c0 = stereoOffsetT_c1_c0();
+  for (int trial = 0; trial < 10; ++trial) {
+    const Vector3d bearing = (Vector3d(0, 0, 1) + random_.vector3(0.4)).normalized();
+    const SecondCameraHostFactor sut(Eigen::Vector2d(350.0, 260.0), cam1, 1.0, T_c1_c0);
+    expectJacobiansMatchNumeric(sut, {{VectorXd(bearing), &bearing_manifold_},
+                                      vectorBlock(VectorXd::Constant(1, random_.uniform(0.05, 2.0)))});
+  }
+  // The residual is zero at the true depth and grows with a wrong one: the baseline makes depth observable.
+  const Vector3d bearing = Vector3d(0.1, -0.05, 1.0).normalized();
+  const double depth = 4.0;
+  const Vector3d p_c1 = T_c1_c0 * (bearing * depth);
+  const Eigen::Vector2d px(cam1.fx * p_c1.x() / p_c1.z() + cam1.cx, cam1.fy * p_c1.y() / p_c1.z() + cam1.cy);
+  const SecondCameraHostFactor sut(px, cam1, 1.0, T_c1_c0);
+  const Block b{VectorXd(bearing), &bearing_manifold_};
+  EXPECT_LT(evaluate(sut, {b, vectorBlock(VectorXd::Constant(1, 1.0 / depth))}).norm(), 1e-9);
+  // 10 % off in depth at 4 m moves the cam1 projection by f * B * (1/3.6 - 1/4) ~ 1.4 px.
+  EXPECT_GT(evaluate(sut, {b, vectorBlock(VectorXd::Constant(1, 1.0 / (0.9 * depth)))}).norm(), 1.2);
+}
+
 // ------------------------------------------------------------------------------------------- priors
 TEST(PriorFactors, PosePriorJacobianMatchesNumericIncludingNearPi) {
   const PoseManifold manifold;
