@@ -46,6 +46,12 @@ struct KeyframeData {
   std::array<Eigen::Vector2d, kMaxKeypointsPerKeyframe> undistorted_px{};
   std::array<PoolHandle, kMaxKeypointsPerKeyframe> map_point{};  // valid only where has_map_point
   std::array<bool, kMaxKeypointsPerKeyframe> has_map_point{};
+  // Stereo: the keypoint's match in the second camera (cam1), undistorted to cam1's pinhole, and its pyramid
+  // level. It belongs to the keypoint, so whatever map point the keypoint links to (now or by a later fusion)
+  // gets it as a second observation in local BA.
+  std::array<bool, kMaxKeypointsPerKeyframe> has_right{};
+  std::array<Eigen::Vector2d, kMaxKeypointsPerKeyframe> right_undistorted_px{};
+  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> right_octave{};
 };
 
 struct MapPointData {

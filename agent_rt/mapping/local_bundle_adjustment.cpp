@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <string>
 #include <unordered_map>
 #include <vector>
@@ -26,6 +27,10 @@ Status LocalBundleAdjustmentOptions::validate() const {
   if (!(cauchy_scale > 0.0) || !(sigma_px > 0.0)) return bad("cauchy_scale and sigma_px must be > 0");
   if (!(pyramid_scale_factor >= 1.0)) return bad("pyramid_scale_factor must be >= 1");
   if (!(intrinsics.fx > 0.0) || !(intrinsics.fy > 0.0)) return bad("intrinsics fx, fy must be > 0");
+  if (use_second_camera && (!(second_intrinsics.fx > 0.0) || !(second_intrinsics.fy > 0.0))) {
+    return bad("second camera intrinsics fx, fy must be > 0");
+  }
+  if (use_second_camera && !(max_second_camera_error_sigma > 0.0)) return bad("max_second_camera_error_sigma must be > 0");
   return noise.validate();
 }
 
@@ -155,6 +160,30 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
                                  s.pose.data(), r.pose.data(), extrinsics.data(), p.bearing.data(), &p.inverse_depth);
       }
       ++summary.reprojection_factors;
+      if (options.use_second_camera && kf.has_right[k]) {
+        const double sigma1 = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.right_octave[k]);
+        std::unique_ptr<ceres::CostFunction> cost;
+        std::vector<double*> blocks;
+        if (ref == s.handle) {
+          cost = std::make_unique<factors::SecondCameraHostFactor>(kf.right_undistorted_px[k],
+                                                                   options.second_intrinsics, sigma1, options.T_c1_c0);
+          blocks = {p.bearing.data(), &p.inverse_depth};
+        } else {
+          KeyframeState& r = keyframes[keyframe_index.at(handleKey(ref))];
+          cost = std::make_unique<factors::ReprojectionFactor>(kf.right_undistorted_px[k], options.second_intrinsics,
+                                                               sigma1, options.T_c1_c0);
+          blocks = {s.pose.data(), r.pose.data(), extrinsics.data(), p.bearing.data(), &p.inverse_depth};
+        }
+        Eigen::Vector2d residual;
+        const bool evaluable = cost->Evaluate(blocks.data(), residual.data(), nullptr);
+        if (!evaluable || residual.norm() > options.max_second_camera_error_sigma) {
+          ++summary.second_camera_rejected;
+          continue;
+        }
+        problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), blocks);
+        ++summary.reprojection_factors;
+        ++summary.second_camera_factors;
+      }
     }
   }
 
@@ -177,8 +206,10 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   }
   if (summary.fixed_keyframes == 0) {  // the gauge
     problem.SetParameterBlockConstant(keyframes.front().pose.data());
-    // Without the IMU (or with no IMU link), scale is free as well: hold a second pose.
-    if (summary.imu_factors == 0 && keyframes.size() > 1) problem.SetParameterBlockConstant(keyframes[1].pose.data());
+    // Without the IMU (or with no IMU link) and without stereo, scale is free as well: hold a second pose.
+    if (summary.imu_factors == 0 && summary.second_camera_factors == 0 && keyframes.size() > 1) {
+      problem.SetParameterBlockConstant(keyframes[1].pose.data());
+    }
   }
 
   ceres::Solver::Options solver_options;

@@ -2,7 +2,10 @@
 // velocity, biases) and the map points they observe are optimised; keyframes outside the window that share
 // at least `min_covisible` points with it, anchors (which may come from other agents), and the reference
 // keyframes of the points are held fixed. Reprojection factors with a Cauchy loss, IMU and bias random-walk
-// factors between consecutive window keyframes. When nothing is held fixed, the oldest window keyframe's pose
+// factors between consecutive window keyframes. With a stereo rig, a keypoint's match in cam1 adds a second
+// reprojection factor: in the point's reference keyframe it fixes the point's depth, elsewhere it ties the
+// keyframe's pose to metric depth. A cam1 observation already further than `max_second_camera_error_sigma`
+// from the point's projection is a stereo mismatch and is left out. When nothing is held fixed, the oldest window keyframe's pose
 // is, for the gauge.
 //
 // Runs in the mapping thread and allocates (Ceres does); tracking never waits for it.
@@ -25,6 +28,11 @@ struct LocalBundleAdjustmentOptions {
   bool use_imu = true;
   factors::PinholeIntrinsics intrinsics;
   imu::ImuNoise noise;
+  // Stereo (set by the mapper from the rig when there is a second camera).
+  bool use_second_camera = false;
+  factors::PinholeIntrinsics second_intrinsics;  // cam1's pinhole, for KeyframeData::right_undistorted_px
+  geometry::SE3d T_c1_c0;
+  double max_second_camera_error_sigma = 4.0;
 
   [[nodiscard]] Status validate() const;
 };
@@ -34,6 +42,8 @@ struct LocalBundleAdjustmentSummary {
   int fixed_keyframes = 0;
   int map_points = 0;
   int reprojection_factors = 0;
+  int second_camera_factors = 0;   // included in reprojection_factors
+  int second_camera_rejected = 0;  // stereo mismatches left out
   int imu_factors = 0;
   int iterations = 0;
   double initial_cost = 0.0;

@@ -76,6 +76,8 @@ struct Mapper::State {
   std::unordered_map<std::uint64_t, PoolHandle> point_index;
   std::vector<features::Keypoint> right_keypoints;
   std::vector<features::Descriptor> right_descriptors;
+  std::vector<Vector3d> right_bearings;
+  std::vector<double> stereo_depth_m;  // per keypoint of the newest keyframe, 0 without a cam1 match
   KeypointGrid grid;
 
   static std::uint64_t key(const MapPointId& id) { return (static_cast<std::uint64_t>(id.agent) << 32U) | id.counter; }
@@ -135,6 +137,12 @@ Result<std::unique_ptr<Mapper>> Mapper::create(const MapperOptions& options, con
     state->right_orb.emplace(std::move(orb.value()));
     state->right_keypoints.resize(static_cast<std::size_t>(options.orb.max_features));
     state->right_descriptors.resize(static_cast<std::size_t>(options.orb.max_features));
+    state->right_bearings.reserve(static_cast<std::size_t>(options.orb.max_features));
+    state->stereo_depth_m.reserve(kMaxKeypointsPerKeyframe);
+    const dataset::CameraCalibration& c1 = right->calibration();
+    state->options.ba.use_second_camera = options.stereo.use_in_ba;
+    state->options.ba.second_intrinsics = {c1.fx, c1.fy, c1.cx, c1.cy};
+    state->options.ba.T_c1_c0 = T_c0_c1.inverse();
   }
   state->imu_samples.reserve(kMaxImuSamplesPerKeyframe);
   state->point_index.reserve(kMaxMapPoints * 2);
@@ -173,45 +181,63 @@ double epipolarDistancePx(const Vector3d& b0, const Vector3d& b1, const SE3d& T_
   return std::abs(l.dot(x1)) / norm * f;
 }
 
-// Stereo depth for the keypoints of `kf` without a map point, from the second camera's image.
-int addStereoPoints(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg) {
+// Matches every keypoint of the keyframe in the second camera's image (epipolar band, octave, ratio test,
+// rays that meet in front of both cameras) and stores the match on the keypoint for local BA. Returns how
+// many keypoints have one; s.stereo_depth_m[k] holds the triangulated depth along keypoint k (0 for none).
+int matchStereo(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg) {
+  KeyframeData& kf = *s.map.keyframes().get(handle);
+  kf.has_right.fill(false);
+  s.stereo_depth_m.assign(kf.keypoint_count, 0.0);
   if (!s.right || !s.right_orb || msg.right_width == 0) return 0;
   const auto pixels = static_cast<std::size_t>(msg.right_width) * msg.right_height;
   const int n_right = s.right_orb->extract(std::span(msg.right_pixels.data(), pixels), msg.right_width,
                                            msg.right_height, s.right_keypoints, s.right_descriptors);
-  std::vector<Vector3d> right_bearings(static_cast<std::size_t>(n_right));
+  s.right_bearings.resize(static_cast<std::size_t>(n_right));
   for (int j = 0; j < n_right; ++j) {
-    right_bearings[static_cast<std::size_t>(j)] =
+    s.right_bearings[static_cast<std::size_t>(j)] =
         s.right->unproject(s.right_keypoints[static_cast<std::size_t>(j)].px.cast<double>());
   }
   const SE3d T_c1_c0 = s.T_c0_c1.inverse();
   const StereoOptions& o = s.options.stereo;
   const double f = s.right->calibration().fx;
-  KeyframeData& kf = *s.map.keyframes().get(handle);
-  int created = 0;
+  int matched = 0;
   for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
-    if (kf.has_map_point[k]) continue;
     const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>());
     BestTwo match;
     for (int j = 0; j < n_right; ++j) {
       const auto& rk = s.right_keypoints[static_cast<std::size_t>(j)];
       if (std::abs(static_cast<int>(rk.octave) - static_cast<int>(kf.keypoints[k].octave)) > 1) continue;
-      if (epipolarDistancePx(b0, right_bearings[static_cast<std::size_t>(j)], T_c1_c0, f) >
+      if (epipolarDistancePx(b0, s.right_bearings[static_cast<std::size_t>(j)], T_c1_c0, f) >
           o.max_epipolar_error_px * s.levelScale(rk.octave)) {
         continue;
       }
       match.offer(features::hammingDistance(kf.descriptors[k], s.right_descriptors[static_cast<std::size_t>(j)]), j);
     }
     if (!match.accepted(o.max_distance, o.ratio)) continue;
-    const int best_j = match.index;
-    const Vector3d& b1 = right_bearings[static_cast<std::size_t>(best_j)];
+    const auto best_j = static_cast<std::size_t>(match.index);
+    const Vector3d& b1 = s.right_bearings[best_j];
     auto p = geometry::triangulateMidpoint(SE3d(), b0.normalized(), s.T_c0_c1, b1.normalized());
-    if (!p) continue;
-    const double depth = p->norm();
-    if (p->z() < o.min_depth_m || depth > o.max_depth_m) continue;
+    if (!p || p->z() < o.min_depth_m) continue;
     const double tolerance = 2.0 * s.levelScale(kf.keypoints[k].octave) / f;
     if (geometry::rayAngle(*p, b0) > tolerance || geometry::rayAngle(T_c1_c0 * *p, b1) > tolerance) continue;
-    if (s.map.createMapPoint(handle, k, b0.normalized(), depth, s.point_ids.next()).ok()) ++created;
+    const features::Keypoint& rk = s.right_keypoints[best_j];
+    kf.has_right[k] = true;
+    kf.right_undistorted_px[k] = s.right->undistortPixel(rk.px.cast<double>());
+    kf.right_octave[k] = rk.octave;
+    s.stereo_depth_m[k] = p->norm();
+    ++matched;
+  }
+  return matched;
+}
+
+// New points from stereo depth, for the keypoints with a cam1 match within max_depth_m and no map point yet.
+int addStereoPoints(Mapper::State& s, PoolHandle handle) {
+  KeyframeData& kf = *s.map.keyframes().get(handle);
+  int created = 0;
+  for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+    if (kf.has_map_point[k] || !kf.has_right[k] || s.stereo_depth_m[k] > s.options.stereo.max_depth_m) continue;
+    const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>()).normalized();
+    if (s.map.createMapPoint(handle, k, b0, s.stereo_depth_m[k], s.point_ids.next()).ok()) ++created;
   }
   return created;
 }
@@ -551,6 +577,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
   }
 
   const bool stereo = s.right.has_value();
+  if (stereo) report.stereo_matches = matchStereo(s, handle, msg);
   if (!stereo && !s.mono_initialised) {
     // Monocular start: the first keyframe is the reference; later ones try the two-view initialisation.
     if (!s.mono_reference || s.map.keyframes().get(*s.mono_reference) == nullptr) {
@@ -570,7 +597,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     }
   } else {
     report.fused = fusePoints(s, handle);
-    if (stereo) report.stereo_points = addStereoPoints(s, handle, msg);
+    if (stereo) report.stereo_points = addStereoPoints(s, handle);
     report.triangulated += triangulateWithNeighbours(s, handle, order);
     report.culled = s.map.cullMapPoints(s.options.cull);
   }

@@ -33,6 +33,9 @@ struct StereoOptions {
   // Farther points get their depth from triangulation over time: stereo depth beyond ~45 baselines (EuRoC:
   // 11 cm) is too uncertain to seed a point with. 40 m here cost 1-3 cm of ATE on the simulated flights.
   double max_depth_m = 5.0;
+  // Every keypoint's cam1 match (at any depth) as a second observation in local BA: keeps the map's depth
+  // and scale tied to the baseline, not only the IMU.
+  bool use_in_ba = true;
 };
 
 struct MapperOptions {
@@ -64,6 +67,7 @@ struct MapperReport {
   bool mono_initialised_now = false;
   int linked = 0;  // tracking's matches linked
   int fused = 0;   // existing points found again by projection
+  int stereo_matches = 0;  // keypoints of the keyframe with a cam1 match
   int stereo_points = 0;
   int triangulated = 0;
   int culled = 0;

@@ -52,6 +52,7 @@ struct AgentOptions {
   double rate = 1.0;  // realtime pace: 2 plays the sequence twice as fast
   double progress_interval_s = 2.0;
   bool quiet = false;
+  bool trace_mapping = false;  // one line per keyframe on stderr: links, new points, stereo matches, local BA
   std::size_t max_frames = 0;  // 0 = all
   int frame_ring_size = 4;     // frames the loader reads ahead
 

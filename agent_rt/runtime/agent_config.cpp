@@ -115,6 +115,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   mapping.read("min_covisible", o.mapping.ba.min_covisible);
   mapping.read("triangulation_neighbours", o.mapping.triangulation_neighbours);
   mapping.read("stereo_max_depth_m", o.mapping.stereo.max_depth_m);
+  mapping.read("stereo_in_ba", o.mapping.stereo.use_in_ba);
   if (Status s = mapping.finish(); !s.ok()) return in_file(s);
 
   Section runtime = section("runtime");

@@ -36,6 +36,7 @@ int main(int argc, char** argv) {
   int agent_id = -1;
   bool no_imu = false;
   bool quiet = false;
+  bool trace_mapping = false;
   std::size_t max_frames = 0;
   app.add_option("--dataset", dataset, "Sequence folder that holds mav0 (EuRoC/ASL layout)")->required();
   app.add_option("--output", output, "Folder for trajectories, latency profile and summary (created)")->required();
@@ -50,6 +51,9 @@ int main(int argc, char** argv) {
   app.add_option("--max-frames", max_frames, "Stop after this many frames (0 = all)");
   app.add_flag("--no-imu", no_imu, "Vision only");
   app.add_flag("--quiet", quiet, "No progress output");
+  app.add_flag("--trace-mapping", trace_mapping,
+               "One line per keyframe on stderr: matches linked, points fused/made/culled, stereo matches, local BA "
+               "size, cam1 factors and rejected stereo mismatches, cost");
   CLI11_PARSE(app, argc, argv);
 
   cvislam::agent::AgentOptions options;
@@ -87,6 +91,7 @@ int main(int argc, char** argv) {
   }
   if (no_imu) options.use_imu = false;
   options.quiet = quiet;
+  options.trace_mapping = trace_mapping;
   options.max_frames = max_frames;
 
   std::signal(SIGINT, onSignal);
