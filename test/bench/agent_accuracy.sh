@@ -3,10 +3,11 @@
 # cache folder, runs every agent of it alone in mono-inertial and stereo-inertial mode (--pace sync, so the
 # figures are reproducible), and scores the per-frame trajectory with cvislam_eval (SE3 ATE, Sim3 scale).
 #
-#   [MODES="mono stereo"] test/bench/agent_accuracy.sh [BUILD_DIR] [PRESET...]
+#   [MODES="mono stereo"] [CONFIG=agent.yaml] test/bench/agent_accuracy.sh [BUILD_DIR] [PRESET...]
 #                                                  (default: build/default, loop aggressive euroc-mh)
 #
-# Writes a markdown table to stdout and everything else to $CACHE/results (CACHE=${CVISLAM_SIM_CACHE:-/tmp/cvislam-sim}).
+# Writes a markdown table to stdout and everything else to $RESULTS (default $CACHE/results, with
+# CACHE=${CVISLAM_SIM_CACHE:-/tmp/cvislam-sim}). CONFIG is passed to every agent as --config.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 build=${1:-build/default}
@@ -14,7 +15,9 @@ shift || true
 presets=("$@")
 [[ ${#presets[@]} -gt 0 ]] || presets=(loop aggressive euroc-mh)
 cache=${CVISLAM_SIM_CACHE:-/tmp/cvislam-sim}
-results=$cache/results
+results=${RESULTS:-$cache/results}
+config_args=()
+[[ -z ${CONFIG:-} ]] || config_args=(--config "$CONFIG")
 mkdir -p "$results"
 for tool in cvislam_sim cvislam_agent cvislam_eval; do
   [[ -x $build/bin/$tool ]] || { echo "missing $build/bin/$tool: build it first (cmake --build $build)" >&2; exit 1; }
@@ -31,7 +34,7 @@ for preset in "${presets[@]}"; do
     agent=$(basename "$agent_dir")
     for mode in ${MODES:-mono stereo}; do
       out=$results/$preset-$agent-$mode
-      if ! "$build/bin/cvislam_agent" --dataset "$agent_dir" --output "$out" --mode "$mode" --pace sync --quiet \
+      if ! "$build/bin/cvislam_agent" --dataset "$agent_dir" --output "$out" --mode "$mode" --pace sync --quiet "${config_args[@]}" \
           > "$out.log" 2>&1; then
         echo "| $preset | $agent | $mode | agent failed: see $out.log | | | | | |"
         continue

@@ -23,8 +23,17 @@ TEST(KeyframeDecision, EachOfThePapersThreeCriteriaTriggersAKeyframe) {
   EXPECT_EQ(decideKeyframe(uncovered, options), KeyframeReason::kCoverage);
 
   TrackingState starving = healthy;
-  starving.tracked_points = 14;
+  starving.tracked_points = 29;  // under the default 30
   EXPECT_EQ(decideKeyframe(starving, options), KeyframeReason::kFewTrackedPoints);
+  starving.tracked_points = 30;
+  EXPECT_EQ(decideKeyframe(starving, options), KeyframeReason::kNone);
+
+  KeyframeDecisionOptions paper = options;  // the paper's 15
+  paper.min_tracked_points = 15;
+  starving.tracked_points = 14;
+  EXPECT_EQ(decideKeyframe(starving, paper), KeyframeReason::kFewTrackedPoints);
+  starving.tracked_points = 15;
+  EXPECT_EQ(decideKeyframe(starving, paper), KeyframeReason::kNone);
 }
 
 TEST(KeyframeDecision, InitialisationKeepsAtMostThreeFramesBetweenKeyframes) {
