@@ -146,6 +146,87 @@ TEST(LocalBundleAdjustment, AnImuLinkThatSkipsARemovedKeyframeIsNotUsed) {
   EXPECT_EQ(summary->imu_factors, 5);  // 0-1, 1-2, 4-5, 5-6, 6-7: not 2-4, whose IMU covers only 3-4
 }
 
+// ---------------------------------------------------------------------------------------------- stereo
+// A rig like EuRoC's: cam1 11 cm to the side of cam0, turned a little, same pinhole.
+const SE3d kT_c1_c0(geometry::SO3d::exp(Vector3d(0.003, -0.01, 0.002)), Vector3d(-0.110, 0.0004, -0.0009));
+
+// Every keypoint gets its exact cam1 observation, from the true point and the true keyframe pose.
+void addSecondCamera(Fixture& f) {
+  std::vector<int> next(f.keyframes.size(), 0);
+  for (const auto& o : f.scenario.observations) {
+    const auto k = static_cast<std::size_t>(o.keyframe);
+    KeyframeData& kf = *f.map->keyframes().get(f.keyframes[k]);
+    const auto i = static_cast<std::size_t>(next[k]++);
+    const SE3d T_w_c0 = f.scenario.keyframe_states[k].T_w_s * f.scenario.T_s_c;
+    const Vector3d p_c1 = kT_c1_c0 * (T_w_c0.inverse() * f.scenario.points[static_cast<std::size_t>(o.point)].p_w);
+    const factors::PinholeIntrinsics& K = f.scenario.intrinsics;
+    kf.has_right[i] = true;
+    kf.right_undistorted_px[i] = {K.fx * p_c1.x() / p_c1.z() + K.cx, K.fy * p_c1.y() / p_c1.z() + K.cy};
+    kf.right_octave[i] = 0;
+  }
+}
+
+// The whole map 20 % too large about the first keyframe, as a monocular map could be: consistent for cam0.
+void scaleMap(Fixture& f, double scale) {
+  const Vector3d p0 = f.map->keyframes().get(f.keyframes[0])->T_w_s.translation();
+  for (PoolHandle h : f.keyframes) {
+    KeyframeData& kf = *f.map->keyframes().get(h);
+    kf.T_w_s.translation() = p0 + scale * (kf.T_w_s.translation() - p0);
+  }
+  for (PoolHandle h : f.points) f.map->mapPoints().get(h)->inverse_depth /= scale;
+}
+
+double mapScale(const Fixture& f) {
+  const auto position = [&](std::size_t k) { return f.map->keyframes().get(f.keyframes[k])->T_w_s.translation(); };
+  const auto truth = [&](std::size_t k) { return f.scenario.keyframe_states[k].T_w_s.translation(); };
+  const std::size_t last = f.keyframes.size() - 1;
+  return (position(last) - position(0)).norm() / (truth(last) - truth(0)).norm();
+}
+
+LocalBundleAdjustmentOptions stereoOptions(const test::ViScenario& s) {
+  LocalBundleAdjustmentOptions options = baOptions(s, 8);
+  options.use_imu = false;  // vision alone: only the baseline can give the scale
+  options.use_second_camera = true;
+  options.second_intrinsics = s.intrinsics;
+  options.T_c1_c0 = kT_c1_c0;
+  return options;
+}
+
+TEST(LocalBundleAdjustment, SecondCameraObservationsGiveAWronglyScaledMapItsMetricScale) {
+  Fixture mono = makeMap(false);
+  scaleMap(mono, 1.2);
+  auto mono_summary = runLocalBundleAdjustment(*mono.map, stereoOptions(mono.scenario));
+  ASSERT_TRUE(mono_summary.ok()) << mono_summary.error().toString();
+  EXPECT_EQ(mono_summary->second_camera_factors, 0);  // no keypoint has a cam1 match
+  EXPECT_GT(std::abs(mapScale(mono) - 1.0), 0.15) << "without cam1 nothing should pull the scale back";
+
+  Fixture stereo = makeMap(false);
+  addSecondCamera(stereo);
+  scaleMap(stereo, 1.2);
+  auto summary = runLocalBundleAdjustment(*stereo.map, stereoOptions(stereo.scenario));
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  std::printf("stereo: %d factors, %d from cam1, %d left out; cost %.3e -> %.3e; scale %.5f (mono %.5f)\n",
+              summary->reprojection_factors, summary->second_camera_factors, summary->second_camera_rejected,
+              summary->initial_cost, summary->final_cost, mapScale(stereo), mapScale(mono));
+  EXPECT_EQ(summary->second_camera_factors, static_cast<int>(stereo.scenario.observations.size()));
+  EXPECT_EQ(summary->reprojection_factors, 2 * static_cast<int>(stereo.scenario.observations.size()));
+  EXPECT_LT(std::abs(mapScale(stereo) - 1.0), 0.005);
+  for (std::size_t j = 0; j < stereo.points.size(); ++j) {
+    EXPECT_LT((*stereo.map->pointInWorld(stereo.points[j]) - stereo.scenario.points[j].p_w).norm(), 0.01) << j;
+  }
+}
+
+TEST(LocalBundleAdjustment, AStereoMismatchIsLeftOut) {
+  Fixture f = makeMap(false);
+  addSecondCamera(f);
+  KeyframeData& kf = *f.map->keyframes().get(f.keyframes[4]);
+  kf.right_undistorted_px[3].x() += 25.0;  // a wrong cam1 match on the epipolar line
+  auto summary = runLocalBundleAdjustment(*f.map, stereoOptions(f.scenario));
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  EXPECT_EQ(summary->second_camera_rejected, 1);
+  EXPECT_EQ(summary->second_camera_factors, static_cast<int>(f.scenario.observations.size()) - 1);
+}
+
 TEST(LocalBundleAdjustmentOptions, ValidateNamesTheBadField) {
   LocalBundleAdjustmentOptions options;
   EXPECT_TRUE(options.validate().ok());
@@ -153,6 +234,11 @@ TEST(LocalBundleAdjustmentOptions, ValidateNamesTheBadField) {
   const Status status = options.validate();
   ASSERT_FALSE(status.ok());
   EXPECT_NE(status.error().message().find("window"), std::string::npos);
+  LocalBundleAdjustmentOptions stereo;
+  stereo.use_second_camera = true;
+  stereo.second_intrinsics.fx = 0.0;
+  ASSERT_FALSE(stereo.validate().ok());
+  EXPECT_NE(stereo.validate().error().message().find("second camera"), std::string::npos);
 }
 
 }  // namespace
