@@ -78,6 +78,8 @@ struct Mapper::State {
   std::vector<features::Descriptor> right_descriptors;
   std::vector<Vector3d> right_bearings;
   std::vector<double> stereo_depth_m;  // per keypoint of the newest keyframe, 0 without a cam1 match
+  std::vector<std::int32_t> keyframe_slot;  // snapshot index by keyframe pool index, -1 for none
+  std::vector<std::int32_t> point_slot;     // snapshot index by map point pool index, -1 for none
   KeypointGrid grid;
 
   static std::uint64_t key(const MapPointId& id) { return (static_cast<std::uint64_t>(id.agent) << 32U) | id.counter; }
@@ -344,7 +346,10 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
   out.imu_initialised = s.imu_initialised ? 1 : 0;
   out.newest_keyframe = newest;
   out.keyframe_count = 0;
-  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) {
+  out.window_count = 0;
+  s.keyframe_slot.assign(kMaxKeyframes, -1);
+  s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
+    s.keyframe_slot[h.index] = out.keyframe_count;
     KeyframeStateMsg& m = out.keyframes[out.keyframe_count++];
     m.id = kf.id;
     m.t_ns = kf.t_ns;
@@ -355,16 +360,41 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
   out.point_count = 0;
   const bool ready = !s.right ? s.mono_initialised : true;
   if (!ready) return;
+  s.point_slot.assign(kMaxMapPoints, -1);
   s.map.mapPoints().forEach([&](PoolHandle h, const MapPointData& p) {
     if (p.observation_count < 1) return;
     const auto p_w = s.map.pointInWorld(h);
     if (!p_w || !p_w->allFinite()) return;
+    s.point_slot[h.index] = static_cast<std::int32_t>(out.point_count);
     MapPointMsg& m = out.points[out.point_count++];
     m.id = p.id;
     m.p_w = {p_w->x(), p_w->y(), p_w->z()};
     m.descriptor = p.descriptor;
     m.octave = p.octave;
   });
+
+  // Tracking's motion-only BA window: the newest own keyframes and what they observe.
+  std::vector<PoolHandle> own;
+  for (PoolHandle h : s.keyframesBySequence()) {
+    if (!s.map.keyframes().get(h)->anchor) own.push_back(h);
+  }
+  const std::size_t first = own.size() > kMaxMotionBaKeyframes ? own.size() - kMaxMotionBaKeyframes : 0;
+  for (std::size_t i = first; i < own.size(); ++i) {
+    const KeyframeData& kf = *s.map.keyframes().get(own[i]);
+    WindowKeyframeMsg& w = out.window[out.window_count++];
+    w.keyframe = static_cast<std::uint16_t>(s.keyframe_slot[own[i].index]);
+    w.observation_count = 0;
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (!kf.has_map_point[k]) continue;
+      const std::int32_t slot = s.point_slot[kf.map_point[k].index];
+      if (slot < 0) continue;
+      KeyframeObservationMsg& o = w.observations[w.observation_count++];
+      o.u = static_cast<float>(kf.undistorted_px[k].x());
+      o.v = static_cast<float>(kf.undistorted_px[k].y());
+      o.sigma_px = static_cast<float>(s.options.ba.sigma_px * s.levelScale(kf.keypoints[k].octave));
+      o.point = static_cast<std::uint32_t>(slot);
+    }
+  }
 }
 
 // Applies a similarity to the whole map: camera positions and orientations, velocities and point depths.

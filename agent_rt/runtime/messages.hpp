@@ -88,6 +88,21 @@ struct MapPointMsg {
   std::uint8_t octave = 0;  // pyramid level it was seen at, for the search radius and pixel noise
 };
 
+// One observation of a snapshot point by a window keyframe: the undistorted cam0 keypoint and its noise.
+struct KeyframeObservationMsg {
+  float u = 0.0F;
+  float v = 0.0F;
+  float sigma_px = 1.0F;
+  std::uint32_t point = 0;  // index into MapSnapshotMessage::points
+};
+
+// A keyframe of tracking's motion-only BA window, with what it observes of the snapshot's points.
+struct WindowKeyframeMsg {
+  std::uint16_t keyframe = 0;  // index into MapSnapshotMessage::keyframes
+  std::uint16_t observation_count = 0;
+  std::array<KeyframeObservationMsg, kMaxKeypointsPerKeyframe> observations{};
+};
+
 struct MapSnapshotMessage {
   std::uint64_t sequence = 0;
   std::int64_t publish_steady_ns = 0;
@@ -103,6 +118,9 @@ struct MapSnapshotMessage {
   std::array<KeyframeStateMsg, kMaxKeyframes> keyframes{};
   std::uint32_t point_count = 0;
   std::array<MapPointMsg, kMaxMapPoints> points{};
+  // The agent's newest own keyframes, oldest first, for motion-only BA over the newest n keyframes.
+  std::uint16_t window_count = 0;
+  std::array<WindowKeyframeMsg, kMaxMotionBaKeyframes> window{};
 };
 
 static_assert(std::is_trivially_copyable_v<KeyframeMessage>);
