@@ -106,6 +106,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   tracking.read("min_tracked_points", o.tracking.keyframe.min_tracked_points);
   tracking.read("max_lost_frames", o.tracking.max_lost_frames);
   tracking.read("min_inliers", o.tracking.pose.min_inliers);
+  tracking.read("motion_ba_keyframes", o.tracking.motion_ba_keyframes);
   if (Status s = tracking.finish(); !s.ok()) return in_file(s);
 
   Section mapping = section("mapping");

@@ -44,6 +44,11 @@ Status TrackerOptions::validate() const {
     return Error{ErrorCode::kInvalidArgument, "tracker: initialisation_max_frames_between must be >= 1"};
   }
   if (max_lost_frames < 1) return Error{ErrorCode::kInvalidArgument, "tracker: max_lost_frames must be >= 1"};
+  if (motion_ba_keyframes < 1 || motion_ba_keyframes > static_cast<int>(kMaxMotionBaKeyframes)) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: motion_ba_keyframes = " + std::to_string(motion_ba_keyframes) +
+                                                  " must be in [1, " + std::to_string(kMaxMotionBaKeyframes) +
+                                                  "] (raise CVISLAM_MAX_MOTION_BA_KEYFRAMES)"};
+  }
   if (Status s = pose.validate(); !s.ok()) return s;
   return keyframe.validate();
 }
@@ -162,6 +167,27 @@ struct Tracker::State {
   };
   std::array<Published, kRingSize> published{};
   std::size_t published_next = 0;
+
+  // The IMU between the keyframes tracking published, for motion-only BA over the newest n keyframes.
+  struct ImuLink {
+    KeyframeId from;
+    KeyframeId to;
+    imu::Preintegration preintegration;
+    bool valid = false;
+  };
+  std::array<ImuLink, kMaxMotionWindowKeyframes + 1> links{};
+  std::size_t links_next = 0;
+  // The window's keyframes, their observations of the snapshot's points, and their outlier flags.
+  std::array<MotionWindowKeyframe, kMaxMotionWindowKeyframes> window{};
+  std::array<std::array<PoseObservation, kMaxKeypointsPerKeyframe>, kMaxMotionBaKeyframes> window_observations{};
+  std::array<std::array<std::uint8_t, kMaxKeypointsPerKeyframe>, kMaxMotionBaKeyframes> window_outliers{};
+
+  const ImuLink* findLink(const KeyframeId& from, const KeyframeId& to) const {
+    for (const ImuLink& l : links) {
+      if (l.valid && l.from == from && l.to == to) return &l;
+    }
+    return nullptr;
+  }
 
   void appendImu(std::span<const dataset::ImuSample> samples) {
     for (const dataset::ImuSample& s : samples) {
@@ -310,6 +336,69 @@ bool Tracker::awaitingKeyframe(KeyframeId* id) const {
 }
 
 namespace {
+
+// The motion-only BA window (paper IV-C), oldest first: the newest n keyframes, that is the snapshot's newest
+// keyframes whose IMU links tracking still holds, chained, and then the keyframe tracking published last if
+// mapping has not returned it yet (no observations: its IMU links carry it). Each gets its IMU to the next,
+// the last the IMU to this frame. Returns the window's size; below 2 (n = 1, or a broken chain) the caller
+// holds the newest keyframe alone.
+std::size_t buildMotionWindow(Tracker::State& s, int n) {
+  const MapSnapshotMessage* map = s.snapshot;
+  if (n <= 1 || map == nullptr || map->window_count == 0 || !s.has_keyframe) return 0;
+  const KeyframeId& newest_mapped = map->keyframes[map->window[map->window_count - 1].keyframe].id;
+  const bool unmapped = !(newest_mapped == s.keyframe_id);
+  const auto wanted = std::min<std::size_t>(static_cast<std::size_t>(n) - (unmapped ? 1 : 0), map->window_count);
+  if (wanted == 0) return 0;
+  const std::size_t first = map->window_count - wanted;
+  // Walk back from the newest window keyframe while the IMU links chain.
+  std::size_t start = map->window_count - 1;
+  while (start > first) {
+    const KeyframeId& older = map->keyframes[map->window[start - 1].keyframe].id;
+    const KeyframeId& newer = map->keyframes[map->window[start].keyframe].id;
+    if (s.findLink(older, newer) == nullptr) break;
+    --start;
+  }
+  const Tracker::State::ImuLink* to_unmapped = nullptr;
+  if (unmapped) {
+    to_unmapped = s.findLink(newest_mapped, s.keyframe_id);
+    if (to_unmapped == nullptr) return 0;
+  }
+  std::size_t count = 0;
+  for (std::size_t w = start; w < map->window_count; ++w) {
+    const WindowKeyframeMsg& wk = map->window[w];
+    const KeyframeStateMsg& state = map->keyframes[wk.keyframe];
+    std::array<PoseObservation, kMaxKeypointsPerKeyframe>& obs = s.window_observations[count];
+    for (std::uint16_t i = 0; i < wk.observation_count; ++i) {
+      const KeyframeObservationMsg& m = wk.observations[i];
+      const MapPointMsg& p = map->points[m.point];
+      obs[i].p_w = Vector3d(p.p_w[0], p.p_w[1], p.p_w[2]);
+      obs[i].keypoint_px = Vector2d(m.u, m.v);
+      obs[i].sigma_px = m.sigma_px;
+    }
+    MotionWindowKeyframe& k = s.window[count];
+    k.T_w_s = fromMsg(state.T_w_s);
+    k.v_w = toVector3(state.v_w);
+    k.bias = biasFromMsg(state.bias);
+    k.observations = std::span<const PoseObservation>(obs.data(), wk.observation_count);
+    k.is_outlier = std::span(s.window_outliers[count].data(), wk.observation_count);
+    if (w + 1 < map->window_count) {
+      k.to_next = &s.findLink(state.id, map->keyframes[map->window[w + 1].keyframe].id)->preintegration;
+    } else {
+      k.to_next = to_unmapped != nullptr ? &to_unmapped->preintegration : &s.pre_keyframe;
+    }
+    ++count;
+  }
+  if (to_unmapped != nullptr) {
+    MotionWindowKeyframe& k = s.window[count++];
+    k.T_w_s = s.keyframe_T_w_s;
+    k.v_w = s.keyframe_v_w;
+    k.bias = s.keyframe_bias;
+    k.observations = {};
+    k.is_outlier = {};
+    k.to_next = &s.pre_keyframe;
+  }
+  return count;
+}
 
 // Projects the snapshot's points with the pose into `projected`; returns how many landed in the image.
 int projectPoints(Tracker::State& s, const SE3d& T_w_s, double radius_px, bool skip_matched) {
@@ -471,6 +560,14 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     const KeyframeId id = m->state.id;
     keyframes.publish();
 
+    if (imu_link && s.pre_keyframe.dt() > 0.0) {
+      State::ImuLink& link = s.links[s.links_next];
+      link.from = s.keyframe_id;
+      link.to = id;
+      link.preintegration = s.pre_keyframe;
+      link.valid = true;
+      s.links_next = (s.links_next + 1) % s.links.size();
+    }
     s.published[s.published_next] = State::Published{id, T, true};
     s.published_next = (s.published_next + 1) % s.published.size();
     s.has_keyframe = true;
@@ -604,8 +701,22 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   // 5. Motion-only visual-inertial BA against the newest keyframe.
   if (s.imu_initialised && o.use_imu && s.has_keyframe && s.imu_ok_since_keyframe && s.pre_keyframe.dt() > 0.0) {
     const std::int64_t t_ba = nowNs();
-    const InertialAnchor anchor{s.keyframe_T_w_s, s.keyframe_v_w, s.keyframe_bias, &s.pre_keyframe};
-    auto inertial = optimizePoseInertial(observations(), T, v_pred, anchor, s.T_s_c, s.intrinsics, o.pose, outliers());
+    const std::size_t window_size = buildMotionWindow(s, o.motion_ba_keyframes);
+    Result<InertialPoseResult> inertial = Error{ErrorCode::kNotFound, "no window"};
+    if (window_size >= 2) {
+      auto windowed = optimizeMotionWindow(std::span(s.window.data(), window_size), observations(), T, v_pred, s.T_s_c,
+                                           s.intrinsics, o.pose, outliers());
+      if (windowed) {
+        InertialPoseResult r;
+        r.T_w_s = windowed->T_w_s;
+        r.v_w = windowed->v_w;
+        r.inliers = windowed->inliers;
+        inertial = r;
+      }
+    } else {
+      const InertialAnchor anchor{s.keyframe_T_w_s, s.keyframe_v_w, s.keyframe_bias, &s.pre_keyframe};
+      inertial = optimizePoseInertial(observations(), T, v_pred, anchor, s.T_s_c, s.intrinsics, o.pose, outliers());
+    }
     if (inertial) {
       T = inertial->T_w_s;
       v = inertial->v_w;

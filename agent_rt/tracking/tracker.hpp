@@ -45,6 +45,10 @@ struct TrackerOptions {
   int initialisation_max_frames_between = 3;  // keyframe spacing until the IMU is initialised (paper: 3)
   int max_lost_frames = 20;                   // frames of failed relocalisation before a new map
   bool use_imu = true;                        // prediction and motion-only BA with the IMU, once initialised
+  // n: the newest keyframes in motion-only BA with the frame (paper IV-C), 1 to kMaxMotionBaKeyframes
+  // (CVISLAM_MAX_MOTION_BA_KEYFRAMES). The oldest of them is held; the others' poses and velocities are
+  // optimised with the frame's (see inertial_pose_optimizer.hpp). 1: the newest keyframe alone, held.
+  int motion_ba_keyframes = 1;
   imu::ImuNoise noise;
 
   [[nodiscard]] Status validate() const;

@@ -226,6 +226,16 @@ TEST(AgentConfig, NamesUnknownKeysAndBadValues) {
   auto section = loadAgentConfig(write("trackin:\n  x: 1\n"), o);
   ASSERT_FALSE(section.ok());
   EXPECT_NE(section.error().message().find("trackin"), std::string::npos);
+
+  // Values the file can hold but the agent cannot use are named when the options are validated.
+  AgentOptions window;
+  window.dataset = "seq";
+  window.output = "out";
+  ASSERT_TRUE(loadAgentConfig(write("tracking:\n  motion_ba_keyframes: 0\n"), window).ok());
+  const Status too_small = window.validate();
+  ASSERT_FALSE(too_small.ok());
+  EXPECT_NE(too_small.error().message().find("motion_ba_keyframes = 0"), std::string::npos);
+  EXPECT_NE(too_small.error().message().find("CVISLAM_MAX_MOTION_BA_KEYFRAMES"), std::string::npos);
 }
 
 }  // namespace

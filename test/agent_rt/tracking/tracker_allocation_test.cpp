@@ -16,7 +16,8 @@
 namespace cvislam::agent {
 namespace {
 
-TEST(TrackerAllocations, SteadyStateTrackingAllocatesNothing) {
+// Tracks the rendered loop and expects no allocation inside track() in the steady state.
+void expectSteadyStateAllocatesNothing(const TrackerOptions& options) {
   test::TempDir dir;
   sim::MissionPlanOptions plan_options;
   plan_options.preset = "loop";
@@ -31,7 +32,7 @@ TEST(TrackerAllocations, SteadyStateTrackingAllocatesNothing) {
   ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
   auto seq = dataset::EurocSequence::open(dir.path() / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
-  auto agent = test::InlineAgent::create(*seq, true);
+  auto agent = test::InlineAgent::create(*seq, true, options);
   ASSERT_TRUE(agent.ok()) << agent.error().toString();
 
   long steady_allocations = 0;
@@ -60,6 +61,16 @@ TEST(TrackerAllocations, SteadyStateTrackingAllocatesNothing) {
   EXPECT_GE(steady_tracked, steady_frames - 2);
   EXPECT_GE(steady_keyframes, 3);
   EXPECT_EQ(steady_allocations, 0);
+}
+
+TEST(TrackerAllocations, SteadyStateTrackingAllocatesNothing) {
+  expectSteadyStateAllocatesNothing(TrackerOptions{});
+}
+
+TEST(TrackerAllocations, TheLargestMotionBaWindowAllocatesNothing) {
+  TrackerOptions options;
+  options.motion_ba_keyframes = static_cast<int>(kMaxMotionBaKeyframes);
+  expectSteadyStateAllocatesNothing(options);
 }
 
 }  // namespace
