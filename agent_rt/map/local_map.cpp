@@ -137,6 +137,36 @@ Status LocalMap::addObservation(PoolHandle keyframe, std::uint16_t keypoint, Poo
   return Status::Ok();
 }
 
+Result<int> LocalMap::mergeMapPoints(PoolHandle keep, PoolHandle drop) {
+  MapPointData* kept = map_points_->get(keep);
+  const MapPointData* dropped = map_points_->get(drop);
+  if (kept == nullptr || dropped == nullptr) return Error{ErrorCode::kNotFound, "mergeMapPoints: stale or unknown handle"};
+  if (keep == drop) return Error{ErrorCode::kInvalidArgument, "mergeMapPoints: a point cannot be merged into itself"};
+  kept->visible += dropped->visible;
+  kept->found += dropped->found;
+  int moved = 0;
+  keyframes_->forEach([&](PoolHandle h, KeyframeData& kf) {
+    int drop_at = -1;
+    bool observes_keep = false;
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (!kf.has_map_point[k]) continue;
+      if (kf.map_point[k] == drop) drop_at = k;
+      if (kf.map_point[k] == keep) observes_keep = true;
+    }
+    if (drop_at < 0) return;
+    const auto k = static_cast<std::uint16_t>(drop_at);
+    detach(h, k);
+    if (!observes_keep) {
+      kf.map_point[k] = keep;
+      kf.has_map_point[k] = true;
+      ++kept->observation_count;
+      ++moved;
+    }
+  });
+  if (Status status = removeMapPoint(drop); !status.ok()) return status.error();
+  return moved;
+}
+
 Status LocalMap::removeMapPoint(PoolHandle map_point) {
   if (!map_points_->valid(map_point)) return Error{ErrorCode::kNotFound, "removeMapPoint: stale or unknown handle"};
   keyframes_->forEach([&](PoolHandle, KeyframeData& kf) {

@@ -94,6 +94,10 @@ class LocalMap {
   Status addObservation(PoolHandle keyframe, std::uint16_t keypoint, PoolHandle map_point);
   // Removes the point and every observation of it.
   Status removeMapPoint(PoolHandle map_point);
+  // `drop` and `keep` are one physical point (a duplicate): every keyframe that observed `drop` observes
+  // `keep` at that keypoint instead (one that observes `keep` already just loses the `drop` link), `drop`'s
+  // visibility counts are added to `keep`'s, and `drop` goes. Returns how many observations moved to `keep`.
+  Result<int> mergeMapPoints(PoolHandle keep, PoolHandle drop);
 
   // Removes points that tracking rarely finds, and young points that too few keyframes observe. Returns how
   // many were removed.

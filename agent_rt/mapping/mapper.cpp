@@ -27,6 +27,7 @@ Status MapperOptions::validate() const {
   if (ba.window > max_keyframes) return bad("the BA window must not exceed max_keyframes");
   if (triangulation_neighbours < 0) return bad("triangulation_neighbours must be >= 0");
   if (!(fuse_radius_px > 0.0)) return bad("fuse_radius_px must be > 0");
+  if (!(fuse_max_depth_ratio >= 0.0)) return bad("fuse_max_depth_ratio must be >= 0");
   if (imu_init_keyframes < 4 || imu_init_max_keyframes < imu_init_keyframes) {
     return bad("imu_init_keyframes must be >= 4 and imu_init_max_keyframes >= imu_init_keyframes");
   }
@@ -289,8 +290,10 @@ int triangulateWithNeighbours(Mapper::State& s, PoolHandle handle, const std::ve
 }
 
 // Existing points found again in the keyframe: projected with its pose and matched by descriptor near the
-// projection. Counts visibility for culling.
-int fusePoints(Mapper::State& s, PoolHandle handle) {
+// projection. Counts visibility for culling. When the best keypoint already holds another point at about the
+// same depth, the two are one physical point made twice (duplicates by proximity and descriptor): the one
+// with fewer observations is merged into the other.
+int fusePoints(Mapper::State& s, PoolHandle handle, int* merged) {
   KeyframeData& kf = *s.map.keyframes().get(handle);
   s.grid.build(std::span(kf.keypoints.data(), kf.keypoint_count), s.left.width(), s.left.height());
   const SE3d T_c_w = s.cameraPose(kf).inverse();
@@ -300,6 +303,7 @@ int fusePoints(Mapper::State& s, PoolHandle handle) {
   }
   int fused = 0;
   std::vector<std::pair<PoolHandle, std::uint16_t>> links;
+  std::vector<std::pair<PoolHandle, PoolHandle>> duplicates;
   s.map.mapPoints().forEach([&](PoolHandle h, MapPointData& p) {
     if (observed_here[h.index] != 0) {
       ++p.visible;
@@ -316,14 +320,24 @@ int fusePoints(Mapper::State& s, PoolHandle handle) {
     int best = s.options.fuse_max_distance + 1;
     int best_k = -1;
     s.grid.forEachWithin(*px, s.options.fuse_radius_px * s.levelScale(p.octave), [&](int k) {
-      if (kf.has_map_point[static_cast<std::size_t>(k)]) return;
       const int d = features::hammingDistance(p.descriptor, kf.descriptors[static_cast<std::size_t>(k)]);
       if (d < best) {
         best = d;
         best_k = k;
       }
     });
-    if (best_k >= 0) links.emplace_back(h, static_cast<std::uint16_t>(best_k));
+    if (best_k < 0) return;
+    const auto k = static_cast<std::uint16_t>(best_k);
+    if (!kf.has_map_point[k]) {
+      links.emplace_back(h, k);
+      return;
+    }
+    const auto other_w = s.map.pointInWorld(kf.map_point[k]);
+    if (!other_w) return;
+    const double other_z = (T_c_w * *other_w).z();
+    if (std::abs(other_z - p_c.z()) <= s.options.fuse_max_depth_ratio * p_c.z()) {
+      duplicates.emplace_back(h, kf.map_point[k]);
+    }
   });
   for (const auto& [point, k] : links) {
     if (kf.has_map_point[k]) continue;  // two points wanted the same keypoint: the first keeps it
@@ -334,6 +348,13 @@ int fusePoints(Mapper::State& s, PoolHandle handle) {
         p->descriptor = kf.descriptors[k];
       }
     }
+  }
+  for (const auto& [a, b] : duplicates) {
+    const MapPointData* pa = s.map.mapPoints().get(a);
+    const MapPointData* pb = s.map.mapPoints().get(b);
+    if (pa == nullptr || pb == nullptr || a == b) continue;  // gone in an earlier merge
+    const bool keep_b = pb->observation_count >= pa->observation_count;
+    if (s.map.mergeMapPoints(keep_b ? b : a, keep_b ? a : b).ok()) ++*merged;
   }
   return fused;
 }
@@ -626,7 +647,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
       }
     }
   } else {
-    report.fused = fusePoints(s, handle);
+    report.fused = fusePoints(s, handle, &report.merged);
     if (stereo) report.stereo_points = addStereoPoints(s, handle);
     report.triangulated += triangulateWithNeighbours(s, handle, order);
     report.culled = s.map.cullMapPoints(s.options.cull);

@@ -49,6 +49,7 @@ struct MapperOptions {
   int triangulation_neighbours = 2;  // previous keyframes searched for new points
   double fuse_radius_px = 4.0;       // at level 0
   int fuse_max_distance = 40;        // Hamming bits
+  double fuse_max_depth_ratio = 0.2;  // duplicates: depths in the keyframe's camera within this share
   bool use_imu = true;
   int imu_init_keyframes = 15;      // keyframes before the IMU initialisation is tried (paper: 15)
   int imu_init_max_keyframes = 20;  // monocular: still failing then, the map is started again
@@ -67,6 +68,7 @@ struct MapperReport {
   bool mono_initialised_now = false;
   int linked = 0;  // tracking's matches linked
   int fused = 0;   // existing points found again by projection
+  int merged = 0;  // duplicate points merged into another
   int stereo_matches = 0;  // keypoints of the keyframe with a cam1 match
   int stereo_points = 0;
   int triangulated = 0;

@@ -328,10 +328,10 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     if (report->ba_ran) local_ba.add(report->ba_ns);
     if (options.trace_mapping) {
       std::fprintf(stderr,
-                   "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, stereo %d matched / %d new points, "
+                   "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
                    "triangulated %d, culled %d; BA %d keyframes + %d fixed, %d points, %d factors (%d cam1, %d "
                    "mismatches left out), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
-                   t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->stereo_matches,
+                   t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged, report->stereo_matches,
                    report->stereo_points, report->triangulated, report->culled, report->ba.window_keyframes,
                    report->ba.fixed_keyframes, report->ba.map_points, report->ba.reprojection_factors,
                    report->ba.second_camera_factors, report->ba.second_camera_rejected, report->ba.initial_cost,

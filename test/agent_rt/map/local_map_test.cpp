@@ -1,5 +1,5 @@
 // LocalMap: capacity reporting and eviction, re-anchoring of map points when their reference keyframe goes,
-// anchors that stay, and the culling policy.
+// anchors that stay, the culling policy, and the merging of duplicate points.
 #include "agent_rt/map/local_map.hpp"
 
 #include <memory>
@@ -109,6 +109,41 @@ TEST_F(LocalMapTest, CullingRemovesRarelyFoundAndUnconfirmedPointsOnly) {
   EXPECT_FALSE(sut_->mapPoints().valid(*unconfirmed));
   EXPECT_TRUE(sut_->mapPoints().valid(*confirmed));
   EXPECT_FALSE(sut_->keyframes().get(kf1)->has_map_point[2]);  // the observation went with the point
+}
+
+TEST_F(LocalMapTest, MergingADuplicateMovesItsObservationsAndCountsAndRemovesIt) {
+  const PoolHandle a = addKeyframe(0.0);
+  const PoolHandle b = addKeyframe(0.5);
+  const PoolHandle c = addKeyframe(1.0);
+  // keep: seen by a (keypoint 0) and b (keypoint 0). drop: seen by b (keypoint 1, so b saw both: it only loses
+  // the link) and c (keypoint 2, which moves).
+  auto keep = sut_->createMapPoint(a, 0, Vector3d::UnitZ(), 4.0, point_ids_.next());
+  auto drop = sut_->createMapPoint(c, 2, Vector3d::UnitZ(), 4.1, point_ids_.next());
+  ASSERT_TRUE(keep.ok() && drop.ok());
+  ASSERT_TRUE(sut_->addObservation(b, 0, *keep).ok());
+  ASSERT_TRUE(sut_->addObservation(b, 1, *drop).ok());
+  sut_->mapPoints().get(*keep)->visible = 5;
+  sut_->mapPoints().get(*keep)->found = 4;
+  sut_->mapPoints().get(*drop)->visible = 3;
+  sut_->mapPoints().get(*drop)->found = 1;
+
+  auto moved = sut_->mergeMapPoints(*keep, *drop);
+  ASSERT_TRUE(moved.ok()) << moved.error().toString();
+  EXPECT_EQ(*moved, 1);
+  EXPECT_FALSE(sut_->mapPoints().valid(*drop));
+  const MapPointData& kept = *sut_->mapPoints().get(*keep);
+  EXPECT_EQ(kept.observation_count, 3);  // a, b, c
+  EXPECT_EQ(kept.visible, 8U);
+  EXPECT_EQ(kept.found, 5U);
+  const KeyframeData& kb = *sut_->keyframes().get(b);
+  EXPECT_TRUE(kb.has_map_point[0]);
+  EXPECT_FALSE(kb.has_map_point[1]);
+  const KeyframeData& kc = *sut_->keyframes().get(c);
+  ASSERT_TRUE(kc.has_map_point[2]);
+  EXPECT_EQ(kc.map_point[2], *keep);
+
+  EXPECT_FALSE(sut_->mergeMapPoints(*keep, *keep).ok());
+  EXPECT_EQ(sut_->mergeMapPoints(*keep, *drop).error().code(), ErrorCode::kNotFound);  // gone already
 }
 
 TEST_F(LocalMapTest, BadObservationsAreRefusedWithTheirReason) {
