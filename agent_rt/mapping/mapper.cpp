@@ -78,6 +78,8 @@ struct Mapper::State {
   std::vector<features::Keypoint> right_keypoints;
   std::vector<features::Descriptor> right_descriptors;
   std::vector<Vector3d> right_bearings;
+  std::vector<int> right_owner;  // per right keypoint: the left keypoint matched to it, or -1
+  std::vector<int> right_owner_distance;
   std::vector<double> stereo_depth_m;  // per keypoint of the newest keyframe, 0 without a cam1 match
   std::vector<std::int32_t> keyframe_slot;  // snapshot index by keyframe pool index, -1 for none
   std::vector<std::int32_t> point_slot;     // snapshot index by map point pool index, -1 for none
@@ -196,6 +198,8 @@ int matchStereo(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg)
   const int n_right = s.right_orb->extract(std::span(msg.right_pixels.data(), pixels), msg.right_width,
                                            msg.right_height, s.right_keypoints, s.right_descriptors);
   s.right_bearings.resize(static_cast<std::size_t>(n_right));
+  s.right_owner.assign(static_cast<std::size_t>(n_right), -1);
+  s.right_owner_distance.assign(static_cast<std::size_t>(n_right), 256);
   for (int j = 0; j < n_right; ++j) {
     s.right_bearings[static_cast<std::size_t>(j)] =
         s.right->unproject(s.right_keypoints[static_cast<std::size_t>(j)].px.cast<double>());
@@ -223,7 +227,18 @@ int matchStereo(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg)
     if (!p || p->z() < o.min_depth_m) continue;
     const double tolerance = 2.0 * s.levelScale(kf.keypoints[k].octave) / f;
     if (geometry::rayAngle(*p, b0) > tolerance || geometry::rayAngle(T_c1_c0 * *p, b1) > tolerance) continue;
+    // One right keypoint serves one left keypoint: the closer in descriptor keeps it.
+    const int distance = match.best;
+    if (s.right_owner[best_j] >= 0) {
+      if (s.right_owner_distance[best_j] <= distance) continue;
+      const auto previous = static_cast<std::uint16_t>(s.right_owner[best_j]);
+      kf.has_right[previous] = false;
+      s.stereo_depth_m[previous] = 0.0;
+      --matched;
+    }
     const features::Keypoint& rk = s.right_keypoints[best_j];
+    s.right_owner[best_j] = k;
+    s.right_owner_distance[best_j] = distance;
     kf.has_right[k] = true;
     kf.right_undistorted_px[k] = s.right->undistortPixel(rk.px.cast<double>());
     kf.right_octave[k] = rk.octave;
@@ -317,27 +332,30 @@ int fusePoints(Mapper::State& s, PoolHandle handle, int* merged) {
     const auto px = s.left.project(p_c);
     if (!px || px->x() < 0 || px->y() < 0 || px->x() >= s.left.width() || px->y() >= s.left.height()) return;
     ++p.visible;
-    int best = s.options.fuse_max_distance + 1;
-    int best_k = -1;
+    // The closest keypoint by descriptor among the free ones, and among those that hold a point.
+    int best_free = s.options.fuse_max_distance + 1;
+    int best_free_k = -1;
+    int best_taken = s.options.fuse_max_distance + 1;
+    int best_taken_k = -1;
     s.grid.forEachWithin(*px, s.options.fuse_radius_px * s.levelScale(p.octave), [&](int k) {
       const int d = features::hammingDistance(p.descriptor, kf.descriptors[static_cast<std::size_t>(k)]);
+      int& best = kf.has_map_point[static_cast<std::size_t>(k)] ? best_taken : best_free;
+      int& best_k = kf.has_map_point[static_cast<std::size_t>(k)] ? best_taken_k : best_free_k;
       if (d < best) {
         best = d;
         best_k = k;
       }
     });
-    if (best_k < 0) return;
-    const auto k = static_cast<std::uint16_t>(best_k);
-    if (!kf.has_map_point[k]) {
-      links.emplace_back(h, k);
-      return;
+    if (best_taken_k >= 0 && best_taken < best_free) {
+      // The keypoint that fits best holds another point: a duplicate if it sits at about the same depth.
+      const PoolHandle other = kf.map_point[static_cast<std::size_t>(best_taken_k)];
+      const auto other_w = s.map.pointInWorld(other);
+      if (other_w && std::abs((T_c_w * *other_w).z() - p_c.z()) <= s.options.fuse_max_depth_ratio * p_c.z()) {
+        duplicates.emplace_back(h, other);
+        return;
+      }
     }
-    const auto other_w = s.map.pointInWorld(kf.map_point[k]);
-    if (!other_w) return;
-    const double other_z = (T_c_w * *other_w).z();
-    if (std::abs(other_z - p_c.z()) <= s.options.fuse_max_depth_ratio * p_c.z()) {
-      duplicates.emplace_back(h, kf.map_point[k]);
-    }
+    if (best_free_k >= 0) links.emplace_back(h, static_cast<std::uint16_t>(best_free_k));
   });
   for (const auto& [point, k] : links) {
     if (kf.has_map_point[k]) continue;  // two points wanted the same keypoint: the first keeps it

@@ -470,6 +470,10 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
         result.issue = FrameIssue::kImuGap;
         s.imu_ok_since_keyframe = false;
       }
+    } else if (o.use_imu && frame.t_ns > s.last_t_ns) {
+      // No IMU at all for this interval: the keyframe's preintegration would silently skip it.
+      result.issue = FrameIssue::kImuGap;
+      s.imu_ok_since_keyframe = false;
     }
   }
   s.appendImu(frame.imu);
@@ -713,7 +717,8 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
         r.inliers = windowed->inliers;
         inertial = r;
       }
-    } else {
+    }
+    if (!inertial) {  // n = 1, a broken chain, or a window that failed: the newest keyframe alone, held
       const InertialAnchor anchor{s.keyframe_T_w_s, s.keyframe_v_w, s.keyframe_bias, &s.pre_keyframe};
       inertial = optimizePoseInertial(observations(), T, v_pred, anchor, s.T_s_c, s.intrinsics, o.pose, outliers());
     }
