@@ -165,6 +165,49 @@ TEST_F(AgentTest, BadInputIsReportedAndTrackingGoesOn) {
   EXPECT_LT(ate_m, 0.1);
 }
 
+// A copy whose IMU starts `skip_s` seconds late: the first frames have no IMU sample at all.
+fs::path imuStartsLateCopy(const fs::path& source, const fs::path& target, double skip_s) {
+  fs::create_directories(target);
+  fs::copy(source, target, fs::copy_options::recursive | fs::copy_options::create_hard_links);
+  const fs::path imu_csv = target / "mav0" / "imu0" / "data.csv";
+  std::ifstream in(imu_csv);
+  std::vector<std::string> lines;
+  std::string line;
+  std::int64_t t0 = -1;
+  while (std::getline(in, line)) {
+    if (!line.empty() && line[0] != '#') {
+      const std::int64_t t = std::stoll(line.substr(0, line.find(',')));
+      if (t0 < 0) t0 = t;
+      if (t < t0 + static_cast<std::int64_t>(skip_s * 1e9)) continue;
+    }
+    lines.push_back(line);
+  }
+  in.close();
+  fs::remove(imu_csv);  // a hard link: write a new file instead of through it
+  std::ofstream out(imu_csv);
+  for (const std::string& l : lines) out << l << "\n";
+  return target;
+}
+
+TEST_F(AgentTest, ImuThatStartsAfterTheImagesIsReportedAndTrackingGoesOn) {
+  // The first 2 s of frames have no IMU sample at all: each is an IMU gap, and no keyframe may take a
+  // preintegration that silently skips them into the IMU initialisation.
+  const fs::path cut = imuStartsLateCopy(sequence(), dir_->path() / "imu_cut" / "agent0", 2.0);
+  const std::atomic<bool> stop{false};
+  AgentOptions o = options(cut, "imu_cut_out");
+  o.mode = AgentMode::kStereo;
+  auto summary = runAgent(o, stop);
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  std::printf("%s", formatSummary(*summary).c_str());
+  EXPECT_GE(summary->imu_gaps, 35u);  // about 40 frames before the IMU starts
+  EXPECT_GT(summary->imu_initialised_at_s, 2.0);
+  EXPECT_GE(summary->tracked_frames, summary->frames - 6);
+  EXPECT_EQ(summary->new_maps, 1u);
+  const auto [ate_m, scale_error] = evaluate(summary->trajectory, cut);
+  std::printf("IMU from 2 s on: ATE %.3f m, scale error %.2f %%\n", ate_m, scale_error);
+  EXPECT_LT(ate_m, 0.1);
+}
+
 TEST_F(AgentTest, InterruptedRunStillWritesItsOutputs) {
   std::atomic<bool> stop{false};
   AgentOptions o = options(sequence(), "interrupted");
