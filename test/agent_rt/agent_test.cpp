@@ -6,6 +6,7 @@
 #include <atomic>
 #include <chrono>
 #include <fstream>
+#include <functional>
 #include <memory>
 #include <string>
 #include <thread>
@@ -107,11 +108,9 @@ TEST_F(AgentTest, StereoInertialTracksTheSimulatedLoop) {
 
 // A copy of the sequence (images hard-linked) with an IMU gap, a missing image, a black frame and an
 // unreadable image.
-fs::path damagedCopy(const fs::path& source, const fs::path& target) {
-  fs::create_directories(target);
-  fs::copy(source, target, fs::copy_options::recursive | fs::copy_options::create_hard_links);
-  const fs::path mav0 = target / "mav0";
-  // IMU: drop 0.3 s of samples at t0 + 6 s.
+// Rewrites imu0/data.csv of a hard-linked copy, keeping the samples for which keep(t - t0) holds, t0 being
+// the first sample's time.
+void filterImu(const fs::path& mav0, const std::function<bool(std::int64_t)>& keep) {
   const fs::path imu_csv = mav0 / "imu0" / "data.csv";
   std::ifstream in(imu_csv);
   std::vector<std::string> lines;
@@ -121,7 +120,7 @@ fs::path damagedCopy(const fs::path& source, const fs::path& target) {
     if (!line.empty() && line[0] != '#') {
       const std::int64_t t = std::stoll(line.substr(0, line.find(',')));
       if (t0 < 0) t0 = t;
-      if (t > t0 + 6'000'000'000 && t < t0 + 6'300'000'000) continue;
+      if (!keep(t - t0)) continue;
     }
     lines.push_back(line);
   }
@@ -129,7 +128,14 @@ fs::path damagedCopy(const fs::path& source, const fs::path& target) {
   fs::remove(imu_csv);  // a hard link: write a new file instead of through it
   std::ofstream out(imu_csv);
   for (const std::string& l : lines) out << l << "\n";
-  out.close();
+}
+
+fs::path damagedCopy(const fs::path& source, const fs::path& target) {
+  fs::create_directories(target);
+  fs::copy(source, target, fs::copy_options::recursive | fs::copy_options::create_hard_links);
+  const fs::path mav0 = target / "mav0";
+  // IMU: drop 0.3 s of samples at t0 + 6 s.
+  filterImu(mav0, [](std::int64_t dt) { return !(dt > 6'000'000'000 && dt < 6'300'000'000); });
   // Images: frame 100 of cam0 missing, frame 120 black (both cameras), frame 140 not a PNG.
   std::vector<fs::path> cam0;
   for (const auto& e : fs::directory_iterator(mav0 / "cam0" / "data")) cam0.push_back(e.path());
@@ -169,23 +175,8 @@ TEST_F(AgentTest, BadInputIsReportedAndTrackingGoesOn) {
 fs::path imuStartsLateCopy(const fs::path& source, const fs::path& target, double skip_s) {
   fs::create_directories(target);
   fs::copy(source, target, fs::copy_options::recursive | fs::copy_options::create_hard_links);
-  const fs::path imu_csv = target / "mav0" / "imu0" / "data.csv";
-  std::ifstream in(imu_csv);
-  std::vector<std::string> lines;
-  std::string line;
-  std::int64_t t0 = -1;
-  while (std::getline(in, line)) {
-    if (!line.empty() && line[0] != '#') {
-      const std::int64_t t = std::stoll(line.substr(0, line.find(',')));
-      if (t0 < 0) t0 = t;
-      if (t < t0 + static_cast<std::int64_t>(skip_s * 1e9)) continue;
-    }
-    lines.push_back(line);
-  }
-  in.close();
-  fs::remove(imu_csv);  // a hard link: write a new file instead of through it
-  std::ofstream out(imu_csv);
-  for (const std::string& l : lines) out << l << "\n";
+  const auto skip_ns = static_cast<std::int64_t>(skip_s * 1e9);
+  filterImu(target / "mav0", [skip_ns](std::int64_t dt) { return dt >= skip_ns; });
   return target;
 }
 
