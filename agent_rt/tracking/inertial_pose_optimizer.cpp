@@ -58,51 +58,21 @@ Result<InertialPoseResult> optimizePoseInertial(std::span<const PoseObservation>
                                                 const factors::PinholeIntrinsics& intrinsics,
                                                 const PoseOptimizerOptions& options,
                                                 std::span<std::uint8_t> is_outlier) {
-  if (Status status = options.validate(); !status.ok()) return status.error();
-  if (anchor.preintegration == nullptr || anchor.preintegration->dt() <= 0.0) {
-    return Error{ErrorCode::kInvalidArgument, "optimizePoseInertial: the anchor has no IMU to the frame"};
-  }
-  if (is_outlier.size() != observations.size()) {
-    return Error{ErrorCode::kInvalidArgument, "optimizePoseInertial: is_outlier must be as long as observations"};
-  }
-  for (std::uint8_t& flag : is_outlier) flag = 0;
-  const Mat9 S = factors::sqrtInformationFromCovariance<9>(anchor.preintegration->covariance());
-
+  // The window with the anchor as its one (held) keyframe.
+  std::array<MotionWindowKeyframe, 1> window{};
+  window[0].T_w_s = anchor.T_w_s;
+  window[0].v_w = anchor.v_w;
+  window[0].bias = anchor.bias;
+  window[0].to_next = anchor.preintegration;
+  auto windowed =
+      optimizeMotionWindow(window, observations, T_w_s_initial, v_w_initial, T_s_c, intrinsics, options, is_outlier);
+  if (!windowed) return windowed.error();
   InertialPoseResult result;
-  result.T_w_s = T_w_s_initial;
-  result.v_w = v_w_initial;
-  for (int round = 0; round < options.rounds; ++round) {
-    for (int it = 0; it < options.iterations_per_round; ++it) {
-      Mat9 H = Mat9::Zero();
-      Vec9 g = Vec9::Zero();
-      Eigen::Matrix<double, 6, 6> H_pose = Eigen::Matrix<double, 6, 6>::Zero();
-      Eigen::Matrix<double, 6, 1> g_pose = Eigen::Matrix<double, 6, 1>::Zero();
-      const int used = accumulateReprojection(observations, result.T_w_s, T_s_c, intrinsics, options.huber_delta,
-                                              is_outlier, H_pose, g_pose);
-      H.topLeftCorner<6, 6>() = H_pose;
-      g.head<6>() = g_pose;
-      if (used < options.min_inliers) break;
-      Mat9 J_imu;
-      const Vec9 r_imu = S * inertialResidual(anchor, result.T_w_s, result.v_w, &J_imu);
-      J_imu = S * J_imu;
-      H.noalias() += J_imu.transpose() * J_imu;
-      g.noalias() += J_imu.transpose() * r_imu;
-      const Vec9 dx = -H.ldlt().solve(g);
-      if (!dx.allFinite()) break;
-      result.T_w_s = SE3d(result.T_w_s.so3() * SO3d::exp(dx.segment<3>(3)), result.T_w_s.translation() + dx.head<3>());
-      result.v_w += dx.tail<3>();
-      ++result.iterations;
-      if (dx.norm() < options.min_step) break;
-    }
-    result.inliers = classifyObservations(observations, result.T_w_s, T_s_c, intrinsics, options.chi2_threshold,
-                                          is_outlier, nullptr);
-  }
-  result.imu_chi2 = (S * inertialResidual(anchor, result.T_w_s, result.v_w, nullptr)).squaredNorm();
-  if (result.inliers < options.min_inliers) {
-    return Error{ErrorCode::kDegenerate, "visual-inertial pose optimisation kept " + std::to_string(result.inliers) +
-                                             " inliers, fewer than the " + std::to_string(options.min_inliers) +
-                                             " required"};
-  }
+  result.T_w_s = windowed->T_w_s;
+  result.v_w = windowed->v_w;
+  result.inliers = windowed->inliers;
+  result.iterations = windowed->iterations;
+  result.imu_chi2 = windowed->imu_chi2;
   return result;
 }
 

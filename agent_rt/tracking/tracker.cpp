@@ -368,7 +368,9 @@ std::size_t buildMotionWindow(Tracker::State& s, int n) {
     const WindowKeyframeMsg& wk = map->window[w];
     const KeyframeStateMsg& state = map->keyframes[wk.keyframe];
     std::array<PoseObservation, kMaxKeypointsPerKeyframe>& obs = s.window_observations[count];
-    for (std::uint16_t i = 0; i < wk.observation_count; ++i) {
+    // The first keyframe is held: its observations would not be used.
+    const std::uint16_t observation_count = w == start ? 0 : wk.observation_count;
+    for (std::uint16_t i = 0; i < observation_count; ++i) {
       const KeyframeObservationMsg& m = wk.observations[i];
       const MapPointMsg& p = map->points[m.point];
       obs[i].p_w = Vector3d(p.p_w[0], p.p_w[1], p.p_w[2]);
@@ -379,8 +381,8 @@ std::size_t buildMotionWindow(Tracker::State& s, int n) {
     k.T_w_s = fromMsg(state.T_w_s);
     k.v_w = toVector3(state.v_w);
     k.bias = biasFromMsg(state.bias);
-    k.observations = std::span<const PoseObservation>(obs.data(), wk.observation_count);
-    k.is_outlier = std::span(s.window_outliers[count].data(), wk.observation_count);
+    k.observations = std::span<const PoseObservation>(obs.data(), observation_count);
+    k.is_outlier = std::span(s.window_outliers[count].data(), observation_count);
     if (w + 1 < map->window_count) {
       k.to_next = &s.findLink(state.id, map->keyframes[map->window[w + 1].keyframe].id)->preintegration;
     } else {
