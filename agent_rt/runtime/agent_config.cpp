@@ -3,72 +3,21 @@
 #include <set>
 #include <string>
 
-#include <yaml-cpp/yaml.h>
-
 #include "agent_rt/runtime/agent.hpp"
+#include "common/config/yaml_section.hpp"
 
 namespace cvislam::agent {
 
-namespace {
-
-class Section {
- public:
-  Section(const YAML::Node& node, std::string name) : node_(node), name_(std::move(name)) {}
-
-  template <typename T>
-  void read(const char* key, T& value) {
-    known_.insert(key);
-    if (!node_[key]) return;
-    try {
-      value = node_[key].as<T>();
-    } catch (const YAML::Exception&) {
-      error_ = name_ + "." + key + ": cannot read '" + YAML::Dump(node_[key]) + "' as the expected type";
-    }
-  }
-
-  Status finish() const {
-    if (!error_.empty()) return Error{ErrorCode::kInvalidArgument, error_};
-    if (!node_.IsMap()) return Status::Ok();
-    for (const auto& item : node_) {
-      const auto key = item.first.as<std::string>();
-      if (known_.count(key) == 0) {
-        return Error{ErrorCode::kInvalidArgument, "unknown config key " + name_ + "." + key};
-      }
-    }
-    return Status::Ok();
-  }
-
- private:
-  YAML::Node node_;
-  std::string name_;
-  std::set<std::string> known_;
-  std::string error_;
-};
-
-}  // namespace
+using config::YamlSection;
 
 Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
-  YAML::Node root;
-  try {
-    root = YAML::LoadFile(file.string());
-  } catch (const YAML::Exception& e) {
-    return Error{ErrorCode::kIoError, file.string() + ": " + e.what()};
-  }
-  if (!root.IsMap()) return Error{ErrorCode::kInvalidArgument, file.string() + ": expected a YAML map at the top"};
-  const std::set<std::string> sections = {"agent", "imu", "orb", "tracking", "mapping", "runtime"};
-  for (const auto& item : root) {
-    const auto key = item.first.as<std::string>();
-    if (sections.count(key) == 0) {
-      return Error{ErrorCode::kInvalidArgument,
-                   file.string() + ": unknown section '" + key + "' (agent, imu, orb, tracking, mapping, runtime)"};
-    }
-  }
-  auto section = [&](const char* name) {
-    return Section(root[name] ? root[name] : YAML::Node(YAML::NodeType::Map), name);
-  };
+  auto loaded = config::loadSections(file.string(), {"agent", "imu", "orb", "tracking", "mapping", "runtime"});
+  if (!loaded) return loaded.error();
+  const YAML::Node& root = *loaded;
+  auto section = [&](const char* name) { return YamlSection(root[name], name); };
   const auto in_file = [&](const Status& s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
 
-  Section agent = section("agent");
+  YamlSection agent = section("agent");
   int agent_id = o.agent;
   std::string mode = toString(o.mode);
   agent.read("id", agent_id);
@@ -81,14 +30,14 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   if (!parsed_mode) return in_file(parsed_mode.error());
   o.mode = *parsed_mode;
 
-  Section imu = section("imu");
+  YamlSection imu = section("imu");
   imu.read("use", o.use_imu);
   imu.read("noise_inflation", o.imu_noise_inflation);
   imu.read("init_keyframes", o.mapping.imu_init_keyframes);
   imu.read("init_max_keyframes", o.mapping.imu_init_max_keyframes);
   if (Status s = imu.finish(); !s.ok()) return in_file(s);
 
-  Section orb = section("orb");
+  YamlSection orb = section("orb");
   orb.read("max_features", o.tracking.orb.max_features);
   orb.read("pyramid_levels", o.tracking.orb.pyramid_levels);
   orb.read("scale_factor", o.tracking.orb.scale_factor);
@@ -97,7 +46,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   orb.read("grid_rows", o.tracking.orb.grid_rows);
   if (Status s = orb.finish(); !s.ok()) return in_file(s);
 
-  Section tracking = section("tracking");
+  YamlSection tracking = section("tracking");
   tracking.read("search_radius_px", o.tracking.search_radius_px);
   tracking.read("refine_radius_px", o.tracking.refine_radius_px);
   tracking.read("relocalisation_radius_px", o.tracking.relocalisation_radius_px);
@@ -109,7 +58,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   tracking.read("motion_ba_keyframes", o.tracking.motion_ba_keyframes);
   if (Status s = tracking.finish(); !s.ok()) return in_file(s);
 
-  Section mapping = section("mapping");
+  YamlSection mapping = section("mapping");
   mapping.read("max_keyframes", o.mapping.max_keyframes);
   mapping.read("ba_window", o.mapping.ba.window);
   mapping.read("ba_iterations", o.mapping.ba.max_iterations);
@@ -119,7 +68,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   mapping.read("stereo_in_ba", o.mapping.stereo.use_in_ba);
   if (Status s = mapping.finish(); !s.ok()) return in_file(s);
 
-  Section runtime = section("runtime");
+  YamlSection runtime = section("runtime");
   std::string pace = toString(o.pace);
   std::string roudi = o.roudi == RouDiMode::kEmbedded ? "embedded" : "external";
   runtime.read("pace", pace);

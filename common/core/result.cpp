@@ -20,6 +20,14 @@ std::string_view toString(ErrorCode code) noexcept {
       return "capacity exceeded";
     case ErrorCode::kInternal:
       return "internal error";
+    case ErrorCode::kAlreadyExists:
+      return "already exists";
+    case ErrorCode::kFailedPrecondition:
+      return "failed precondition";
+    case ErrorCode::kResourceExhausted:
+      return "resource exhausted";
+    case ErrorCode::kUnavailable:
+      return "unavailable";
   }
   return "unknown error";
 }

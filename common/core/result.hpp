@@ -22,6 +22,11 @@ enum class ErrorCode {
   kDegenerate,        // the maths has no unique answer for this input (e.g. collinear points)
   kCapacityExceeded,  // a fixed-capacity container is full
   kInternal,          // a failure that indicates a bug somewhere else
+  // Peers across the network (server <-> agent, API clients):
+  kAlreadyExists,       // the object or the role (an agent id already connected) is taken
+  kFailedPrecondition,  // the request is well formed but not valid in this state (another protocol version)
+  kResourceExhausted,   // a limit was reached (message size, agents per mission)
+  kUnavailable,         // the peer cannot be reached now; trying again later may work
 };
 
 std::string_view toString(ErrorCode code) noexcept;

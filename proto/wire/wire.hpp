@@ -1,0 +1,60 @@
+// Conversions between the project's types and the cvislam.v1 wire messages, shared by the agent's link and the
+// server. Decoding validates: a non-finite value, a quaternion that is not unit length or a wrong number of
+// values is an error that names the field, never a crash.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include <Eigen/Core>
+
+#include "common/core/result.hpp"
+#include "common/dataset/types.hpp"
+#include "common/geometry/lie.hpp"
+#include "common/imu/preintegration.hpp"
+
+namespace cvislam::v1 {
+class Pose;
+class KeyframeState;
+class CameraCalibration;
+class ImuCalibration;
+}  // namespace cvislam::v1
+
+namespace google::protobuf {
+template <typename T>
+class RepeatedField;
+}
+
+namespace cvislam::wire {
+
+// The protocol this build speaks; a Hello with another version is refused.
+inline constexpr std::uint32_t kProtocolVersion = 1;
+
+void toProto(const geometry::SE3d& T, v1::Pose* out);
+// `what` names the field in errors ("keyframe 3:12 T_w_s").
+Result<geometry::SE3d> fromProto(const v1::Pose& pose, const std::string& what);
+
+struct KeyframeStateValues {
+  geometry::SE3d T_w_s;
+  Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
+  imu::ImuBias bias;
+};
+void toProto(std::uint32_t counter, const KeyframeStateValues& state, v1::KeyframeState* out);
+Result<KeyframeStateValues> fromProto(const v1::KeyframeState& state, const std::string& what);
+
+void toProto(const dataset::CameraCalibration& calibration, const geometry::SE3d& T_s_c, v1::CameraCalibration* out);
+// The calibration and T_s_c (camera -> IMU).
+Result<std::pair<dataset::CameraCalibration, geometry::SE3d>> fromProto(const v1::CameraCalibration& calibration,
+                                                                      const std::string& what);
+
+void toProto(const imu::ImuNoise& noise, double rate_hz, v1::ImuCalibration* out);
+Result<imu::ImuNoise> fromProto(const v1::ImuCalibration& imu, const std::string& what);
+
+// Exactly `count` finite values.
+Status checkFinite(const google::protobuf::RepeatedField<float>& values, int count, const std::string& what);
+
+// Keypoint orientation, 256 steps per turn.
+std::uint8_t encodeAngle(float angle_deg);
+float decodeAngle(std::uint8_t code);
+
+}  // namespace cvislam::wire

@@ -1,0 +1,237 @@
+#include "server_cloud/core/server_core.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <sstream>
+
+#include <google/protobuf/util/json_util.h>
+
+#include "common/config/yaml_section.hpp"
+#include "common/dataset/trajectory_io.hpp"
+#include "cvislam/v1/monitor.pb.h"
+
+namespace cvislam::server {
+
+namespace {
+Error invalid(const std::string& what) {
+  return Error{ErrorCode::kInvalidArgument, what};
+}
+}  // namespace
+
+Status ServerOptions::validate() const {
+  if (listen.empty() || listen.find(':') == std::string::npos) {
+    return invalid("listen address '" + listen + "': give host:port, e.g. 127.0.0.1:50051 (port 0: any free port)");
+  }
+  if (max_message_bytes < (64U << 10U) || max_message_bytes > (1U << 30U)) {
+    return invalid("max_message_bytes must be in [64 KiB, 1 GiB]");
+  }
+  if (keepalive_time_ms < 100 || keepalive_timeout_ms < 100) return invalid("keepalive times must be >= 100 ms");
+  if (!std::isfinite(timeline_interval_s) || !(timeline_interval_s >= 0.05)) {
+    return invalid("timeline_interval_s must be >= 0.05");
+  }
+  return session.validate();
+}
+
+std::string ServerOptions::describe() const {
+  std::ostringstream out;
+  out << "  listen:                       " << listen << "\n"
+      << "  output:                       " << (output.empty() ? "(none)" : output.string()) << "\n"
+      << "  max_message_bytes:            " << max_message_bytes << "\n"
+      << "  keepalive_time_ms:            " << keepalive_time_ms << "\n"
+      << "  keepalive_timeout_ms:         " << keepalive_timeout_ms << "\n"
+      << "  timeline_interval_s:          " << timeline_interval_s << "\n"
+      << "  downlink_rate_hz:             " << session.downlink_rate_hz << "\n"
+      << "  max_corrections_per_message:  " << session.max_corrections_per_message << "\n"
+      << "  max_keypoints_per_keyframe:   " << session.ingest.max_keypoints_per_keyframe << "\n"
+      << "  max_imu_samples_per_keyframe: " << session.ingest.max_imu_samples_per_keyframe << "\n"
+      << "  max_maps_per_agent:           " << session.ingest.max_maps_per_agent << "\n";
+  return out.str();
+}
+
+Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
+  auto loaded = config::loadSections(file.string(), {"server", "link", "limits"});
+  if (!loaded) return loaded.error();
+  const YAML::Node& root = *loaded;
+  const auto in_file = [&](const Status& s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
+
+  config::YamlSection server(root["server"], "server");
+  std::string output = o.output.string();
+  server.read("listen", o.listen);
+  server.read("output", output);
+  server.read("timeline_interval_s", o.timeline_interval_s);
+  if (Status s = server.finish(); !s.ok()) return in_file(s);
+  o.output = output;
+
+  config::YamlSection link(root["link"], "link");
+  link.read("downlink_rate_hz", o.session.downlink_rate_hz);
+  link.read("max_corrections_per_message", o.session.max_corrections_per_message);
+  link.read("keepalive_time_ms", o.keepalive_time_ms);
+  link.read("keepalive_timeout_ms", o.keepalive_timeout_ms);
+  if (Status s = link.finish(); !s.ok()) return in_file(s);
+
+  config::YamlSection limits(root["limits"], "limits");
+  limits.read("max_message_bytes", o.max_message_bytes);
+  limits.read("max_keypoints_per_keyframe", o.session.ingest.max_keypoints_per_keyframe);
+  limits.read("max_imu_samples_per_keyframe", o.session.ingest.max_imu_samples_per_keyframe);
+  limits.read("max_maps_per_agent", o.session.ingest.max_maps_per_agent);
+  if (Status s = limits.finish(); !s.ok()) return in_file(s);
+  return in_file(o.validate());
+}
+
+ServerCore::ServerCore(const ServerOptions& options) : options_(options), start_(Clock::now()) {}
+
+std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream) {
+  return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream));
+}
+
+void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& out) const {
+  out.Clear();
+  out.set_uptime_s(std::chrono::duration<double>(Clock::now() - start_).count());
+  for (const auto& mission : missions_.missions()) {
+    if (!mission_filter.empty() && mission->name() != mission_filter) continue;
+    for (const auto& shared : mission->agents()) {
+      auto record = shared->read();
+      v1::AgentStats& a = *out.add_agents();
+      a.set_mission(mission->name());
+      a.set_agent_id(record->id);
+      a.set_connected(record->connected);
+      a.set_finished(record->finished);
+      a.set_connections(record->connections);
+      a.set_keyframes(record->keyframes.size());
+      a.set_points(record->points.size());
+      a.set_maps(static_cast<std::uint32_t>(record->agent_maps.size()));
+      a.set_stored_sequence(record->stored_sequence);
+      a.set_duplicate_batches(record->duplicate_batches);
+      a.set_duplicate_objects(record->duplicate_objects);
+      a.set_refused_messages(record->refused_messages);
+      a.set_last_error(record->last_error);
+      for (const auto& [kind, count] : record->up) {
+        v1::TrafficCounter& c = (*a.mutable_up())[kind];
+        c.set_messages(count.messages);
+        c.set_bytes(count.bytes);
+      }
+      for (const auto& [kind, count] : record->down) {
+        v1::TrafficCounter& c = (*a.mutable_down())[kind];
+        c.set_messages(count.messages);
+        c.set_bytes(count.bytes);
+      }
+    }
+    for (const auto& map : mission->stack().maps()) {
+      auto content = map->read();
+      v1::MapStats& m = *out.add_maps();
+      m.set_mission(mission->name());
+      m.set_map_id(map->id());
+      for (AgentId agent : content->agents()) m.add_agents(agent);
+      m.set_keyframes(content->keyframes().size());
+      m.set_points(content->points().size());
+      m.set_covisibility_edges(content->covisibilityEdges());
+    }
+  }
+}
+
+void ServerCore::sampleTimeline() {
+  const double t_s = std::chrono::duration<double>(Clock::now() - start_).count();
+  std::vector<TimelineSample> samples;
+  for (const auto& mission : missions_.missions()) {
+    for (const auto& shared : mission->agents()) {
+      auto record = shared->read();
+      TimelineSample s;
+      s.t_s = t_s;
+      s.mission = mission->name();
+      s.agent = record->id;
+      s.connected = record->connected;
+      s.keyframes = record->keyframes.size();
+      s.points = record->points.size();
+      if (auto it = record->up.find("message"); it != record->up.end()) s.up_bytes = it->second.bytes;
+      if (auto it = record->down.find("message"); it != record->down.end()) s.down_bytes = it->second.bytes;
+      samples.push_back(std::move(s));
+    }
+  }
+  auto timeline = timeline_.write();
+  timeline->insert(timeline->end(), samples.begin(), samples.end());
+}
+
+Status ServerCore::correctKeyframe(const std::string& mission_name, const KeyframeId& id, const geometry::SE3d& T_m_s,
+                                   const Eigen::Vector3d& v_m, const imu::ImuBias& bias) {
+  auto mission = missions_.find(mission_name);
+  if (!mission) return Error{ErrorCode::kNotFound, "no mission '" + mission_name + "'"};
+  auto shared = mission->agent(id.agent);
+  auto record = shared->write();
+  auto held = record->keyframes.find(id.counter);
+  if (held == record->keyframes.end()) return Error{ErrorCode::kNotFound, "no keyframe " + id.toString()};
+  auto map = mission->stack().find(held->second.map);
+  if (!map) return Error{ErrorCode::kInternal, "keyframe " + id.toString() + " in a vanished map"};
+  {
+    auto content = map->write();
+    ServerKeyframe* kf = content->keyframe(id);
+    if (kf == nullptr) return Error{ErrorCode::kInternal, "keyframe " + id.toString() + " not in its map"};
+    kf->T_w_s = T_m_s;
+    kf->v_w = v_m;
+    kf->bias = bias;
+    ++kf->server_version;
+  }
+  record->corrections.insert(id.counter);
+  return Status::Ok();
+}
+
+Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return Error{ErrorCode::kIoError, "cannot create " + dir.string() + ": " + ec.message()};
+
+  for (const auto& mission : missions_.missions()) {
+    const std::filesystem::path mission_dir = dir / mission->name();
+    std::filesystem::create_directories(mission_dir, ec);
+    if (ec) return Error{ErrorCode::kIoError, "cannot create " + mission_dir.string() + ": " + ec.message()};
+    // Keyframes per agent (all maps) and per agent map.
+    std::map<AgentId, dataset::Trajectory> per_agent;
+    std::map<std::pair<AgentId, MapId>, dataset::Trajectory> per_map;
+    for (const auto& map : mission->stack().maps()) {
+      auto content = map->read();
+      for (const auto& [id, kf] : content->keyframes()) {
+        per_agent[id.agent].push_back({kf.t_ns, kf.T_w_s});
+        per_map[{id.agent, map->id()}].push_back({kf.t_ns, kf.T_w_s});
+      }
+    }
+    const auto by_time = [](const dataset::StampedPose& a, const dataset::StampedPose& b) { return a.t_ns < b.t_ns; };
+    std::map<AgentId, int> maps_of_agent;
+    for (auto& [key, trajectory] : per_map) ++maps_of_agent[key.first];
+    for (auto& [agent, trajectory] : per_agent) {
+      std::sort(trajectory.begin(), trajectory.end(), by_time);
+      const auto path = mission_dir / ("keyframes_agent" + std::to_string(agent) + ".txt");
+      if (Status s = dataset::writeTrajectory(path, trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) return s;
+    }
+    for (auto& [key, trajectory] : per_map) {
+      if (maps_of_agent[key.first] < 2) continue;
+      std::sort(trajectory.begin(), trajectory.end(), by_time);
+      const auto path = mission_dir / ("keyframes_agent" + std::to_string(key.first) + "_map" +
+                                       std::to_string(key.second) + ".txt");
+      if (Status s = dataset::writeTrajectory(path, trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) return s;
+    }
+  }
+
+  v1::ServerStats stats;
+  fillStats("", stats);
+  std::string json;
+  google::protobuf::util::JsonPrintOptions print;
+  print.add_whitespace = true;
+  print.always_print_primitive_fields = true;
+  print.preserve_proto_field_names = true;
+  if (!google::protobuf::util::MessageToJsonString(stats, &json, print).ok()) {
+    return Error{ErrorCode::kInternal, "cannot print the statistics as JSON"};
+  }
+  std::ofstream(dir / "stats.json") << json;
+
+  std::ofstream timeline(dir / "timeline.csv");
+  timeline << "t_s,mission,agent,connected,keyframes,points,up_bytes,down_bytes\n";
+  for (const TimelineSample& s : *timeline_.read()) {
+    timeline << s.t_s << ',' << s.mission << ',' << s.agent << ',' << (s.connected ? 1 : 0) << ',' << s.keyframes
+             << ',' << s.points << ',' << s.up_bytes << ',' << s.down_bytes << '\n';
+  }
+  if (!timeline) return Error{ErrorCode::kIoError, "cannot write " + (dir / "timeline.csv").string()};
+  return Status::Ok();
+}
+
+}  // namespace cvislam::server

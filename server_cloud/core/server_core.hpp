@@ -1,0 +1,88 @@
+// The server's core: every mission's map stack, the agents' sessions, statistics, and what the server writes
+// at the end. Plain C++: the gRPC adapters in server_cloud/service sit on top, and tests drive it directly.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "common/core/result.hpp"
+#include "common/core/synchronized.hpp"
+#include "server_cloud/ingest/agent_session.hpp"
+#include "server_cloud/stack/map_stack.hpp"
+
+namespace cvislam::v1 {
+class ServerStats;
+}
+
+namespace cvislam::server {
+
+struct ServerOptions {
+  std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
+  std::filesystem::path output;            // written at shutdown when set
+  std::size_t max_message_bytes = 16U << 20U;
+  int keepalive_time_ms = 2000;            // pings on idle streams, to notice a vanished agent
+  int keepalive_timeout_ms = 5000;
+  double timeline_interval_s = 1.0;        // keyframes and traffic per agent, sampled for timeline.csv
+  SessionOptions session;
+
+  [[nodiscard]] Status validate() const;
+  [[nodiscard]] std::string describe() const;  // every option with its value, one per line
+};
+
+// Reads a YAML config (see deploy/server_config.yaml) over `options`; names unknown keys and bad values.
+Status loadServerConfig(const std::filesystem::path& file, ServerOptions& options);
+
+// One sample of the timeline: what the server held of an agent, and its traffic so far.
+struct TimelineSample {
+  double t_s = 0.0;  // since the server started
+  std::string mission;
+  AgentId agent = 0;
+  bool connected = false;
+  std::uint64_t keyframes = 0;
+  std::uint64_t points = 0;
+  std::uint64_t up_bytes = 0;
+  std::uint64_t down_bytes = 0;
+};
+
+class ServerCore {
+ public:
+  using Clock = std::chrono::steady_clock;
+
+  explicit ServerCore(const ServerOptions& options);
+
+  [[nodiscard]] const ServerOptions& options() const { return options_; }
+  [[nodiscard]] MissionRegistry& missions() { return missions_; }
+  [[nodiscard]] const MissionRegistry& missions() const { return missions_; }
+
+  // A session for a new agent stream (see AgentSession for `cancel_stream`).
+  std::unique_ptr<AgentSession> openSession(std::function<void()> cancel_stream);
+
+  // Statistics of one mission, or of every mission when `mission` is empty.
+  void fillStats(const std::string& mission, v1::ServerStats& out) const;
+
+  // Records one timeline sample per agent (the service calls it every timeline_interval_s).
+  void sampleTimeline();
+
+  // The server's own change of a keyframe's state (global BA, loop closure, merge: later issues; tests now):
+  // stored, and sent down to the agent with its next message.
+  Status correctKeyframe(const std::string& mission, const KeyframeId& id, const geometry::SE3d& T_m_s,
+                         const Eigen::Vector3d& v_m, const imu::ImuBias& bias);
+
+  // Writes, under `dir`: stats.json, timeline.csv and, per mission, <mission>/keyframes_agent<N>.txt (TUM, the
+  // agent's keyframes in its server map's frame, all maps) and, for an agent with several maps,
+  // <mission>/keyframes_agent<N>_map<M>.txt per map.
+  Status writeOutputs(const std::filesystem::path& dir) const;
+
+ private:
+  ServerOptions options_;
+  Clock::time_point start_;
+  MissionRegistry missions_;
+  Synchronized<std::vector<TimelineSample>> timeline_;
+};
+
+}  // namespace cvislam::server

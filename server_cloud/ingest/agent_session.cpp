@@ -1,0 +1,312 @@
+#include "server_cloud/ingest/agent_session.hpp"
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+
+#include "cvislam/v1/agent_link.pb.h"
+#include "proto/wire/wire.hpp"
+
+namespace cvislam::server {
+
+namespace {
+
+Error invalid(const std::string& what) {
+  return Error{ErrorCode::kInvalidArgument, what};
+}
+
+std::uint64_t varintSize(std::uint64_t v) {
+  std::uint64_t n = 1;
+  while (v >= 128) {
+    v >>= 7U;
+    ++n;
+  }
+  return n;
+}
+
+// A mission name: 1 to 128 characters of [A-Za-z0-9._-], so that it can name files and metrics safely.
+Status checkMissionName(const std::string& name) {
+  if (name.empty() || name.size() > 128) {
+    return invalid("mission name must have 1 to 128 characters, got " + std::to_string(name.size()));
+  }
+  for (char c : name) {
+    if (std::isalnum(static_cast<unsigned char>(c)) == 0 && c != '.' && c != '_' && c != '-') {
+      return invalid("mission name '" + name + "': use letters, digits, '.', '_' and '-' only");
+    }
+  }
+  if (name == "." || name == "..") return invalid("mission name '" + name + "' is reserved");
+  return Status::Ok();
+}
+
+Result<AgentSensors> sensorsFromHello(const v1::Hello& hello) {
+  SensorMode mode = SensorMode::kMono;
+  if (hello.mode() == v1::SENSOR_MODE_MONO) {
+    mode = SensorMode::kMono;
+  } else if (hello.mode() == v1::SENSOR_MODE_STEREO) {
+    mode = SensorMode::kStereo;
+  } else {
+    return invalid("hello: sensor mode must be MONO or STEREO");
+  }
+  if (!hello.has_cam0()) return invalid("hello: no cam0 calibration");
+  auto cam0 = wire::fromProto(hello.cam0(), "hello cam0");
+  if (!cam0) return cam0.error();
+  auto model0 = camera::CameraModel::create(cam0->first);
+  if (!model0) return model0.error().withContext("hello cam0");
+  AgentSensors sensors{.mode = mode, .uses_imu = hello.uses_imu(), .cam0 = *model0, .cam1 = std::nullopt,
+                       .T_s_c0 = cam0->second, .imu_noise = {}, .imu_rate_hz = 200.0};
+  if (mode == SensorMode::kStereo) {
+    if (!hello.has_cam1()) return invalid("hello: a stereo agent without cam1 calibration");
+    auto cam1 = wire::fromProto(hello.cam1(), "hello cam1");
+    if (!cam1) return cam1.error();
+    auto model1 = camera::CameraModel::create(cam1->first);
+    if (!model1) return model1.error().withContext("hello cam1");
+    sensors.cam1 = *model1;
+  }
+  if (sensors.uses_imu) {
+    if (!hello.has_imu()) return invalid("hello: an agent that uses its IMU sent no IMU calibration");
+    auto noise = wire::fromProto(hello.imu(), "hello imu");
+    if (!noise) return noise.error();
+    sensors.imu_noise = *noise;
+    sensors.imu_rate_hz = hello.imu().rate_hz();
+  }
+  return sensors;
+}
+
+}  // namespace
+
+Status SessionOptions::validate() const {
+  if (!std::isfinite(downlink_rate_hz) || !(downlink_rate_hz > 0.0) || downlink_rate_hz > 100.0) {
+    return invalid("downlink_rate_hz must be in (0, 100]");
+  }
+  if (max_corrections_per_message < 1) return invalid("max_corrections_per_message must be >= 1");
+  if (ingest.max_keypoints_per_keyframe < 1 || ingest.max_imu_samples_per_keyframe < 1 ||
+      ingest.max_maps_per_agent < 1) {
+    return invalid("ingest limits must be >= 1");
+  }
+  return Status::Ok();
+}
+
+AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& options,
+                           std::function<void()> cancel_stream)
+    : missions_(missions), options_(options), cancel_stream_(std::move(cancel_stream)) {}
+
+AgentSession::~AgentSession() {
+  close(Status::Ok());
+}
+
+Status AgentSession::handle(const v1::AgentUplink& message, std::size_t wire_bytes, v1::ServerDownlink& reply,
+                            bool& reply_due) {
+  reply_due = false;
+  if (closed_) return Error{ErrorCode::kFailedPrecondition, "the stream is closed"};
+  Status result;
+  if (message.has_hello()) {
+    if (record_) {
+      result = Error{ErrorCode::kFailedPrecondition, "a second Hello on one stream"};
+    } else {
+      result = onHello(message, wire_bytes, reply);
+      reply_due = result.ok();
+    }
+  } else if (!record_) {
+    result = Error{ErrorCode::kFailedPrecondition, "the first message of a stream must be a Hello"};
+  } else if (message.has_batch()) {
+    result = onBatch(message, wire_bytes);
+  } else if (message.has_goodbye()) {
+    auto record = record_->write();
+    record->up["message"].add(1, wire_bytes);
+    record->up["goodbye"].add(1, wire_bytes);
+    if (message.goodbye().end_of_mission()) record->finished = true;
+  } else {
+    result = invalid("an empty message (no hello, batch or goodbye)");
+  }
+  if (!result.ok() && record_) {
+    auto record = record_->write();
+    ++record->refused_messages;
+    record->last_error = result.error().toString();
+  }
+  return result;
+}
+
+Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_bytes, v1::ServerDownlink& reply) {
+  const v1::Hello& hello = message.hello();
+  if (hello.protocol_version() != wire::kProtocolVersion) {
+    return Error{ErrorCode::kFailedPrecondition, "protocol version " + std::to_string(hello.protocol_version()) +
+                                                     " is not supported: this server speaks version " +
+                                                     std::to_string(wire::kProtocolVersion)};
+  }
+  if (Status s = checkMissionName(hello.mission()); !s.ok()) return s;
+  if (hello.agent_id() > 0xFFFF) return invalid("agent id " + std::to_string(hello.agent_id()) + " is over 65535");
+  auto sensors = sensorsFromHello(hello);
+  if (!sensors) return sensors.error();
+
+  const auto agent_id = static_cast<AgentId>(hello.agent_id());
+  auto mission = missions_.getOrCreate(hello.mission());
+  auto shared_record = mission->agent(agent_id);
+  std::function<void()> replace_old;
+  {
+    auto record = shared_record->write();
+    if (record->connected) {
+      if (record->session != hello.session()) {
+        return Error{ErrorCode::kAlreadyExists, "agent " + std::to_string(agent_id) + " of mission '" +
+                                                    hello.mission() +
+                                                    "' is connected already, from another process; give this "
+                                                    "agent another --agent-id"};
+      }
+      // The same process again: its old stream is stale (it broke without the server noticing yet).
+      replace_old = std::move(record->cancel_stream);
+    }
+    record->cancel_stream = cancel_stream_;
+    record->connected = true;
+    record->session = hello.session();
+    ++record->connections;
+    stream_ = record->connections;
+    record->finished = false;
+    record->software = hello.software();
+    record->sensors = std::move(sensors).value();
+    record->up["message"].add(1, wire_bytes);
+    record->up["hello"].add(1, wire_bytes);
+
+    auto* welcome = reply.mutable_welcome();
+    welcome->set_stored_sequence(record->stored_sequence);
+    welcome->set_keyframes_held(record->keyframes.size());
+    welcome->set_points_held(record->points.size());
+    welcome->set_server(options_.server_name);
+    welcome->set_downlink_rate_hz(options_.downlink_rate_hz);
+    reply.set_sequence(++down_sequence_);
+    reply.set_acked_sequence(record->stored_sequence);
+    acked_sent_ = record->stored_sequence;
+    countDown(*record, reply, 0);
+    record->down["welcome"].add(1, reply.ByteSizeLong());
+  }
+  if (replace_old) replace_old();
+  mission_ = std::move(mission);
+  record_ = std::move(shared_record);
+  mission_name_ = hello.mission();
+  agent_ = agent_id;
+  last_down_ = Clock::now();
+  return Status::Ok();
+}
+
+Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_bytes) {
+  const v1::MapBatch& batch = message.batch();
+  const std::uint64_t sequence = batch.sequence();
+  auto record = record_->write();
+  if (record->connections != stream_) {
+    return Error{ErrorCode::kAlreadyExists, "a newer stream of this agent took over"};
+  }
+  record->up["message"].add(1, wire_bytes);
+  record->up["batch"].add(1, wire_bytes);
+  if (sequence == 0) return invalid("batch sequence 0: sequences start at 1");
+  if (sequence < last_sequence_) {
+    return invalid("batch sequence went back from " + std::to_string(last_sequence_) + " to " +
+                   std::to_string(sequence));
+  }
+  if (sequence == last_sequence_) {
+    return invalid("batch sequence " + std::to_string(sequence) + " sent twice on one stream");
+  }
+  last_sequence_ = sequence;
+  if (sequence <= record->stored_sequence) {
+    ++record->duplicate_batches;  // stored already (a resend after a reconnect): dropped, acknowledged again
+    return Status::Ok();
+  }
+  if (sequence > record->stored_sequence + 1) {
+    return invalid("batch sequence " + std::to_string(sequence) + " skips ahead: the server holds up to " +
+                   std::to_string(record->stored_sequence) + ", so the next is " +
+                   std::to_string(record->stored_sequence + 1));
+  }
+  auto report = ingestBatch(batch, *record, mission_->stack(), options_.ingest);
+  if (!report) return report.error().withContext("batch " + std::to_string(sequence));
+  record->stored_sequence = sequence;
+  record->duplicate_objects += static_cast<std::uint64_t>(report->duplicate_objects);
+  record->imu_links_missing += static_cast<std::uint64_t>(report->imu_links_missing);
+
+  // Traffic by kind: the serialized size of each part.
+  std::uint64_t bytes = 0;
+  for (const auto& k : batch.keyframes()) bytes += k.ByteSizeLong();
+  record->up["keyframe"].add(static_cast<std::uint64_t>(batch.keyframes_size()), bytes);
+  bytes = 0;
+  for (const auto& p : batch.points()) bytes += p.ByteSizeLong();
+  record->up["point"].add(static_cast<std::uint64_t>(batch.points_size()), bytes);
+  bytes = 0;
+  std::uint64_t observations = 0;
+  for (const auto& o : batch.observations()) {
+    bytes += o.ByteSizeLong();
+    observations += static_cast<std::uint64_t>(o.keypoint_size());
+  }
+  record->up["observation"].add(observations, bytes);
+  record->up["merge"].add(static_cast<std::uint64_t>(batch.merges().drop_size()),
+                          batch.has_merges() ? batch.merges().ByteSizeLong() : 0);
+  bytes = 0;
+  for (const auto& u : batch.keyframe_updates()) bytes += u.ByteSizeLong();
+  record->up["keyframe_update"].add(static_cast<std::uint64_t>(batch.keyframe_updates_size()), bytes);
+  record->up["point_update"].add(static_cast<std::uint64_t>(batch.point_updates().point_size()),
+                                 batch.has_point_updates() ? batch.point_updates().ByteSizeLong() : 0);
+  bytes = 0;
+  for (std::uint32_t c : batch.removed_points()) bytes += varintSize(c);
+  for (std::uint32_t c : batch.removed_keyframes()) bytes += varintSize(c);
+  record->up["removal"].add(static_cast<std::uint64_t>(batch.removed_points_size() + batch.removed_keyframes_size()),
+                            bytes);
+  return Status::Ok();
+}
+
+void AgentSession::countDown(AgentRecord& record, const v1::ServerDownlink& message, int corrections) {
+  const std::uint64_t bytes = message.ByteSizeLong();
+  record.down["message"].add(1, bytes);
+  if (corrections > 0) {
+    std::uint64_t correction_bytes = 0;
+    for (const auto& c : message.corrected_keyframes()) correction_bytes += c.ByteSizeLong();
+    record.down["correction"].add(static_cast<std::uint64_t>(corrections), correction_bytes);
+  }
+}
+
+bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) {
+  if (!record_ || closed_) return false;
+  const auto period = std::chrono::duration<double>(1.0 / options_.downlink_rate_hz);
+  if (now - last_down_ < period) return false;
+  out.Clear();
+  int corrections = 0;
+  {
+    auto record = record_->write();
+    if (record->connections != stream_) return false;
+    const bool new_ack = record->stored_sequence > acked_sent_;
+    if (!new_ack && record->corrections.empty()) return false;
+    out.set_acked_sequence(record->stored_sequence);
+    // The server's states of corrected keyframes, in the agent's world frame (T_m_w inverted).
+    while (!record->corrections.empty() && corrections < options_.max_corrections_per_message) {
+      const std::uint32_t counter = *record->corrections.begin();
+      record->corrections.erase(record->corrections.begin());
+      auto held = record->keyframes.find(counter);
+      if (held == record->keyframes.end()) continue;
+      auto map = mission_->stack().find(held->second.map);
+      if (!map) continue;
+      const geometry::SE3d T_w_m = record->agent_maps.count(held->second.agent_map) != 0
+                                       ? record->agent_maps.at(held->second.agent_map).T_m_w.inverse()
+                                       : geometry::SE3d();
+      auto content = map->read();
+      const ServerKeyframe* kf = content->keyframe(KeyframeId{record->id, counter});
+      if (kf == nullptr) continue;
+      wire::KeyframeStateValues state{T_w_m * kf->T_w_s, T_w_m.so3() * kf->v_w, kf->bias};
+      wire::toProto(counter, state, out.add_corrected_keyframes());
+      ++corrections;
+    }
+    out.set_sequence(++down_sequence_);
+    acked_sent_ = record->stored_sequence;
+    countDown(*record, out, corrections);
+    if (new_ack) record->down["ack"].add(1, 0);
+  }
+  last_down_ = now;
+  return true;
+}
+
+void AgentSession::close(const Status& reason) {
+  if (closed_) return;
+  closed_ = true;
+  if (!record_) return;
+  auto record = record_->write();
+  if (record->connections == stream_) {
+    record->connected = false;
+    record->cancel_stream = nullptr;
+  }
+  if (!reason.ok()) record->last_error = reason.error().toString();
+}
+
+}  // namespace cvislam::server

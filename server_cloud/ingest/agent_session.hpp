@@ -1,0 +1,87 @@
+// One agent's link stream on the server: the protocol's state machine, without gRPC. The service adapter
+// (server_cloud/service) hands it every message it reads and sends what it returns; tests drive it directly.
+//
+//   Hello    -> Welcome at once: the newest batch the server stored of this agent, so the agent continues
+//               with the next one (after a server restart that lost its state: 0, and the agent resends).
+//   MapBatch -> stored when its sequence is stored + 1; dropped (and acknowledged) when the server has it
+//               already; refused when it goes back within the stream or skips ahead.
+//   Goodbye  -> the agent has finished.
+//   every 1/downlink_rate_hz at most: an acknowledgement and the keyframes the server corrected.
+#pragma once
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+
+#include "common/core/result.hpp"
+#include "server_cloud/ingest/batch_ingest.hpp"
+#include "server_cloud/stack/map_stack.hpp"
+
+namespace cvislam::v1 {
+class AgentUplink;
+class ServerDownlink;
+}  // namespace cvislam::v1
+
+namespace cvislam::server {
+
+class MissionRegistry;
+
+struct SessionOptions {
+  double downlink_rate_hz = 2.0;            // paper: at most 2 messages per second to an agent
+  int max_corrections_per_message = 1000;   // the rest follow in the next messages
+  IngestLimits ingest;
+  std::string server_name = "cvislam_server";
+
+  [[nodiscard]] Status validate() const;
+};
+
+class AgentSession {
+ public:
+  using Clock = std::chrono::steady_clock;
+
+  // `cancel_stream` ends this session's stream from outside, when a reconnect of the same agent process takes
+  // over from it. It is called without any lock held, possibly after the stream ended, so it must be safe to
+  // call at any time; it may be empty.
+  AgentSession(MissionRegistry& missions, const SessionOptions& options, std::function<void()> cancel_stream);
+  ~AgentSession();
+  AgentSession(const AgentSession&) = delete;
+  AgentSession& operator=(const AgentSession&) = delete;
+
+  // Handles one message; `wire_bytes` is its serialized size. On success *reply_due says whether `reply` holds
+  // a message to send at once (the Welcome). An error ends the stream with that status.
+  Status handle(const v1::AgentUplink& message, std::size_t wire_bytes, v1::ServerDownlink& reply, bool& reply_due);
+
+  // The periodic message (acknowledgement, corrections) when one is due at `now`; false when none is.
+  bool nextDownlink(Clock::time_point now, v1::ServerDownlink& out);
+
+  // The stream ended: the agent closed it, it broke, or a message was refused (`reason`).
+  void close(const Status& reason);
+
+  [[nodiscard]] bool greeted() const { return record_ != nullptr; }
+  [[nodiscard]] AgentId agent() const { return agent_; }
+  [[nodiscard]] const std::string& mission() const { return mission_name_; }
+
+ private:
+  Status onHello(const v1::AgentUplink& message, std::size_t wire_bytes, v1::ServerDownlink& reply);
+  Status onBatch(const v1::AgentUplink& message, std::size_t wire_bytes);
+  void countDown(AgentRecord& record, const v1::ServerDownlink& message, int corrections);
+
+  MissionRegistry& missions_;
+  SessionOptions options_;
+  std::function<void()> cancel_stream_;
+  std::shared_ptr<Mission> mission_;
+  SharedAgentRecord record_;
+  std::string mission_name_;
+  AgentId agent_ = 0;
+  std::uint64_t stream_ = 0;              // this stream's number among the agent's streams
+  std::uint64_t last_sequence_ = 0;       // the newest batch sequence seen on this stream
+  std::uint64_t acked_sent_ = 0;          // the newest acknowledgement sent on this stream
+  std::uint64_t down_sequence_ = 0;
+  Clock::time_point last_down_{};
+  bool closed_ = false;
+};
+
+}  // namespace cvislam::server

@@ -1,0 +1,45 @@
+// Ingest of one MapBatch from an agent: decode, check every part against what the server holds of the agent,
+// then apply it to the agent's server maps. A batch is applied whole or not at all: when a check fails,
+// nothing has changed, and the error names the part and the id.
+//
+// Positions and states arrive in the agent's world frame and are stored in the server map's frame through
+// the agent map's T_m_w (identity until a merge).
+#pragma once
+
+#include <cstdint>
+
+#include "common/core/result.hpp"
+#include "server_cloud/stack/map_stack.hpp"
+
+namespace cvislam::v1 {
+class MapBatch;
+}
+
+namespace cvislam::server {
+
+struct IngestLimits {
+  int max_keypoints_per_keyframe = 4096;
+  int max_imu_samples_per_keyframe = 20000;  // 100 s at 200 Hz
+  std::uint32_t max_maps_per_agent = 1024;
+};
+
+struct IngestReport {
+  int keyframes = 0;
+  int points = 0;
+  int observations = 0;
+  int merges = 0;
+  int keyframe_updates = 0;
+  int point_updates = 0;
+  int removed_points = 0;
+  int removed_keyframes = 0;
+  int maps_opened = 0;
+  int duplicate_objects = 0;     // keyframes or points sent in full again: dropped
+  int observations_refused = 0;  // a second keypoint of one keyframe on the same point: dropped
+  int imu_links_missing = 0;     // the IMU predecessor is not held (or its samples do not cover the gap)
+};
+
+// `agent` is the caller's (locked) record of the agent; its sensors must be known (a Hello came first).
+Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, MapStack& stack,
+                                 const IngestLimits& limits);
+
+}  // namespace cvislam::server

@@ -1,0 +1,302 @@
+#include "server_cloud/service/grpc_server.hpp"
+
+#include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <mutex>
+#include <optional>
+#include <set>
+#include <thread>
+
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+
+#include "cvislam/v1/agent_link.grpc.pb.h"
+#include "cvislam/v1/monitor.grpc.pb.h"
+#include "server_cloud/service/grpc_status.hpp"
+
+namespace cvislam::server {
+
+namespace {
+
+// Lets another stream's session cancel this stream safely at any time, even after it ended.
+class StreamHandle {
+ public:
+  explicit StreamHandle(grpc::CallbackServerContext* context) : context_(context) {}
+  void cancel() {
+    std::lock_guard lock(mutex_);
+    if (context_ != nullptr) context_->TryCancel();
+  }
+  void ended() {
+    std::lock_guard lock(mutex_);
+    context_ = nullptr;
+  }
+
+ private:
+  std::mutex mutex_;
+  grpc::CallbackServerContext* context_;
+};
+
+class LinkReactor;
+
+// The open link streams, for the periodic downlink. Lock order: the registry before a reactor.
+class ReactorRegistry {
+ public:
+  void add(LinkReactor* r) {
+    std::lock_guard lock(mutex_);
+    reactors_.insert(r);
+  }
+  void remove(LinkReactor* r) {
+    std::lock_guard lock(mutex_);
+    reactors_.erase(r);
+  }
+  template <typename F>
+  void forEach(F&& f) {
+    std::lock_guard lock(mutex_);
+    for (LinkReactor* r : reactors_) f(*r);
+  }
+
+ private:
+  std::mutex mutex_;
+  std::set<LinkReactor*> reactors_;
+};
+
+// One agent's stream: reads the agent's messages into its AgentSession and writes what the session returns,
+// one write at a time. Every callback and the periodic tick lock `mutex_`, so the session sees one caller.
+class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::ServerDownlink> {
+ public:
+  LinkReactor(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry)
+      : handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
+    std::weak_ptr<StreamHandle> weak = handle_;
+    session_ = core.openSession([weak] {
+      if (auto h = weak.lock()) h->cancel();
+    });
+    registry_.add(this);
+    StartRead(&in_);
+  }
+
+  void OnReadDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    if (!ok) {
+      // The agent closed its side (or the stream broke): nothing more will come.
+      finishLocked(grpc::Status::OK);
+      return;
+    }
+    bool reply_due = false;
+    const Status status = session_->handle(in_, in_.ByteSizeLong(), reply_, reply_due);
+    if (!status.ok()) {
+      closing_status_ = status;
+      finishLocked(toGrpc(status));
+      return;
+    }
+    if (reply_due) enqueueLocked(reply_);
+    StartRead(&in_);
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    writing_ = false;
+    if (!ok) {
+      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the agent's stream broke"));
+      return;
+    }
+    if (pending_finish_) {
+      finishNow(*pending_finish_);
+      return;
+    }
+    writeNextLocked();
+  }
+
+  void OnCancel() override {
+    std::lock_guard lock(mutex_);
+    finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+  }
+
+  void OnDone() override {
+    registry_.remove(this);
+    handle_->ended();
+    {
+      std::lock_guard lock(mutex_);
+      session_->close(closing_status_);
+    }
+    delete this;
+  }
+
+  // From the periodic thread: the session's acknowledgement and corrections, when due.
+  void tick(AgentSession::Clock::time_point now) {
+    std::lock_guard lock(mutex_);
+    if (finish_called_ || pending_finish_) return;
+    if (session_->nextDownlink(now, periodic_)) enqueueLocked(periodic_);
+  }
+
+ private:
+  void enqueueLocked(const v1::ServerDownlink& message) {
+    queue_.push_back(message);
+    writeNextLocked();
+  }
+  void writeNextLocked() {
+    if (writing_ || finish_called_ || queue_.empty()) return;
+    out_ = std::move(queue_.front());
+    queue_.pop_front();
+    writing_ = true;
+    StartWrite(&out_);
+  }
+  void finishLocked(const grpc::Status& status) {
+    if (finish_called_ || pending_finish_) return;
+    if (writing_) {
+      pending_finish_ = status;  // after the write in flight
+      return;
+    }
+    finishNow(status);
+  }
+  void finishNow(const grpc::Status& status) {
+    if (finish_called_) return;
+    finish_called_ = true;
+    pending_finish_.reset();
+    Finish(status);
+  }
+
+  std::shared_ptr<StreamHandle> handle_;
+  ReactorRegistry& registry_;
+  std::mutex mutex_;
+  std::unique_ptr<AgentSession> session_;
+  v1::AgentUplink in_;
+  v1::ServerDownlink reply_;
+  v1::ServerDownlink periodic_;
+  v1::ServerDownlink out_;
+  std::deque<v1::ServerDownlink> queue_;
+  bool writing_ = false;
+  bool finish_called_ = false;
+  std::optional<grpc::Status> pending_finish_;
+  Status closing_status_;
+};
+
+class AgentLinkService final : public v1::AgentLink::CallbackService {
+ public:
+  explicit AgentLinkService(ServerCore& core) : core_(core) {}
+  grpc::ServerBidiReactor<v1::AgentUplink, v1::ServerDownlink>* Connect(grpc::CallbackServerContext* context) override {
+    return new LinkReactor(context, core_, registry_);  // deletes itself in OnDone()
+  }
+  ReactorRegistry& registry() { return registry_; }
+
+ private:
+  ServerCore& core_;
+  ReactorRegistry registry_;
+};
+
+class MonitorService final : public v1::Monitor::CallbackService {
+ public:
+  explicit MonitorService(ServerCore& core) : core_(core) {}
+  grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
+                                     v1::ServerStats* response) override {
+    core_.fillStats(request->mission(), *response);
+    auto* reactor = context->DefaultReactor();
+    reactor->Finish(grpc::Status::OK);
+    return reactor;
+  }
+
+ private:
+  ServerCore& core_;
+};
+
+}  // namespace
+
+struct GrpcServer::Impl {
+  explicit Impl(ServerCore& c) : core(c), link(c), monitor(c) {}
+
+  ServerCore& core;
+  AgentLinkService link;
+  MonitorService monitor;
+  std::unique_ptr<grpc::Server> server;
+  int port = 0;
+  std::string address;
+  std::thread periodic;
+  std::mutex mutex;
+  std::condition_variable wake;
+  bool stopping = false;
+  bool shut_down = false;
+
+  void runPeriodic() {
+    using Clock = AgentSession::Clock;
+    const auto timeline_period = std::chrono::duration<double>(core.options().timeline_interval_s);
+    auto next_sample = Clock::now();
+    std::unique_lock lock(mutex);
+    while (!stopping) {
+      wake.wait_for(lock, std::chrono::milliseconds(20));
+      if (stopping) break;
+      lock.unlock();
+      const auto now = Clock::now();
+      link.registry().forEach([&](LinkReactor& r) { r.tick(now); });
+      if (now >= next_sample) {
+        core.sampleTimeline();
+        next_sample += std::chrono::duration_cast<Clock::duration>(timeline_period);
+        if (next_sample < now) next_sample = now;
+      }
+      lock.lock();
+    }
+  }
+};
+
+GrpcServer::GrpcServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+
+GrpcServer::~GrpcServer() {
+  shutdown(std::chrono::milliseconds(500));
+}
+
+Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
+  const ServerOptions& o = core.options();
+  auto impl = std::make_unique<Impl>(core);
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort(o.listen, grpc::InsecureServerCredentials(), &impl->port);
+  builder.RegisterService(&impl->link);
+  builder.RegisterService(&impl->monitor);
+  builder.SetMaxReceiveMessageSize(static_cast<int>(o.max_message_bytes));
+  builder.SetMaxSendMessageSize(static_cast<int>(o.max_message_bytes));
+  // Notice agents that vanished without closing (keepalive), allow the agents' own keepalive pings, and
+  // refuse to share a port with another server (SO_REUSEPORT would let two servers listen on one port).
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, o.keepalive_time_ms);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, o.keepalive_timeout_ms);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 100);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MAX_PING_STRIKES, 0);
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+  impl->server = builder.BuildAndStart();
+  if (!impl->server || impl->port == 0) {
+    return Error{ErrorCode::kUnavailable,
+                 "cannot listen on " + o.listen + " (is the port taken, or the address not this machine's?)"};
+  }
+  if (auto* health = impl->server->GetHealthCheckService()) {
+    health->SetServingStatus(true);
+    health->SetServingStatus("cvislam.v1.AgentLink", true);
+    health->SetServingStatus("cvislam.v1.Monitor", true);
+  }
+  const std::string host = o.listen.substr(0, o.listen.rfind(':'));
+  impl->address = host + ":" + std::to_string(impl->port);
+  Impl* raw = impl.get();
+  impl->periodic = std::thread([raw] { raw->runPeriodic(); });
+  return std::unique_ptr<GrpcServer>(new GrpcServer(std::move(impl)));
+}
+
+int GrpcServer::port() const {
+  return impl_->port;
+}
+std::string GrpcServer::address() const {
+  return impl_->address;
+}
+
+void GrpcServer::shutdown(std::chrono::milliseconds grace) {
+  {
+    std::lock_guard lock(impl_->mutex);
+    if (impl_->shut_down) return;
+    impl_->shut_down = true;
+    impl_->stopping = true;
+  }
+  impl_->wake.notify_all();
+  if (impl_->periodic.joinable()) impl_->periodic.join();
+  if (auto* health = impl_->server->GetHealthCheckService()) health->SetServingStatus(false);
+  impl_->server->Shutdown(std::chrono::system_clock::now() + grace);
+  impl_->server->Wait();
+}
+
+}  // namespace cvislam::server

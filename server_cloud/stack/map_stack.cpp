@@ -1,0 +1,63 @@
+#include "server_cloud/stack/map_stack.hpp"
+
+namespace cvislam::server {
+
+std::shared_ptr<ServerMap> MapStack::createMap() {
+  auto maps = maps_.write();
+  auto map = std::make_shared<ServerMap>(maps->next_id++);
+  maps->by_id.emplace(map->id(), map);
+  return map;
+}
+
+std::shared_ptr<ServerMap> MapStack::find(MapId id) const {
+  auto maps = maps_.read();
+  auto it = maps->by_id.find(id);
+  return it == maps->by_id.end() ? nullptr : it->second;
+}
+
+std::vector<std::shared_ptr<ServerMap>> MapStack::maps() const {
+  auto maps = maps_.read();
+  std::vector<std::shared_ptr<ServerMap>> out;
+  out.reserve(maps->by_id.size());
+  for (const auto& [id, map] : maps->by_id) out.push_back(map);
+  return out;
+}
+
+SharedAgentRecord Mission::agent(AgentId id) {
+  auto agents = agents_.write();
+  auto& slot = (*agents)[id];
+  if (!slot) {
+    slot = std::make_shared<Synchronized<AgentRecord>>();
+    slot->write()->id = id;
+  }
+  return slot;
+}
+
+std::vector<SharedAgentRecord> Mission::agents() const {
+  auto agents = agents_.read();
+  std::vector<SharedAgentRecord> out;
+  for (const auto& [id, record] : *agents) out.push_back(record);
+  return out;
+}
+
+std::shared_ptr<Mission> MissionRegistry::getOrCreate(const std::string& name) {
+  auto missions = missions_.write();
+  auto& slot = (*missions)[name];
+  if (!slot) slot = std::make_shared<Mission>(name);
+  return slot;
+}
+
+std::shared_ptr<Mission> MissionRegistry::find(const std::string& name) const {
+  auto missions = missions_.read();
+  auto it = missions->find(name);
+  return it == missions->end() ? nullptr : it->second;
+}
+
+std::vector<std::shared_ptr<Mission>> MissionRegistry::missions() const {
+  auto missions = missions_.read();
+  std::vector<std::shared_ptr<Mission>> out;
+  for (const auto& [name, mission] : *missions) out.push_back(mission);
+  return out;
+}
+
+}  // namespace cvislam::server

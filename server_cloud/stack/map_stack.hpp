@@ -1,0 +1,151 @@
+// A mission's map stack (CVI-SLAM IV-A): the server maps of one mission, and what the server keeps of each of
+// its agents across reconnections.
+//
+// Locking (no lock is ever held across anything slow, and never across a network call):
+//   AgentRecord      one per agent; its stream's session writes it, the monitor reads it.
+//   MapStack::maps_  the list of maps; held only to find or add a map.
+//   ServerMap        one per map; a batch locks the maps it touches, in id order, for its validation and apply.
+// Order: an agent record before the stack, the stack before a map, maps in increasing id. Long work (place
+// recognition, global BA; later issues) copies what it needs under a map's read lock and works on the copy.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <unordered_set>
+#include <vector>
+
+#include "common/camera/camera_model.hpp"
+#include "common/core/ids.hpp"
+#include "common/core/synchronized.hpp"
+#include "common/geometry/lie.hpp"
+#include "common/imu/preintegration.hpp"
+#include "server_cloud/stack/map_content.hpp"
+
+namespace cvislam::server {
+
+class ServerMap {
+ public:
+  explicit ServerMap(MapId id) : id_(id), content_(std::in_place, id) {}
+  [[nodiscard]] MapId id() const { return id_; }
+  [[nodiscard]] auto write() { return content_.write(); }
+  [[nodiscard]] auto read() const { return content_.read(); }
+
+ private:
+  const MapId id_;
+  Synchronized<MapContent> content_;
+};
+
+class MapStack {
+ public:
+  // A new, empty map with the next id of this stack (ids are per mission, from 0).
+  std::shared_ptr<ServerMap> createMap();
+  [[nodiscard]] std::shared_ptr<ServerMap> find(MapId id) const;
+  [[nodiscard]] std::vector<std::shared_ptr<ServerMap>> maps() const;  // by id
+
+ private:
+  struct Maps {
+    MapId next_id = 0;
+    std::map<MapId, std::shared_ptr<ServerMap>> by_id;
+  };
+  Synchronized<Maps> maps_;
+};
+
+enum class SensorMode { kMono, kStereo };
+
+// What an agent's Hello says about its sensors; the server needs it to read keypoints and rebuild the IMU.
+struct AgentSensors {
+  SensorMode mode = SensorMode::kMono;
+  bool uses_imu = true;
+  camera::CameraModel cam0;
+  std::optional<camera::CameraModel> cam1;
+  geometry::SE3d T_s_c0;
+  imu::ImuNoise imu_noise;
+  double imu_rate_hz = 200.0;
+};
+
+// Bytes and messages of one kind.
+struct TrafficCount {
+  std::uint64_t messages = 0;
+  std::uint64_t bytes = 0;
+  void add(std::uint64_t n, std::uint64_t b) {
+    messages += n;
+    bytes += b;
+  }
+};
+
+// What the server keeps of one agent, across its streams.
+struct AgentRecord {
+  AgentId id = 0;
+  // The stream: at most one at a time.
+  bool connected = false;
+  std::uint64_t session = 0;      // the connected process's random session id
+  std::uint32_t connections = 0;  // streams opened; the newest is the one that counts
+  std::function<void()> cancel_stream;  // ends the newest stream (safe to call after it ended)
+  bool finished = false;
+  std::string software;
+  std::optional<AgentSensors> sensors;
+  // The newest batch stored; the next must be stored_sequence + 1.
+  std::uint64_t stored_sequence = 0;
+  // Which server map holds each agent map, keyframe and point of the agent (by counter).
+  struct AgentMap {
+    MapId map = 0;
+    // The agent's world frame in the server map's frame: identity until a merge moves the agent's map into
+    // another one. Everything the agent sends is in its world frame and is stored in the map's frame.
+    geometry::SE3d T_m_w;
+  };
+  struct HeldKeyframe {
+    MapId map = 0;
+    std::uint32_t agent_map = 0;
+    std::uint32_t keypoints = 0;
+  };
+  std::map<std::uint32_t, AgentMap> agent_maps;
+  std::unordered_map<std::uint32_t, HeldKeyframe> keyframes;
+  std::unordered_map<std::uint32_t, MapId> points;
+  // Keyframes whose state the server changed since it last sent them down.
+  std::unordered_set<std::uint32_t> corrections;
+  // Statistics.
+  std::map<std::string, TrafficCount> up;
+  std::map<std::string, TrafficCount> down;
+  std::uint64_t duplicate_batches = 0;
+  std::uint64_t duplicate_objects = 0;
+  std::uint64_t imu_links_missing = 0;  // keyframes whose IMU predecessor the server does not hold
+  std::uint64_t refused_messages = 0;
+  std::string last_error;
+};
+
+using SharedAgentRecord = std::shared_ptr<Synchronized<AgentRecord>>;
+
+class Mission {
+ public:
+  explicit Mission(std::string name) : name_(std::move(name)) {}
+  [[nodiscard]] const std::string& name() const { return name_; }
+  [[nodiscard]] MapStack& stack() { return stack_; }
+  [[nodiscard]] const MapStack& stack() const { return stack_; }
+
+  // The agent's record, made on first use.
+  SharedAgentRecord agent(AgentId id);
+  [[nodiscard]] std::vector<SharedAgentRecord> agents() const;  // by id
+
+ private:
+  std::string name_;
+  MapStack stack_;
+  Synchronized<std::map<AgentId, SharedAgentRecord>> agents_;
+};
+
+// Every mission this server holds, by name.
+class MissionRegistry {
+ public:
+  std::shared_ptr<Mission> getOrCreate(const std::string& name);
+  [[nodiscard]] std::shared_ptr<Mission> find(const std::string& name) const;
+  [[nodiscard]] std::vector<std::shared_ptr<Mission>> missions() const;  // by name
+
+ private:
+  Synchronized<std::map<std::string, std::shared_ptr<Mission>>> missions_;
+};
+
+}  // namespace cvislam::server

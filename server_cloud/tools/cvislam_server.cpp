@@ -1,0 +1,158 @@
+// cvislam_server: the collaborative SLAM server. Agents stream their maps to it over the agent link; it keeps
+// one map stack per mission, and API clients read its statistics over cvislam.v1.Monitor.
+//
+//   cvislam_server --listen HOST:PORT [--config FILE] [--output DIR] [--port-file FILE]
+//
+// HOST:PORT may use port 0: the server then takes a free port and prints it ("listening on 127.0.0.1:PORT",
+// and into --port-file). It runs until SIGINT or SIGTERM, then ends the agents' streams, writes DIR
+// (stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt) and prints what it held.
+// Exit status: 0 after a clean stop, 1 it could not start or write its outputs, 2 bad command line or config.
+#include <pthread.h>
+
+#include <csignal>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <string>
+
+#include <CLI/CLI.hpp>
+
+#include "cvislam/v1/monitor.pb.h"
+#include "server_cloud/core/server_core.hpp"
+#include "server_cloud/service/grpc_server.hpp"
+
+namespace {
+
+using cvislam::server::ServerOptions;
+
+std::string megabytes(std::uint64_t bytes) {
+  char text[32];
+  std::snprintf(text, sizeof(text), "%.2f", static_cast<double>(bytes) / 1e6);
+  return text;
+}
+
+std::uint64_t bytesOf(const google::protobuf::Map<std::string, cvislam::v1::TrafficCounter>& counters) {
+  auto it = counters.find("message");
+  return it == counters.end() ? 0 : it->second.bytes();
+}
+
+void printStatus(const cvislam::server::ServerCore& core) {
+  cvislam::v1::ServerStats stats;
+  core.fillStats("", stats);
+  int connected = 0;
+  std::uint64_t keyframes = 0;
+  std::uint64_t points = 0;
+  for (const auto& a : stats.agents()) {
+    connected += a.connected() ? 1 : 0;
+    keyframes += a.keyframes();
+    points += a.points();
+  }
+  std::fprintf(stderr, "[server] t=%.0f s  agents %d connected / %d known  maps %d  keyframes %llu  points %llu\n",
+               stats.uptime_s(), connected, stats.agents_size(), stats.maps_size(),
+               static_cast<unsigned long long>(keyframes), static_cast<unsigned long long>(points));
+}
+
+void printSummary(const cvislam::server::ServerCore& core) {
+  cvislam::v1::ServerStats stats;
+  core.fillStats("", stats);
+  std::printf("%-16s %5s %5s %9s %9s %5s %10s %10s %8s %8s\n", "mission", "agent", "conn", "keyframes", "points",
+              "maps", "up[MB]", "down[MB]", "batches", "dup");
+  for (const auto& a : stats.agents()) {
+    const auto batches = a.up().count("batch") != 0 ? a.up().at("batch").messages() : 0;
+    std::printf("%-16s %5u %5u %9llu %9llu %5u %10s %10s %8llu %8llu\n", a.mission().c_str(), a.agent_id(),
+                a.connections(), static_cast<unsigned long long>(a.keyframes()),
+                static_cast<unsigned long long>(a.points()), a.maps(), megabytes(bytesOf(a.up())).c_str(),
+                megabytes(bytesOf(a.down())).c_str(), static_cast<unsigned long long>(batches),
+                static_cast<unsigned long long>(a.duplicate_batches()));
+    if (!a.last_error().empty()) std::printf("  last error of agent %u: %s\n", a.agent_id(), a.last_error().c_str());
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"cvislam_server: the collaborative SLAM server (agent link, map stacks, monitoring)"};
+  std::string listen;
+  std::string config;
+  std::string output;
+  std::string port_file;
+  double status_interval_s = 10.0;
+  bool quiet = false;
+  app.add_option("--listen", listen, "host:port to serve on; port 0 takes a free port [127.0.0.1:50051]");
+  app.add_option("--config", config, "YAML config (see deploy/server_config.yaml); command-line options win");
+  app.add_option("--output", output, "Folder written at shutdown: stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt");
+  app.add_option("--port-file", port_file, "Write the bound port here once serving (for scripts using port 0)");
+  app.add_option("--status-interval", status_interval_s, "Seconds between status lines on stderr; 0: none [10]");
+  app.add_flag("--quiet", quiet, "Print neither the options nor status lines");
+  CLI11_PARSE(app, argc, argv);
+
+  ServerOptions options;
+  if (!config.empty()) {
+    if (auto s = cvislam::server::loadServerConfig(config, options); !s.ok()) {
+      std::cerr << "cvislam_server: " << s.error().toString() << "\n";
+      return 2;
+    }
+  }
+  if (!listen.empty()) options.listen = listen;
+  if (!output.empty()) options.output = output;
+  if (auto s = options.validate(); !s.ok()) {
+    std::cerr << "cvislam_server: " << s.error().message() << "\n";
+    return 2;
+  }
+  if (status_interval_s < 0) {
+    std::cerr << "cvislam_server: --status-interval must be >= 0\n";
+    return 2;
+  }
+  if (!port_file.empty()) std::filesystem::remove(port_file);
+
+  // Signals go to this thread only (sigtimedwait below); every thread made from here on inherits the mask.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+  std::signal(SIGPIPE, SIG_IGN);
+
+  if (!quiet) std::fprintf(stderr, "[server] options:\n%s", options.describe().c_str());
+  cvislam::server::ServerCore core(options);
+  auto server = cvislam::server::GrpcServer::start(core);
+  if (!server) {
+    std::cerr << "cvislam_server: " << server.error().message() << "\n";
+    return 1;
+  }
+  std::printf("listening on %s\n", (*server)->address().c_str());
+  std::fflush(stdout);
+  if (!port_file.empty()) {
+    const std::string tmp = port_file + ".tmp";
+    std::ofstream(tmp) << (*server)->port() << "\n";
+    std::filesystem::rename(tmp, port_file);
+  }
+
+  int received = 0;
+  double since_status = 0.0;
+  while (received == 0) {
+    timespec timeout{0, 500'000'000};
+    const int s = sigtimedwait(&signals, nullptr, &timeout);
+    if (s > 0) {
+      received = s;
+      break;
+    }
+    since_status += 0.5;
+    if (!quiet && status_interval_s > 0 && since_status >= status_interval_s) {
+      printStatus(core);
+      since_status = 0.0;
+    }
+  }
+  std::fprintf(stderr, "[server] %s: stopping\n", received == SIGINT ? "SIGINT" : "SIGTERM");
+  (*server)->shutdown();
+  printSummary(core);
+  if (!options.output.empty()) {
+    if (auto s = core.writeOutputs(options.output); !s.ok()) {
+      std::cerr << "cvislam_server: " << s.error().toString() << "\n";
+      return 1;
+    }
+    std::printf("outputs: %s\n", options.output.string().c_str());
+  }
+  return 0;
+}
