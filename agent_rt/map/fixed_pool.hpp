@@ -53,6 +53,15 @@ class FixedPool {
     return Handle{index, generation_[index]};
   }
 
+  // Takes a free slot without copying into it (for large objects the caller fills in place); its contents are
+  // whatever the slot last held. Nothing when the pool is full.
+  [[nodiscard]] std::optional<Handle> acquire() noexcept {
+    if (full()) return std::nullopt;
+    const std::uint32_t index = free_[--free_count_];
+    live_[index] = true;
+    return Handle{index, generation_[index]};
+  }
+
   // Frees the slot; false for a stale or invalid handle.
   bool erase(Handle handle) noexcept {
     if (!valid(handle)) return false;

@@ -36,9 +36,15 @@ void LocalMap::detach(PoolHandle keyframe, std::uint16_t keypoint) {
   kf->has_map_point[keypoint] = false;
 }
 
-Status LocalMap::removeKeyframe(PoolHandle keyframe) {
+Status LocalMap::removeKeyframe(PoolHandle keyframe, MapEventReason reason) {
   KeyframeData* kf = keyframes_->get(keyframe);
   if (kf == nullptr) return Error{ErrorCode::kNotFound, "removeKeyframe: stale or unknown keyframe handle"};
+  // The keyframe goes first in the event order: its points that go with it follow.
+  MapEvent gone;
+  gone.type = MapEventType::kKeyframeRemoved;
+  gone.reason = reason;
+  gone.keyframe = kf->id;
+  report(gone);
   for (std::uint16_t k = 0; k < kf->keypoint_count; ++k) {
     if (!kf->has_map_point[k]) continue;
     const PoolHandle point = kf->map_point[k];
@@ -62,7 +68,8 @@ Status LocalMap::removeKeyframe(PoolHandle keyframe) {
         }
       });
       if (!moved) {
-        if (Status status = removeMapPoint(point); !status.ok()) return status;
+        // Its last observer leaves: the point leaves with it, for the same reason.
+        if (Status status = removeMapPoint(point, reason); !status.ok()) return status;
         continue;
       }
     }
@@ -84,7 +91,7 @@ Status LocalMap::evictOldestKeyframe() {
   if (oldest_sequence == std::numeric_limits<std::uint64_t>::max()) {
     return Error{ErrorCode::kNotFound, "no keyframe to evict: every keyframe in the local map is an anchor"};
   }
-  return removeKeyframe(oldest);
+  return removeKeyframe(oldest, MapEventReason::kEvicted);
 }
 
 Result<PoolHandle> LocalMap::createMapPoint(PoolHandle reference, std::uint16_t keypoint, const Vector3d& bearing_c,
@@ -114,6 +121,12 @@ Result<PoolHandle> LocalMap::createMapPoint(PoolHandle reference, std::uint16_t 
   }
   kf->map_point[keypoint] = *handle;
   kf->has_map_point[keypoint] = true;
+  MapEvent created;
+  created.type = MapEventType::kPointCreated;
+  created.keypoint = keypoint;
+  created.keyframe = kf->id;
+  created.point = id;
+  report(created);
   return *handle;
 }
 
@@ -134,6 +147,12 @@ Status LocalMap::addObservation(PoolHandle keyframe, std::uint16_t keypoint, Poo
   kf->map_point[keypoint] = map_point;
   kf->has_map_point[keypoint] = true;
   ++mp->observation_count;
+  MapEvent added;
+  added.type = MapEventType::kObservationAdded;
+  added.keypoint = keypoint;
+  added.keyframe = kf->id;
+  added.point = mp->id;
+  report(added);
   return Status::Ok();
 }
 
@@ -144,6 +163,14 @@ Result<int> LocalMap::mergeMapPoints(PoolHandle keep, PoolHandle drop) {
   if (keep == drop) return Error{ErrorCode::kInvalidArgument, "mergeMapPoints: a point cannot be merged into itself"};
   kept->visible += dropped->visible;
   kept->found += dropped->found;
+  // One event says it all: the observations of `drop` move to `keep` (or go, where a keyframe has both).
+  MapEvent merged;
+  merged.type = MapEventType::kPointsMerged;
+  merged.point = dropped->id;
+  merged.other = kept->id;
+  report(merged);
+  MapEventSink* const sink = events_;
+  events_ = nullptr;  // the removal of `drop` below is part of the merge
   int moved = 0;
   keyframes_->forEach([&](PoolHandle h, KeyframeData& kf) {
     int drop_at = -1;
@@ -163,12 +190,20 @@ Result<int> LocalMap::mergeMapPoints(PoolHandle keep, PoolHandle drop) {
       ++moved;
     }
   });
-  if (Status status = removeMapPoint(drop); !status.ok()) return status.error();
+  const Status removed = removeMapPoint(drop);
+  events_ = sink;
+  if (!removed.ok()) return removed.error();
   return moved;
 }
 
-Status LocalMap::removeMapPoint(PoolHandle map_point) {
-  if (!map_points_->valid(map_point)) return Error{ErrorCode::kNotFound, "removeMapPoint: stale or unknown handle"};
+Status LocalMap::removeMapPoint(PoolHandle map_point, MapEventReason reason) {
+  const MapPointData* mp = map_points_->get(map_point);
+  if (mp == nullptr) return Error{ErrorCode::kNotFound, "removeMapPoint: stale or unknown handle"};
+  MapEvent gone;
+  gone.type = MapEventType::kPointRemoved;
+  gone.reason = reason;
+  gone.point = mp->id;
+  report(gone);
   keyframes_->forEach([&](PoolHandle, KeyframeData& kf) {
     for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
       if (kf.has_map_point[k] && kf.map_point[k] == map_point) kf.has_map_point[k] = false;
@@ -187,7 +222,7 @@ int LocalMap::cullMapPoints(const CullOptions& options) {
     const bool unconfirmed = newest >= mp.created_at_sequence + options.keyframes_to_prove &&
                              mp.observation_count < options.min_observations;
     if (rarely_found || unconfirmed) {
-      if (removeMapPoint(handle).ok()) ++removed;
+      if (removeMapPoint(handle, MapEventReason::kCulled).ok()) ++removed;
     }
   });
   return removed;

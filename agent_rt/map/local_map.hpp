@@ -16,6 +16,7 @@
 
 #include "agent_rt/map/capacities.hpp"
 #include "agent_rt/map/fixed_pool.hpp"
+#include "agent_rt/map/map_events.hpp"
 #include "common/core/ids.hpp"
 #include "common/core/result.hpp"
 #include "common/features/orb.hpp"
@@ -81,10 +82,14 @@ class LocalMap {
 
   explicit LocalMap(const geometry::SE3d& T_s_c);
 
+  // Every structural change from now on is reported to `sink` (nullptr: none), in the order it happens.
+  void setEventSink(MapEventSink* sink) { events_ = sink; }
+
   // Copies the keyframe in (map point links are cleared). kCapacityExceeded when the pool is full.
   Result<PoolHandle> insertKeyframe(const KeyframeData& keyframe);
   // Removes the keyframe and its observations; its map points move to another observing keyframe, or go.
-  Status removeKeyframe(PoolHandle keyframe);
+  // `reason` is what the event sink hears (kRemoved: taken out; kEvicted: left the bounded map).
+  Status removeKeyframe(PoolHandle keyframe, MapEventReason reason = MapEventReason::kRemoved);
   // Removes the oldest keyframe that is not an anchor; kNotFound if there is none.
   Status evictOldestKeyframe();
 
@@ -93,7 +98,7 @@ class LocalMap {
                                     double depth_m, MapPointId id);
   Status addObservation(PoolHandle keyframe, std::uint16_t keypoint, PoolHandle map_point);
   // Removes the point and every observation of it.
-  Status removeMapPoint(PoolHandle map_point);
+  Status removeMapPoint(PoolHandle map_point, MapEventReason reason = MapEventReason::kRemoved);
   // `drop` and `keep` are one physical point (a duplicate): every keyframe that observed `drop` observes
   // `keep` at that keypoint instead (one that observes `keep` already just loses the `drop` link), `drop`'s
   // visibility counts are added to `keep`'s, and `drop` goes. Returns how many observations moved to `keep`.
@@ -114,11 +119,15 @@ class LocalMap {
  private:
   // Unlinks one observation and counts it off its map point.
   void detach(PoolHandle keyframe, std::uint16_t keypoint);
+  void report(const MapEvent& event) {
+    if (events_ != nullptr) events_->record(event);
+  }
 
   geometry::SE3d T_s_c_;
   std::unique_ptr<KeyframePool> keyframes_;  // megabytes: on the heap, allocated once here
   std::unique_ptr<MapPointPool> map_points_;
   std::uint64_t next_sequence_ = 0;
+  MapEventSink* events_ = nullptr;
 };
 
 }  // namespace cvislam::agent

@@ -78,6 +78,7 @@ struct MapperReport {
   LocalBundleAdjustmentSummary ba;
   std::int64_t ba_ns = 0;
   std::uint64_t lost_messages = 0;  // keyframe messages missing before this one
+  std::uint32_t delta_events_lost = 0;  // structural changes beyond the delta's capacity
   std::string note;                 // why an initialisation did not succeed, for the log
 };
 
@@ -91,8 +92,10 @@ class Mapper {
   Mapper(const Mapper&) = delete;
   Mapper& operator=(const Mapper&) = delete;
 
-  // Processes one keyframe and writes the resulting local map into `snapshot`.
-  Result<MapperReport> process(const KeyframeMessage& keyframe, MapSnapshotMessage& snapshot);
+  // Processes one keyframe and writes the resulting local map into `snapshot` and, when given, what changed
+  // into `delta` (for the link to the server).
+  Result<MapperReport> process(const KeyframeMessage& keyframe, MapSnapshotMessage& snapshot,
+                               MapDeltaMessage* delta = nullptr);
 
   [[nodiscard]] const LocalMap& map() const;
   [[nodiscard]] bool imuInitialised() const;

@@ -75,6 +75,7 @@ Status AgentOptions::validate() const {
   if (!(progress_interval_s > 0.0)) return bad("progress_interval_s must be > 0");
   if (frame_ring_size < 2 || frame_ring_size > 64) return bad("frame_ring_size must be in [2, 64]");
   if (Status s = tracking.validate(); !s.ok()) return s;
+  if (Status s = link.validate(); !s.ok()) return s;
   return mapping.validate();
 }
 
@@ -272,23 +273,51 @@ struct MappingStats {
   std::size_t new_maps = 0;
 };
 
+// The link reads mapping's deltas from iceoryx.
+class IceoryxDeltaSource final : public DeltaSource {
+ public:
+  explicit IceoryxDeltaSource(iox::popo::Subscriber<MapDeltaMessage>& subscriber) : subscriber_(subscriber) {}
+  const MapDeltaMessage* next() override {
+    auto taken = subscriber_.take();
+    if (taken.has_error()) return nullptr;
+    held_.emplace(std::move(taken.value()));
+    tsanAcquire(held_->get());
+    return held_->get();
+  }
+  void release() override {
+    if (held_) tsanRelease(held_->get());
+    held_.reset();
+  }
+
+ private:
+  iox::popo::Subscriber<MapDeltaMessage>& subscriber_;
+  std::optional<iox::popo::Sample<const MapDeltaMessage>> held_;
+};
+
 void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool>& tracking_done,
                    const std::atomic<bool>& stop, LatencyRecorder& receive, LatencyRecorder& local_ba,
                    LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready) {
+  const bool with_link = !options.link.server.empty();
   iox::popo::SubscriberOptions sub_options;
   sub_options.queueCapacity = 32;
   iox::popo::Subscriber<KeyframeMessage> keyframes(service(options.agent, "keyframes"), sub_options);
   iox::popo::PublisherOptions pub_options;
   iox::popo::Publisher<MapSnapshotMessage> snapshots(service(options.agent, "map_snapshot"), pub_options);
+  std::optional<iox::popo::Publisher<MapDeltaMessage>> deltas;
+  if (with_link) deltas.emplace(service(options.agent, "map_delta"), pub_options);
   // RouDi connects publishers and subscribers asynchronously: a snapshot published before tracking's
-  // subscriber is connected would be lost, and tracking would wait for a map that never comes.
+  // subscriber is connected would be lost, and tracking would wait for a map that never comes (likewise the
+  // link's deltas).
   const auto deadline = Clock::now() + std::chrono::seconds(10);
-  while (!snapshots.hasSubscribers() && Clock::now() < deadline && !stop.load()) {
+  while ((!snapshots.hasSubscribers() || (deltas && !deltas->hasSubscribers())) && Clock::now() < deadline &&
+         !stop.load()) {
     std::this_thread::sleep_for(std::chrono::milliseconds(2));
   }
   ready.store(true);
   std::unique_ptr<MapSnapshotMessage> fallback;  // only if no chunk can be loaned
+  std::unique_ptr<MapDeltaMessage> delta_fallback;
   std::uint64_t sequence = 0;
+  std::uint64_t delta_sequence = 0;
   while (true) {
     auto taken = keyframes.take();
     if (taken.has_error()) {
@@ -314,7 +343,29 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
       out = fallback.get();
       std::fprintf(stderr, "[mapping] no free snapshot chunk: this keyframe's map is not sent\n");
     }
-    auto report = mapper.process(msg, *out);
+    MapDeltaMessage* delta = nullptr;
+    std::optional<iox::popo::Sample<MapDeltaMessage>> delta_sample;
+    if (deltas) {
+      auto loaned_delta = deltas->loan();
+      if (!loaned_delta.has_error()) {
+        delta_sample.emplace(std::move(loaned_delta.value()));
+        delta = delta_sample->get();
+        tsanAcquire(delta);
+      } else {
+        if (!delta_fallback) delta_fallback = std::make_unique<MapDeltaMessage>();
+        delta = delta_fallback.get();
+        std::fprintf(stderr, "[mapping] no free delta chunk: the link misses this keyframe's changes\n");
+      }
+    }
+    auto report = mapper.process(msg, *out, delta);
+    if (delta_sample) {
+      // Published whatever happened to the keyframe: the link counts deltas by sequence.
+      delta->sequence = delta_sequence;
+      delta->publish_steady_ns = steadyNs();
+      tsanRelease(delta);
+      delta_sample->publish();
+    }
+    if (delta != nullptr) ++delta_sequence;
     const std::int64_t t1 = steadyNs();
     mapping_total.add(t1 - t0);
     const double t_s = static_cast<double>(msg.state.t_ns) * 1e-9;
@@ -416,10 +467,25 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   if (options.roudi == RouDiMode::kEmbedded) {
     EmbeddedRouDiOptions roudi_options;
     roudi_options.runtime_name = runtime_name;
-    const auto keyframe_bytes = static_cast<std::uint32_t>(sizeof(KeyframeMessage));
-    const auto snapshot_bytes = static_cast<std::uint32_t>(sizeof(MapSnapshotMessage));
-    roudi_options.mempools = {
-        {128, 64}, {std::min(keyframe_bytes, snapshot_bytes), 48}, {std::max(keyframe_bytes, snapshot_bytes) + 64, 48}};
+    // A pool per message type, with chunks for what publishers hold loaned plus what subscribers keep queued:
+    // keyframes and snapshots 48 each; the link's deltas 24 (its queue of 16, one written, one read, slack).
+    std::vector<MemPoolSpec> pools = {{128, 64},
+                                      {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), 48},
+                                      {static_cast<std::uint32_t>(sizeof(MapSnapshotMessage)), 48}};
+    if (!options.link.server.empty()) pools.push_back({static_cast<std::uint32_t>(sizeof(MapDeltaMessage)), 24});
+    std::sort(pools.begin(), pools.end(),
+              [](const MemPoolSpec& a, const MemPoolSpec& b) { return a.chunk_payload_bytes < b.chunk_payload_bytes; });
+    // Sizes must grow by at least a few KiB from pool to pool: near-equal ones share one pool.
+    roudi_options.mempools.clear();
+    for (const MemPoolSpec& p : pools) {
+      if (!roudi_options.mempools.empty() &&
+          p.chunk_payload_bytes < roudi_options.mempools.back().chunk_payload_bytes + 4096) {
+        roudi_options.mempools.back().chunk_payload_bytes = p.chunk_payload_bytes + 4096;
+        roudi_options.mempools.back().chunk_count += p.chunk_count;
+      } else {
+        roudi_options.mempools.push_back(p);
+      }
+    }
     auto started = EmbeddedRouDi::start(roudi_options);
     if (!started) return started.error();
     roudi = std::move(started.value());
@@ -473,6 +539,38 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     }
     ring.finish();
   });
+
+  // The link to the server, when there is one: its own thread, fed by mapping's deltas.
+  std::unique_ptr<Link> link;
+  std::atomic<bool> link_stop{false};
+  std::thread link_thread;
+  if (!options.link.server.empty()) {
+    LinkSensors sensors;
+    sensors.stereo = stereo;
+    sensors.uses_imu = options.use_imu;
+    sensors.cam0 = seq.cam0().calibration;
+    sensors.T_s_c0 = setup->T_s_c;
+    if (stereo) {
+      sensors.cam1 = seq.cam1()->calibration;
+      sensors.T_s_c1 = setup->T_s_c * setup->T_c0_c1;
+    }
+    sensors.imu_noise = setup->noise;
+    if (seq.imuCalibration()) sensors.imu_rate_hz = seq.imuCalibration()->rate_hz;
+    auto created = Link::create(options.link, options.agent, sensors);
+    if (!created) return created.error();
+    link = std::move(created.value());
+    if (!options.quiet) {
+      std::fprintf(stderr, "[link] server %s, mission '%s', agent %u\n", options.link.server.c_str(),
+                   options.link.mission.c_str(), static_cast<unsigned>(options.agent));
+    }
+    link_thread = std::thread([&] {
+      iox::popo::SubscriberOptions delta_options;
+      delta_options.queueCapacity = 16;
+      iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
+      IceoryxDeltaSource source(subscriber);
+      link->run(source, link_stop);
+    });
+  }
 
   std::thread mapping([&] {
     mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready);
@@ -599,10 +697,11 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                            std::chrono::duration<double>(now - last_progress).count();
         const MapSnapshotMessage* map = held ? held->get() : nullptr;
         std::fprintf(stderr,
-                     "[agent] frame %zu/%zu  t=%.1f s  %.1f fps  %-15s  inliers %3d  map %2u KF %5u pts  IMU %s\n",
+                     "[agent] frame %zu/%zu  t=%.1f s  %.1f fps  %-15s  inliers %3d  map %2u KF %5u pts  IMU %s%s%s\n",
                      summary.frames, n_frames, static_cast<double>(input.t_ns - frames.front().t_ns) * 1e-9, fps,
                      toString(r.status), r.inliers, map ? map->keyframe_count : 0U, map ? map->point_count : 0U,
-                     tracker.value()->imuInitialised() ? "initialised" : "not yet");
+                     tracker.value()->imuInitialised() ? "initialised" : "not yet", link ? "  " : "",
+                     link ? link->progressText().c_str() : "");
         last_progress = now;
         frames_at_progress = summary.frames;
       }
@@ -615,6 +714,20 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     mapping.join();
     loader.join();
     drain_snapshots();  // the last refinements
+  }
+  if (link) {
+    // Mapping has published its last delta: the link sends what is left and waits for the acknowledgements.
+    if (!options.quiet) std::fprintf(stderr, "[link] end of run: %s; flushing\n", link->progressText().c_str());
+    link_stop.store(true);
+    link_thread.join();
+    summary.link_enabled = true;
+    summary.link = link->status();
+    if (!options.quiet) {
+      const std::size_t waiting = summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked;
+      std::fprintf(stderr, "[link] %s: %llu batches acknowledged, %zu keyframes not acknowledged\n",
+                   summary.link.flushed ? "flushed" : "NOT flushed (server unreachable or too slow)",
+                   static_cast<unsigned long long>(summary.link.acked_sequence), waiting);
+    }
   }
 
   summary.new_maps = mapping_stats.new_maps;
@@ -643,6 +756,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       return s.error();
     }
   }
+  if (link) {
+    if (Status s = link->writeReport(options.output); !s.ok()) return s.error();
+  }
   std::ofstream latency(summary.latency_json);
   latency << latencyJson(summary.stages);
   if (!latency) return Error{ErrorCode::kIoError, "cannot write " + summary.latency_json.string()};
@@ -660,6 +776,19 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                       {"imu_noise_inflation", inflation},
                       {"interrupted", summary.interrupted},
                       {"wall_s", summary.wall_s}};
+  if (summary.link_enabled) {
+    j["link"] = {{"server", options.link.server},
+                 {"mission", options.link.mission},
+                 {"flushed", summary.link.flushed},
+                 {"connections", summary.link.connections},
+                 {"acked_sequence", summary.link.acked_sequence},
+                 {"keyframes_unacknowledged",
+                  summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked},
+                 {"keyframes_dropped", summary.link.store.keyframes_dropped},
+                 {"deltas_lost", summary.link.store.deltas_lost},
+                 {"up_bytes", summary.link.up_bytes},
+                 {"down_bytes", summary.link.down_bytes}};
+  }
   std::ofstream(options.output / "summary.json") << j.dump(2) << "\n";
   return summary;
 }

@@ -1,8 +1,10 @@
 // The agent process: reads a EuRoC-format sequence, runs tracking (the calling thread) and mapping (its own
-// thread) joined by iceoryx, and writes the trajectory, the keyframe trajectory and the latency profile.
+// thread) joined by iceoryx, and writes the trajectory, the keyframe trajectory and the latency profile. With a
+// server, a link thread streams the map to it.
 //
 //   loader thread --(bounded ring of preallocated frames)--> tracking --KeyframeMessage (iceoryx)--> mapping
 //                                                            tracking <--MapSnapshotMessage (iceoryx)-- mapping
+//                                    server <--gRPC-- link <--MapDeltaMessage (iceoryx)-- mapping
 //
 // iceoryx headers stay in agent.cpp.
 #pragma once
@@ -13,6 +15,7 @@
 #include <string>
 #include <vector>
 
+#include "agent_rt/link/link.hpp"
 #include "agent_rt/mapping/mapper.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
 #include "agent_rt/tracking/tracker.hpp"
@@ -46,6 +49,7 @@ struct AgentOptions {
   double imu_noise_inflation = 0.0;
   TrackerOptions tracking;
   MapperOptions mapping;
+  LinkOptions link;  // link.server empty: no server, the agent is the VIO alone
   RouDiMode roudi = RouDiMode::kEmbedded;
   std::string runtime_name;  // default cvislam_agent_<agent>
   Pace pace = Pace::kRealtime;
@@ -72,6 +76,8 @@ struct AgentRunSummary {
   std::size_t imu_gaps = 0;
   std::size_t dropped_keyframes = 0;
   std::size_t lost_keyframe_messages = 0;
+  bool link_enabled = false;
+  LinkStatus link;
   double imu_initialised_at_s = -1.0;  // sequence time of the IMU initialisation; -1 never
   double mean_tracked_points = 0.0;
   double wall_s = 0.0;

@@ -11,7 +11,7 @@ namespace cvislam::agent {
 using config::YamlSection;
 
 Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
-  auto loaded = config::loadSections(file.string(), {"agent", "imu", "orb", "tracking", "mapping", "runtime"});
+  auto loaded = config::loadSections(file.string(), {"agent", "imu", "orb", "tracking", "mapping", "runtime", "link"});
   if (!loaded) return loaded.error();
   const YAML::Node& root = *loaded;
   auto section = [&](const char* name) { return YamlSection(root[name], name); };
@@ -82,7 +82,17 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   auto parsed_roudi = parseRouDiMode(roudi);
   if (!parsed_roudi) return in_file(parsed_roudi.error());
   o.roudi = *parsed_roudi;
-  return Status::Ok();
+
+  YamlSection link = section("link");
+  link.read("server", o.link.server);
+  link.read("mission", o.link.mission);
+  link.read("max_rate_hz", o.link.max_rate_hz);
+  link.read("max_batch_bytes", o.link.max_batch_bytes);
+  link.read("point_update_min_m", o.link.store.point_update_min_m);
+  link.read("reconnect_max_s", o.link.reconnect_max_s);
+  link.read("flush_timeout_s", o.link.flush_timeout_s);
+  if (Status s = link.finish(); !s.ok()) return in_file(s);
+  return in_file(o.link.validate());
 }
 
 }  // namespace cvislam::agent

@@ -9,6 +9,9 @@
 //   mapping  --MapSnapshotMessage--> tracking the refined local map after local BA: points with descriptors,
 //                                             keyframe states, and any change of the world frame (IMU
 //                                             initialisation rescales and rotates it)
+//   mapping  --MapDeltaMessage-->   link     what changed in the local map with this keyframe: the keyframe in
+//                                             full, the points made, every structural change in order (map
+//                                             events), and the states and positions of everything in the map
 //
 // Tracking never waits on mapping: it takes the newest snapshot when one is there and keeps using the one it
 // holds otherwise.
@@ -19,6 +22,7 @@
 #include <type_traits>
 
 #include "agent_rt/map/capacities.hpp"
+#include "agent_rt/map/map_events.hpp"
 #include "common/core/ids.hpp"
 
 namespace cvislam::agent {
@@ -123,7 +127,68 @@ struct MapSnapshotMessage {
   std::array<WindowKeyframeMsg, kMaxMotionBaKeyframes> window{};
 };
 
+// Structural changes one keyframe may cause that a delta carries; beyond it they are counted as lost.
+inline constexpr std::size_t kMaxMapEventsPerKeyframe = 4096;
+
+// A map point of the local map as the link sees it: id and world position.
+struct DeltaPointMsg {
+  MapPointId id;
+  std::array<float, 3> p_w{};
+};
+
+// A map point made with this keyframe, in full.
+struct NewPointMsg {
+  MapPointId id;
+  KeyframeId reference;  // the keyframe whose keypoint made it
+  std::array<float, 3> p_w{};
+  std::array<std::uint8_t, 32> descriptor{};
+  std::uint8_t octave = 0;
+};
+
+// Mapping -> link, once per processed keyframe, after local BA. One message carries structure and states
+// together, so that the link never pairs a keyframe with a state from another world frame (the frame changes
+// when the IMU is initialised).
+struct MapDeltaMessage {
+  std::uint64_t sequence = 0;  // per agent, from 0: the link spots a lost delta by a gap
+  std::int64_t publish_steady_ns = 0;
+  std::uint32_t map_id = 0;  // the agent's map now (counts new maps)
+  std::uint32_t map_epoch = 0;
+  // The map's world frame is final: metric and gravity-aligned (the IMU is initialised; vision only: the map
+  // has started). Until then nothing of this map leaves the agent.
+  std::uint8_t ready = 0;
+  std::int64_t t_ns = 0;  // the keyframe's time
+  // The keyframe just processed, in full, when it is still in the map.
+  std::uint8_t has_keyframe = 0;
+  std::uint32_t keyframe_map_id = 0;
+  KeyframeStateMsg keyframe;
+  std::uint8_t has_imu_link = 0;  // `imu` joins `imu_from` (the previous keyframe of this map) to this one
+  KeyframeId imu_from;
+  std::uint16_t keypoint_count = 0;
+  std::array<KeypointMsg, kMaxKeypointsPerKeyframe> keypoints{};
+  std::array<std::array<std::uint8_t, 32>, kMaxKeypointsPerKeyframe> descriptors{};
+  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> has_right{};
+  std::array<std::array<float, 2>, kMaxKeypointsPerKeyframe> right_px{};  // cam1, undistorted to its pinhole
+  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> right_octave{};
+  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> has_observation{};  // the keyframe's links, as they are now
+  std::array<MapPointId, kMaxKeypointsPerKeyframe> observation{};
+  std::uint32_t imu_count = 0;
+  std::array<ImuSampleMsg, kMaxImuSamplesPerKeyframe> imu{};
+  // Points made while processing this keyframe that are still in the map.
+  std::uint16_t new_point_count = 0;
+  std::array<NewPointMsg, kMaxKeypointsPerKeyframe> new_points{};
+  // Every structural change, in the order it happened.
+  std::uint16_t event_count = 0;
+  std::uint32_t events_lost = 0;
+  std::array<MapEvent, kMaxMapEventsPerKeyframe> events{};
+  // Everything in the local map now: keyframe states and point positions.
+  std::uint16_t keyframe_count = 0;
+  std::array<KeyframeStateMsg, kMaxKeyframes> keyframes{};
+  std::uint32_t point_count = 0;
+  std::array<DeltaPointMsg, kMaxMapPoints> points{};
+};
+
 static_assert(std::is_trivially_copyable_v<KeyframeMessage>);
 static_assert(std::is_trivially_copyable_v<MapSnapshotMessage>);
+static_assert(std::is_trivially_copyable_v<MapDeltaMessage>);
 
 }  // namespace cvislam::agent

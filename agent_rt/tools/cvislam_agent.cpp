@@ -2,10 +2,12 @@
 //
 //   cvislam_agent --dataset SEQ_DIR --output OUT_DIR [--config FILE] [--mode mono|stereo|auto]
 //                 [--pace realtime|fast|sync] [--rate R] [--roudi embedded|external] [--agent-id N]
+//                 [--server HOST:PORT --mission NAME]
 //
 // Writes OUT_DIR/trajectory.txt (TUM, every tracked frame on its keyframe's refined pose),
 // trajectory_online.txt (as tracked live), keyframes.txt, latency.json and summary.json, and prints the
-// latency table. SIGINT/SIGTERM stop it early; the outputs are still written.
+// latency table; with --server also link.json and link_timeline.csv. SIGINT/SIGTERM stop it early; the outputs
+// are still written.
 // Exit status: 0 done, 1 the run could not start or its outputs could not be written, 2 bad command line.
 #include <atomic>
 #include <csignal>
@@ -34,6 +36,8 @@ int main(int argc, char** argv) {
   std::string roudi;
   double rate = 0.0;
   int agent_id = -1;
+  std::string server;
+  std::string mission;
   bool no_imu = false;
   bool quiet = false;
   bool trace_mapping = false;
@@ -48,6 +52,10 @@ int main(int argc, char** argv) {
   app.add_option("--rate", rate, "Playback speed for --pace realtime [1]");
   app.add_option("--roudi", roudi, "embedded: RouDi inside this process; external: attach to iox-roudi [embedded]");
   app.add_option("--agent-id", agent_id, "This agent's id, in every keyframe and map point id [0]");
+  app.add_option("--server", server,
+                 "Stream the map to the cvislam_server at HOST:PORT; without it the agent runs alone. The agent never "
+                 "waits for the server: it reconnects by itself and resends what was not acknowledged");
+  app.add_option("--mission", mission, "Mission name on the server (letters, digits, . _ -) [default]");
   app.add_option("--max-frames", max_frames, "Stop after this many frames (0 = all)");
   app.add_flag("--no-imu", no_imu, "Vision only");
   app.add_flag("--quiet", quiet, "No progress output");
@@ -90,6 +98,8 @@ int main(int argc, char** argv) {
     options.agent = static_cast<cvislam::AgentId>(agent_id);
   }
   if (no_imu) options.use_imu = false;
+  if (!server.empty()) options.link.server = server;
+  if (!mission.empty()) options.link.mission = mission;
   options.quiet = quiet;
   options.trace_mapping = trace_mapping;
   options.max_frames = max_frames;

@@ -1,0 +1,323 @@
+#include "agent_rt/link/link.hpp"
+
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <map>
+#include <thread>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "agent_rt/link/link_client.hpp"
+#include "cvislam/v1/agent_link.pb.h"
+#include "proto/wire/wire.hpp"
+
+namespace cvislam::agent {
+
+using Clock = std::chrono::steady_clock;
+
+Status LinkOptions::validate() const {
+  const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "link: " + what}; };
+  if (server.empty()) return Status::Ok();
+  if (server.find(':') == std::string::npos) return bad("server '" + server + "': give host:port");
+  if (mission.empty()) return bad("mission must not be empty");
+  if (!(max_rate_hz > 0.0) || max_rate_hz > 100.0) return bad("max_rate_hz must be in (0, 100]");
+  if (max_batch_bytes < (16U << 10U)) return bad("max_batch_bytes must be at least 16 KiB");
+  if (!(reconnect_min_s > 0.0) || reconnect_max_s < reconnect_min_s) {
+    return bad("reconnect times must satisfy 0 < reconnect_min_s <= reconnect_max_s");
+  }
+  if (!(connect_timeout_s > 0.0) || !(flush_timeout_s >= 0.0)) return bad("timeouts must be positive");
+  if (keepalive_ms < 100) return bad("keepalive_ms must be >= 100");
+  return store.validate();
+}
+
+struct Link::Impl {
+  struct TimelineRow {
+    double t_s;
+    std::uint64_t up_bytes;
+    std::uint64_t down_bytes;
+    bool connected;
+    std::size_t keyframes_waiting;
+  };
+
+  Impl(const LinkOptions& o, AgentId a)
+      : options(o), agent(a), store(a, o.store),
+        client(LinkClientOptions{o.server, o.keepalive_ms,
+                                 std::chrono::milliseconds(static_cast<int>(o.connect_timeout_s * 1000)), 16U << 20U}) {
+    timeline.reserve(4096);
+  }
+
+  LinkOptions options;
+  AgentId agent;
+  LinkStore store;
+  LinkClient client;
+  v1::AgentUplink hello;
+  v1::AgentUplink uplink;  // reused for every batch: its buffers keep their capacity
+  v1::ServerDownlink downlink;
+  std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> up_by_kind;    // messages, bytes
+  std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> down_by_kind;
+  std::vector<TimelineRow> timeline;
+  Clock::time_point start = Clock::now();
+  double flush_wait_s = 0.0;
+
+  mutable std::mutex status_mutex;
+  LinkStatus status;  // guarded by status_mutex
+
+  void count(std::map<std::string, std::pair<std::uint64_t, std::uint64_t>>& by_kind, const std::string& kind,
+             std::uint64_t n, std::uint64_t bytes) {
+    auto& c = by_kind[kind];
+    c.first += n;
+    c.second += bytes;
+  }
+
+  void countBatch(const v1::MapBatch& b, std::uint64_t bytes) {
+    count(up_by_kind, "message", 1, bytes);
+    count(up_by_kind, "batch", 1, bytes);
+    std::uint64_t sum = 0;
+    for (const auto& k : b.keyframes()) sum += k.ByteSizeLong();
+    count(up_by_kind, "keyframe", static_cast<std::uint64_t>(b.keyframes_size()), sum);
+    sum = 0;
+    for (const auto& p : b.points()) sum += p.ByteSizeLong();
+    count(up_by_kind, "point", static_cast<std::uint64_t>(b.points_size()), sum);
+    sum = 0;
+    std::uint64_t observations = 0;
+    for (const auto& o : b.observations()) {
+      sum += o.ByteSizeLong();
+      observations += static_cast<std::uint64_t>(o.keypoint_size());
+    }
+    count(up_by_kind, "observation", observations, sum);
+    sum = 0;
+    for (const auto& u : b.keyframe_updates()) sum += u.ByteSizeLong();
+    count(up_by_kind, "keyframe_update", static_cast<std::uint64_t>(b.keyframe_updates_size()), sum);
+    count(up_by_kind, "point_update", static_cast<std::uint64_t>(b.point_updates().point_size()),
+          b.has_point_updates() ? b.point_updates().ByteSizeLong() : 0);
+    count(up_by_kind, "merge", static_cast<std::uint64_t>(b.merges().drop_size()),
+          b.has_merges() ? b.merges().ByteSizeLong() : 0);
+    count(up_by_kind, "removal", static_cast<std::uint64_t>(b.removed_points_size() + b.removed_keyframes_size()), 0);
+  }
+
+  void publishStatus(bool connected, bool flushed) {
+    std::lock_guard lock(status_mutex);
+    status.connected = connected;
+    status.last_error = connected ? std::string() : client.lastError();
+    status.backlog = store.backlog();
+    status.store = store.counters();
+    status.acked_sequence = store.acked();
+    status.flushed = flushed;
+    status.up_messages = up_by_kind.count("message") != 0 ? up_by_kind["message"].first : 0;
+    status.up_bytes = up_by_kind.count("message") != 0 ? up_by_kind["message"].second : 0;
+    status.down_messages = down_by_kind.count("message") != 0 ? down_by_kind["message"].first : 0;
+    status.down_bytes = down_by_kind.count("message") != 0 ? down_by_kind["message"].second : 0;
+  }
+};
+
+Result<std::unique_ptr<Link>> Link::create(const LinkOptions& options, AgentId agent, const LinkSensors& sensors) {
+  if (options.server.empty()) return Error{ErrorCode::kInvalidArgument, "link: no server given"};
+  if (Status s = options.validate(); !s.ok()) return s.error();
+  auto impl = std::make_unique<Impl>(options, agent);
+  v1::Hello& hello = *impl->hello.mutable_hello();
+  hello.set_protocol_version(wire::kProtocolVersion);
+  hello.set_mission(options.mission);
+  hello.set_agent_id(agent);
+  // A number of this process, different for every run: a reconnect of this process takes over its old stream,
+  // another process claiming the same agent id is refused.
+  const auto now_ns = static_cast<std::uint64_t>(Clock::now().time_since_epoch().count());
+  hello.set_session((static_cast<std::uint64_t>(::getpid()) << 40U) ^ now_ns);
+  hello.set_mode(sensors.stereo ? v1::SENSOR_MODE_STEREO : v1::SENSOR_MODE_MONO);
+  hello.set_uses_imu(sensors.uses_imu);
+  wire::toProto(sensors.cam0, sensors.T_s_c0, hello.mutable_cam0());
+  if (sensors.stereo && sensors.cam1) wire::toProto(*sensors.cam1, sensors.T_s_c1, hello.mutable_cam1());
+  if (sensors.uses_imu) wire::toProto(sensors.imu_noise, sensors.imu_rate_hz, hello.mutable_imu());
+  hello.set_software("cvislam_agent 0.1.0");
+  return std::unique_ptr<Link>(new Link(std::move(impl)));
+}
+
+Link::Link(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Link::~Link() = default;
+
+void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
+  Impl& s = *impl_;
+  const auto period = std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / s.options.max_rate_hz));
+  const auto backoff_min = std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_min_s));
+  const auto backoff_max = std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_max_s));
+  auto backoff = backoff_min;
+  auto next_attempt = Clock::now();
+  auto last_send = Clock::now() - period;
+  auto next_sample = Clock::now();
+  std::optional<Clock::time_point> stop_at;
+  std::uint64_t next_sequence = 1;
+  std::uint64_t last_sent = 0;
+  bool connected = false;
+  bool nothing_due = false;
+
+  while (true) {
+    // Mapping's deltas, in order.
+    for (const MapDeltaMessage* d = source.next(); d != nullptr; d = source.next()) {
+      s.store.onDelta(*d);
+      source.release();
+      nothing_due = false;
+    }
+    const auto now = Clock::now();
+    if (stop.load() && !stop_at) stop_at = now;
+    const bool flushed = connected && nothing_due && s.store.acked() >= last_sent;
+    if (stop_at) {
+      const double waited = std::chrono::duration<double>(now - *stop_at).count();
+      if (flushed || waited >= s.options.flush_timeout_s) {
+        s.flush_wait_s = waited;
+        s.publishStatus(connected, flushed);
+        break;
+      }
+    }
+
+    if (!connected && now >= next_attempt) {
+      s.hello.mutable_hello()->set_last_acked_sequence(s.store.acked());
+      auto welcome = s.client.connect(s.hello);
+      std::lock_guard lock(s.status_mutex);
+      if (welcome) {
+        connected = true;
+        ++s.status.connections;
+        const std::uint64_t stored = (*welcome)->welcome().stored_sequence();
+        s.store.onWelcome(stored);
+        next_sequence = stored + 1;
+        last_sent = std::min(last_sent, stored);
+        backoff = backoff_min;
+        nothing_due = false;
+        const std::uint64_t bytes = (*welcome)->ByteSizeLong();
+        s.count(s.down_by_kind, "message", 1, bytes);
+        s.count(s.down_by_kind, "welcome", 1, bytes);
+        s.count(s.up_by_kind, "message", 1, s.hello.ByteSizeLong());
+        s.count(s.up_by_kind, "hello", 1, s.hello.ByteSizeLong());
+      } else {
+        ++s.status.failed_attempts;
+        next_attempt = now + backoff;
+        backoff = std::min(backoff * 2, backoff_max);
+      }
+    }
+    if (connected) {
+      while (s.client.poll(s.downlink)) {
+        const std::uint64_t bytes = s.downlink.ByteSizeLong();
+        s.count(s.down_by_kind, "message", 1, bytes);
+        if (s.downlink.acked_sequence() > 0) {
+          s.store.onAck(s.downlink.acked_sequence());
+          s.count(s.down_by_kind, "ack", 1, 0);
+        }
+        if (s.downlink.corrected_keyframes_size() > 0) {
+          s.store.onCorrections(s.downlink.corrected_keyframes_size());
+          std::uint64_t correction_bytes = 0;
+          for (const auto& c : s.downlink.corrected_keyframes()) correction_bytes += c.ByteSizeLong();
+          s.count(s.down_by_kind, "correction", static_cast<std::uint64_t>(s.downlink.corrected_keyframes_size()),
+                  correction_bytes);
+        }
+      }
+      if (!s.client.connected()) {
+        connected = false;
+        next_attempt = now + backoff;
+      }
+    }
+    if (connected && now - last_send >= period) {
+      v1::MapBatch& batch = *s.uplink.mutable_batch();
+      if (s.store.buildBatch(next_sequence, s.store.newestSensorTime(), s.options.max_batch_bytes, batch)) {
+        const std::uint64_t bytes = s.uplink.ByteSizeLong();
+        if (s.client.send(s.uplink)) {
+          last_sent = next_sequence++;
+          s.countBatch(batch, bytes);
+          last_send = now;
+          std::lock_guard lock(s.status_mutex);
+          s.status.sent_sequence = last_sent;
+        } else {
+          connected = false;  // what the batch carried is sent again after the Welcome
+          next_attempt = now + backoff;
+        }
+      } else {
+        nothing_due = true;
+      }
+    }
+    if (now >= next_sample) {
+      const LinkBacklog b = s.store.backlog();
+      s.timeline.push_back({std::chrono::duration<double>(now - s.start).count(),
+                            s.up_by_kind.count("message") != 0 ? s.up_by_kind["message"].second : 0,
+                            s.down_by_kind.count("message") != 0 ? s.down_by_kind["message"].second : 0, connected,
+                            b.keyframes_unsent + b.keyframes_unacked});
+      next_sample += std::chrono::seconds(1);
+    }
+    s.publishStatus(connected, false);
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  if (connected) {
+    s.uplink.mutable_goodbye()->set_end_of_mission(true);
+    if (s.client.send(s.uplink)) {
+      s.count(s.up_by_kind, "message", 1, s.uplink.ByteSizeLong());
+      s.count(s.up_by_kind, "goodbye", 1, s.uplink.ByteSizeLong());
+    }
+    (void)s.client.close(std::chrono::milliseconds(2000));
+  }
+  s.publishStatus(false, s.status.flushed);
+}
+
+LinkStatus Link::status() const {
+  std::lock_guard lock(impl_->status_mutex);
+  return impl_->status;
+}
+
+std::string Link::progressText() const {
+  const LinkStatus st = status();
+  const std::size_t waiting = st.backlog.keyframes_unsent + st.backlog.keyframes_unacked;
+  char text[256];
+  if (st.connected) {
+    std::snprintf(text, sizeof(text), "link up, %zu KF waiting, %.2f MB up", waiting,
+                  static_cast<double>(st.up_bytes) * 1e-6);
+  } else {
+    std::snprintf(text, sizeof(text), "link DOWN (%s), %zu KF waiting",
+                  st.last_error.empty() ? "connecting" : st.last_error.c_str(), waiting);
+  }
+  return text;
+}
+
+Status Link::writeReport(const std::filesystem::path& dir) const {
+  const Impl& s = *impl_;
+  const LinkStatus st = status();
+  nlohmann::json up = nlohmann::json::object();
+  for (const auto& [kind, c] : s.up_by_kind) up[kind] = {{"messages", c.first}, {"bytes", c.second}};
+  nlohmann::json down = nlohmann::json::object();
+  for (const auto& [kind, c] : s.down_by_kind) down[kind] = {{"messages", c.first}, {"bytes", c.second}};
+  const double duration_s = std::chrono::duration<double>(Clock::now() - s.start).count();
+  nlohmann::json j = {
+      {"server", s.options.server},
+      {"mission", s.options.mission},
+      {"agent", s.agent},
+      {"duration_s", duration_s},
+      {"connections", st.connections},
+      {"failed_attempts", st.failed_attempts},
+      {"flushed", st.flushed},
+      {"flush_wait_s", s.flush_wait_s},
+      {"acked_sequence", st.acked_sequence},
+      {"sent_sequence", st.sent_sequence},
+      {"keyframes_unacknowledged", st.backlog.keyframes_unsent + st.backlog.keyframes_unacked},
+      {"keyframes_stored", st.store.keyframes_stored},
+      {"keyframes_dropped", st.store.keyframes_dropped},
+      {"points_dropped", st.store.points_dropped},
+      {"removals_dropped", st.store.removals_dropped},
+      {"deltas", st.store.deltas},
+      {"deltas_lost", st.store.deltas_lost},
+      {"delta_events_lost", st.store.delta_events_lost},
+      {"corrections_received", st.store.corrections_received},
+      {"up", up},
+      {"down", down},
+      {"up_mb_per_s", duration_s > 0 ? static_cast<double>(st.up_bytes) * 1e-6 / duration_s : 0.0},
+      {"down_mb_per_s", duration_s > 0 ? static_cast<double>(st.down_bytes) * 1e-6 / duration_s : 0.0}};
+  std::ofstream json(dir / "link.json");
+  json << j.dump(2) << "\n";
+  std::ofstream csv(dir / "link_timeline.csv");
+  csv << "t_s,up_bytes,down_bytes,connected,keyframes_waiting\n";
+  for (const auto& r : s.timeline) {
+    csv << r.t_s << ',' << r.up_bytes << ',' << r.down_bytes << ',' << (r.connected ? 1 : 0) << ','
+        << r.keyframes_waiting << '\n';
+  }
+  if (!json || !csv) return Error{ErrorCode::kIoError, "cannot write the link report into " + dir.string()};
+  return Status::Ok();
+}
+
+}  // namespace cvislam::agent

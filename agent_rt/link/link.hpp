@@ -1,0 +1,114 @@
+// The agent's link to the server (CVI-SLAM IV-D): a thread beside tracking and mapping.
+//
+//   mapping --MapDeltaMessage (iceoryx)--> link --MapBatch (gRPC, at most 5/s)--> server
+//                                          link <--acknowledgements, corrected keyframe states (<= 2/s)-- server
+//
+// It learns what changed in the local map from mapping's delta after each keyframe (a topic of its own: one
+// message carries the keyframe in full, the points made, every structural change in order, and the states and
+// positions of the whole local map, so structure and states always come from the same world frame). It keeps
+// what it must send in a bounded store (link_store.hpp), sends new keyframes and points in full once and
+// compact updates afterwards, and resends after a reconnection whatever the server had not stored.
+//
+// Without a server (or with the server gone) the agent is exactly the VIO it is alone: the link never blocks
+// tracking or mapping. It reconnects by itself with backoff. At the end of a run it waits up to
+// flush_timeout_s for the server to acknowledge everything, then says goodbye.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "agent_rt/link/link_store.hpp"
+#include "agent_rt/runtime/messages.hpp"
+#include "common/core/result.hpp"
+#include "common/dataset/types.hpp"
+#include "common/geometry/lie.hpp"
+#include "common/imu/preintegration.hpp"
+
+namespace cvislam::agent {
+
+struct LinkOptions {
+  std::string server;  // host:port; empty: no link
+  std::string mission = "default";
+  double max_rate_hz = 5.0;  // up messages per second (paper: 5)
+  std::size_t max_batch_bytes = 512U << 10U;
+  double reconnect_min_s = 0.2;  // backoff after a failed attempt, doubling up to reconnect_max_s
+  double reconnect_max_s = 2.0;
+  double connect_timeout_s = 1.0;
+  double flush_timeout_s = 15.0;  // at the end: how long to wait for the server to acknowledge everything
+  int keepalive_ms = 1000;
+  LinkStoreOptions store;
+
+  [[nodiscard]] Status validate() const;
+};
+
+// What the Hello says about the agent's sensors.
+struct LinkSensors {
+  bool stereo = false;
+  bool uses_imu = true;
+  dataset::CameraCalibration cam0;
+  geometry::SE3d T_s_c0;
+  std::optional<dataset::CameraCalibration> cam1;
+  geometry::SE3d T_s_c1;
+  imu::ImuNoise imu_noise;  // as the agent uses it (inflated)
+  double imu_rate_hz = 200.0;
+};
+
+// Where the link reads mapping's deltas from: iceoryx in the agent, a queue in tests.
+class DeltaSource {
+ public:
+  virtual ~DeltaSource() = default;
+  // The next delta, or nullptr when none is waiting. It stays valid until release().
+  virtual const MapDeltaMessage* next() = 0;
+  virtual void release() = 0;
+};
+
+// Counters for the progress line and link.json; a copy, safe to read from any thread.
+struct LinkStatus {
+  bool connected = false;
+  std::uint32_t connections = 0;  // streams opened
+  std::uint32_t failed_attempts = 0;
+  std::string last_error;
+  LinkBacklog backlog;
+  LinkStoreCounters store;
+  std::uint64_t acked_sequence = 0;
+  std::uint64_t sent_sequence = 0;
+  std::uint64_t up_messages = 0;
+  std::uint64_t up_bytes = 0;
+  std::uint64_t down_messages = 0;
+  std::uint64_t down_bytes = 0;
+  std::uint64_t corrections = 0;
+  bool flushed = false;  // at the end: everything acknowledged
+};
+
+class Link {
+ public:
+  static Result<std::unique_ptr<Link>> create(const LinkOptions& options, AgentId agent, const LinkSensors& sensors);
+  ~Link();
+  Link(const Link&) = delete;
+  Link& operator=(const Link&) = delete;
+
+  // Runs on the calling thread until `stop` is set and then everything is acknowledged (or flush_timeout_s has
+  // passed): reads deltas from `source`, keeps the stream up, sends, reads acknowledgements.
+  void run(DeltaSource& source, const std::atomic<bool>& stop);
+
+  [[nodiscard]] LinkStatus status() const;
+  // One line for the agent's progress output, e.g. "link up, 2 KF waiting" or "link DOWN (retrying), 14 KF waiting".
+  [[nodiscard]] std::string progressText() const;
+  // link.json (traffic by kind and direction, reconnections, what was dropped) and link_timeline.csv (per second:
+  // bytes up and down, connected, keyframes waiting). Call after run() returned.
+  Status writeReport(const std::filesystem::path& dir) const;
+
+  struct Impl;
+
+ private:
+  explicit Link(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace cvislam::agent

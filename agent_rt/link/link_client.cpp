@@ -1,0 +1,199 @@
+#include "agent_rt/link/link_client.hpp"
+
+#include <condition_variable>
+#include <deque>
+#include <mutex>
+#include <thread>
+
+#include <grpcpp/grpcpp.h>
+
+#include "cvislam/v1/agent_link.grpc.pb.h"
+
+namespace cvislam::agent {
+
+namespace {
+std::string describe(const grpc::Status& s) {
+  static const char* const kNames[] = {"OK",
+                                       "CANCELLED",
+                                       "UNKNOWN",
+                                       "INVALID_ARGUMENT",
+                                       "DEADLINE_EXCEEDED",
+                                       "NOT_FOUND",
+                                       "ALREADY_EXISTS",
+                                       "PERMISSION_DENIED",
+                                       "RESOURCE_EXHAUSTED",
+                                       "FAILED_PRECONDITION",
+                                       "ABORTED",
+                                       "OUT_OF_RANGE",
+                                       "UNIMPLEMENTED",
+                                       "INTERNAL",
+                                       "UNAVAILABLE",
+                                       "DATA_LOSS",
+                                       "UNAUTHENTICATED"};
+  const int code = static_cast<int>(s.error_code());
+  const std::string name = code >= 0 && code < 17 ? kNames[code] : std::to_string(code);
+  return s.error_message().empty() ? name : name + ": " + s.error_message();
+}
+}  // namespace
+
+struct LinkClient::Impl {
+  LinkClientOptions options;
+  std::shared_ptr<grpc::Channel> channel;
+  std::unique_ptr<v1::AgentLink::Stub> stub;
+
+  // The open stream, if any.
+  std::unique_ptr<grpc::ClientContext> context;
+  std::unique_ptr<grpc::ClientReaderWriter<v1::AgentUplink, v1::ServerDownlink>> stream;
+  std::thread reader;
+
+  mutable std::mutex mutex;  // guards what the reader thread shares
+  std::condition_variable arrived;
+  std::deque<v1::ServerDownlink> inbox;
+  bool reading = false;  // the reader thread runs
+  bool broken = false;   // the stream ended or a write failed
+  std::string last_error;
+
+  void startReader() {
+    {
+      std::lock_guard lock(mutex);
+      reading = true;
+      broken = false;
+      inbox.clear();
+    }
+    reader = std::thread([this] {
+      v1::ServerDownlink message;
+      while (stream->Read(&message)) {
+        std::lock_guard lock(mutex);
+        if (inbox.size() < 256) inbox.push_back(message);  // the server sends at most a few per second
+        arrived.notify_all();
+      }
+      std::lock_guard lock(mutex);
+      reading = false;
+      broken = true;
+      arrived.notify_all();
+    });
+  }
+
+  // Ends the stream (cancelling it when it is still open) and collects its status.
+  grpc::Status teardown() {
+    if (!stream) return grpc::Status::OK;
+    context->TryCancel();
+    if (reader.joinable()) reader.join();
+    grpc::Status status = stream->Finish();
+    stream.reset();
+    context.reset();
+    std::lock_guard lock(mutex);
+    broken = true;
+    return status;
+  }
+};
+
+LinkClient::LinkClient(const LinkClientOptions& options) : impl_(std::make_unique<Impl>()) {
+  impl_->options = options;
+  grpc::ChannelArguments args;
+  // Notice a dead or hung server within a few seconds, and come back quickly after it restarts.
+  args.SetInt(GRPC_ARG_KEEPALIVE_TIME_MS, options.keepalive_ms);
+  args.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, options.keepalive_ms);
+  args.SetInt(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  args.SetInt(GRPC_ARG_HTTP2_MAX_PINGS_WITHOUT_DATA, 0);
+  args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);
+  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 100);
+  args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
+  args.SetMaxSendMessageSize(static_cast<int>(options.max_message_bytes));
+  args.SetMaxReceiveMessageSize(static_cast<int>(options.max_message_bytes));
+  impl_->channel = grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
+  impl_->stub = v1::AgentLink::NewStub(impl_->channel);
+}
+
+LinkClient::~LinkClient() {
+  impl_->teardown();
+}
+
+Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connect(const v1::AgentUplink& hello) {
+  Impl& s = *impl_;
+  s.teardown();
+  const auto deadline = std::chrono::system_clock::now() + s.options.connect_timeout;
+  if (!s.channel->WaitForConnected(deadline)) {
+    std::lock_guard lock(s.mutex);
+    s.last_error = "server " + s.options.server + " unreachable";
+    return Error{ErrorCode::kUnavailable, s.last_error};
+  }
+  s.context = std::make_unique<grpc::ClientContext>();
+  s.stream = s.stub->Connect(s.context.get());
+  s.startReader();
+  if (!s.stream->Write(hello)) {
+    const grpc::Status status = s.teardown();
+    std::lock_guard lock(s.mutex);
+    s.last_error = "the stream broke at the Hello (" + describe(status) + ")";
+    return Error{ErrorCode::kUnavailable, s.last_error};
+  }
+  std::unique_lock lock(s.mutex);
+  s.arrived.wait_until(lock, std::chrono::steady_clock::now() + s.options.connect_timeout,
+                       [&] { return !s.inbox.empty() || s.broken; });
+  if (!s.inbox.empty() && s.inbox.front().has_welcome()) {
+    auto welcome = std::make_unique<v1::ServerDownlink>(std::move(s.inbox.front()));
+    s.inbox.pop_front();
+    s.last_error.clear();
+    return welcome;
+  }
+  lock.unlock();
+  const grpc::Status status = s.teardown();
+  lock.lock();
+  s.last_error = status.ok() ? "the server sent no Welcome" : "the server refused the Hello: " + describe(status);
+  const ErrorCode code = status.error_code() == grpc::StatusCode::UNAVAILABLE ? ErrorCode::kUnavailable
+                                                                              : ErrorCode::kFailedPrecondition;
+  return Error{code, s.last_error};
+}
+
+bool LinkClient::connected() const {
+  std::lock_guard lock(impl_->mutex);
+  return impl_->stream != nullptr && !impl_->broken;
+}
+
+bool LinkClient::send(const v1::AgentUplink& message) {
+  Impl& s = *impl_;
+  if (!connected()) return false;
+  if (s.stream->Write(message)) return true;
+  const grpc::Status status = s.teardown();
+  std::lock_guard lock(s.mutex);
+  s.last_error = "stream broke: " + describe(status);
+  return false;
+}
+
+bool LinkClient::poll(v1::ServerDownlink& out) {
+  Impl& s = *impl_;
+  std::unique_lock lock(s.mutex);
+  if (!s.inbox.empty()) {
+    out = std::move(s.inbox.front());
+    s.inbox.pop_front();
+    return true;
+  }
+  if (s.broken && s.stream) {
+    // The server ended the stream: collect its reason.
+    lock.unlock();
+    const grpc::Status status = s.teardown();
+    lock.lock();
+    s.last_error = "the server ended the stream: " + describe(status);
+  }
+  return false;
+}
+
+Status LinkClient::close(std::chrono::milliseconds timeout) {
+  Impl& s = *impl_;
+  if (!s.stream) return Status::Ok();
+  s.stream->WritesDone();
+  {
+    std::unique_lock lock(s.mutex);
+    s.arrived.wait_for(lock, timeout, [&] { return !s.reading; });
+  }
+  const grpc::Status status = s.teardown();
+  if (status.ok() || status.error_code() == grpc::StatusCode::CANCELLED) return Status::Ok();
+  return Error{ErrorCode::kUnavailable, describe(status)};
+}
+
+std::string LinkClient::lastError() const {
+  std::lock_guard lock(impl_->mutex);
+  return impl_->last_error;
+}
+
+}  // namespace cvislam::agent

@@ -1,0 +1,54 @@
+// The agent's end of the link stream, over gRPC. One stream at a time; a reader thread keeps a Read pending so
+// that acknowledgements arrive while the link thread writes (and so that gRPC notices a broken connection).
+// gRPC headers stay in link_client.cpp.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "common/core/result.hpp"
+
+namespace cvislam::v1 {
+class AgentUplink;
+class ServerDownlink;
+}  // namespace cvislam::v1
+
+namespace cvislam::agent {
+
+struct LinkClientOptions {
+  std::string server;  // host:port
+  int keepalive_ms = 1000;
+  std::chrono::milliseconds connect_timeout{1000};
+  std::size_t max_message_bytes = 16U << 20U;
+};
+
+class LinkClient {
+ public:
+  explicit LinkClient(const LinkClientOptions& options);
+  ~LinkClient();
+  LinkClient(const LinkClient&) = delete;
+  LinkClient& operator=(const LinkClient&) = delete;
+
+  // Opens a stream, sends `hello` and waits for the server's first message (the Welcome), which it returns.
+  // Fails, with the server's own reason when it gave one, when the server is unreachable or refuses.
+  Result<std::unique_ptr<v1::ServerDownlink>> connect(const v1::AgentUplink& hello);
+
+  [[nodiscard]] bool connected() const;
+  // Writes one message; false when the stream broke (the client is then disconnected: call connect again).
+  bool send(const v1::AgentUplink& message);
+  // The next message from the server, if one has arrived; never blocks.
+  bool poll(v1::ServerDownlink& out);
+  // Half-closes the stream and waits up to `timeout` for the server to end it; returns the final status.
+  Status close(std::chrono::milliseconds timeout);
+  // Why the last stream ended ("" while it is open).
+  [[nodiscard]] std::string lastError() const;
+
+  struct Impl;
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace cvislam::agent
