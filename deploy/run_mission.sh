@@ -1,92 +1,190 @@
 #!/usr/bin/env bash
-# The project's main job, end to end: install what is missing, build, run, print the result table.
+# The project's main job: a collaborative mission, end to end. It installs what is missing, builds, renders a
+# simulated multi-agent mission once (cached), starts an iceoryx RouDi, cvislam_server on loopback and one
+# cvislam_agent process per agent, waits for them, has the server write what it holds, and prints the result
+# tables; then one agent on the real EuRoC V1_01 excerpt through the same server.
 #
-# Today the richest end-to-end run is the evaluation pipeline on real data: the eight real visual-inertial
-# estimates of rpg_trajectory_evaluation's EuRoC set (MH_01/03/05 and V2_01, mono and stereo) and evo's
-# V1_02 estimate, each scored by cvislam_eval against EuRoC ground truth; then cvislam_agent itself,
-# stereo-inertial on the real V1_01 excerpt. It becomes the collaborative mission (server + agents over
-# loopback gRPC) when the server lands.
+#   deploy/run_mission.sh [--preset NAME] [--seed N] [--duration SEC] [--mode stereo|mono] [--pace realtime|sync]
+#                         [--out DIR] [--build-dir DIR] [--no-real]
 #
-#   deploy/run_mission.sh [--out DIR] [--build-dir DIR]
+#   --preset    a cvislam_sim preset: overlap2 (default; 2 agents), loop, hall4, hall8, aggressive, or euroc-mh
+#               (the five real EuRoC Machine Hall flights, replayed by the simulator in one world frame)
+#   --seed      simulator seed [1]
+#   --duration  seconds per agent [the preset's: 60; euroc-mh: 90]
+#   --mode      stereo (default) or mono (mono-inertial)
+#   --pace      sync (default: after each keyframe tracking waits for mapping, so every run gives the same
+#               figures on a loaded machine) or realtime (frames at the sensor rate, as on a robot; on this
+#               2-core machine several realtime agents compete for the cores, see issue 17)
+#   --out       results [out/mission]: summary.json, report/index.html, server/, agents/, eval/
+#   --no-real   skip the agent on the real EuRoC excerpt
 #
-# Data: $CVISLAM_DATA_DIR, else ../shared/data beside the repository. Results: DIR (default out/mission):
-# one JSON and one SVG top view per run, and summary.tsv.
+# Environment: CVISLAM_DATA_DIR (default ../shared/data beside the repository) for the real data and the
+# euroc-mh flights; CVISLAM_SIM_CACHE (default out/sim-cache) for rendered missions.
 set -euo pipefail
 
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+preset=overlap2
+seed=1
+duration=""
+mode=stereo
+pace=sync
 out="$repo/out/mission"
 build="$repo/build/default"
+real=1
 while [ $# -gt 0 ]; do
   case "$1" in
+    --preset) preset=$2; shift 2 ;;
+    --seed) seed=$2; shift 2 ;;
+    --duration) duration=$2; shift 2 ;;
+    --mode) mode=$2; shift 2 ;;
+    --pace) pace=$2; shift 2 ;;
     --out) out=$2; shift 2 ;;
     --build-dir) build=$2; shift 2 ;;
-    -h|--help) sed -n '2,13p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --no-real) real=0; shift ;;
+    -h|--help) sed -n '2,21p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
 done
+case "$mode" in stereo|mono) ;; *) echo "run_mission: --mode must be stereo or mono, not '$mode'" >&2; exit 2 ;; esac
+case "$pace" in realtime|sync) ;; *) echo "run_mission: --pace must be realtime or sync, not '$pace'" >&2; exit 2 ;; esac
+[[ "$seed" =~ ^[0-9]+$ ]] || { echo "run_mission: --seed must be a whole number, not '$seed'" >&2; exit 2; }
+if [ -z "$duration" ]; then
+  if [ "$preset" = euroc-mh ]; then duration=90; else duration=60; fi
+fi
+[[ "$duration" =~ ^[0-9]+([.][0-9]+)?$ ]] || { echo "run_mission: --duration must be seconds, not '$duration'" >&2; exit 2; }
 
+t_start=$(date +%s)
 "$repo/deploy/install_deps.sh"
 
 echo "== build (preset 'default' in $build)"
 if [ ! -f "$build/build.ninja" ]; then
   cmake -S "$repo" --preset default -B "$build" >/dev/null
 fi
-cmake --build "$build" --target cvislam_eval cvislam_agent
-eval_bin="$build/bin/cvislam_eval"
-agent_bin="$build/bin/cvislam_agent"
+cmake --build "$build" --target cvislam_sim cvislam_server cvislam_agent cvislam_eval
+bin="$build/bin"
+t_built=$(date +%s)
 
 data=${CVISLAM_DATA_DIR:-"$repo/../shared/data"}
-if [ ! -d "$data/peer-rpg" ] || [ ! -d "$data/euroc-groundtruth" ]; then
-  echo "run_mission: SKIPPED the evaluation: real data not found under '$data'" >&2
-  echo "  (it needs peer-rpg/, peer-evo/ and euroc-groundtruth/; set CVISLAM_DATA_DIR to the shared data folder)" >&2
-  exit 0
+if [ "$preset" = euroc-mh ] && [ ! -d "$data/euroc-groundtruth" ]; then
+  echo "run_mission: the euroc-mh preset replays the EuRoC flights in $data/euroc-groundtruth, which is missing;" >&2
+  echo "  set CVISLAM_DATA_DIR to the shared data folder, or choose another --preset" >&2
+  exit 1
 fi
-data=$(cd "$data" && pwd)
-mkdir -p "$out"
+export CVISLAM_DATA_DIR="$data"
 
-# name | estimate | ground truth | association | max diff [s]
-runs=()
-for mode in mono stereo; do
-  for seq in MH_01:MH_01_easy MH_03:MH_03_medium MH_05:MH_05_difficult V2_01:V2_01_easy; do
-    short=${seq%%:*}; full=${seq#*:}
-    runs+=("vio_${mode}_${short}|$data/peer-rpg/vio_$mode/laptop_vio_${mode}_$short/stamped_traj_estimate.txt|$data/euroc-groundtruth/$full.txt|nearest|0.02")
+# 1. The simulated mission, rendered once per preset, seed and duration (stereo: mono runs use cam0 only).
+cache_root=${CVISLAM_SIM_CACHE:-"$repo/out/sim-cache"}
+cache="$cache_root/$preset-seed$seed-${duration}s"
+if [ ! -f "$cache/.complete" ]; then
+  echo "== render $preset (seed $seed, $duration s per agent) into $cache (once; later runs reuse it)"
+  rm -rf "$cache" "$cache.partial"
+  mkdir -p "$cache_root"
+  "$bin/cvislam_sim" --preset "$preset" --seed "$seed" --duration "$duration" --stereo --out "$cache.partial" \
+    | awk '/frames,/ { if (++n % 2 == 0) print; next } { print }'
+  mv "$cache.partial" "$cache"
+  touch "$cache/.complete"
+else
+  echo "== mission $preset (seed $seed, $duration s) from the cache: $cache"
+fi
+t_rendered=$(date +%s)
+agents=()
+for d in "$cache"/agent*; do [ -d "$d/mav0" ] && agents+=("$(basename "$d")"); done
+[ "${#agents[@]}" -gt 0 ] || { echo "run_mission: no agents in $cache" >&2; exit 1; }
+
+rm -rf "$out"
+mkdir -p "$out/agents" "$out/server" "$out/eval"
+mission="$preset"
+
+# 2. RouDi (one per machine: the agents share it), the server, the agents. Everything stops on exit.
+pids=()
+roudi_pid=""
+server_pid=""
+cleanup() {
+  for p in "${pids[@]}"; do kill -TERM "$p" 2>/dev/null || true; done
+  [ -n "$server_pid" ] && kill -TERM "$server_pid" 2>/dev/null || true
+  wait 2>/dev/null || true
+  [ -n "$roudi_pid" ] && kill -TERM "$roudi_pid" 2>/dev/null && wait "$roudi_pid" 2>/dev/null || true
+}
+trap cleanup EXIT
+trap 'echo "run_mission: interrupted" >&2; exit 130' INT TERM
+
+if pgrep -x iox-roudi >/dev/null; then
+  echo "run_mission: an iox-roudi is running already (pid $(pgrep -x iox-roudi | tr '\n' ' ')); iceoryx allows one per" >&2
+  echo "  machine and this mission starts its own: stop it first (kill -TERM <pid>)" >&2
+  exit 1
+fi
+iox-roudi -m off -c "$repo/deploy/roudi_config.toml" >"$out/roudi.log" 2>&1 &
+roudi_pid=$!
+for _ in $(seq 100); do grep -q "RouDi is ready" "$out/roudi.log" && break; sleep 0.1; done
+grep -q "RouDi is ready" "$out/roudi.log" || { echo "run_mission: iox-roudi did not start:" >&2; cat "$out/roudi.log" >&2; exit 1; }
+
+"$bin/cvislam_server" --listen 127.0.0.1:0 --port-file "$out/server.port" --output "$out/server" \
+  --status-interval 10 >"$out/server.log" 2>&1 &
+server_pid=$!
+for _ in $(seq 100); do [ -s "$out/server.port" ] && break; sleep 0.1; done
+[ -s "$out/server.port" ] || { echo "run_mission: cvislam_server did not start:" >&2; cat "$out/server.log" >&2; exit 1; }
+port=$(cat "$out/server.port")
+echo "== mission '$mission': server on 127.0.0.1:$port, ${#agents[@]} agent(s), $mode-inertial, pace $pace"
+
+for a in "${agents[@]}"; do
+  id=${a#agent}
+  "$bin/cvislam_agent" --dataset "$cache/$a" --output "$out/agents/$a" --roudi external --agent-id "$id" \
+    --server "127.0.0.1:$port" --mission "$mission" --mode "$mode" --pace "$pace" >"$out/agents/$a.log" 2>&1 &
+  pids+=("$!")
+done
+t_agents=$(date +%s)
+# Progress: every 10 s, each agent's newest progress line.
+failed=0
+while true; do
+  running=0
+  for p in "${pids[@]}"; do kill -0 "$p" 2>/dev/null && running=$((running + 1)); done
+  [ "$running" -eq 0 ] && break
+  sleep 10
+  for a in "${agents[@]}"; do
+    line=$(grep -a '^\[agent\] frame' "$out/agents/$a.log" | tail -1 | sed 's/^\[agent\] //') || true
+    [ -n "$line" ] && printf '  %-7s %s\n' "$a" "$line"
   done
 done
-runs+=("evo_V1_02|$data/peer-evo/V102.txt|$data/peer-evo/V102_groundtruth.csv|nearest|0.01")
-
-echo "== evaluate ${#runs[@]} real VIO runs against EuRoC ground truth"
-printf 'run\tposes\tpath_m\tate_posyaw_m\tate_se3_m\tate_sim3_m\tscale_err_pct\trot_se3_deg\n' >"$out/summary.tsv"
-i=0
-for r in "${runs[@]}"; do
-  IFS='|' read -r name est gt assoc maxdiff <<<"$r"
-  i=$((i + 1))
-  printf '  [%d/%d] %s\n' "$i" "${#runs[@]}" "$name"
-  "$eval_bin" --quiet --estimate "$est" --groundtruth "$gt" --associate "$assoc" --max-diff "$maxdiff" \
-    --json "$out/$name.json" --plot "$out/$name.svg" 2>"$out/$name.log" ||
-    { echo "run_mission: cvislam_eval failed on $name:" >&2; cat "$out/$name.log" >&2; exit 1; }
-  jq -r --arg n "$name" '[$n, .poses, (.groundtruth_path_m*100|round/100), .posyaw.rmse, .se3.rmse, .sim3.rmse,
-      .scale_error_percent, .se3.rotation_deg.rmse] | @tsv' "$out/$name.json" >>"$out/summary.tsv"
+for i in "${!pids[@]}"; do
+  if ! wait "${pids[$i]}"; then
+    echo "run_mission: ${agents[$i]} failed; its log ends:" >&2
+    tail -5 "$out/agents/${agents[$i]}.log" >&2
+    failed=1
+  fi
 done
+pids=()
+t_ran=$(date +%s)
 
-echo
-awk -F'\t' 'NR == 1 { printf "%-16s %6s %8s %13s %11s %12s %11s %12s\n", "run", "poses", "path[m]",
-                      "ATE posyaw[m]", "ATE SE3[m]", "ATE Sim3[m]", "scale err%", "rot SE3[deg]"; next }
-            { printf "%-16s %6d %8.1f %13.4f %11.4f %12.4f %+11.2f %12.3f\n", $1, $2, $3, $4, $5, $6, $7, $8 }' \
-  "$out/summary.tsv"
-
-# Our own agent on real images: stereo-inertial VIO over the real EuRoC V1_01 excerpt (4.7 s, the drone
-# almost still), tracking and mapping joined by iceoryx inside one process.
-if [ -d "$data/euroc-v101-excerpt/mav0" ]; then
-  echo
-  echo "== cvislam_agent: stereo-inertial on the real EuRoC V1_01 excerpt"
-  "$agent_bin" --dataset "$data/euroc-v101-excerpt" --output "$out/agent_v101" --mode stereo --pace sync --quiet \
-    >"$out/agent_v101.log" 2>&1 || { echo "run_mission: cvislam_agent failed:" >&2; tail -5 "$out/agent_v101.log" >&2; exit 1; }
-  grep -E '^(frames|IMU|stage|orb|matching|pose|motion|keyframe_|tracking|local|mapping)' "$out/agent_v101.log"
-  "$eval_bin" --quiet --estimate "$out/agent_v101/trajectory.txt" --groundtruth "$data/euroc-v101-excerpt" \
-    --json "$out/agent_v101.json" >/dev/null 2>&1 || true
-  jq -r '"ATE (SE3) \(.se3.rmse * 10000 | round / 10) mm over \(.poses) frames, ground-truth path \(.groundtruth_path_m * 100 | round / 100) m"' \
-    "$out/agent_v101.json" 2>/dev/null || echo "(evaluation failed: see $out/agent_v101.log)"
+# 3. One agent on real images through the same server: the EuRoC V1_01 excerpt (4.7 s, stereo-inertial).
+if [ "$real" = 1 ] && [ -d "$data/euroc-v101-excerpt/mav0" ]; then
+  echo "== real data: one agent on the EuRoC V1_01 excerpt, mission 'euroc-v101'"
+  "$bin/cvislam_agent" --dataset "$data/euroc-v101-excerpt" --output "$out/agents/real_v101" --roudi external \
+    --agent-id 0 --server "127.0.0.1:$port" --mission euroc-v101 --mode stereo --pace sync \
+    >"$out/agents/real_v101.log" 2>&1 || { echo "run_mission: the real-data agent failed:" >&2; tail -5 "$out/agents/real_v101.log" >&2; failed=1; }
+elif [ "$real" = 1 ]; then
+  echo "== real data: SKIPPED ($data/euroc-v101-excerpt not found; set CVISLAM_DATA_DIR)"
 fi
 
+kill -TERM "$server_pid"
+wait "$server_pid" || { echo "run_mission: cvislam_server failed:" >&2; tail -5 "$out/server.log" >&2; failed=1; }
+server_pid=""
+kill -TERM "$roudi_pid" 2>/dev/null || true
+wait "$roudi_pid" 2>/dev/null || true
+roudi_pid=""
+t_done=$(date +%s)
+
+cat >"$out/mission.json" <<EOF
+{"preset": "$preset", "seed": $seed, "duration_s": $duration, "mode": "$mode", "pace": "$pace",
+ "mission": "$mission", "dataset": "$cache", "agents": [$(printf '"%s",' "${agents[@]}" | sed 's/,$//')],
+ "real_data": "$data/euroc-v101-excerpt",
+ "wall_s": {"build": $((t_built - t_start)), "render": $((t_rendered - t_built)), "mission": $((t_ran - t_agents)),
+            "total_until_report": $((t_done - t_start))}}
+EOF
+
+# 4. Scores, tables, summary.json and the report with pictures.
+/usr/bin/python3 "$repo/deploy/mission_report.py" --out "$out" --eval "$bin/cvislam_eval"
 echo
-echo "results: $out (summary.tsv, per-run JSON and SVG top views, agent_v101/)"
+echo "wall time: build $((t_built - t_start)) s, render $((t_rendered - t_built)) s, mission $((t_ran - t_agents)) s," \
+  "total $(( $(date +%s) - t_start )) s"
+echo "results: $out (summary.json; open report/index.html in a browser)"
+exit "$failed"

@@ -86,6 +86,16 @@ TEST(CvislamSim, SamePresetAndSeedGiveByteIdenticalFilesAndAnotherSeedDoesNot) {
   EXPECT_NE(a.at(image), c.at(image));
 }
 
+TEST(CvislamSim, RenderingAgentsOnSeveralThreadsWritesTheSameFilesAsOne) {
+  const test::TempDir dir;
+  const std::string common = " --preset overlap2 --duration 0.3 --seed 3 --pixel-noise 2 -q --out ";
+  ASSERT_EQ(runSim("--threads 1" + common + (dir / "one").string()).exit_code, 0);
+  ASSERT_EQ(runSim("--threads 2" + common + (dir / "two").string()).exit_code, 0);
+  const auto one = treeBytes(dir / "one");
+  EXPECT_GT(one.size(), 10U);
+  EXPECT_TRUE(one == treeBytes(dir / "two"));
+}
+
 TEST(CvislamSim, RefusesExistingOutputUnlessOverwriteAndThenLeavesNoStaleImages) {
   const test::TempDir dir;
   const std::string out = " -q --out " + (dir / "m").string();

@@ -1,8 +1,13 @@
 #include "test/sim/mission_writer.hpp"
 
+#include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <fstream>
+#include <mutex>
 #include <numbers>
+#include <optional>
+#include <thread>
 
 #include "common/camera/camera_model.hpp"
 #include "common/core/text.hpp"
@@ -112,7 +117,8 @@ Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options
   const auto imu_ticks = static_cast<std::int64_t>(std::floor(plan.duration_s * options.imu.rate_hz + 1e-9)) + 1;
   const auto frames = static_cast<std::size_t>((imu_ticks - 1) / imu_per_frame + 1);
 
-  for (std::size_t a = 0; a < plan.agents.size(); ++a) {
+  std::mutex progress_mutex;
+  const auto write_agent = [&](std::size_t a, std::vector<Renderer>& agent_renderers) -> Status {
     const AgentPlan& agent = plan.agents[a];
     dataset::EurocWriterOptions writer_options;
     writer_options.cameras = cameras;
@@ -140,18 +146,50 @@ Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options
       const double gain = 1.0 + options.exposure_amplitude *
                                     (0.7 * std::sin(2.0 * std::numbers::pi * t_s / 15.0 + exposure_phase) +
                                      0.3 * std::sin(2.0 * std::numbers::pi * t_s / 6.3 + 2.0 * exposure_phase));
-      for (std::size_t c = 0; c < renderers.size(); ++c) {
+      for (std::size_t c = 0; c < agent_renderers.size(); ++c) {
         const geometry::SE3d T_w_c = state.T_w_b * cameras[c].T_b_c;
-        renderers[c].render(world, T_w_c, gain, image);
+        agent_renderers[c].render(world, T_w_c, gain, image);
         if (options.pixel_noise_sigma > 0.0) addPixelNoise(image, options.pixel_noise_sigma, pixel_rng);
         if (Status st = writer->addImage(static_cast<int>(c), t_ns, image); !st)
           return st.error().withContext(agent.name);
       }
       ++frame;
-      if (options.progress) options.progress(a, frame, frames);
+      if (options.progress) {
+        const std::lock_guard lock(progress_mutex);
+        options.progress(a, frame, frames);
+      }
     }
     if (Status st = writer->close(); !st) return st.error().withContext(agent.name);
+    return Status::Ok();
+  };
+
+  // Agents are independent (each has its own seeded streams): render them on `threads` threads, each with its
+  // own renderers; the first error wins.
+  const auto workers = static_cast<std::size_t>(std::clamp<int>(options.threads, 1, 64));
+  if (workers == 1 || plan.agents.size() == 1) {
+    for (std::size_t a = 0; a < plan.agents.size(); ++a) {
+      if (Status st = write_agent(a, renderers); !st) return st;
+    }
+    return Status::Ok();
   }
+  std::atomic<std::size_t> next{0};
+  std::mutex error_mutex;
+  std::optional<Error> first_error;
+  std::vector<std::thread> pool;
+  for (std::size_t w = 0; w < std::min(workers, plan.agents.size()); ++w) {
+    pool.emplace_back([&] {
+      std::vector<Renderer> own = renderers;  // a copy per thread
+      for (std::size_t a = next++; a < plan.agents.size(); a = next++) {
+        if (Status st = write_agent(a, own); !st) {
+          const std::lock_guard lock(error_mutex);
+          if (!first_error) first_error = st.error();
+          return;
+        }
+      }
+    });
+  }
+  for (std::thread& t : pool) t.join();
+  if (first_error) return *first_error;
   return Status::Ok();
 }
 

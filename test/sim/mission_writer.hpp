@@ -28,7 +28,9 @@ struct MissionWriterOptions {
   bool overwrite = false;
   std::int64_t start_time_ns = 1'600'000'000'000'000'000;  // shared mission clock
   TextureOptions texture;
-  // Called after each rendered frame: agent index, frames done, frames total.
+  // Agents rendered at once, each on its own thread (the output does not depend on it).
+  int threads = 1;
+  // Called after each rendered frame: agent index, frames done, frames total (one call at a time).
   std::function<void(std::size_t, std::size_t, std::size_t)> progress;
 
   [[nodiscard]] Status validate() const;

@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <iostream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -73,6 +74,10 @@ static int run(int argc, char** argv) {
                  "(default: the built-in EuRoC calibration)")
       ->check(CLI::ExistingDirectory);
   app.add_flag("--overwrite", overwrite, "Replace existing OUT/agentN/mav0 folders (they are deleted first)");
+  int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
+  app.add_option("--threads", threads, "Agents rendered at once, one per thread; the files do not depend on it "
+                                       "[the number of cores]")
+      ->check(CLI::Range(1, 64));
   app.add_flag("-q,--quiet", quiet, "No progress output");
 
   try {
@@ -122,6 +127,7 @@ static int run(int argc, char** argv) {
   options.pixel_noise_sigma = pixel_noise;
   options.exposure_amplitude = exposure;
   options.overwrite = overwrite;
+  options.threads = threads;
 
   const auto start = std::chrono::steady_clock::now();
   auto plan = cvislam::sim::planMission(plan_options);

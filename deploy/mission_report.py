@@ -1,0 +1,251 @@
+#!/usr/bin/python3
+"""Scores a finished mission (deploy/run_mission.sh) and reports it: tables on stdout, OUT/summary.json with the
+same figures, and OUT/report/index.html with SVG pictures beside the tables.
+
+    mission_report.py --out OUT --eval BUILD/bin/cvislam_eval
+
+Reads OUT/mission.json, OUT/agents/<agent>/ (trajectory.txt, latency.json, link.json, link_timeline.csv),
+OUT/server/ (stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt) and the mission's ground truth
+(the simulator's EuRoC folders). Only the Python standard library."""
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import mission_pictures  # noqa: E402  (deploy/mission_pictures.py: the SVGs and the HTML page)
+
+
+def run_eval(eval_bin, pairs, json_path, align=None, per_pose=False):
+    """cvislam_eval over (estimate, ground truth) pairs; returns its JSON, or None with the reason printed."""
+    cmd = [eval_bin, "--quiet", "--json", json_path]
+    for estimate, groundtruth in pairs:
+        cmd += ["--estimate", estimate, "--groundtruth", groundtruth]
+    if align:
+        cmd += ["--align", align]
+    if per_pose:
+        cmd.append("--per-pose")
+    result = subprocess.run(cmd, capture_output=True, text=True)
+    if result.returncode != 0:
+        reason = (result.stderr or result.stdout).strip().splitlines()
+        print(f"  (not evaluated: {reason[-1] if reason else 'cvislam_eval failed'})")
+        return None
+    with open(json_path) as f:
+        return json.load(f)
+
+
+def load_json(path):
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
+def read_csv(path):
+    rows = []
+    try:
+        with open(path) as f:
+            header = f.readline().strip().split(",")
+            for line in f:
+                values = line.strip().split(",")
+                if len(values) == len(header):
+                    rows.append(dict(zip(header, values)))
+    except OSError:
+        pass
+    return rows
+
+
+def counter(stats_map, kind):
+    c = stats_map.get(kind, {})
+    return int(c.get("messages", 0)), int(c.get("bytes", 0))
+
+
+def ate(j, alignment="se3"):
+    return j[alignment]["rmse"] if j and alignment in j else float("nan")
+
+
+def cm(value):
+    return "   n/a" if value is None or math.isnan(value) else f"{value * 100:6.2f}"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", required=True, help="the mission's output folder")
+    parser.add_argument("--eval", required=True, help="the cvislam_eval executable")
+    args = parser.parse_args()
+    out = args.out
+    mission = load_json(os.path.join(out, "mission.json"))
+    if mission is None:
+        sys.exit(f"mission_report: {out}/mission.json is missing or unreadable: run deploy/run_mission.sh first")
+    eval_dir = os.path.join(out, "eval")
+    os.makedirs(eval_dir, exist_ok=True)
+    server_stats = load_json(os.path.join(out, "server", "stats.json")) or {"agents": [], "maps": []}
+    server_agents = {(a["mission"], int(a["agent_id"])): a for a in server_stats.get("agents", [])}
+    name = mission["mission"]
+
+    summary = {"mission": mission, "agents": [], "joint": None, "traffic": [], "messages": {}, "stages": {},
+               "real_data": None}
+
+    # Accuracy, per agent: onboard (every tracked frame) and the server's keyframes of it.
+    print()
+    print(f"== accuracy: {name}, {mission['mode']}-inertial, simulated (preset {mission['preset']}, seed "
+          f"{mission['seed']}, {mission['duration_s']} s); ATE after SE3 alignment, scale error from Sim3")
+    print(f"{'agent':8} {'frames':>6} {'onboard ATE[cm]':>16} {'scale err%':>10} {'server KFs':>10} "
+          f"{'server ATE[cm]':>15} {'scale err%':>10} {'maps':>5}")
+    pairs_server = []
+    for a in mission["agents"]:
+        agent_id = int(a.replace("agent", ""))
+        gt = os.path.join(mission["dataset"], a)
+        onboard = run_eval(args.eval, [(os.path.join(out, "agents", a, "trajectory.txt"), gt)],
+                           os.path.join(eval_dir, f"onboard_{a}.json"), per_pose=True)
+        server_file = os.path.join(out, "server", name, f"keyframes_agent{agent_id}.txt")
+        server = None
+        if os.path.exists(server_file):
+            server = run_eval(args.eval, [(server_file, gt)], os.path.join(eval_dir, f"server_{a}.json"),
+                              per_pose=True)
+            pairs_server.append((server_file, gt))
+        s = server_agents.get((name, agent_id), {})
+        row = {"agent": a, "frames": onboard["poses"] if onboard else 0,
+               "onboard_ate_se3_m": ate(onboard), "onboard_ate_sim3_m": ate(onboard, "sim3"),
+               "onboard_scale_error_percent": onboard["scale_error_percent"] if onboard else None,
+               "server_keyframes": int(s.get("keyframes", 0)),
+               "server_ate_se3_m": ate(server), "server_ate_sim3_m": ate(server, "sim3"),
+               "server_scale_error_percent": server["scale_error_percent"] if server else None,
+               "server_maps": int(s.get("maps", 0))}
+        summary["agents"].append(row)
+        scale_on = row["onboard_scale_error_percent"]
+        scale_sv = row["server_scale_error_percent"]
+        print(f"{a:8} {row['frames']:6d} {cm(row['onboard_ate_se3_m']):>16} "
+              f"{(f'{scale_on:+.2f}' if scale_on is not None else 'n/a'):>10} {row['server_keyframes']:10d} "
+              f"{cm(row['server_ate_se3_m']):>15} {(f'{scale_sv:+.2f}' if scale_sv is not None else 'n/a'):>10} "
+              f"{row['server_maps']:5d}")
+
+    # Joint: every agent's server keyframes against the ground truth. The server's maps are separate until
+    # map fusion lands, so each map is aligned on its own and the errors are pooled.
+    if pairs_server:
+        joint = run_eval(args.eval, pairs_server, os.path.join(eval_dir, "joint_server.json"), align="each")
+        if joint is not None and "joint" in joint:
+            j = joint["joint"]
+            summary["joint"] = {"align": joint.get("align", "each"), "poses": j.get("poses"),
+                                "ate_se3_m": j["se3"]["rmse"], "ate_sim3_m": j["sim3"]["rmse"]}
+        else:
+            # cvislam_eval without joint scoring: pool the per-agent SE3 errors by hand.
+            n = sum(r["server_keyframes"] for r in summary["agents"] if not math.isnan(r["server_ate_se3_m"]))
+            sq = sum(r["server_keyframes"] * r["server_ate_se3_m"] ** 2 for r in summary["agents"]
+                     if not math.isnan(r["server_ate_se3_m"]))
+            summary["joint"] = {"align": "each", "poses": n, "ate_se3_m": math.sqrt(sq / n) if n else None,
+                                "ate_sim3_m": None}
+        jt = summary["joint"]
+        print(f"{'joint':8} {'':6} {'':>16} {'':>10} {jt['poses'] or 0:10d} {cm(jt['ate_se3_m']):>15}   "
+              f"(server keyframes of all agents; each server map aligned on its own: the maps are not fused yet)")
+
+    # Traffic per agent and direction (paper, Table IV: 0.12-0.15 MB/s up, about 0.7 MB/s down).
+    print()
+    print("== traffic per agent, agent side, per second of sensor time (paper Table IV: up 0.12-0.15 MB/s, "
+          "down about 0.7)")
+    print(f"{'agent':8} {'sensor[s]':>9} {'up[MB]':>8} {'up[MB/s]':>9} {'down[MB]':>9} {'down[MB/s]':>10} "
+          f"{'batches':>8} {'reconnects':>10} {'unacked KFs':>11}")
+    kinds_up = {}
+    kinds_down = {}
+    for a in mission["agents"]:
+        link = load_json(os.path.join(out, "agents", a, "link.json"))
+        if link is None:
+            continue
+        up_msgs, up_bytes = counter(link["up"], "message")
+        down_msgs, down_bytes = counter(link["down"], "message")
+        batches, _ = counter(link["up"], "batch")
+        # Rates per second of the sequence's own time, so that they do not depend on the playback pace.
+        duration = max(float(mission["duration_s"]), 1e-9)
+        row = {"agent": a, "sensor_s": duration, "wall_s": link["duration_s"], "up_bytes": up_bytes,
+               "down_bytes": down_bytes,
+               "up_mb_per_s": up_bytes / 1e6 / duration, "down_mb_per_s": down_bytes / 1e6 / duration,
+               "batches": batches, "reconnects": max(0, int(link["connections"]) - 1),
+               "keyframes_unacknowledged": int(link["keyframes_unacknowledged"])}
+        summary["traffic"].append(row)
+        print(f"{a:8} {duration:9.1f} {up_bytes / 1e6:8.2f} {row['up_mb_per_s']:9.3f} {down_bytes / 1e6:9.4f} "
+              f"{row['down_mb_per_s']:10.4f} {batches:8d} {row['reconnects']:10d} {row['keyframes_unacknowledged']:11d}")
+        for direction, kinds in (("up", kinds_up), ("down", kinds_down)):
+            for kind, c in link[direction].items():
+                k = kinds.setdefault(kind, [0, 0])
+                k[0] += int(c["messages"])
+                k[1] += int(c["bytes"])
+
+    print()
+    print("== messages by kind, all agents (up: what the server counted as received; sizes are serialized bytes)")
+    print(f"{'direction':9} {'kind':16} {'count':>9} {'bytes':>12} {'bytes each':>11}")
+    server_up = {}
+    server_down = {}
+    for (m, _agent), s in server_agents.items():
+        if m != name:
+            continue
+        for direction, kinds in (("up", server_up), ("down", server_down)):
+            for kind, c in s.get(direction, {}).items():
+                k = kinds.setdefault(kind, [0, 0])
+                k[0] += int(c["messages"])
+                k[1] += int(c["bytes"])
+    order_up = ["message", "hello", "batch", "keyframe", "point", "observation", "keyframe_update", "point_update",
+                "merge", "removal", "goodbye"]
+    order_down = ["message", "welcome", "ack", "correction"]
+    for direction, kinds, order in (("up", server_up, order_up), ("down", server_down, order_down)):
+        for kind in order + sorted(set(kinds) - set(order)):
+            if kind not in kinds:
+                continue
+            n, b = kinds[kind]
+            each = f"{b / n:11.1f}" if n and b else f"{'':>11}"
+            print(f"{direction:9} {kind:16} {n:9d} {b:12d} {each}")
+            summary["messages"].setdefault(direction, {})[kind] = {"count": n, "bytes": b,
+                                                                  "bytes_each": (b / n) if n else None}
+    summary["messages"]["agent_side"] = {"up": kinds_up, "down": kinds_down}
+
+    # The agents' stage timings with the link on (paper Fig. 4).
+    print()
+    print("== agent stage timings with the link on, p50 / p99 [ms] (this 2-core machine, all agents and the "
+          "server sharing it)")
+    stages = ["orb_extraction", "matching", "pose_optimisation", "motion_ba", "tracking_total", "local_ba",
+              "mapping_total"]
+    print(f"{'agent':8} " + " ".join(f"{s[:15]:>15}" for s in stages))
+    for a in mission["agents"]:
+        lat = load_json(os.path.join(out, "agents", a, "latency.json"))
+        if lat is None:
+            continue
+        summary["stages"][a] = {s: {"p50_ms": lat[s]["p50_ms"], "p99_ms": lat[s]["p99_ms"]} for s in stages
+                                if s in lat}
+        cells = []
+        for s in stages:
+            cells.append(f"{lat[s]['p50_ms']:6.1f} / {lat[s]['p99_ms']:5.1f}" if s in lat else f"{'n/a':>15}")
+        print(f"{a:8} " + " ".join(f"{c:>15}" for c in cells))
+
+    # Real images: the V1_01 excerpt through the same server.
+    real_out = os.path.join(out, "agents", "real_v101")
+    if os.path.isdir(real_out) and os.path.isdir(mission.get("real_data", "")):
+        onboard = run_eval(args.eval, [(os.path.join(real_out, "trajectory.txt"), mission["real_data"])],
+                           os.path.join(eval_dir, "onboard_real_v101.json"))
+        server_file = os.path.join(out, "server", "euroc-v101", "keyframes_agent0.txt")
+        server = run_eval(args.eval, [(server_file, mission["real_data"])],
+                          os.path.join(eval_dir, "server_real_v101.json")) if os.path.exists(server_file) else None
+        s = server_agents.get(("euroc-v101", 0), {})
+        summary["real_data"] = {"frames": onboard["poses"] if onboard else 0, "onboard_ate_se3_m": ate(onboard),
+                                "server_keyframes": int(s.get("keyframes", 0)), "server_ate_se3_m": ate(server),
+                                "up_bytes": counter(s.get("up", {}), "message")[1]}
+        r = summary["real_data"]
+        print()
+        print("== real data: EuRoC V1_01 excerpt (4.7 s, stereo-inertial), one agent through the server")
+        print(f"onboard ATE {r['onboard_ate_se3_m'] * 1000:.1f} mm over {r['frames']} frames; server holds "
+              f"{r['server_keyframes']} keyframes, ATE {r['server_ate_se3_m'] * 1000:.1f} mm; "
+              f"{r['up_bytes'] / 1e6:.2f} MB up")
+
+    for row in summary["agents"]:
+        for k, v in list(row.items()):
+            if isinstance(v, float) and math.isnan(v):
+                row[k] = None
+    with open(os.path.join(out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+    mission_pictures.write_report(out, summary)
+
+
+if __name__ == "__main__":
+    main()
