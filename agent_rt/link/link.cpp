@@ -44,7 +44,9 @@ struct Link::Impl {
   };
 
   Impl(const LinkOptions& o, AgentId a)
-      : options(o), agent(a), store(a, o.store),
+      : options(o),
+        agent(a),
+        store(a, o.store),
         client(LinkClientOptions{o.server, o.keepalive_ms,
                                  std::chrono::milliseconds(static_cast<int>(o.connect_timeout_s * 1000)), 16U << 20U}) {
     timeline.reserve(4096);
@@ -57,7 +59,7 @@ struct Link::Impl {
   v1::AgentUplink hello;
   v1::AgentUplink uplink;  // reused for every batch: its buffers keep their capacity
   v1::ServerDownlink downlink;
-  std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> up_by_kind;    // messages, bytes
+  std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> up_by_kind;  // messages, bytes
   std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> down_by_kind;
   std::vector<TimelineRow> timeline;
   Clock::time_point start = Clock::now();
@@ -140,9 +142,12 @@ Link::~Link() = default;
 
 void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
   Impl& s = *impl_;
-  const auto period = std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / s.options.max_rate_hz));
-  const auto backoff_min = std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_min_s));
-  const auto backoff_max = std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_max_s));
+  const auto period =
+      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / s.options.max_rate_hz));
+  const auto backoff_min =
+      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_min_s));
+  const auto backoff_max =
+      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_max_s));
   auto backoff = backoff_min;
   auto next_attempt = Clock::now();
   auto last_send = Clock::now() - period;
@@ -284,30 +289,29 @@ Status Link::writeReport(const std::filesystem::path& dir) const {
   nlohmann::json down = nlohmann::json::object();
   for (const auto& [kind, c] : s.down_by_kind) down[kind] = {{"messages", c.first}, {"bytes", c.second}};
   const double duration_s = std::chrono::duration<double>(Clock::now() - s.start).count();
-  nlohmann::json j = {
-      {"server", s.options.server},
-      {"mission", s.options.mission},
-      {"agent", s.agent},
-      {"duration_s", duration_s},
-      {"connections", st.connections},
-      {"failed_attempts", st.failed_attempts},
-      {"flushed", st.flushed},
-      {"flush_wait_s", s.flush_wait_s},
-      {"acked_sequence", st.acked_sequence},
-      {"sent_sequence", st.sent_sequence},
-      {"keyframes_unacknowledged", st.backlog.keyframes_unsent + st.backlog.keyframes_unacked},
-      {"keyframes_stored", st.store.keyframes_stored},
-      {"keyframes_dropped", st.store.keyframes_dropped},
-      {"points_dropped", st.store.points_dropped},
-      {"removals_dropped", st.store.removals_dropped},
-      {"deltas", st.store.deltas},
-      {"deltas_lost", st.store.deltas_lost},
-      {"delta_events_lost", st.store.delta_events_lost},
-      {"corrections_received", st.store.corrections_received},
-      {"up", up},
-      {"down", down},
-      {"up_mb_per_s", duration_s > 0 ? static_cast<double>(st.up_bytes) * 1e-6 / duration_s : 0.0},
-      {"down_mb_per_s", duration_s > 0 ? static_cast<double>(st.down_bytes) * 1e-6 / duration_s : 0.0}};
+  nlohmann::json j = {{"server", s.options.server},
+                      {"mission", s.options.mission},
+                      {"agent", s.agent},
+                      {"duration_s", duration_s},
+                      {"connections", st.connections},
+                      {"failed_attempts", st.failed_attempts},
+                      {"flushed", st.flushed},
+                      {"flush_wait_s", s.flush_wait_s},
+                      {"acked_sequence", st.acked_sequence},
+                      {"sent_sequence", st.sent_sequence},
+                      {"keyframes_unacknowledged", st.backlog.keyframes_unsent + st.backlog.keyframes_unacked},
+                      {"keyframes_stored", st.store.keyframes_stored},
+                      {"keyframes_dropped", st.store.keyframes_dropped},
+                      {"points_dropped", st.store.points_dropped},
+                      {"removals_dropped", st.store.removals_dropped},
+                      {"deltas", st.store.deltas},
+                      {"deltas_lost", st.store.deltas_lost},
+                      {"delta_events_lost", st.store.delta_events_lost},
+                      {"corrections_received", st.store.corrections_received},
+                      {"up", up},
+                      {"down", down},
+                      {"up_mb_per_s", duration_s > 0 ? static_cast<double>(st.up_bytes) * 1e-6 / duration_s : 0.0},
+                      {"down_mb_per_s", duration_s > 0 ? static_cast<double>(st.down_bytes) * 1e-6 / duration_s : 0.0}};
   std::ofstream json(dir / "link.json");
   json << j.dump(2) << "\n";
   std::ofstream csv(dir / "link_timeline.csv");

@@ -13,23 +13,11 @@ namespace cvislam::agent {
 
 namespace {
 std::string describe(const grpc::Status& s) {
-  static const char* const kNames[] = {"OK",
-                                       "CANCELLED",
-                                       "UNKNOWN",
-                                       "INVALID_ARGUMENT",
-                                       "DEADLINE_EXCEEDED",
-                                       "NOT_FOUND",
-                                       "ALREADY_EXISTS",
-                                       "PERMISSION_DENIED",
-                                       "RESOURCE_EXHAUSTED",
-                                       "FAILED_PRECONDITION",
-                                       "ABORTED",
-                                       "OUT_OF_RANGE",
-                                       "UNIMPLEMENTED",
-                                       "INTERNAL",
-                                       "UNAVAILABLE",
-                                       "DATA_LOSS",
-                                       "UNAUTHENTICATED"};
+  static const char* const kNames[] = {
+      "OK",        "CANCELLED",      "UNKNOWN",           "INVALID_ARGUMENT",   "DEADLINE_EXCEEDED",
+      "NOT_FOUND", "ALREADY_EXISTS", "PERMISSION_DENIED", "RESOURCE_EXHAUSTED", "FAILED_PRECONDITION",
+      "ABORTED",   "OUT_OF_RANGE",   "UNIMPLEMENTED",     "INTERNAL",           "UNAVAILABLE",
+      "DATA_LOSS", "UNAUTHENTICATED"};
   const int code = static_cast<int>(s.error_code());
   const std::string name = code >= 0 && code < 17 ? kNames[code] : std::to_string(code);
   return s.error_message().empty() ? name : name + ": " + s.error_message();
@@ -140,8 +128,8 @@ Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connect(const v1::AgentU
   const grpc::Status status = s.teardown();
   lock.lock();
   s.last_error = status.ok() ? "the server sent no Welcome" : "the server refused the Hello: " + describe(status);
-  const ErrorCode code = status.error_code() == grpc::StatusCode::UNAVAILABLE ? ErrorCode::kUnavailable
-                                                                              : ErrorCode::kFailedPrecondition;
+  const ErrorCode code =
+      status.error_code() == grpc::StatusCode::UNAVAILABLE ? ErrorCode::kUnavailable : ErrorCode::kFailedPrecondition;
   return Error{code, s.last_error};
 }
 

@@ -19,11 +19,11 @@ struct LinkStore::Keyframe {
   KeyframeId id;
   std::uint32_t map_id = 0;
   std::int64_t t_ns = 0;
-  KeyframeStateMsg state;       // the newest
-  KeyframeStateMsg sent_state;  // as last sent
-  std::uint64_t full_sent = 0;  // the batch that carried it in full; 0: not (or not again) sent
-  std::uint64_t state_sent = 0; // the batch that carried sent_state; 0: to send again
-  std::uint64_t stamp = 0;      // the last delta that listed it in the local map
+  KeyframeStateMsg state;        // the newest
+  KeyframeStateMsg sent_state;   // as last sent
+  std::uint64_t full_sent = 0;   // the batch that carried it in full; 0: not (or not again) sent
+  std::uint64_t state_sent = 0;  // the batch that carried sent_state; 0: to send again
+  std::uint64_t stamp = 0;       // the last delta that listed it in the local map
   bool in_local_map = true;
   bool has_imu_from = false;
   std::uint32_t imu_from = 0;
@@ -58,7 +58,7 @@ struct LinkStore::Point {
 struct LinkStore::Tombstone {
   bool merge = false;
   std::uint32_t point = 0;
-  std::uint32_t keep = 0;           // merge only
+  std::uint32_t keep = 0;             // merge only
   std::uint64_t point_full_sent = 0;  // the batch that gave the server the point
   std::uint64_t sent = 0;
 };

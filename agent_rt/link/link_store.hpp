@@ -49,12 +49,12 @@ struct LinkStoreOptions {
 
 struct LinkStoreCounters {
   std::uint64_t deltas = 0;
-  std::uint64_t deltas_lost = 0;         // gaps in mapping's delta sequence
-  std::uint64_t delta_events_lost = 0;   // changes beyond a delta's capacity
-  std::uint64_t keyframes_stored = 0;    // entered the store
-  std::uint64_t keyframes_dropped = 0;   // left unsent or unacknowledged because the store was full
+  std::uint64_t deltas_lost = 0;        // gaps in mapping's delta sequence
+  std::uint64_t delta_events_lost = 0;  // changes beyond a delta's capacity
+  std::uint64_t keyframes_stored = 0;   // entered the store
+  std::uint64_t keyframes_dropped = 0;  // left unsent or unacknowledged because the store was full
   std::uint64_t points_dropped = 0;
-  std::uint64_t removals_dropped = 0;    // culls and merges not sent because the store of them was full
+  std::uint64_t removals_dropped = 0;  // culls and merges not sent because the store of them was full
   std::uint64_t corrections_received = 0;
 };
 
@@ -63,7 +63,7 @@ struct LinkBacklog {
   std::size_t keyframes_unsent = 0;   // in a ready map, never sent (since the server's last reset)
   std::size_t keyframes_unacked = 0;  // sent, not acknowledged yet
   std::size_t points_unsent = 0;
-  std::size_t keyframes_held = 0;     // in the store
+  std::size_t keyframes_held = 0;  // in the store
   std::size_t points_held = 0;
 };
 

@@ -159,7 +159,8 @@ Status LocalMap::addObservation(PoolHandle keyframe, std::uint16_t keypoint, Poo
 Result<int> LocalMap::mergeMapPoints(PoolHandle keep, PoolHandle drop) {
   MapPointData* kept = map_points_->get(keep);
   const MapPointData* dropped = map_points_->get(drop);
-  if (kept == nullptr || dropped == nullptr) return Error{ErrorCode::kNotFound, "mergeMapPoints: stale or unknown handle"};
+  if (kept == nullptr || dropped == nullptr)
+    return Error{ErrorCode::kNotFound, "mergeMapPoints: stale or unknown handle"};
   if (keep == drop) return Error{ErrorCode::kInvalidArgument, "mergeMapPoints: a point cannot be merged into itself"};
   kept->visible += dropped->visible;
   kept->found += dropped->found;

@@ -61,7 +61,7 @@ struct MapPointData {
   Eigen::Vector3d bearing_c = Eigen::Vector3d::UnitZ();
   double inverse_depth = 1.0;  // [1/m]
   features::Descriptor descriptor{};
-  std::uint8_t octave = 0;  // pyramid level of the keypoint that made it: search radius and pixel noise
+  std::uint8_t octave = 0;                // pyramid level of the keypoint that made it: search radius and pixel noise
   std::uint64_t created_at_sequence = 0;  // the newest keyframe's sequence when the point was made
   std::uint32_t visible = 0;              // frames in whose view the point projected
   std::uint32_t found = 0;                // frames in which it was matched

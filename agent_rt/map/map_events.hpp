@@ -20,9 +20,9 @@ enum class MapEventType : std::uint8_t {
 
 enum class MapEventReason : std::uint8_t {
   kNone = 0,
-  kCulled = 1,    // judged bad (rarely found, unconfirmed): the map should forget it
-  kEvicted = 2,   // left the bounded local map (oldest keyframe out, or its last observer went): still valid
-  kRemoved = 3,   // taken out by mapping (a map restart, a monocular start dropping keyframes between its views)
+  kCulled = 1,   // judged bad (rarely found, unconfirmed): the map should forget it
+  kEvicted = 2,  // left the bounded local map (oldest keyframe out, or its last observer went): still valid
+  kRemoved = 3,  // taken out by mapping (a map restart, a monocular start dropping keyframes between its views)
 };
 
 struct MapEvent {

@@ -103,7 +103,7 @@ struct Mapper::State {
   std::vector<Vector3d> right_bearings;
   std::vector<int> right_owner;  // per right keypoint: the left keypoint matched to it, or -1
   std::vector<int> right_owner_distance;
-  std::vector<double> stereo_depth_m;  // per keypoint of the newest keyframe, 0 without a cam1 match
+  std::vector<double> stereo_depth_m;       // per keypoint of the newest keyframe, 0 without a cam1 match
   std::vector<std::int32_t> keyframe_slot;  // snapshot index by keyframe pool index, -1 for none
   std::vector<std::int32_t> point_slot;     // snapshot index by map point pool index, -1 for none
   KeypointGrid grid;
@@ -652,8 +652,7 @@ void writeDelta(Mapper::State& s, const KeyframeMessage& msg, MapDeltaMessage& d
 
 }  // namespace
 
-Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot,
-                                     MapDeltaMessage* delta) {
+Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta) {
   State& s = *s_;
   MapperReport report;
   if (delta != nullptr) {

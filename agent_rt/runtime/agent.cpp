@@ -382,11 +382,12 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
                    "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
                    "triangulated %d, culled %d; BA %d keyframes + %d fixed, %d points, %d factors (%d cam1, %d "
                    "mismatches left out), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
-                   t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged, report->stereo_matches,
-                   report->stereo_points, report->triangulated, report->culled, report->ba.window_keyframes,
-                   report->ba.fixed_keyframes, report->ba.map_points, report->ba.reprojection_factors,
-                   report->ba.second_camera_factors, report->ba.second_camera_rejected, report->ba.initial_cost,
-                   report->ba.final_cost, report->ba.iterations, static_cast<double>(report->ba_ns) * 1e-6);
+                   t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged,
+                   report->stereo_matches, report->stereo_points, report->triangulated, report->culled,
+                   report->ba.window_keyframes, report->ba.fixed_keyframes, report->ba.map_points,
+                   report->ba.reprojection_factors, report->ba.second_camera_factors, report->ba.second_camera_rejected,
+                   report->ba.initial_cost, report->ba.final_cost, report->ba.iterations,
+                   static_cast<double>(report->ba_ns) * 1e-6);
     }
     if (report->new_map) ++stats.new_maps;
     if (report->imu_initialised_now && stats.imu_initialised_at_s < 0) stats.imu_initialised_at_s = t_s;
@@ -777,17 +778,17 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                       {"interrupted", summary.interrupted},
                       {"wall_s", summary.wall_s}};
   if (summary.link_enabled) {
-    j["link"] = {{"server", options.link.server},
-                 {"mission", options.link.mission},
-                 {"flushed", summary.link.flushed},
-                 {"connections", summary.link.connections},
-                 {"acked_sequence", summary.link.acked_sequence},
-                 {"keyframes_unacknowledged",
-                  summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked},
-                 {"keyframes_dropped", summary.link.store.keyframes_dropped},
-                 {"deltas_lost", summary.link.store.deltas_lost},
-                 {"up_bytes", summary.link.up_bytes},
-                 {"down_bytes", summary.link.down_bytes}};
+    j["link"] = {
+        {"server", options.link.server},
+        {"mission", options.link.mission},
+        {"flushed", summary.link.flushed},
+        {"connections", summary.link.connections},
+        {"acked_sequence", summary.link.acked_sequence},
+        {"keyframes_unacknowledged", summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked},
+        {"keyframes_dropped", summary.link.store.keyframes_dropped},
+        {"deltas_lost", summary.link.store.deltas_lost},
+        {"up_bytes", summary.link.up_bytes},
+        {"down_bytes", summary.link.down_bytes}};
   }
   std::ofstream(options.output / "summary.json") << j.dump(2) << "\n";
   return summary;

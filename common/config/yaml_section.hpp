@@ -28,7 +28,8 @@ class YamlSection {
     try {
       value = node_[key].template as<T>();
     } catch (const YAML::Exception&) {
-      if (error_.empty()) error_ = name_ + "." + key + ": cannot read '" + YAML::Dump(node_[key]) + "' as the expected type";
+      if (error_.empty())
+        error_ = name_ + "." + key + ": cannot read '" + YAML::Dump(node_[key]) + "' as the expected type";
     }
   }
 

@@ -108,7 +108,7 @@ void toProto(const dataset::CameraCalibration& c, const geometry::SE3d& T_s_c, v
 }
 
 Result<std::pair<dataset::CameraCalibration, geometry::SE3d>> fromProto(const v1::CameraCalibration& in,
-                                                                      const std::string& what) {
+                                                                        const std::string& what) {
   dataset::CameraCalibration c;
   if (in.width() == 0 || in.height() == 0 || in.width() > 16384 || in.height() > 16384) {
     return invalid(what + ": image size " + std::to_string(in.width()) + "x" + std::to_string(in.height()) +

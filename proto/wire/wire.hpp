@@ -45,7 +45,7 @@ Result<KeyframeStateValues> fromProto(const v1::KeyframeState& state, const std:
 void toProto(const dataset::CameraCalibration& calibration, const geometry::SE3d& T_s_c, v1::CameraCalibration* out);
 // The calibration and T_s_c (camera -> IMU).
 Result<std::pair<dataset::CameraCalibration, geometry::SE3d>> fromProto(const v1::CameraCalibration& calibration,
-                                                                      const std::string& what);
+                                                                        const std::string& what);
 
 void toProto(const imu::ImuNoise& noise, double rate_hz, v1::ImuCalibration* out);
 Result<imu::ImuNoise> fromProto(const v1::ImuCalibration& imu, const std::string& what);

@@ -206,8 +206,8 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
     for (auto& [key, trajectory] : per_map) {
       if (maps_of_agent[key.first] < 2) continue;
       std::sort(trajectory.begin(), trajectory.end(), by_time);
-      const auto path = mission_dir / ("keyframes_agent" + std::to_string(key.first) + "_map" +
-                                       std::to_string(key.second) + ".txt");
+      const auto path =
+          mission_dir / ("keyframes_agent" + std::to_string(key.first) + "_map" + std::to_string(key.second) + ".txt");
       if (Status s = dataset::writeTrajectory(path, trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) return s;
     }
   }
@@ -227,8 +227,8 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
   std::ofstream timeline(dir / "timeline.csv");
   timeline << "t_s,mission,agent,connected,keyframes,points,up_bytes,down_bytes\n";
   for (const TimelineSample& s : *timeline_.read()) {
-    timeline << s.t_s << ',' << s.mission << ',' << s.agent << ',' << (s.connected ? 1 : 0) << ',' << s.keyframes
-             << ',' << s.points << ',' << s.up_bytes << ',' << s.down_bytes << '\n';
+    timeline << s.t_s << ',' << s.mission << ',' << s.agent << ',' << (s.connected ? 1 : 0) << ',' << s.keyframes << ','
+             << s.points << ',' << s.up_bytes << ',' << s.down_bytes << '\n';
   }
   if (!timeline) return Error{ErrorCode::kIoError, "cannot write " + (dir / "timeline.csv").string()};
   return Status::Ok();

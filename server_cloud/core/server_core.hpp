@@ -25,9 +25,9 @@ struct ServerOptions {
   std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
   std::filesystem::path output;            // written at shutdown when set
   std::size_t max_message_bytes = 16U << 20U;
-  int keepalive_time_ms = 2000;            // pings on idle streams, to notice a vanished agent
+  int keepalive_time_ms = 2000;  // pings on idle streams, to notice a vanished agent
   int keepalive_timeout_ms = 5000;
-  double timeline_interval_s = 1.0;        // keyframes and traffic per agent, sampled for timeline.csv
+  double timeline_interval_s = 1.0;  // keyframes and traffic per agent, sampled for timeline.csv
   SessionOptions session;
 
   [[nodiscard]] Status validate() const;

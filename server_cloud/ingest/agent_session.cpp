@@ -52,8 +52,13 @@ Result<AgentSensors> sensorsFromHello(const v1::Hello& hello) {
   if (!cam0) return cam0.error();
   auto model0 = camera::CameraModel::create(cam0->first);
   if (!model0) return model0.error().withContext("hello cam0");
-  AgentSensors sensors{.mode = mode, .uses_imu = hello.uses_imu(), .cam0 = *model0, .cam1 = std::nullopt,
-                       .T_s_c0 = cam0->second, .imu_noise = {}, .imu_rate_hz = 200.0};
+  AgentSensors sensors{.mode = mode,
+                       .uses_imu = hello.uses_imu(),
+                       .cam0 = *model0,
+                       .cam1 = std::nullopt,
+                       .T_s_c0 = cam0->second,
+                       .imu_noise = {},
+                       .imu_rate_hz = 200.0};
   if (mode == SensorMode::kStereo) {
     if (!hello.has_cam1()) return invalid("hello: a stereo agent without cam1 calibration");
     auto cam1 = wire::fromProto(hello.cam1(), "hello cam1");

@@ -30,8 +30,8 @@ namespace cvislam::server {
 class MissionRegistry;
 
 struct SessionOptions {
-  double downlink_rate_hz = 2.0;            // paper: at most 2 messages per second to an agent
-  int max_corrections_per_message = 1000;   // the rest follow in the next messages
+  double downlink_rate_hz = 2.0;           // paper: at most 2 messages per second to an agent
+  int max_corrections_per_message = 1000;  // the rest follow in the next messages
   IngestLimits ingest;
   std::string server_name = "cvislam_server";
 
@@ -76,9 +76,9 @@ class AgentSession {
   SharedAgentRecord record_;
   std::string mission_name_;
   AgentId agent_ = 0;
-  std::uint64_t stream_ = 0;              // this stream's number among the agent's streams
-  std::uint64_t last_sequence_ = 0;       // the newest batch sequence seen on this stream
-  std::uint64_t acked_sent_ = 0;          // the newest acknowledgement sent on this stream
+  std::uint64_t stream_ = 0;         // this stream's number among the agent's streams
+  std::uint64_t last_sequence_ = 0;  // the newest batch sequence seen on this stream
+  std::uint64_t acked_sent_ = 0;     // the newest acknowledgement sent on this stream
   std::uint64_t down_sequence_ = 0;
   Clock::time_point last_down_{};
   bool closed_ = false;

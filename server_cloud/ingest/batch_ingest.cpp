@@ -172,8 +172,8 @@ class Checker {
     // Keypoints, column by column.
     const v1::Keypoints& kp = k.keypoints();
     const int n = kp.xy_size() / 2;
-    if (kp.xy_size() % 2 != 0 || static_cast<int>(kp.octave().size()) != n || static_cast<int>(kp.angle().size()) != n ||
-        static_cast<int>(kp.descriptors().size()) != 32 * n) {
+    if (kp.xy_size() % 2 != 0 || static_cast<int>(kp.octave().size()) != n ||
+        static_cast<int>(kp.angle().size()) != n || static_cast<int>(kp.descriptors().size()) != 32 * n) {
       return invalid(name + ": keypoint columns disagree (" + std::to_string(kp.xy_size()) + " coordinates, " +
                      std::to_string(kp.octave().size()) + " octaves, " + std::to_string(kp.angle().size()) +
                      " angles, " + std::to_string(kp.descriptors().size()) + " descriptor bytes)");
@@ -203,7 +203,8 @@ class Checker {
                        std::to_string(static_cast<int>(h)) + " image");
       }
       const auto octave = static_cast<std::uint8_t>(kp.octave()[static_cast<std::size_t>(i)]);
-      if (octave >= 32) return invalid(name + ": keypoint " + std::to_string(i) + " has octave " + std::to_string(octave));
+      if (octave >= 32)
+        return invalid(name + ": keypoint " + std::to_string(i) + " has octave " + std::to_string(octave));
       auto& out = kf.keypoints[static_cast<std::size_t>(i)];
       out.px = Eigen::Vector2f(x, y);
       out.octave = octave;
@@ -324,8 +325,8 @@ class Checker {
       if (!(*map == kf->map)) {
         return invalid(name + ": " + pointName(o.point(i)) + " is in another map than the keyframe");
       }
-      plan_.observations.push_back({keyframeId(o.keyframe()), static_cast<std::uint16_t>(o.keypoint(i)),
-                                    pointId(o.point(i)), kf->map});
+      plan_.observations.push_back(
+          {keyframeId(o.keyframe()), static_cast<std::uint16_t>(o.keypoint(i)), pointId(o.point(i)), kf->map});
     }
     return Status::Ok();
   }

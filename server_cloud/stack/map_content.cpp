@@ -75,9 +75,9 @@ void MapContent::unlink(ServerKeyframe& kf, std::uint16_t keypoint) {
   auto it = points_.find(id);
   if (it == points_.end()) return;
   auto& obs = it->second.observations;
-  obs.erase(std::remove_if(obs.begin(), obs.end(),
-                           [&](const ServerMapPoint::Observation& o) { return o.keyframe == kf.id; }),
-            obs.end());
+  obs.erase(
+      std::remove_if(obs.begin(), obs.end(), [&](const ServerMapPoint::Observation& o) { return o.keyframe == kf.id; }),
+      obs.end());
   for (const auto& o : obs) addCovisibility(kf.id, o.keyframe, -1);
 }
 
@@ -216,9 +216,8 @@ Status MapContent::checkConsistency() const {
       ++links;
       const ServerMapPoint* p = point(kf.point[k]);
       if (p == nullptr) return bad("keyframe " + id.toString() + " observes missing point " + kf.point[k].toString());
-      const auto matches = std::count_if(p->observations.begin(), p->observations.end(), [&](const auto& o) {
-        return o.keyframe == id && o.keypoint == k;
-      });
+      const auto matches = std::count_if(p->observations.begin(), p->observations.end(),
+                                         [&](const auto& o) { return o.keyframe == id && o.keypoint == k; });
       if (matches != 1) return bad("point " + p->id.toString() + " does not list keyframe " + id.toString() + " once");
     }
   }
@@ -247,7 +246,8 @@ Status MapContent::checkConsistency() const {
       ++edges;
     }
   }
-  if (edges / 2 != edges_) return bad("edge count " + std::to_string(edges_) + ", expected " + std::to_string(edges / 2));
+  if (edges / 2 != edges_)
+    return bad("edge count " + std::to_string(edges_) + ", expected " + std::to_string(edges / 2));
   for (const auto& [a, row] : covisibility_) {
     for (const auto& [b, w] : row) {
       if (w <= 0 || expected[a][b] != w) return bad("stale covisibility " + a.toString() + "-" + b.toString());

@@ -46,10 +46,10 @@ struct ServerKeyframe {
   std::vector<features::Keypoint> keypoints;
   std::vector<features::Descriptor> descriptors;
   std::vector<RightObservation> right;
-  std::vector<MapPointId> point;          // per keypoint: the map point it observes, where has_point
-  std::vector<std::uint8_t> has_point;    // per keypoint
-  std::optional<KeyframeId> imu_from;     // the previous keyframe of the agent, linked by `imu`
-  std::vector<dataset::ImuSample> imu;    // raw samples from imu_from's time to t_ns
+  std::vector<MapPointId> point;                      // per keypoint: the map point it observes, where has_point
+  std::vector<std::uint8_t> has_point;                // per keypoint
+  std::optional<KeyframeId> imu_from;                 // the previous keyframe of the agent, linked by `imu`
+  std::vector<dataset::ImuSample> imu;                // raw samples from imu_from's time to t_ns
   std::optional<imu::Preintegration> preintegration;  // rebuilt on the server from `imu`
 
   [[nodiscard]] int observationCount() const;

@@ -83,8 +83,8 @@ struct AgentRecord {
   AgentId id = 0;
   // The stream: at most one at a time.
   bool connected = false;
-  std::uint64_t session = 0;      // the connected process's random session id
-  std::uint32_t connections = 0;  // streams opened; the newest is the one that counts
+  std::uint64_t session = 0;            // the connected process's random session id
+  std::uint32_t connections = 0;        // streams opened; the newest is the one that counts
   std::function<void()> cancel_stream;  // ends the newest stream (safe to call after it ended)
   bool finished = false;
   std::string software;

@@ -81,7 +81,8 @@ int main(int argc, char** argv) {
   bool quiet = false;
   app.add_option("--listen", listen, "host:port to serve on; port 0 takes a free port [127.0.0.1:50051]");
   app.add_option("--config", config, "YAML config (see deploy/server_config.yaml); command-line options win");
-  app.add_option("--output", output, "Folder written at shutdown: stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt");
+  app.add_option("--output", output,
+                 "Folder written at shutdown: stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt");
   app.add_option("--port-file", port_file, "Write the bound port here once serving (for scripts using port 0)");
   app.add_option("--status-interval", status_interval_s, "Seconds between status lines on stderr; 0: none [10]");
   app.add_flag("--quiet", quiet, "Print neither the options nor status lines");

@@ -46,7 +46,12 @@ Status InlineAgent::load(std::size_t i) {
 void InlineAgent::answerKeyframe() {
   if (!sink_.published) return;
   sink_.published = false;
-  if (mapper_->process(*sink_.message, *snapshot_).ok()) tracker_->adoptSnapshot(snapshot_.get());
+  const bool processed = mapper_->process(*sink_.message, *snapshot_, delta_.get()).ok();
+  if (delta_ && delta_sink_) {
+    delta_->sequence = delta_sequence_++;
+    delta_sink_(*delta_);
+  }
+  if (processed) tracker_->adoptSnapshot(snapshot_.get());
 }
 
 }  // namespace cvislam::test

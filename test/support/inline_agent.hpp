@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <vector>
 
@@ -34,6 +35,13 @@ class InlineAgent {
     return result;
   }
   [[nodiscard]] bool imuInitialised() const { return tracker_->imuInitialised(); }
+  // From now on mapping also writes its map delta (what the link to the server reads) after each keyframe and
+  // hands it to `sink`, on this thread.
+  void onDelta(std::function<void(const agent::MapDeltaMessage&)> sink) {
+    delta_sink_ = std::move(sink);
+    if (!delta_) delta_ = std::make_unique<agent::MapDeltaMessage>();
+  }
+  [[nodiscard]] const dataset::EurocSequence& sequence() const { return sequence_; }
 
  private:
   class Sink final : public agent::KeyframeSink {
@@ -54,6 +62,9 @@ class InlineAgent {
   std::unique_ptr<agent::Tracker> tracker_;
   std::unique_ptr<agent::Mapper> mapper_;
   std::unique_ptr<agent::MapSnapshotMessage> snapshot_;
+  std::unique_ptr<agent::MapDeltaMessage> delta_;
+  std::function<void(const agent::MapDeltaMessage&)> delta_sink_;
+  std::uint64_t delta_sequence_ = 0;
   Sink sink_;
   std::vector<std::uint8_t> left_;
   std::vector<std::uint8_t> right_;

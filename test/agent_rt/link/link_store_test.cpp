@@ -1,0 +1,249 @@
+// The link's store: what goes to the server, when, and again after reconnections. Every batch it builds is
+// delivered to the server's real core (AgentSession, without gRPC), so these tests also prove that the agent
+// only ever sends what the server accepts.
+#include "agent_rt/link/link_store.hpp"
+
+#include <gtest/gtest.h>
+
+#include "test/agent_rt/link/link_test_support.hpp"
+
+namespace cvislam::agent {
+namespace {
+
+using test::DeltaWriter;
+using test::ServerSide;
+
+constexpr std::size_t kLargeBatch = 8U << 20U;
+
+class LinkStoreTest : public ::testing::Test {
+ protected:
+  // Builds the next batch and delivers it; false when there was nothing to send.
+  bool sendNext(std::size_t max_bytes = kLargeBatch) {
+    if (!sut.buildBatch(next_sequence, 0, max_bytes, batch)) return false;
+    const Status s = server.deliver(batch);
+    EXPECT_TRUE(s.ok()) << "the server refused batch " << next_sequence << ": " << s.error().toString();
+    ++next_sequence;
+    return true;
+  }
+  // A reconnection: the server's Welcome tells what it holds.
+  void reconnect() {
+    const std::uint64_t stored = server.connect(sut.acked());
+    sut.onWelcome(stored);
+    next_sequence = stored + 1;
+  }
+  void ackAll() { sut.onAck(server.stored()); }
+
+  LinkStore sut{test::kAgent, LinkStoreOptions{}};
+  DeltaWriter map;
+  ServerSide server;
+  v1::MapBatch batch;
+  std::uint64_t next_sequence = 1;
+};
+
+TEST_F(LinkStoreTest, NothingLeavesTheAgentBeforeItsMapIsReadyThenEverythingGoesInFullOnce) {
+  reconnect();
+  map.addKeyframe(0, {}, {100, 101, 102});
+  sut.onDelta(map.finish());
+  map.addKeyframe(1, {100, 101}, {103});
+  sut.onDelta(map.finish());
+  EXPECT_FALSE(sendNext());  // the IMU is not initialised: the frame may still change
+
+  map.ready = true;
+  map.addKeyframe(2, {100, 103}, {104});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  EXPECT_EQ(batch.keyframes_size(), 3);
+  EXPECT_EQ(batch.points_size(), 5);
+  EXPECT_EQ(batch.keyframe_updates_size(), 0);
+  EXPECT_EQ(server.keyframes(), 3U);
+  EXPECT_EQ(server.points(), 5U);
+  // Keyframe 2 observes points 100, 103 and 104; keyframe 1 is linked to keyframe 0 by the IMU.
+  ASSERT_NE(server.keyframe(2), nullptr);
+  EXPECT_EQ(server.keyframe(2)->observationCount(), 3);
+  ASSERT_TRUE(server.keyframe(1)->preintegration.has_value());
+  EXPECT_NEAR(server.keyframe(1)->preintegration->dt(), 0.25, 1e-9);
+  EXPECT_EQ(server.point(100)->observations.size(), 3U);
+  EXPECT_TRUE(server.consistent().ok());
+  EXPECT_FALSE(sendNext());  // nothing changed since
+}
+
+TEST_F(LinkStoreTest, AfterTheFirstTimeOnlyCompactUpdatesOfWhatMovedBeyondTheThresholds) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100, 101, 102});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  const std::size_t full_bytes = batch.ByteSizeLong();
+
+  map.keyframes[0].p_w.x() += 0.02;  // 2 cm: goes
+  map.points[100].p_w.z() += 0.01;   // 1 cm: goes (threshold 5 mm)
+  map.points[101].p_w.z() += 0.001;  // 1 mm: stays
+  sut.onDelta((map.change(), map.finish()));
+  ASSERT_TRUE(sendNext());
+  EXPECT_EQ(batch.keyframes_size(), 0);
+  EXPECT_EQ(batch.points_size(), 0);
+  ASSERT_EQ(batch.keyframe_updates_size(), 1);
+  ASSERT_EQ(batch.point_updates().point_size(), 1);
+  EXPECT_EQ(batch.point_updates().point(0), 100U);
+  EXPECT_LT(batch.ByteSizeLong(), full_bytes / 10);
+  EXPECT_NEAR(server.keyframe(0)->T_w_s.translation().x(), map.keyframes[0].p_w.x(), 1e-9);
+  EXPECT_NEAR(server.point(100)->p_w.z(), map.points[100].p_w.z(), 1e-6);
+}
+
+TEST_F(LinkStoreTest, WhatWasSentAfterTheServersStoredSequenceIsSentAgainAndNothingTwice) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100, 101});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());  // batch 1: stored
+  map.addKeyframe(1, {100}, {102});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sut.buildBatch(next_sequence++, 0, kLargeBatch, batch));  // batch 2: lost with the stream
+
+  reconnect();  // the server holds batch 1 only
+  EXPECT_EQ(next_sequence, 2U);
+  ASSERT_TRUE(sendNext());
+  ASSERT_EQ(batch.keyframes_size(), 1);
+  EXPECT_EQ(batch.keyframes(0).counter(), 1U);
+  EXPECT_EQ(batch.points_size(), 1);
+  EXPECT_EQ(server.keyframes(), 2U);
+  EXPECT_EQ(server.points(), 3U);
+  EXPECT_EQ(server.keyframe(1)->observationCount(), 2);
+  ackAll();
+  EXPECT_TRUE(sut.allAcknowledged());
+  EXPECT_TRUE(server.consistent().ok());
+}
+
+TEST_F(LinkStoreTest, AServerThatLostEverythingGetsTheCurrentMapInFull) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100, 101});
+  sut.onDelta(map.finish());
+  map.addKeyframe(1, {100, 101}, {102});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  ackAll();
+  // Keyframe 0 leaves the bounded local map; it was acknowledged, so the store forgets it.
+  map.keyframes.erase(0);
+  sut.onDelta((map.change(), map.event(MapEventType::kKeyframeRemoved, MapEventReason::kEvicted, 0, 0), map.finish()));
+  EXPECT_EQ(sut.backlog().keyframes_held, 1U);
+
+  server.restart();  // empty
+  reconnect();
+  EXPECT_EQ(next_sequence, 1U);
+  ASSERT_TRUE(sendNext());
+  ASSERT_EQ(batch.keyframes_size(), 1);
+  EXPECT_EQ(batch.keyframes(0).counter(), 1U);
+  // Its points now hang from keyframe 1, which observes them; its IMU predecessor is gone.
+  EXPECT_EQ(server.points(), 3U);
+  EXPECT_EQ(server.point(100)->reference, (KeyframeId{test::kAgent, 1}));
+  EXPECT_FALSE(server.keyframe(1)->preintegration.has_value());
+  EXPECT_TRUE(server.consistent().ok());
+}
+
+TEST_F(LinkStoreTest, ACulledPointTheServerHoldsIsRemovedThereAndOneItNeverGotIsNotMentioned) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100, 101});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  map.addKeyframe(1, {100}, {102});
+  map.points.erase(101);
+  map.points.erase(102);
+  map.event(MapEventType::kPointRemoved, MapEventReason::kCulled, 0, 101);
+  map.event(MapEventType::kPointRemoved, MapEventReason::kCulled, 0, 102);  // made and culled before sending
+  map.keyframes[1].observations.erase(1);
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  ASSERT_EQ(batch.removed_points_size(), 1);
+  EXPECT_EQ(batch.removed_points(0), 101U);
+  EXPECT_EQ(server.points(), 1U);
+  EXPECT_EQ(server.point(101), nullptr);
+  EXPECT_TRUE(server.consistent().ok());
+}
+
+TEST_F(LinkStoreTest, AMergeReachesTheServerAfterTheKeptPointAndMovesItsObservations) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  // Keyframe 1 makes point 101, a duplicate of 100, then mapping merges 100 into 101 at once.
+  map.addKeyframe(1, {}, {101});
+  map.event(MapEventType::kPointsMerged, MapEventReason::kNone, 0, 100, 101);
+  map.points.erase(100);
+  map.keyframes[0].observations[0] = 101;
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  ASSERT_EQ(batch.merges().drop_size(), 1);
+  EXPECT_EQ(batch.merges().drop(0), 100U);
+  EXPECT_EQ(batch.merges().keep(0), 101U);
+  EXPECT_EQ(server.point(100), nullptr);
+  ASSERT_NE(server.point(101), nullptr);
+  EXPECT_EQ(server.point(101)->observations.size(), 2U);  // keyframe 0's link moved over
+  EXPECT_TRUE(server.consistent().ok());
+}
+
+TEST_F(LinkStoreTest, WhatLeavesTheLocalMapBeforeTheMapIsReadyIsForgotten) {
+  map.addKeyframe(0, {}, {100});
+  sut.onDelta(map.finish());
+  map.keyframes.erase(0);
+  map.points.erase(100);
+  sut.onDelta((map.change(), map.event(MapEventType::kKeyframeRemoved, MapEventReason::kRemoved, 0, 0),
+               map.event(MapEventType::kPointRemoved, MapEventReason::kRemoved, 0, 100), map.finish()));
+  EXPECT_EQ(sut.backlog().keyframes_held, 0U);
+  EXPECT_EQ(sut.backlog().points_held, 0U);
+}
+
+TEST_F(LinkStoreTest, ABacklogIsSplitIntoBatchesNearTheByteBudget) {
+  map.ready = true;
+  for (std::uint32_t k = 0; k < 20; ++k) {
+    map.addKeyframe(k, {}, {1000 + k});
+    sut.onDelta(map.finish());
+  }
+  reconnect();
+  int batches = 0;
+  std::size_t largest = 0;
+  while (sendNext(16U << 10U)) {
+    ++batches;
+    largest = std::max(largest, batch.ByteSizeLong());
+  }
+  EXPECT_GT(batches, 3);
+  EXPECT_LT(largest, 2 * (16U << 10U));  // one keyframe (about 5 KB here) over the budget at most
+  EXPECT_EQ(server.keyframes(), 20U);
+  EXPECT_EQ(server.points(), 20U);
+}
+
+TEST_F(LinkStoreTest, AFullStoreDropsTheOldestUnsentKeyframesThatLeftTheLocalMapAndCountsThem) {
+  map.ready = true;
+  const std::uint32_t total = kLinkMaxKeyframes + 10;
+  for (std::uint32_t k = 0; k < total; ++k) {
+    map.addKeyframe(k, {}, {});
+    if (map.keyframes.size() > 5) {  // a local map of 5 keyframes; the server is away all along
+      const std::uint32_t oldest = map.keyframes.begin()->first;
+      map.keyframes.erase(oldest);
+      map.event(MapEventType::kKeyframeRemoved, MapEventReason::kEvicted, oldest, 0);
+    }
+    sut.onDelta(map.finish());
+  }
+  EXPECT_EQ(sut.counters().keyframes_dropped, 10U);
+  EXPECT_EQ(sut.backlog().keyframes_held, kLinkMaxKeyframes);
+  reconnect();
+  while (sendNext()) {
+  }
+  EXPECT_EQ(server.keyframes(), kLinkMaxKeyframes);
+  EXPECT_EQ(server.keyframe(9), nullptr);  // the oldest went
+  EXPECT_NE(server.keyframe(10), nullptr);
+}
+
+TEST_F(LinkStoreTest, AGapInMappingsDeltasIsCounted) {
+  map.addKeyframe(0, {}, {});
+  sut.onDelta(map.finish());
+  map.change();
+  map.addKeyframe(1, {}, {});  // the delta before this one never arrived
+  sut.onDelta(map.finish());
+  EXPECT_EQ(sut.counters().deltas_lost, 1U);
+}
+
+}  // namespace
+}  // namespace cvislam::agent
