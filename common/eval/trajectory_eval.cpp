@@ -173,44 +173,51 @@ ErrorStats computeStats(std::vector<double> values) {
 Result<AbsoluteError> absoluteError(const AssociatedPoses& poses, Alignment alignment) {
   const std::vector<Eigen::Vector3d> p_est = positions(poses.estimate);
   const std::vector<Eigen::Vector3d> p_gt = positions(poses.ground_truth);
-  AbsoluteError out;
-  out.alignment = alignment;
+  geometry::Sim3d S_gt_est;
   switch (alignment) {
     case Alignment::kNone:
       break;
     case Alignment::kPosYaw: {
       auto T = geometry::alignPositionYaw(p_est, p_gt);
       if (!T) return T.error();
-      out.S_gt_est = geometry::Sim3d(*T);
+      S_gt_est = geometry::Sim3d(*T);
       break;
     }
     case Alignment::kSE3: {
       auto T = geometry::alignSE3(p_est, p_gt);
       if (!T) return T.error();
-      out.S_gt_est = geometry::Sim3d(*T);
+      S_gt_est = geometry::Sim3d(*T);
       break;
     }
     case Alignment::kSim3: {
       auto S = geometry::alignSim3(p_est, p_gt);
       if (!S) return S.error();
-      out.S_gt_est = *S;
+      S_gt_est = *S;
       break;
     }
   }
-  std::vector<double> rotation_deg;
-  std::vector<double> scale_percent;
+  return absoluteErrorUnder(poses, alignment, S_gt_est);
+}
+
+AbsoluteError absoluteErrorUnder(const AssociatedPoses& poses, Alignment alignment, const geometry::Sim3d& S_gt_est) {
+  AbsoluteError out;
+  out.alignment = alignment;
+  out.S_gt_est = S_gt_est;
   out.translation_errors_m.reserve(poses.size());
-  rotation_deg.reserve(poses.size());
+  out.rotation_errors_deg.reserve(poses.size());
   for (std::size_t i = 0; i < poses.size(); ++i) {
-    const Eigen::Vector3d p_aligned = out.S_gt_est * p_est[i];
-    out.translation_errors_m.push_back((p_gt[i] - p_aligned).norm());
-    const geometry::SO3d R_err = poses.ground_truth[i].so3().inverse() * out.S_gt_est.so3() * poses.estimate[i].so3();
-    rotation_deg.push_back(R_err.log().norm() * kRadToDeg);
-    if (p_gt[i].norm() > 0.0) scale_percent.push_back(std::abs(p_aligned.norm() / p_gt[i].norm() - 1.0) * 100.0);
+    const Eigen::Vector3d& p_gt = poses.ground_truth[i].translation();
+    const Eigen::Vector3d p_aligned = S_gt_est * poses.estimate[i].translation();
+    out.translation_errors_m.push_back((p_gt - p_aligned).norm());
+    const geometry::SO3d R_err = poses.ground_truth[i].so3().inverse() * S_gt_est.so3() * poses.estimate[i].so3();
+    out.rotation_errors_deg.push_back(R_err.log().norm() * kRadToDeg);
+    if (p_gt.norm() > 0.0) {
+      out.rpg_scale_errors_percent.push_back(std::abs(p_aligned.norm() / p_gt.norm() - 1.0) * 100.0);
+    }
   }
   out.translation_m = computeStats(out.translation_errors_m);
-  out.rotation_deg = computeStats(std::move(rotation_deg));
-  out.rpg_scale_error_percent = computeStats(std::move(scale_percent));
+  out.rotation_deg = computeStats(out.rotation_errors_deg);
+  out.rpg_scale_error_percent = computeStats(out.rpg_scale_errors_percent);
   return out;
 }
 
@@ -282,8 +289,13 @@ const AbsoluteError* Evaluation::find(Alignment alignment) const {
   return nullptr;
 }
 
-Result<Evaluation> evaluate(const dataset::Trajectory& estimate, const dataset::Trajectory& ground_truth,
-                            const EvaluationOptions& options) {
+namespace {
+
+constexpr Alignment kReportedAlignments[] = {Alignment::kPosYaw, Alignment::kSE3, Alignment::kSim3};
+
+// Association, RPE, path and duration: all of an evaluation but the ATE.
+Result<Evaluation> evaluateUnaligned(const dataset::Trajectory& estimate, const dataset::Trajectory& ground_truth,
+                                     const EvaluationOptions& options) {
   for (double d : options.rpe.distances_m) {
     if (!(d > 0.0)) return Error{ErrorCode::kInvalidArgument, "RPE distances must be > 0 m"};
   }
@@ -291,22 +303,137 @@ Result<Evaluation> evaluate(const dataset::Trajectory& estimate, const dataset::
   if (!associated) return associated.error();
   Evaluation ev;
   ev.poses = std::move(*associated);
-  for (Alignment alignment : {Alignment::kPosYaw, Alignment::kSE3, Alignment::kSim3}) {
+  ev.rpe = relativeError(ev.poses, options.rpe);
+  ev.ground_truth_path_m = pathLength(ev.poses.ground_truth);
+  ev.duration_s = 1e-9 * static_cast<double>(ev.poses.t_ns.back() - ev.poses.t_ns.front());
+  return ev;
+}
+
+void setSim3Scale(const geometry::Sim3d& S_gt_est, std::optional<double>& scale,
+                  std::optional<double>& scale_error_percent) {
+  scale = S_gt_est.scale();
+  scale_error_percent = (1.0 / S_gt_est.scale() - 1.0) * 100.0;
+}
+
+// Each alignment fitted to the evaluation's own poses.
+void alignOnItsOwn(Evaluation& ev) {
+  for (Alignment alignment : kReportedAlignments) {
     auto ate = absoluteError(ev.poses, alignment);
     if (!ate) {
       ev.notes.push_back(std::string(toString(alignment)) + " alignment failed: " + ate.error().message());
       continue;
     }
-    if (alignment == Alignment::kSim3) {
-      ev.sim3_scale = ate->S_gt_est.scale();
-      ev.scale_error_percent = (1.0 / ate->S_gt_est.scale() - 1.0) * 100.0;
-    }
+    if (alignment == Alignment::kSim3) setSim3Scale(ate->S_gt_est, ev.sim3_scale, ev.scale_error_percent);
     ev.ate.push_back(std::move(*ate));
   }
-  ev.rpe = relativeError(ev.poses, options.rpe);
-  ev.ground_truth_path_m = pathLength(ev.poses.ground_truth);
-  ev.duration_s = 1e-9 * static_cast<double>(ev.poses.t_ns.back() - ev.poses.t_ns.front());
+}
+
+template <typename T>
+void append(std::vector<T>& to, const std::vector<T>& from) {
+  to.insert(to.end(), from.begin(), from.end());
+}
+
+// One transform per alignment over the poses of all estimates; each estimate measured under it.
+void alignJointly(JointEvaluation& joint) {
+  AssociatedPoses all;
+  for (const Evaluation& ev : joint.estimates) {
+    append(all.t_ns, ev.poses.t_ns);
+    append(all.estimate, ev.poses.estimate);
+    append(all.ground_truth, ev.poses.ground_truth);
+  }
+  for (Alignment alignment : kReportedAlignments) {
+    auto ate = absoluteError(all, alignment);
+    if (!ate) {
+      joint.notes.push_back("joint " + std::string(toString(alignment)) +
+                            " alignment failed: " + ate.error().message());
+      continue;
+    }
+    for (Evaluation& ev : joint.estimates) {
+      ev.ate.push_back(absoluteErrorUnder(ev.poses, alignment, ate->S_gt_est));
+      if (alignment == Alignment::kSim3) setSim3Scale(ate->S_gt_est, ev.sim3_scale, ev.scale_error_percent);
+    }
+    if (alignment == Alignment::kSim3) setSim3Scale(ate->S_gt_est, joint.sim3_scale, joint.scale_error_percent);
+    joint.ate.push_back(std::move(*ate));
+  }
+}
+
+// Each estimate its own transform; the joint figure pools the per-pose errors of all.
+void alignEachAndPool(JointEvaluation& joint, std::span<const TrajectoryPair> pairs) {
+  for (Evaluation& ev : joint.estimates) alignOnItsOwn(ev);
+  for (Alignment alignment : kReportedAlignments) {
+    AbsoluteError pooled;
+    pooled.alignment = alignment;
+    std::string failed;
+    for (std::size_t i = 0; i < joint.estimates.size(); ++i) {
+      const AbsoluteError* own = joint.estimates[i].find(alignment);
+      if (own == nullptr) {
+        failed += (failed.empty() ? "" : ", ") + pairs[i].name;
+        continue;
+      }
+      append(pooled.translation_errors_m, own->translation_errors_m);
+      append(pooled.rotation_errors_deg, own->rotation_errors_deg);
+      append(pooled.rpg_scale_errors_percent, own->rpg_scale_errors_percent);
+    }
+    if (!failed.empty()) {
+      joint.notes.push_back("no pooled " + std::string(toString(alignment)) + " figure: the " +
+                            std::string(toString(alignment)) + " alignment of " + failed + " failed");
+      continue;
+    }
+    pooled.translation_m = computeStats(pooled.translation_errors_m);
+    pooled.rotation_deg = computeStats(pooled.rotation_errors_deg);
+    pooled.rpg_scale_error_percent = computeStats(pooled.rpg_scale_errors_percent);
+    joint.ate.push_back(std::move(pooled));
+  }
+}
+
+}  // namespace
+
+Result<Evaluation> evaluate(const dataset::Trajectory& estimate, const dataset::Trajectory& ground_truth,
+                            const EvaluationOptions& options) {
+  auto ev = evaluateUnaligned(estimate, ground_truth, options);
+  if (!ev) return ev.error();
+  alignOnItsOwn(*ev);
   return ev;
+}
+
+Result<JointAlignment> parseJointAlignment(std::string_view name) {
+  if (name == "joint") return JointAlignment::kJoint;
+  if (name == "each") return JointAlignment::kEach;
+  return Error{ErrorCode::kInvalidArgument, "unknown joint alignment '" + std::string(name) + "' (joint, each)"};
+}
+
+std::string_view toString(JointAlignment mode) {
+  return mode == JointAlignment::kEach ? "each" : "joint";
+}
+
+const AbsoluteError* JointEvaluation::find(Alignment alignment) const {
+  for (const AbsoluteError& e : ate) {
+    if (e.alignment == alignment) return &e;
+  }
+  return nullptr;
+}
+
+Result<JointEvaluation> evaluateJoint(std::span<const TrajectoryPair> pairs, const EvaluationOptions& options,
+                                      JointAlignment mode) {
+  if (pairs.empty()) return Error{ErrorCode::kInvalidArgument, "no estimate to evaluate"};
+  JointEvaluation joint;
+  joint.mode = mode;
+  for (const TrajectoryPair& pair : pairs) {
+    if (pair.estimate == nullptr || pair.ground_truth == nullptr) {
+      return Error{ErrorCode::kInvalidArgument, "estimate " + pair.name + ": no trajectory given"};
+    }
+    auto ev = evaluateUnaligned(*pair.estimate, *pair.ground_truth, options);
+    if (!ev) return Error{ev.error().code(), "estimate " + pair.name + ": " + ev.error().message()};
+    joint.poses += ev->poses.size();
+    joint.ground_truth_path_m += ev->ground_truth_path_m;
+    joint.estimates.push_back(std::move(*ev));
+  }
+  if (mode == JointAlignment::kJoint) {
+    alignJointly(joint);
+  } else {
+    alignEachAndPool(joint, pairs);
+  }
+  return joint;
 }
 
 }  // namespace cvislam::eval

@@ -9,12 +9,19 @@
 //   sim3    with scale (Umeyama): the scale factor says how far the estimate's scale is off.
 // RPE compares relative motion over path-length segments.
 //
+// Several agents (evaluateJoint) are scored as CVI-SLAM's Table II does: each estimate is associated with
+// its own ground truth (all ground truths in one world frame), then ONE transform per alignment is fitted
+// over all associated poses together, and the ATE is taken over all of them ("joint"). While the maps are
+// still separate, each estimate can instead keep its own transform, and the joint figure pools the errors
+// ("each").
+//
 // The `nearest` association reproduces evo and rpg_trajectory_evaluation (see test/common/eval), so that
 // numbers are comparable with published ones.
 #pragma once
 
 #include <cstdint>
 #include <optional>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -89,10 +96,16 @@ struct AbsoluteError {
   // distances from the world origin (so it depends on where the origin is). Reported only so that figures
   // can be compared with that tool; use the Sim3 scale for the scale error.
   ErrorStats rpg_scale_error_percent;
-  std::vector<double> translation_errors_m;  // per associated pose
+  std::vector<double> translation_errors_m;      // per associated pose
+  std::vector<double> rotation_errors_deg;       // per associated pose
+  std::vector<double> rpg_scale_errors_percent;  // per associated pose whose ground truth is off the origin
 };
 
+// Fits the alignment to the poses, then measures the errors under it.
 Result<AbsoluteError> absoluteError(const AssociatedPoses& poses, Alignment alignment);
+
+// The errors of `poses` under a given transform (fitted elsewhere, e.g. to several estimates at once).
+AbsoluteError absoluteErrorUnder(const AssociatedPoses& poses, Alignment alignment, const geometry::Sim3d& S_gt_est);
 
 enum class RpePairing {
   kAllStarts,    // every pose starts a segment that ends where the ground-truth path reaches the distance
@@ -135,6 +148,44 @@ struct Evaluation {
 
 Result<Evaluation> evaluate(const dataset::Trajectory& estimate, const dataset::Trajectory& ground_truth,
                             const EvaluationOptions& options);
+
+// How several estimates are aligned to their ground truths.
+enum class JointAlignment {
+  kJoint,  // one transform per alignment, fitted over the poses of all estimates together (CVI-SLAM, Table II)
+  kEach,   // each estimate its own transform; the joint figure pools the errors of all poses
+};
+Result<JointAlignment> parseJointAlignment(std::string_view name);  // "joint" | "each"
+std::string_view toString(JointAlignment mode);
+
+// One agent's estimate and its ground truth; `name` says which in messages.
+struct TrajectoryPair {
+  std::string name;
+  const dataset::Trajectory* estimate = nullptr;
+  const dataset::Trajectory* ground_truth = nullptr;
+};
+
+struct JointEvaluation {
+  JointAlignment mode = JointAlignment::kJoint;
+  // One per pair, in order, each with its association, RPE and path. Their `ate` (and Sim3 scale) are under
+  // the joint transforms (kJoint) or under their own (kEach).
+  std::vector<Evaluation> estimates;
+  // The joint figure per alignment. kJoint: all poses under the one transform, `S_gt_est`. kEach: the errors
+  // of all poses, each under its own estimate's transform, pooled (the RMSE is the square root of the
+  // pose-weighted mean of the estimates' mean squares); `S_gt_est` is the identity and means nothing.
+  std::vector<AbsoluteError> ate;
+  std::optional<double> sim3_scale;           // kJoint only: the joint Sim3's scale factor
+  std::optional<double> scale_error_percent;  // kJoint only: (1 / sim3_scale - 1) * 100
+  std::size_t poses = 0;                      // associated poses of all estimates
+  double ground_truth_path_m = 0.0;           // sum of the estimates' ground-truth paths
+  std::vector<std::string> notes;             // alignments that could not be computed and why
+
+  [[nodiscard]] const AbsoluteError* find(Alignment alignment) const;
+};
+
+// Associates each pair on its own (the options apply to each), then aligns as `mode` says. Fails, naming the
+// pair, when a pair cannot be associated; an alignment that fails (degenerate motion) is a note.
+Result<JointEvaluation> evaluateJoint(std::span<const TrajectoryPair> pairs, const EvaluationOptions& options,
+                                      JointAlignment mode);
 
 // Length of the polyline through the positions.
 double pathLength(const std::vector<geometry::SE3d>& poses);

@@ -113,4 +113,155 @@ TEST(CvislamEvalCli, EvaluatesAgainstAEurocSequenceFolder) {
   EXPECT_LT(json["se3"]["rmse"].get<double>(), 1e-5);  // the TUM copy is rounded to 10 us
 }
 
+// Several agents: each a helix as ground truth, all in one world frame; its estimate is every 4th pose mapped into
+// the estimate's world by S_est_gt (with b's extra offset, when given, applied after it).
+struct Agent {
+  std::string folder;
+  Eigen::Vector3d centre;
+  int poses = 400;
+};
+
+cvislam::geometry::Sim3d yawAndShift(double yaw_rad, const Eigen::Vector3d& t) {
+  return cvislam::geometry::Sim3d(1.0, cvislam::geometry::SO3d::exp(Eigen::Vector3d(0, 0, yaw_rad)), t);
+}
+
+void writeAgent(const cvislam::test::TempDir& dir, const Agent& agent, const cvislam::geometry::Sim3d& S_est_gt) {
+  cvislam::dataset::Trajectory gt;
+  cvislam::dataset::Trajectory est;
+  for (int k = 0; k < agent.poses; ++k) {
+    const double a = 0.02 * k;
+    const Eigen::Vector3d p = agent.centre + Eigen::Vector3d(std::cos(a), std::sin(a), 0.05 * a);
+    const cvislam::geometry::SO3d R = cvislam::geometry::SO3d::exp(Eigen::Vector3d(0, 0, a));
+    const std::int64_t t = 1'000'000'000LL + k * 10'000'000LL;
+    gt.push_back({t, {R, p}});
+    if (k % 4 == 1) est.push_back({t, {S_est_gt.so3() * R, S_est_gt * p}});
+  }
+  std::filesystem::create_directories(dir / agent.folder);
+  ASSERT_TRUE(cvislam::dataset::writeTrajectory(dir / (agent.folder + "/gt.csv"), gt).ok());
+  ASSERT_TRUE(cvislam::dataset::writeTrajectory(dir / (agent.folder + "/est.txt"), est).ok());
+}
+
+std::string pairArgs(const cvislam::test::TempDir& dir, const std::string& folder) {
+  return " --estimate " + (dir / (folder + "/est.txt")).string() + " --groundtruth " +
+         (dir / (folder + "/gt.csv")).string();
+}
+
+TEST(CvislamEvalCli, UnequalCountsOfEstimatesAndGroundTruthsAreACommandLineError) {
+  const CommandResult more_estimates = runEval("--estimate a.txt --groundtruth a.csv --estimate b.txt");
+  EXPECT_EQ(more_estimates.exit_code, 2);
+  EXPECT_THAT(more_estimates.output, HasSubstr("--estimate given 2 time(s) but --groundtruth 1 time(s)"));
+  const CommandResult more_truths = runEval("--estimate a.txt --groundtruth a.csv --groundtruth b.csv");
+  EXPECT_EQ(more_truths.exit_code, 2);
+  EXPECT_THAT(more_truths.output, HasSubstr("--estimate given 1 time(s) but --groundtruth 2 time(s)"));
+  const CommandResult labels =
+      runEval("--estimate a.txt --groundtruth a.csv --estimate b.txt --groundtruth b.csv --label one");
+  EXPECT_EQ(labels.exit_code, 2);
+  EXPECT_THAT(labels.output, HasSubstr("--label given 1 time(s) for 2 estimate(s)"));
+  EXPECT_EQ(runEval("--estimate a.txt --groundtruth a.csv --estimate b.txt --groundtruth b.csv --label x --label x")
+                .exit_code,
+            2);
+  EXPECT_EQ(runEval("--estimate a.txt --groundtruth a.csv --align sideways").exit_code, 2);
+}
+
+TEST(CvislamEvalCli, ScoresSeveralEstimatesJointlyInATableJsonAndSvg) {
+  cvislam::test::TempDir dir;
+  // Two agents' estimates in one map, off the ground truth's world by one rigid transform: zero joint error.
+  const auto S_est_gt = yawAndShift(0.5, Eigen::Vector3d(1.0, 2.0, 0.0));
+  writeAgent(dir, {"a", Eigen::Vector3d(0, 0, 0), 400}, S_est_gt);
+  writeAgent(dir, {"b", Eigen::Vector3d(5, 0, 1), 200}, S_est_gt);
+  const CommandResult run = runEval(pairArgs(dir, "a") + pairArgs(dir, "b") + " --json " + (dir / "out.json").string() +
+                                    " --plot " + (dir / "out.svg").string() + " --per-pose");
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  // Both estimates are called est.txt: their labels are the folder and the stem.
+  EXPECT_THAT(run.output, HasSubstr("[a/est]"));
+  EXPECT_THAT(run.output, HasSubstr("[b/est]"));
+  EXPECT_THAT(run.output, HasSubstr("joint line: all 150 poses under one transform"));
+  EXPECT_THAT(run.output, HasSubstr("se3      joint        150"));
+
+  const auto json = nlohmann::json::parse(cvislam::test::readTextFile(dir / "out.json"));
+  EXPECT_EQ(json["align"], "joint");
+  ASSERT_EQ(json["estimates"].size(), 2u);
+  const std::size_t poses[] = {100, 50};
+  for (std::size_t i = 0; i < 2; ++i) {
+    const auto& e = json["estimates"][i];
+    EXPECT_EQ(e["label"], i == 0 ? "a/est" : "b/est");
+    EXPECT_EQ(e["estimate"], "est.txt");
+    EXPECT_EQ(e["poses"], poses[i]);
+    EXPECT_GT(e["path_m"].get<double>(), 0.0);
+    for (const char* alignment : {"posyaw", "se3", "sim3"}) {
+      EXPECT_LT(e[alignment]["rmse"].get<double>(), 1e-6) << alignment;
+      EXPECT_EQ(e[alignment]["translation_errors_m"].size(), poses[i]);
+    }
+    EXPECT_NEAR(e["scale_error_percent"].get<double>(), 0.0, 1e-6);
+    // Per pose: timestamps, ground truth, and the estimate after the (joint) SE3 alignment, which lies on it.
+    ASSERT_EQ(e["timestamps_s"].size(), poses[i]);
+    ASSERT_EQ(e["groundtruth_xyz_m"].size(), poses[i]);
+    ASSERT_EQ(e["estimate_se3_aligned_xyz_m"].size(), poses[i]);
+    for (std::size_t k = 0; k < poses[i]; ++k) {
+      for (std::size_t c = 0; c < 3; ++c) {
+        EXPECT_NEAR(e["estimate_se3_aligned_xyz_m"][k][c].get<double>(), e["groundtruth_xyz_m"][k][c].get<double>(),
+                    1e-6);
+      }
+    }
+  }
+  const auto& joint = json["joint"];
+  EXPECT_EQ(joint["poses"], 150);
+  for (const char* alignment : {"posyaw", "se3", "sim3"}) {
+    EXPECT_LT(joint[alignment]["rmse"].get<double>(), 1e-6) << alignment;
+    EXPECT_EQ(joint[alignment]["count"], 150);
+    EXPECT_TRUE(joint[alignment].contains("transform_gt_est"));
+  }
+  EXPECT_NEAR(joint["scale_error_percent"].get<double>(), 0.0, 1e-6);
+
+  const std::string svg = cvislam::test::readTextFile(dir / "out.svg");
+  EXPECT_THAT(svg, HasSubstr("a/est (posyaw-aligned"));
+  EXPECT_THAT(svg, HasSubstr("b/est (posyaw-aligned"));
+  std::size_t polylines = 0;
+  for (std::size_t at = svg.find("<polyline"); at != std::string::npos; at = svg.find("<polyline", at + 1)) ++polylines;
+  EXPECT_EQ(polylines, 4u);  // two ground truths, two estimates
+}
+
+TEST(CvislamEvalCli, AlignEachPoolsTheEstimatesOwnErrorsAndSaysSo) {
+  cvislam::test::TempDir dir;
+  // Maps not merged: b's world is 1 m and 10 degrees off a's. Each on its own fits exactly; jointly they cannot.
+  const auto S_a = yawAndShift(0.5, Eigen::Vector3d(1.0, 2.0, 0.0));
+  writeAgent(dir, {"a", Eigen::Vector3d(0, 0, 0), 400}, S_a);
+  writeAgent(dir, {"b", Eigen::Vector3d(0, 0, 0), 400}, S_a * yawAndShift(10.0 * M_PI / 180.0, {1.0, 0.0, 0.0}));
+  const std::string args = pairArgs(dir, "a") + pairArgs(dir, "b") + " --label A --label B --json ";
+  const CommandResult each = runEval(args + (dir / "each.json").string() + " --align each");
+  ASSERT_EQ(each.exit_code, 0) << each.output;
+  EXPECT_THAT(each.output, HasSubstr("alignment:    each"));
+  EXPECT_THAT(each.output, HasSubstr("joint line: RMSE pooled over all 200 poses"));
+  const auto each_json = nlohmann::json::parse(cvislam::test::readTextFile(dir / "each.json"));
+  EXPECT_EQ(each_json["align"], "each");
+  EXPECT_EQ(each_json["estimates"][1]["label"], "B");
+  EXPECT_LT(each_json["joint"]["se3"]["rmse"].get<double>(), 1e-6);
+  EXPECT_FALSE(each_json["joint"]["se3"].contains("transform_gt_est"));  // there is none
+  EXPECT_TRUE(each_json["joint"]["scale"].is_null());
+
+  const CommandResult joint = runEval(args + (dir / "joint.json").string() + " --align joint");
+  ASSERT_EQ(joint.exit_code, 0) << joint.output;
+  const auto joint_json = nlohmann::json::parse(cvislam::test::readTextFile(dir / "joint.json"));
+  // Both fly the same helix, pose k of each at one place, their estimates d_k apart: any rigid transform leaves
+  // residuals summing to at least d_k there, so the joint RMSE is at least rms(d) / 2; d_k >= 1 m - (the 10 deg
+  // chord at the helix's 1 m radius) > 0.8 m, so > 0.4 m.
+  EXPECT_GT(joint_json["joint"]["se3"]["rmse"].get<double>(), 0.4);
+}
+
+TEST(CvislamEvalCli, OneEstimateKeepsItsJsonAndAddsAlignedPositionsPerPose) {
+  cvislam::test::TempDir dir;
+  writePair(dir);
+  const CommandResult run = runEval("--estimate " + (dir / "est.txt").string() + " --groundtruth " +
+                                    (dir / "gt.csv").string() + " --per-pose --json " + (dir / "out.json").string());
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  const auto json = nlohmann::json::parse(cvislam::test::readTextFile(dir / "out.json"));
+  EXPECT_FALSE(json.contains("align"));
+  EXPECT_FALSE(json.contains("estimates"));
+  EXPECT_EQ(json["poses"], 100);
+  EXPECT_EQ(json["timestamps_s"].size(), 100u);
+  EXPECT_EQ(json["groundtruth_xyz_m"].size(), 100u);
+  ASSERT_EQ(json["estimate_se3_aligned_xyz_m"].size(), 100u);
+  EXPECT_EQ(json["estimate_se3_aligned_xyz_m"][0].size(), 3u);
+}
+
 }  // namespace

@@ -206,6 +206,217 @@ TEST(Evaluate, DegenerateMotionIsANoteNotACrash) {
   EXPECT_THAT(ev->notes.front(), HasSubstr("collinear"));
 }
 
+// Each position mapped by S_est_gt, plus seeded isotropic Gaussian noise of `sigma_m` per axis.
+dataset::Trajectory noisy(const dataset::Trajectory& in, const geometry::Sim3d& S_est_gt, double sigma_m,
+                          std::mt19937& rng) {
+  std::normal_distribution<double> noise(0.0, sigma_m);
+  dataset::Trajectory out = transformed(in, S_est_gt);
+  for (auto& pose : out) {
+    pose.T_w_b = geometry::SE3d(pose.T_w_b.so3(),
+                                pose.T_w_b.translation() + Eigen::Vector3d(noise(rng), noise(rng), noise(rng)));
+  }
+  return out;
+}
+
+dataset::Trajectory shiftedInTime(dataset::Trajectory in, std::int64_t dt_ns) {
+  for (auto& pose : in) pose.t_ns += dt_ns;
+  return in;
+}
+
+geometry::Sim3d yawAndShift(double yaw_deg, const Eigen::Vector3d& t) {
+  return geometry::Sim3d(1.0, geometry::rotationAboutZ(yaw_deg * 3.14159265358979323846 / 180.0), t);
+}
+
+// With noise of sigma per axis, the RMSE of the error norm is sigma * sqrt(3): the fit absorbs at most 7 of the
+// 3N degrees of freedom and, for N >= 1000 poses, the RMSE's relative spread is 1 / sqrt(6N) < 1.3 %; 5 % is
+// wide enough not to be luck and narrow enough to catch a wrong transform.
+constexpr double kNoiseTolerance = 0.05;
+
+TEST(EvaluateJoint, EstimatesMappedByOneTransformHaveTheNoiseAsTheirJointAndOwnError) {
+  constexpr double kSigma = 0.01;
+  std::mt19937 rng(20240601);
+  // Two agents on different paths in one world frame, over different times.
+  const auto gt_a = figureEight(kT0, 10'000'000, 2000);
+  const auto gt_b = transformed(figureEight(kT0 + 30'000'000'000LL, 10'000'000, 1200),
+                                yawAndShift(90.0, Eigen::Vector3d(10.0, -2.0, 0.5)));
+  // Both estimates in one map whose world is off the ground truth's by one rigid transform (yaw and
+  // translation, so that position+yaw alignment can absorb it too).
+  const geometry::Sim3d S_est_gt = yawAndShift(-35.0, Eigen::Vector3d(4.0, 1.0, -0.3));
+  const auto est_a = noisy(gt_a, S_est_gt, kSigma, rng);
+  const auto est_b = noisy(gt_b, S_est_gt, kSigma, rng);
+  const std::vector<TrajectoryPair> pairs = {{"a", &est_a, &gt_a}, {"b", &est_b, &gt_b}};
+
+  auto joint = evaluateJoint(pairs, {}, JointAlignment::kJoint);
+  ASSERT_TRUE(joint.ok()) << joint.error().toString();
+  ASSERT_EQ(joint->estimates.size(), 2u);
+  EXPECT_EQ(joint->poses, 3200u);
+  EXPECT_EQ(joint->estimates[0].poses.size(), 2000u);
+  EXPECT_EQ(joint->estimates[1].poses.size(), 1200u);
+  EXPECT_TRUE(joint->notes.empty());
+  const double expected = kSigma * std::sqrt(3.0);
+  for (Alignment alignment : {Alignment::kPosYaw, Alignment::kSE3, Alignment::kSim3}) {
+    SCOPED_TRACE(toString(alignment));
+    const AbsoluteError* all = joint->find(alignment);
+    ASSERT_NE(all, nullptr);
+    EXPECT_EQ(all->translation_m.count, 3200u);
+    EXPECT_NEAR(all->translation_m.rmse, expected, kNoiseTolerance * expected);
+    // The transform found is the inverse of the one applied, up to what the noise leaves: the rotation to about
+    // sigma / (sqrt(N) * spread of the points, ~3 m) = 6e-5 rad, the translation to about sigma / sqrt(N) plus
+    // that rotation times the 4 m lever arm of S_est_gt.
+    const geometry::Sim3d residual = all->S_gt_est * S_est_gt;
+    constexpr double kRotationBoundRad = 1e-3;
+    EXPECT_LT(residual.translation().norm(), 0.5 * kSigma);
+    EXPECT_LT(residual.so3().log().norm(), kRotationBoundRad);
+    for (const Evaluation& ev : joint->estimates) {
+      const AbsoluteError* own = ev.find(alignment);
+      ASSERT_NE(own, nullptr);
+      EXPECT_NEAR(own->translation_m.rmse, expected, kNoiseTolerance * expected);
+      // The noise is on positions only: what remains is the error of the fitted rotation.
+      EXPECT_LT(own->rotation_deg.rmse, kRotationBoundRad * 180.0 / 3.14159265358979323846);
+      // Measured under the joint transform, not under one of its own.
+      EXPECT_EQ(own->S_gt_est.translation(), all->S_gt_est.translation());
+      EXPECT_EQ(own->S_gt_est.scale(), all->S_gt_est.scale());
+    }
+    // One transform for all: the joint mean square is the pose-weighted mean of the estimates'.
+    const double a = joint->estimates[0].find(alignment)->translation_m.rmse;
+    const double b = joint->estimates[1].find(alignment)->translation_m.rmse;
+    EXPECT_NEAR(all->translation_m.rmse, std::sqrt((2000 * a * a + 1200 * b * b) / 3200), 1e-12);
+  }
+  ASSERT_TRUE(joint->sim3_scale.has_value());
+  EXPECT_NEAR(*joint->sim3_scale, 1.0, 1e-3);
+  EXPECT_EQ(*joint->estimates[1].sim3_scale, *joint->sim3_scale);
+}
+
+TEST(EvaluateJoint, EstimatesInDifferentFramesNeedTheirOwnTransforms) {
+  constexpr double kSigma = 0.01;
+  std::mt19937 rng(7);
+  // Two agents fly the same route one after the other, so that pose i of one and of the other are at one place.
+  const auto gt_a = figureEight(kT0, 10'000'000, 2000);
+  const auto gt_b = shiftedInTime(gt_a, 100'000'000'000LL);
+  // Their maps are not merged: b's world is 1 m and 10 degrees of yaw off a's.
+  const geometry::Sim3d S_a = yawAndShift(20.0, Eigen::Vector3d(-1.0, 3.0, 0.0));
+  const geometry::Sim3d S_b = S_a * yawAndShift(10.0, Eigen::Vector3d(1.0, 0.0, 0.0));
+  const auto est_a = noisy(gt_a, S_a, kSigma, rng);
+  const auto est_b = noisy(gt_b, S_b, kSigma, rng);
+  const std::vector<TrajectoryPair> pairs = {{"a", &est_a, &gt_a}, {"b", &est_b, &gt_b}};
+
+  auto each = evaluateJoint(pairs, {}, JointAlignment::kEach);
+  ASSERT_TRUE(each.ok()) << each.error().toString();
+  const double noise = kSigma * std::sqrt(3.0);
+  for (const Evaluation& ev : each->estimates) {
+    EXPECT_NEAR(ev.find(Alignment::kSE3)->translation_m.rmse, noise, kNoiseTolerance * noise);
+    EXPECT_NEAR(ev.find(Alignment::kPosYaw)->translation_m.rmse, noise, kNoiseTolerance * noise);
+  }
+  EXPECT_NEAR(each->find(Alignment::kSE3)->translation_m.rmse, noise, kNoiseTolerance * noise);
+  EXPECT_FALSE(each->sim3_scale.has_value());  // no single Sim3 when each estimate has its own
+
+  auto joint = evaluateJoint(pairs, {}, JointAlignment::kJoint);
+  ASSERT_TRUE(joint.ok()) << joint.error().toString();
+  // A lower bound for any rigid X. Pose i of both agents is at one place p_i; the estimates are q_a = S_a p_i +
+  // n_a and q_b = S_b p_i + n_b. Since X keeps distances, |X q_a - X q_b| = |q_a - q_b| =: d_i, and by the
+  // triangle inequality the two residuals |p_i - X q_a| + |p_i - X q_b| >= d_i, so their squares sum to at least
+  // d_i^2 / 2. Over all 2N poses: rmse^2 >= mean(d_i^2) / 4.
+  ASSERT_EQ(joint->estimates[0].poses.size(), joint->estimates[1].poses.size());
+  double sum_d2 = 0.0;
+  const std::size_t n = joint->estimates[0].poses.size();
+  for (std::size_t i = 0; i < n; ++i) {
+    ASSERT_EQ(joint->estimates[0].poses.ground_truth[i].translation(),
+              joint->estimates[1].poses.ground_truth[i].translation());
+    sum_d2 +=
+        (joint->estimates[0].poses.estimate[i].translation() - joint->estimates[1].poses.estimate[i].translation())
+            .squaredNorm();
+  }
+  const double bound = std::sqrt(sum_d2 / static_cast<double>(n) / 4.0);
+  EXPECT_GT(bound, 10.0 * noise);  // the geometry makes the two frames clearly distinguishable
+  for (Alignment alignment : {Alignment::kPosYaw, Alignment::kSE3}) {
+    SCOPED_TRACE(toString(alignment));
+    ASSERT_NE(joint->find(alignment), nullptr);
+    EXPECT_GE(joint->find(alignment)->translation_m.rmse, bound);
+    EXPECT_GT(joint->find(alignment)->translation_m.rmse, 10.0 * each->find(alignment)->translation_m.rmse);
+    // The joint transform is the least-squares one over all poses: better than either estimate's own, applied
+    // to both.
+    for (const Evaluation& own : each->estimates) {
+      const geometry::Sim3d& S = own.find(alignment)->S_gt_est;
+      const double a = absoluteErrorUnder(joint->estimates[0].poses, alignment, S).translation_m.rmse;
+      const double b = absoluteErrorUnder(joint->estimates[1].poses, alignment, S).translation_m.rmse;
+      EXPECT_LT(joint->find(alignment)->translation_m.rmse, std::sqrt((a * a + b * b) / 2.0));
+    }
+  }
+}
+
+TEST(EvaluateJoint, ThePooledRmseIsThePoseWeightedRootMeanSquareOfTheEstimatesOwnErrors) {
+  std::mt19937 rng(12345);
+  const auto gt_a = figureEight(kT0, 10'000'000, 1500);
+  const auto gt_b = transformed(figureEight(kT0, 10'000'000, 400), yawAndShift(0.0, Eigen::Vector3d(0, 8.0, 0)));
+  // Different noise and different pose counts, so that weighting by poses matters.
+  const auto est_a = noisy(gt_a, yawAndShift(30.0, Eigen::Vector3d(1, 2, 3)), 0.005, rng);
+  const auto est_b = noisy(gt_b, yawAndShift(-60.0, Eigen::Vector3d(-4, 0, 1)), 0.05, rng);
+  const std::vector<TrajectoryPair> pairs = {{"a", &est_a, &gt_a}, {"b", &est_b, &gt_b}};
+  auto each = evaluateJoint(pairs, {}, JointAlignment::kEach);
+  ASSERT_TRUE(each.ok()) << each.error().toString();
+  for (Alignment alignment : {Alignment::kPosYaw, Alignment::kSE3, Alignment::kSim3}) {
+    SCOPED_TRACE(toString(alignment));
+    // By hand, from each estimate's own per-pose errors.
+    double sum_sq = 0.0;
+    double sum = 0.0;
+    double max = 0.0;
+    std::size_t count = 0;
+    std::vector<double> rmse;
+    for (const Evaluation& ev : each->estimates) {
+      const AbsoluteError* own = ev.find(alignment);
+      ASSERT_NE(own, nullptr);
+      for (double e : own->translation_errors_m) {
+        sum_sq += e * e;
+        sum += e;
+        max = std::max(max, e);
+        ++count;
+      }
+      rmse.push_back(own->translation_m.rmse);
+    }
+    const AbsoluteError* pooled = each->find(alignment);
+    ASSERT_NE(pooled, nullptr);
+    EXPECT_EQ(pooled->translation_m.count, 1900u);
+    EXPECT_EQ(count, 1900u);
+    EXPECT_NEAR(pooled->translation_m.rmse, std::sqrt(sum_sq / 1900.0), 1e-12);
+    EXPECT_NEAR(pooled->translation_m.mean, sum / 1900.0, 1e-12);
+    EXPECT_EQ(pooled->translation_m.max, max);
+    // The same from the per-estimate RMSEs, weighted by their pose counts; the unweighted mean is far off.
+    EXPECT_NEAR(pooled->translation_m.rmse, std::sqrt((1500 * rmse[0] * rmse[0] + 400 * rmse[1] * rmse[1]) / 1900.0),
+                1e-12);
+    EXPECT_GT(std::abs(pooled->translation_m.rmse - std::sqrt((rmse[0] * rmse[0] + rmse[1] * rmse[1]) / 2.0)), 0.01);
+  }
+}
+
+TEST(EvaluateJoint, APairThatCannotBeAssociatedIsNamed) {
+  const auto gt = figureEight(kT0, 10'000'000, 500);
+  const auto late = shiftedInTime(gt, 1'000'000'000'000LL);
+  const std::vector<TrajectoryPair> pairs = {{"first", &gt, &gt}, {"'second' (late.txt)", &late, &gt}};
+  auto joint = evaluateJoint(pairs, {}, JointAlignment::kJoint);
+  ASSERT_FALSE(joint.ok());
+  EXPECT_THAT(joint.error().message(), HasSubstr("estimate 'second' (late.txt): only 0 of 500"));
+  EXPECT_FALSE(evaluateJoint({}, {}, JointAlignment::kJoint).ok());
+}
+
+TEST(EvaluateJoint, ADegenerateEstimateStillCountsInTheJointAlignmentButHasNoPooledFigure) {
+  // One agent on a straight line: SE3 cannot be fitted to it alone, but it can jointly with a second agent.
+  const auto curve = figureEight(kT0, 10'000'000, 500);
+  dataset::Trajectory line;
+  for (int k = 0; k < 100; ++k) {
+    line.push_back({kT0 + k * 10'000'000LL, geometry::SE3d(geometry::SO3d(), Eigen::Vector3d(0.01 * k, 5.0, 0))});
+  }
+  const std::vector<TrajectoryPair> pairs = {{"curve", &curve, &curve}, {"line", &line, &line}};
+  auto joint = evaluateJoint(pairs, {}, JointAlignment::kJoint);
+  ASSERT_TRUE(joint.ok());
+  ASSERT_NE(joint->find(Alignment::kSE3), nullptr);
+  EXPECT_LT(joint->estimates[1].find(Alignment::kSE3)->translation_m.rmse, 1e-9);
+  EXPECT_TRUE(joint->notes.empty());
+  auto each = evaluateJoint(pairs, {}, JointAlignment::kEach);
+  ASSERT_TRUE(each.ok());
+  EXPECT_EQ(each->find(Alignment::kSE3), nullptr);
+  ASSERT_FALSE(each->notes.empty());
+  EXPECT_THAT(each->notes.front(), HasSubstr("the se3 alignment of line failed"));
+}
+
 TEST(Evaluate, RejectsNonPositiveRpeDistances) {
   const auto gt = figureEight(kT0, 10'000'000, 100);
   EvaluationOptions options;
