@@ -9,6 +9,7 @@
 #include <thread>
 #include <vector>
 
+#include <google/protobuf/arena.h>
 #include <nlohmann/json.hpp>
 
 #include "agent_rt/link/link_client.hpp"
@@ -18,6 +19,15 @@
 namespace cvislam::agent {
 
 using Clock = std::chrono::steady_clock;
+
+namespace {
+// Bytes of an unsigned varint: what an id costs in a packed repeated field.
+std::uint64_t varintBytes(std::uint64_t v) {
+  std::uint64_t n = 1;
+  for (; v >= 128; v >>= 7U) ++n;
+  return n;
+}
+}  // namespace
 
 Status LinkOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "link: " + what}; };
@@ -57,8 +67,16 @@ struct Link::Impl {
   LinkStore store;
   LinkClient client;
   v1::AgentUplink hello;
-  v1::AgentUplink uplink;  // reused for every batch: its buffers keep their capacity
+  v1::AgentUplink goodbye;
   v1::ServerDownlink downlink;
+  std::vector<char> arena_block;
+  google::protobuf::Arena arena;
+  v1::AgentUplink* uplink = nullptr;  // on `arena`
+
+  void resetArena() {
+    uplink = nullptr;
+    arena.Reset();
+  }
   std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> up_by_kind;  // messages, bytes
   std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> down_by_kind;
   std::vector<TimelineRow> timeline;
@@ -98,7 +116,11 @@ struct Link::Impl {
           b.has_point_updates() ? b.point_updates().ByteSizeLong() : 0);
     count(up_by_kind, "merge", static_cast<std::uint64_t>(b.merges().drop_size()),
           b.has_merges() ? b.merges().ByteSizeLong() : 0);
-    count(up_by_kind, "removal", static_cast<std::uint64_t>(b.removed_points_size() + b.removed_keyframes_size()), 0);
+    std::uint64_t removal_bytes = 0;
+    for (std::uint32_t c : b.removed_points()) removal_bytes += varintBytes(c);
+    for (std::uint32_t c : b.removed_keyframes()) removal_bytes += varintBytes(c);
+    count(up_by_kind, "removal", static_cast<std::uint64_t>(b.removed_points_size() + b.removed_keyframes_size()),
+          removal_bytes);
   }
 
   void publishStatus(bool connected, bool flushed) {
@@ -223,16 +245,21 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
       }
     }
     if (connected && now - last_send >= period) {
-      v1::MapBatch& batch = *s.uplink.mutable_batch();
+      // Made on the arena once, reused while nothing is due, and dropped with the arena's reset after a send.
+      if (s.uplink == nullptr) s.uplink = google::protobuf::Arena::CreateMessage<v1::AgentUplink>(&s.arena);
+      v1::AgentUplink* uplink = s.uplink;
+      v1::MapBatch& batch = *uplink->mutable_batch();
       if (s.store.buildBatch(next_sequence, s.store.newestSensorTime(), s.options.max_batch_bytes, batch)) {
-        const std::uint64_t bytes = s.uplink.ByteSizeLong();
-        if (s.client.send(s.uplink)) {
+        const std::uint64_t bytes = uplink->ByteSizeLong();
+        if (s.client.send(*uplink)) {
           last_sent = next_sequence++;
           s.countBatch(batch, bytes);
+          s.resetArena();
           last_send = now;
           std::lock_guard lock(s.status_mutex);
           s.status.sent_sequence = last_sent;
         } else {
+          s.resetArena();
           connected = false;  // what the batch carried is sent again after the Welcome
           next_attempt = now + backoff;
         }
@@ -251,11 +278,16 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
     s.publishStatus(connected, false);
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
+  // The last row: what was sent and received in all, the final flush included.
+  s.timeline.push_back({std::chrono::duration<double>(Clock::now() - s.start).count(),
+                        s.up_by_kind.count("message") != 0 ? s.up_by_kind["message"].second : 0,
+                        s.down_by_kind.count("message") != 0 ? s.down_by_kind["message"].second : 0, connected,
+                        s.store.backlog().keyframes_unsent + s.store.backlog().keyframes_unacked});
   if (connected) {
-    s.uplink.mutable_goodbye()->set_end_of_mission(true);
-    if (s.client.send(s.uplink)) {
-      s.count(s.up_by_kind, "message", 1, s.uplink.ByteSizeLong());
-      s.count(s.up_by_kind, "goodbye", 1, s.uplink.ByteSizeLong());
+    s.goodbye.mutable_goodbye()->set_end_of_mission(true);
+    if (s.client.send(s.goodbye)) {
+      s.count(s.up_by_kind, "message", 1, s.goodbye.ByteSizeLong());
+      s.count(s.up_by_kind, "goodbye", 1, s.goodbye.ByteSizeLong());
     }
     (void)s.client.close(std::chrono::milliseconds(2000));
   }

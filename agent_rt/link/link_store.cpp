@@ -524,17 +524,17 @@ bool LinkStore::buildBatch(std::uint64_t sequence, std::int64_t sensor_t_ns, std
     v1::Keypoints& kp = *k.mutable_keypoints();
     std::string* octave = kp.mutable_octave();
     std::string* angle = kp.mutable_angle();
-    std::string* descriptors = kp.mutable_descriptors();
     octave->resize(kf.keypoint_count);
     angle->resize(kf.keypoint_count);
-    descriptors->resize(32U * kf.keypoint_count);
+    kp.mutable_xy()->Reserve(2 * kf.keypoint_count);
+    kp.mutable_descriptors()->Reserve(4 * kf.keypoint_count);
     v1::StereoMatches& right = *k.mutable_right();
     for (std::uint16_t i = 0; i < kf.keypoint_count; ++i) {
       kp.add_xy(kf.keypoints[i].x);
       kp.add_xy(kf.keypoints[i].y);
       (*octave)[i] = static_cast<char>(kf.keypoints[i].octave);
       (*angle)[i] = static_cast<char>(wire::encodeAngle(kf.keypoints[i].angle_deg));
-      std::copy(kf.descriptors[i].begin(), kf.descriptors[i].end(), descriptors->begin() + 32 * i);
+      wire::packDescriptor(kf.descriptors[i].data(), kp.mutable_descriptors());
       if (kf.has_right[i] != 0) {
         right.add_keypoint(i);
         right.add_xy(kf.right_px[i][0]);
@@ -566,7 +566,7 @@ bool LinkStore::buildBatch(std::uint64_t sequence, std::int64_t sensor_t_ns, std
     m.add_p_w(p.p_w[0]);
     m.add_p_w(p.p_w[1]);
     m.add_p_w(p.p_w[2]);
-    m.set_orb(p.descriptor.data(), p.descriptor.size());
+    wire::packDescriptor(p.descriptor.data(), m.mutable_orb());
     m.set_octave(p.octave);
     p.full_sent = sequence;
     p.pos_sent = sequence;

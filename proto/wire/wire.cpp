@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "cvislam/v1/types.pb.h"
+#include "google/protobuf/repeated_field.h"
 
 namespace cvislam::wire {
 
@@ -169,6 +170,23 @@ Result<imu::ImuNoise> fromProto(const v1::ImuCalibration& in, const std::string&
   if (!std::isfinite(in.rate_hz()) || !(in.rate_hz() > 0)) return invalid(what + ": rate_hz must be positive");
   if (Status s = noise.validate(); !s.ok()) return s.error().withContext(what);
   return noise;
+}
+
+void packDescriptor(const std::uint8_t* bytes32, google::protobuf::RepeatedField<std::uint64_t>* words) {
+  for (int w = 0; w < 4; ++w) {
+    std::uint64_t word = 0;
+    for (int b = 0; b < 8; ++b)
+      word |= static_cast<std::uint64_t>(bytes32[8 * w + b]) << (8U * static_cast<unsigned>(b));
+    words->Add(word);
+  }
+}
+
+void unpackDescriptor(const std::uint64_t* words4, std::uint8_t* bytes32) {
+  for (int w = 0; w < 4; ++w) {
+    for (int b = 0; b < 8; ++b) {
+      bytes32[8 * w + b] = static_cast<std::uint8_t>((words4[w] >> (8U * static_cast<unsigned>(b))) & 0xFFU);
+    }
+  }
 }
 
 std::uint8_t encodeAngle(float angle_deg) {

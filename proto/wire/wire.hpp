@@ -53,6 +53,10 @@ Result<imu::ImuNoise> fromProto(const v1::ImuCalibration& imu, const std::string
 // Exactly `count` finite values.
 Status checkFinite(const google::protobuf::RepeatedField<float>& values, int count, const std::string& what);
 
+// A 32-byte descriptor as the 4 words of the protocol (byte 8w+b is bits 8b..8b+7 of word w), and back.
+void packDescriptor(const std::uint8_t* bytes32, google::protobuf::RepeatedField<std::uint64_t>* words);
+void unpackDescriptor(const std::uint64_t* words4, std::uint8_t* bytes32);
+
 // Keypoint orientation, 256 steps per turn.
 std::uint8_t encodeAngle(float angle_deg);
 float decodeAngle(std::uint8_t code);

@@ -173,10 +173,10 @@ class Checker {
     const v1::Keypoints& kp = k.keypoints();
     const int n = kp.xy_size() / 2;
     if (kp.xy_size() % 2 != 0 || static_cast<int>(kp.octave().size()) != n ||
-        static_cast<int>(kp.angle().size()) != n || static_cast<int>(kp.descriptors().size()) != 32 * n) {
+        static_cast<int>(kp.angle().size()) != n || kp.descriptors_size() != 4 * n) {
       return invalid(name + ": keypoint columns disagree (" + std::to_string(kp.xy_size()) + " coordinates, " +
                      std::to_string(kp.octave().size()) + " octaves, " + std::to_string(kp.angle().size()) +
-                     " angles, " + std::to_string(kp.descriptors().size()) + " descriptor bytes)");
+                     " angles, " + std::to_string(kp.descriptors_size()) + " descriptor words)");
     }
     if (n > limits_.max_keypoints_per_keyframe) {
       return invalid(name + ": " + std::to_string(n) + " keypoints, more than the limit " +
@@ -209,7 +209,7 @@ class Checker {
       out.px = Eigen::Vector2f(x, y);
       out.octave = octave;
       out.angle_deg = wire::decodeAngle(static_cast<std::uint8_t>(kp.angle()[static_cast<std::size_t>(i)]));
-      std::memcpy(kf.descriptors[static_cast<std::size_t>(i)].data(), kp.descriptors().data() + 32 * i, 32);
+      wire::unpackDescriptor(kp.descriptors().data() + 4 * i, kf.descriptors[static_cast<std::size_t>(i)].data());
     }
 
     // Stereo matches.
@@ -286,8 +286,8 @@ class Checker {
     const std::string name = pointName(c);
     if (new_points_.count(c) != 0) return invalid(name + " is sent in full twice in one batch");
     if (Status s = wire::checkFinite(p.p_w(), 3, name + " p_w"); !s.ok()) return s;
-    if (p.orb().size() != 32) {
-      return invalid(name + ": descriptor of " + std::to_string(p.orb().size()) + " bytes, expected 32");
+    if (p.orb_size() != 4) {
+      return invalid(name + ": descriptor of " + std::to_string(p.orb_size()) + " words, expected 4 (32 bytes)");
     }
     if (p.octave() >= 32) return invalid(name + ": octave " + std::to_string(p.octave()));
     auto reference = knownKeyframe(p.reference_keyframe(), name);
@@ -300,7 +300,7 @@ class Checker {
     point.id = pointId(c);
     point.reference = keyframeId(p.reference_keyframe());
     point.p_w = Vector3d(p.p_w(0), p.p_w(1), p.p_w(2));
-    std::memcpy(point.descriptor.data(), p.orb().data(), 32);
+    wire::unpackDescriptor(p.orb().data(), point.descriptor.data());
     point.octave = static_cast<std::uint8_t>(p.octave());
     new_points_[c] = reference->map;
     point_agent_map_[c] = reference->agent_map;

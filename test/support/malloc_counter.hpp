@@ -8,5 +8,7 @@ namespace cvislam::test {
 
 // Calls to the allocation functions since the program started, from any thread.
 long mallocCount();
+// Calls made by the calling thread only.
+long threadMallocCount();
 
 }  // namespace cvislam::test

@@ -1,0 +1,134 @@
+// The design card's promise holds with the link running: after start-up, the tracking loop makes no heap
+// allocation. The real tracker and mapper track a rendered stereo sequence (fixed seed) on this thread while a
+// link thread streams their deltas to a real cvislam server over loopback gRPC. malloc is replaced
+// (test/support/malloc_counter); the link thread allocates (gRPC, protobuf), so the count here is the tracking
+// thread's own. The link thread's allocations are printed per second of sequence, for the record.
+#include <atomic>
+#include <cstdio>
+#include <thread>
+
+#include <gtest/gtest.h>
+
+#include "agent_rt/link/link.hpp"
+#include "cvislam/v1/monitor.pb.h"
+#include "server_cloud/service/grpc_server.hpp"
+#include "test/agent_rt/link/link_test_support.hpp"
+#include "test/sim/mission_writer.hpp"
+#include "test/sim/presets.hpp"
+#include "test/support/inline_agent.hpp"
+#include "test/support/malloc_counter.hpp"
+#include "test/support/temp_dir.hpp"
+
+namespace cvislam::agent {
+namespace {
+
+TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
+  cvislam::test::TempDir dir;
+  constexpr double kDurationS = 8.0;
+  sim::MissionPlanOptions plan_options;
+  plan_options.preset = "loop";
+  plan_options.seed = 5;
+  plan_options.duration_s = kDurationS;
+  auto plan = sim::planMission(plan_options);
+  ASSERT_TRUE(plan.ok());
+  sim::MissionWriterOptions writer = sim::defaultWriterOptions();
+  writer.out_dir = dir.path();
+  writer.seed = 5;
+  writer.stereo = true;
+  ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+  auto seq = dataset::EurocSequence::open(dir.path() / "agent0");
+  ASSERT_TRUE(seq.ok()) << seq.error().toString();
+
+  // A real server on loopback.
+  server::ServerOptions server_options;
+  server_options.listen = "127.0.0.1:0";
+  server::ServerCore core(server_options);
+  auto grpc_server = server::GrpcServer::start(core);
+  ASSERT_TRUE(grpc_server.ok()) << grpc_server.error().toString();
+
+  LinkOptions link_options;
+  link_options.server = (*grpc_server)->address();
+  link_options.mission = "allocations";
+  LinkSensors sensors;
+  sensors.stereo = true;
+  sensors.cam0 = seq->cam0().calibration;
+  sensors.T_s_c0 = seq->cam0().calibration.T_b_c;
+  sensors.cam1 = seq->cam1()->calibration;
+  sensors.T_s_c1 = seq->cam1()->calibration.T_b_c;
+  auto link = Link::create(link_options, test::kAgent, sensors);
+  ASSERT_TRUE(link.ok()) << link.error().toString();
+  test::DeltaQueue deltas(16);
+  // The link thread's own allocation count, sampled by the link thread itself once half the sequence has passed.
+  std::atomic<bool> halfway{false};
+  long link_allocations_at_halfway = -1;
+  auto halfway_at = std::chrono::steady_clock::now();
+  deltas.on_poll = [&] {
+    if (halfway.load() && link_allocations_at_halfway < 0) {
+      link_allocations_at_halfway = cvislam::test::threadMallocCount();
+      halfway_at = std::chrono::steady_clock::now();
+    }
+  };
+  std::atomic<bool> stop{false};
+  long link_allocations = 0;
+  long link_allocations_at_end = 0;
+  auto end_at = std::chrono::steady_clock::now();
+  std::thread link_thread([&] {
+    const long before = cvislam::test::threadMallocCount();
+    (*link)->run(deltas, stop);
+    link_allocations_at_end = cvislam::test::threadMallocCount();
+    link_allocations = link_allocations_at_end - before;
+  });
+
+  TrackerOptions tracker_options;
+  tracker_options.agent = test::kAgent;
+  MapperOptions mapper_options;
+  mapper_options.agent = test::kAgent;
+  auto agent = cvislam::test::InlineAgent::create(*seq, true, tracker_options, mapper_options);
+  ASSERT_TRUE(agent.ok()) << agent.error().toString();
+  (*agent)->onDelta([&](const MapDeltaMessage& d) { deltas.push(d); });
+  long steady_allocations = 0;
+  int steady_frames = 0;
+  int steady_keyframes = 0;
+  for (std::size_t i = 0; i < (*agent)->frameCount(); ++i) {
+    ASSERT_TRUE((*agent)->load(i).ok());
+    const bool steady = (*agent)->imuInitialised();
+    long before = 0;
+    long after = 0;
+    const FrameResult r = (*agent)->track([&] { before = cvislam::test::threadMallocCount(); },
+                                          [&] { after = cvislam::test::threadMallocCount(); });
+    // Paced like the sensor (20 Hz), so that the link streams while tracking runs.
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    if (i == (*agent)->frameCount() / 2) halfway.store(true);
+    if (i + 1 == (*agent)->frameCount()) end_at = std::chrono::steady_clock::now();
+    if (!steady) continue;
+    ++steady_frames;
+    steady_keyframes += r.keyframe ? 1 : 0;
+    steady_allocations += after - before;
+  }
+  stop.store(true);
+  link_thread.join();
+  const LinkStatus status = (*link)->status();
+  const double second_half_s = std::chrono::duration<double>(end_at - halfway_at).count();
+  const long second_half = link_allocations_at_end - link_allocations_at_halfway;
+  std::printf(
+      "tracking: %d steady frames, %d keyframes, %ld allocations; link thread: %ld allocations in all, %ld in "
+      "the second half (%.1f s: %.0f per second, the flush included), %llu batches, %.2f MB up, flushed %d\n",
+      steady_frames, steady_keyframes, steady_allocations, link_allocations, second_half, second_half_s,
+      static_cast<double>(second_half) / second_half_s, static_cast<unsigned long long>(status.acked_sequence),
+      static_cast<double>(status.up_bytes) * 1e-6, status.flushed ? 1 : 0);
+  ASSERT_GE(steady_frames, 100);
+  EXPECT_GE(steady_keyframes, 3);
+  EXPECT_EQ(steady_allocations, 0);
+  // The link really streamed while tracking ran: the server holds the map.
+  EXPECT_TRUE(status.flushed);
+  EXPECT_EQ(deltas.dropped(), 0U);
+  EXPECT_GT(status.acked_sequence, 5U);
+  v1::ServerStats stats;
+  core.fillStats("allocations", stats);
+  ASSERT_EQ(stats.agents_size(), 1);
+  EXPECT_GE(stats.agents(0).keyframes(), static_cast<std::uint64_t>(steady_keyframes));
+  (*grpc_server)->shutdown();
+}
+
+}  // namespace
+}  // namespace cvislam::agent
