@@ -518,18 +518,11 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
   }
   for (const auto& [c, key] : plan.removed_keyframes) {
     MapContent& map = mapOf(key);
-    const ServerKeyframe* kf = map.keyframe(KeyframeId{agent.id, c});
-    std::vector<MapPointId> observed;
-    if (kf != nullptr) {
-      for (std::size_t k = 0; k < kf->has_point.size(); ++k) {
-        if (kf->has_point[k] != 0) observed.push_back(kf->point[k]);
-      }
-    }
-    (void)map.removeKeyframe(KeyframeId{agent.id, c});
+    std::vector<MapPointId> went;  // points that went with it (no observer left)
+    (void)map.removeKeyframe(KeyframeId{agent.id, c}, &went);
     agent.keyframes.erase(c);
-    // Points that went with it (no observer left).
-    for (const MapPointId& p : observed) {
-      if (p.agent == agent.id && map.point(p) == nullptr) agent.points.erase(p.counter);
+    for (const MapPointId& p : went) {
+      if (p.agent == agent.id) agent.points.erase(p.counter);
     }
     ++report.removed_keyframes;
   }

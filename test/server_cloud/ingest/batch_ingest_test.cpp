@@ -348,6 +348,32 @@ TEST_F(BatchIngestTest, RemovalsTakeThePointsAndKeyframesOutOfTheMapAndTheRecord
   EXPECT_TRUE(content->checkConsistency().ok());
 }
 
+TEST_F(BatchIngestTest, RemovingAKeyframeForgetsEveryPointThatWentWithIt) {
+  // Point 0 is made by keyframe 0, which later sees a new point 2 at that keypoint instead: point 0 is left
+  // with its reference and no observer. When keyframe 0 goes, point 0 goes with it, and the record must
+  // forget it too.
+  ingestOk(makeKeyframeBatch(1, 0, 2));
+  v1::MapBatch relink;
+  *relink.add_points() = makePoint(2, 1);
+  addObservations(relink, 0, {0}, {2});
+  ingestOk(relink);
+  ASSERT_EQ(map0()->read()->point(ptId(0))->observations.size(), 0U);
+  v1::MapBatch removal;
+  removal.add_removed_keyframes(0);
+
+  ingestOk(removal);
+
+  EXPECT_EQ(map0()->read()->point(ptId(0)), nullptr);
+  EXPECT_EQ(agent_.points.count(0), 0U);
+  EXPECT_EQ(agent_.points.size(), map0()->read()->points().size());
+  // And an observation of it is refused as unknown, not silently dropped.
+  v1::MapBatch late;
+  addObservations(late, 1, {5}, {0});
+  auto report = ingest(late);
+  ASSERT_FALSE(report.ok());
+  EXPECT_THAT(report.error().message(), HasSubstr("map point 3:0, which the server never received"));
+}
+
 TEST_F(BatchIngestTest, BatchBeforeTheSensorsAreKnownIsRefusedAsFailedPrecondition) {
   agent_.sensors.reset();
 

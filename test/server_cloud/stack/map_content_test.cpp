@@ -357,6 +357,19 @@ TEST_F(MapContentTest, RemoveKeyframeRemovesThePointsNoOtherKeyframeObserves) {
   expectConsistent();
 }
 
+TEST_F(MapContentTest, RemoveKeyframeRemovesAPointLeftWithoutObserversThatAnotherKeyframeReferences) {
+  // The point was made by keyframe 0 but only keyframe 1 observes it (keyframe 0's keypoint moved on). With
+  // keyframe 1 gone, nothing observes it: "or go when none is left" (map_content.hpp).
+  addKeyframes(2);
+  ASSERT_TRUE(sut.addPoint(makePoint(0, 0)).ok());
+  observe(1, 0, 0);
+
+  ASSERT_TRUE(sut.removeKeyframe(kfId(1)).ok());
+
+  EXPECT_EQ(sut.point(ptId(0)), nullptr);
+  expectConsistent();
+}
+
 TEST_F(MapContentTest, RemoveKeyframeRemovesAnUnobservedPointItWasTheReferenceOf) {
   addKeyframes(2);
   ASSERT_TRUE(sut.addPoint(makePoint(0, 0)).ok());  // never observed
