@@ -601,6 +601,12 @@ const std::vector<BadBatchCase>& badBatchCases() {
       {"ImuTimesNotIncreasing",
        [](auto& b) { newKeyframe(b).mutable_imu()->set_dt_ns(3, 0); },
        {"keyframe 3:2", "IMU sample 3 does not come after the one before it"}},
+      {"ImuTimeBeyondTheLargestInt64",
+       [](auto& b) {
+         newKeyframe(b).set_t_ns(std::numeric_limits<std::int64_t>::max() - 1'000'000);
+         newKeyframe(b).mutable_imu()->set_dt_ns(20, 1'000'000'000);  // a valid 1 s step, past the end of time
+       },
+       {"keyframe 3:2", "IMU sample 20 is later than an int64 time in ns can be"}},
       {"ImuLinkToItself",
        [](auto& b) { newKeyframe(b).set_imu_from(2); },
        {"keyframe 3:2", "IMU link starts at itself"}},
