@@ -149,11 +149,12 @@ class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::Se
     }
     finishNow(status);
   }
-  void finishNow(const grpc::Status& status) {
+  // By value: OnWriteDone passes *pending_finish_, which is reset here before Finish() reads it.
+  void finishNow(grpc::Status status) {
     if (finish_called_) return;
     finish_called_ = true;
     pending_finish_.reset();
-    Finish(status);
+    Finish(std::move(status));
   }
 
   std::shared_ptr<StreamHandle> handle_;

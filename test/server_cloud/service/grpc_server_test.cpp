@@ -13,6 +13,7 @@
 #include <optional>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <grpcpp/generic/generic_stub.h>
@@ -169,6 +170,30 @@ class GrpcServerTest : public ::testing::Test {
     EXPECT_TRUE(hostile.greet(kHostileAgent, kHostileSession).has_value());
     hostile.write(message);  // may already fail if the server ended the stream
     return hostile.awaitEnd();
+  }
+
+  // A client that reads little ahead (a small HTTP/2 window): a server write of a downlink larger than the
+  // window stays in flight until the client reads.
+  [[nodiscard]] std::shared_ptr<grpc::Channel> narrowWindowChannel() const {
+    grpc::ChannelArguments narrow_window;
+    narrow_window.SetInt(GRPC_ARG_HTTP2_STREAM_LOOKAHEAD_BYTES, 1024);
+    narrow_window.SetInt(GRPC_ARG_HTTP2_BDP_PROBE, 0);
+    return grpc::CreateCustomChannel(server_->address(), grpc::InsecureChannelCredentials(), narrow_window);
+  }
+
+  // Greeted as kHostileAgent, with kInFlightKeyframes keyframes stored and every one of them corrected by the
+  // server, so that the next downlink (~100 kB of corrections) is being written and waits for `agent` to read.
+  static constexpr std::uint32_t kInFlightKeyframes = 1000;
+  void startLargeDownlink(AgentClient& agent) {
+    ASSERT_TRUE(agent.greet(kHostileAgent, kHostileSession).has_value());
+    ASSERT_TRUE(agent.sendAndAwaitAck(makeKeyframeBatch(1, 0, kInFlightKeyframes)));
+    for (std::uint32_t c = 0; c < kInFlightKeyframes; ++c) {
+      ASSERT_TRUE(core_
+                      ->correctKeyframe(kMission, KeyframeId{kHostileAgent, c}, geometry::SE3d(),
+                                        Eigen::Vector3d::Zero(), imu::ImuBias{})
+                      .ok());
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));  // the periodic thread starts writing them
   }
 
   std::unique_ptr<ServerCore> core_;
@@ -483,6 +508,20 @@ TEST_F(GrpcServerTest, BatchBeforeHelloEndsAsFailedPreconditionAndTheOtherAgentI
   EXPECT_EQ(status.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << status.error_message();
   EXPECT_THAT(status.error_message(), HasSubstr("must be a Hello"));
   expectGoodAgentUntouchedAndServed();
+}
+
+TEST_F(GrpcServerTest, ErrorWhileADownlinkIsInFlightEndsTheStreamWithItsMessageIntact) {
+  // The error arrives while a write is pending, so the status goes out only after that write completes.
+  start();
+  AgentClient sut(narrowWindowChannel());
+  startLargeDownlink(sut);
+
+  sut.write(batchMessage(makeKeyframeBatch(1, 0, 1)));          // sequence 1 again on this stream
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));  // refused while the write is pending
+  const grpc::Status status = sut.awaitEnd();
+
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(status.error_message(), "batch sequence 1 sent twice on one stream");
 }
 
 TEST_F(GrpcServerTest, StartOnAPortInUseFailsNamingTheAddress) {
