@@ -85,6 +85,9 @@ class AgentClient {
     return stream_->Finish();
   }
 
+  // The agent vanishes: its side of the stream is cancelled.
+  void cancel() { context_.TryCancel(); }
+
   // The agent ends the stream itself.
   grpc::Status close() {
     stream_->WritesDone();
@@ -522,6 +525,53 @@ TEST_F(GrpcServerTest, ErrorWhileADownlinkIsInFlightEndsTheStreamWithItsMessageI
 
   EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
   EXPECT_EQ(status.error_message(), "batch sequence 1 sent twice on one stream");
+}
+
+TEST_F(GrpcServerTest, AgentVanishingWhileADownlinkIsInFlightIsDisconnectedAndCanComeBack) {
+  start();
+  AgentClient vanishing(narrowWindowChannel());
+  startLargeDownlink(vanishing);
+
+  vanishing.cancel();
+  EXPECT_EQ(vanishing.awaitEnd().error_code(), grpc::StatusCode::CANCELLED);
+
+  // The server notices: the agent is no longer connected (its stream ended on the server too)...
+  bool connected = true;
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (connected && std::chrono::steady_clock::now() < give_up) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    connected = agentStats(kHostileAgent)->connected();
+  }
+  EXPECT_FALSE(connected);
+  // ...so a restarted agent process (another session) is welcomed instead of refused as a second process.
+  AgentClient restarted(channel_);
+  auto welcome = restarted.greet(kHostileAgent, kHostileSession + 1);
+  ASSERT_TRUE(welcome.has_value());
+  EXPECT_EQ(welcome->stored_sequence(), 1U);
+  EXPECT_TRUE(restarted.close().ok());
+}
+
+TEST_F(GrpcServerTest, AgentVanishingAfterARefusalWhileADownlinkIsInFlightIsDisconnected) {
+  // The refusal waits for the pending write; the agent goes before reading it, so that write fails.
+  start();
+  AgentClient vanishing(narrowWindowChannel());
+  startLargeDownlink(vanishing);
+  vanishing.write(batchMessage(makeKeyframeBatch(1, 0, 1)));    // refused: sequence 1 again
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));  // refused while the write is pending
+
+  vanishing.cancel();
+  EXPECT_EQ(vanishing.awaitEnd().error_code(), grpc::StatusCode::CANCELLED);
+
+  bool connected = true;
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (connected && std::chrono::steady_clock::now() < give_up) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    connected = agentStats(kHostileAgent)->connected();
+  }
+  EXPECT_FALSE(connected);
+  AgentClient restarted(channel_);
+  EXPECT_TRUE(restarted.greet(kHostileAgent, kHostileSession + 1).has_value());
+  EXPECT_TRUE(restarted.close().ok());
 }
 
 TEST_F(GrpcServerTest, StartOnAPortInUseFailsNamingTheAddress) {
