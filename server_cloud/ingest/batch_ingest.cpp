@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <map>
 #include <string>
 #include <unordered_map>
@@ -248,13 +249,17 @@ class Checker {
       return invalid(name + ": " + std::to_string(samples) + " IMU samples, more than the limit " +
                      std::to_string(limits_.max_imu_samples_per_keyframe));
     }
-    constexpr std::int64_t kMaxStepNs = 1'000'000'000'000;  // 1000 s: keeps the sums far from overflow
+    // Steps of at most 1000 s; only the first may go back (and t_ns > 0), so only a sum going up can overflow.
+    constexpr std::int64_t kMaxStepNs = 1'000'000'000'000;
     std::int64_t t = k.t_ns();
     kf.imu.resize(static_cast<std::size_t>(samples));
     for (int i = 0; i < samples; ++i) {
       const std::int64_t dt = imu.dt_ns(i);
       if (dt > kMaxStepNs || dt < -kMaxStepNs || (i > 0 && dt <= 0)) {
         return invalid(name + ": IMU sample " + std::to_string(i) + " does not come after the one before it");
+      }
+      if (dt > 0 && t > std::numeric_limits<std::int64_t>::max() - dt) {
+        return invalid(name + ": IMU sample " + std::to_string(i) + " is later than an int64 time in ns can be");
       }
       t += dt;
       dataset::ImuSample& s = kf.imu[static_cast<std::size_t>(i)];
@@ -519,18 +524,11 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
   }
   for (const auto& [c, key] : plan.removed_keyframes) {
     MapContent& map = mapOf(key);
-    const ServerKeyframe* kf = map.keyframe(KeyframeId{agent.id, c});
-    std::vector<MapPointId> observed;
-    if (kf != nullptr) {
-      for (std::size_t k = 0; k < kf->has_point.size(); ++k) {
-        if (kf->has_point[k] != 0) observed.push_back(kf->point[k]);
-      }
-    }
-    (void)map.removeKeyframe(KeyframeId{agent.id, c});
+    std::vector<MapPointId> went;  // points that went with it (no observer left)
+    (void)map.removeKeyframe(KeyframeId{agent.id, c}, &went);
     agent.keyframes.erase(c);
-    // Points that went with it (no observer left).
-    for (const MapPointId& p : observed) {
-      if (p.agent == agent.id && map.point(p) == nullptr) agent.points.erase(p.counter);
+    for (const MapPointId& p : went) {
+      if (p.agent == agent.id) agent.points.erase(p.counter);
     }
     ++report.removed_keyframes;
   }

@@ -96,12 +96,14 @@ class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::Se
   void OnWriteDone(bool ok) override {
     std::lock_guard lock(mutex_);
     writing_ = false;
-    if (!ok) {
-      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the agent's stream broke"));
-      return;
-    }
+    // A finish that waited for this write goes first, whether the write went through or not: finishLocked()
+    // would ignore another one while it is pending, and the stream would never end.
     if (pending_finish_) {
       finishNow(*pending_finish_);
+      return;
+    }
+    if (!ok) {
+      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the agent's stream broke"));
       return;
     }
     writeNextLocked();
@@ -149,11 +151,12 @@ class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::Se
     }
     finishNow(status);
   }
-  void finishNow(const grpc::Status& status) {
+  // By value: OnWriteDone passes *pending_finish_, which is reset here before Finish() reads it.
+  void finishNow(grpc::Status status) {
     if (finish_called_) return;
     finish_called_ = true;
     pending_finish_.reset();
-    Finish(status);
+    Finish(std::move(status));
   }
 
   std::shared_ptr<StreamHandle> handle_;

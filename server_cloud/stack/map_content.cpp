@@ -133,7 +133,7 @@ Status MapContent::removePoint(const MapPointId& id) {
   return Status::Ok();
 }
 
-Status MapContent::removeKeyframe(const KeyframeId& id) {
+Status MapContent::removeKeyframe(const KeyframeId& id, std::vector<MapPointId>* removed_points) {
   auto it = keyframes_.find(id);
   if (it == keyframes_.end()) return notFound("keyframe " + id.toString() + " is not in the map");
   ServerKeyframe& kf = it->second;
@@ -145,10 +145,12 @@ Status MapContent::removeKeyframe(const KeyframeId& id) {
   }
   for (const MapPointId& pid : touched) {
     auto p = points_.find(pid);
-    if (p == points_.end() || !(p->second.reference == id)) continue;
+    if (p == points_.end()) continue;
     if (p->second.observations.empty()) {
+      // No observer left, whichever keyframe it refers to.
+      if (removed_points != nullptr) removed_points->push_back(pid);
       points_.erase(p);
-    } else {
+    } else if (p->second.reference == id) {
       p->second.reference = p->second.observations.front().keyframe;
     }
   }
@@ -156,6 +158,7 @@ Status MapContent::removeKeyframe(const KeyframeId& id) {
   for (auto p = points_.begin(); p != points_.end();) {
     if (p->second.reference == id) {
       if (p->second.observations.empty()) {
+        if (removed_points != nullptr) removed_points->push_back(p->first);
         p = points_.erase(p);
         continue;
       }

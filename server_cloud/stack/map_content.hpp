@@ -87,8 +87,9 @@ class MapContent {
   Status mergePoints(const MapPointId& drop, const MapPointId& keep);
   Status removePoint(const MapPointId& id);
   // Removes the keyframe and its observations. Its points move their reference to another observing
-  // keyframe, or go when none is left; a keyframe whose IMU link started here loses it.
-  Status removeKeyframe(const KeyframeId& id);
+  // keyframe, or go when none is left; a keyframe whose IMU link started here loses it. The points that went
+  // are appended to `removed_points` when given.
+  Status removeKeyframe(const KeyframeId& id, std::vector<MapPointId>* removed_points = nullptr);
 
   [[nodiscard]] const ServerKeyframe* keyframe(const KeyframeId& id) const;
   [[nodiscard]] ServerKeyframe* keyframe(const KeyframeId& id);

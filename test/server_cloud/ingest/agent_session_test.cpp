@@ -1,0 +1,517 @@
+// AgentSession, driven directly (no gRPC): the Hello/Welcome exchange, batch sequences (in order, resent,
+// going back, skipping ahead), acknowledgements at the downlink rate, reconnects and a second process claiming
+// the same agent, the server's corrections sent down once, and every refusal with its code and its words.
+#include "server_cloud/ingest/agent_session.hpp"
+
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include "cvislam/v1/agent_link.pb.h"
+#include "server_cloud/core/server_core.hpp"
+#include "test/server_cloud/link_messages.hpp"
+
+namespace cvislam::server {
+namespace {
+
+using test::batchMessage;
+using test::helloMessage;
+using test::makeKeyframeBatch;
+using ::testing::AllOf;
+using ::testing::HasSubstr;
+using Clock = AgentSession::Clock;
+using std::chrono::milliseconds;
+
+const std::string kMission = "hall-1";
+constexpr std::uint32_t kAgent = 4;
+constexpr std::uint64_t kSession = 0x5eed'0001;
+constexpr std::uint64_t kOtherProcess = 0x5eed'0002;
+
+class AgentSessionTest : public ::testing::Test {
+ protected:
+  AgentSessionTest() : core_(options()), sut(openSession()) {}
+
+  static ServerOptions options() {
+    ServerOptions o;
+    o.session.downlink_rate_hz = 2.0;  // a message every 500 ms at most
+    return o;
+  }
+  std::unique_ptr<AgentSession> openSession(int* cancelled = nullptr) {
+    return core_.openSession([cancelled] {
+      if (cancelled != nullptr) ++*cancelled;
+    });
+  }
+
+  // Sends one message; returns its status, and the immediate reply in `reply_` when one is due.
+  Status send(AgentSession& session, const v1::AgentUplink& message) {
+    reply_.Clear();
+    return session.handle(message, message.ByteSizeLong(), reply_, reply_due_);
+  }
+  void sendOk(AgentSession& session, const v1::AgentUplink& message) {
+    const Status s = send(session, message);
+    ASSERT_TRUE(s.ok()) << s.error().toString();
+  }
+  void greet(AgentSession& session, std::uint64_t process = kSession) {
+    sendOk(session, helloMessage(kMission, kAgent, process));
+    ASSERT_TRUE(reply_due_);
+  }
+  void sendBatch(AgentSession& session, std::uint64_t sequence, std::uint32_t first, std::uint32_t count) {
+    sendOk(session, batchMessage(makeKeyframeBatch(sequence, first, count)));
+  }
+
+  [[nodiscard]] SharedAgentRecord record() {
+    auto mission = core_.missions().find(kMission);
+    EXPECT_NE(mission, nullptr);
+    return mission->agent(kAgent);
+  }
+  [[nodiscard]] std::size_t keyframesInMaps() {
+    std::size_t n = 0;
+    for (const auto& map : core_.missions().find(kMission)->stack().maps()) n += map->read()->keyframes().size();
+    return n;
+  }
+  // A time at which a periodic message is due again (the Welcome went out at about Clock::now()).
+  static Clock::time_point later(int periods) { return Clock::now() + periods * milliseconds(600); }
+
+  ServerCore core_;
+  std::unique_ptr<AgentSession> sut;
+  v1::ServerDownlink reply_;
+  bool reply_due_ = false;
+};
+
+// ---- Hello and Welcome ----
+
+TEST_F(AgentSessionTest, HelloIsAnsweredAtOnceWithAWelcomeOfNothingStored) {
+  const Status s = send(*sut, helloMessage(kMission, kAgent, kSession));
+
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  EXPECT_TRUE(reply_due_);
+  ASSERT_TRUE(reply_.has_welcome());
+  EXPECT_EQ(reply_.sequence(), 1U);
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 0U);
+  EXPECT_EQ(reply_.welcome().keyframes_held(), 0U);
+  EXPECT_DOUBLE_EQ(reply_.welcome().downlink_rate_hz(), 2.0);
+  EXPECT_TRUE(sut->greeted());
+  EXPECT_EQ(sut->agent(), kAgent);
+  auto r = record()->read();
+  EXPECT_TRUE(r->connected);
+  EXPECT_EQ(r->connections, 1U);
+  EXPECT_EQ(r->software, "server test");
+  ASSERT_TRUE(r->sensors.has_value());
+  EXPECT_EQ(r->sensors->cam0.width(), 752);
+}
+
+TEST_F(AgentSessionTest, HelloWithAnotherProtocolVersionIsRefusedAsFailedPrecondition) {
+  v1::AgentUplink hello = helloMessage(kMission, kAgent, kSession);
+  hello.mutable_hello()->set_protocol_version(2);
+
+  const Status s = send(*sut, hello);
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kFailedPrecondition);
+  EXPECT_THAT(s.error().message(), AllOf(HasSubstr("protocol version 2"), HasSubstr("speaks version 1")));
+  EXPECT_FALSE(reply_due_);
+  EXPECT_FALSE(sut->greeted());
+  EXPECT_EQ(core_.missions().find(kMission), nullptr);
+}
+
+TEST_F(AgentSessionTest, SecondHelloOnOneStreamIsRefusedAsFailedPrecondition) {
+  greet(*sut);
+
+  const Status s = send(*sut, helloMessage(kMission, kAgent, kSession));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kFailedPrecondition);
+  EXPECT_THAT(s.error().message(), HasSubstr("a second Hello"));
+  EXPECT_FALSE(reply_due_);
+  EXPECT_EQ(record()->read()->refused_messages, 1U);
+  EXPECT_THAT(record()->read()->last_error, HasSubstr("a second Hello"));
+}
+
+TEST_F(AgentSessionTest, BatchBeforeHelloIsRefusedAsFailedPrecondition) {
+  const Status s = send(*sut, batchMessage(makeKeyframeBatch(1, 0, 1)));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kFailedPrecondition);
+  EXPECT_THAT(s.error().message(), HasSubstr("first message of a stream must be a Hello"));
+  EXPECT_TRUE(core_.missions().missions().empty());
+}
+
+TEST_F(AgentSessionTest, HelloWithABadMissionNameIsRefusedNamingTheRule) {
+  for (const std::string& mission : {std::string(), std::string("../etc"), std::string("two words"),
+                                     std::string(129, 'a'), std::string("."), std::string("hall/1")}) {
+    auto session = openSession();
+
+    const Status s = send(*session, helloMessage(mission, kAgent, kSession));
+
+    ASSERT_FALSE(s.ok()) << "'" << mission << "'";
+    EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument) << mission;
+    EXPECT_THAT(s.error().message(), HasSubstr("mission name")) << mission;
+  }
+  EXPECT_TRUE(core_.missions().missions().empty());
+}
+
+TEST_F(AgentSessionTest, HelloWithAnAgentIdOver16BitsIsRefused) {
+  const Status s = send(*sut, helloMessage(kMission, 70000, kSession));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument);
+  EXPECT_THAT(s.error().message(), HasSubstr("agent id 70000 is over 65535"));
+}
+
+TEST_F(AgentSessionTest, HelloWithoutTheCalibrationsTheSensorsNeedIsRefused) {
+  v1::AgentUplink no_cam0 = helloMessage(kMission, kAgent, kSession);
+  no_cam0.mutable_hello()->clear_cam0();
+  v1::AgentUplink stereo_without_cam1 = helloMessage(kMission, kAgent, kSession);
+  stereo_without_cam1.mutable_hello()->set_mode(v1::SENSOR_MODE_STEREO);
+  v1::AgentUplink imu_without_calibration = helloMessage(kMission, kAgent, kSession);
+  imu_without_calibration.mutable_hello()->clear_imu();
+  v1::AgentUplink bad_quaternion = helloMessage(kMission, kAgent, kSession);
+  bad_quaternion.mutable_hello()->mutable_cam0()->mutable_t_s_c()->set_qw(0.5F);
+
+  const Status a = send(*openSession(), no_cam0);
+  const Status b = send(*openSession(), stereo_without_cam1);
+  const Status c = send(*openSession(), imu_without_calibration);
+  const Status d = send(*openSession(), bad_quaternion);
+
+  for (const Status* s : {&a, &b, &c, &d}) {
+    ASSERT_FALSE(s->ok());
+    EXPECT_EQ(s->error().code(), ErrorCode::kInvalidArgument);
+  }
+  EXPECT_THAT(a.error().message(), HasSubstr("no cam0 calibration"));
+  EXPECT_THAT(b.error().message(), HasSubstr("stereo agent without cam1"));
+  EXPECT_THAT(c.error().message(), HasSubstr("sent no IMU calibration"));
+  EXPECT_THAT(d.error().message(), AllOf(HasSubstr("hello cam0 T_s_c"), HasSubstr("norm 0.5")));
+}
+
+TEST_F(AgentSessionTest, EmptyMessageIsRefused) {
+  greet(*sut);
+
+  const Status s = send(*sut, v1::AgentUplink{});
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument);
+  EXPECT_THAT(s.error().message(), HasSubstr("empty message"));
+}
+
+// ---- Batches and their sequence ----
+
+TEST_F(AgentSessionTest, BatchesInOrderAreStoredAndAcknowledgedByTheNextDownlink) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  sendBatch(*sut, 2, 2, 2);
+  v1::ServerDownlink down;
+
+  const bool sent = sut->nextDownlink(later(1), down);
+
+  ASSERT_TRUE(sent);
+  EXPECT_EQ(down.acked_sequence(), 2U);
+  EXPECT_EQ(down.sequence(), 2U);  // the Welcome was 1
+  EXPECT_FALSE(down.has_welcome());
+  EXPECT_EQ(down.corrected_keyframes_size(), 0);
+  EXPECT_EQ(record()->read()->stored_sequence, 2U);
+  EXPECT_EQ(record()->read()->keyframes.size(), 4U);
+  EXPECT_EQ(keyframesInMaps(), 4U);
+}
+
+TEST_F(AgentSessionTest, DownlinkIsSentAtMostAtTheDownlinkRate) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+  const Clock::time_point t = later(1);
+  v1::ServerDownlink first;
+  v1::ServerDownlink second;
+  v1::ServerDownlink third;
+  ASSERT_TRUE(sut->nextDownlink(t, first));
+  sendBatch(*sut, 2, 1, 1);
+
+  const bool sent_100ms_later = sut->nextDownlink(t + milliseconds(100), second);
+  const bool sent_one_period_later = sut->nextDownlink(t + milliseconds(500), third);
+
+  EXPECT_EQ(first.acked_sequence(), 1U);
+  EXPECT_FALSE(sent_100ms_later);
+  ASSERT_TRUE(sent_one_period_later);
+  EXPECT_EQ(third.acked_sequence(), 2U);
+}
+
+TEST_F(AgentSessionTest, NoDownlinkIsSentWhenThereIsNothingNew) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+  v1::ServerDownlink down;
+  ASSERT_TRUE(sut->nextDownlink(later(1), down));
+
+  const bool sent = sut->nextDownlink(later(5), down);
+
+  EXPECT_FALSE(sent);
+}
+
+TEST_F(AgentSessionTest, ResentBatchesAfterAReconnectAreDroppedCountedAndStoredOnce) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  sendBatch(*sut, 2, 2, 2);
+  sut->close(Status::Ok());
+  auto reconnected = openSession();
+  greet(*reconnected);
+  ASSERT_EQ(reply_.welcome().stored_sequence(), 2U);
+
+  // The agent had not seen the acknowledgement of 1 and 2, so it sends them again, then 3.
+  sendBatch(*reconnected, 1, 0, 2);
+  sendBatch(*reconnected, 2, 2, 2);
+  sendBatch(*reconnected, 3, 4, 1);
+
+  auto r = record()->read();
+  EXPECT_EQ(r->duplicate_batches, 2U);
+  EXPECT_EQ(r->stored_sequence, 3U);
+  EXPECT_EQ(r->keyframes.size(), 5U);
+  EXPECT_EQ(r->duplicate_objects, 0U);  // dropped whole, not object by object
+  EXPECT_EQ(r->up.at("batch").messages, 5U);
+  EXPECT_EQ(r->up.at("keyframe").messages, 5U);  // parts are counted for stored batches only
+  EXPECT_EQ(keyframesInMaps(), 5U);
+}
+
+TEST_F(AgentSessionTest, SequenceGoingBackWithinAStreamIsRefused) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+  sendBatch(*sut, 2, 1, 1);
+
+  const Status s = send(*sut, batchMessage(makeKeyframeBatch(1, 0, 1)));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument);
+  EXPECT_THAT(s.error().message(), HasSubstr("batch sequence went back from 2 to 1"));
+  EXPECT_EQ(record()->read()->duplicate_batches, 0U);
+}
+
+TEST_F(AgentSessionTest, SameSequenceTwiceWithinAStreamIsRefused) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+
+  const Status s = send(*sut, batchMessage(makeKeyframeBatch(1, 0, 1)));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument);
+  EXPECT_THAT(s.error().message(), HasSubstr("batch sequence 1 sent twice on one stream"));
+}
+
+TEST_F(AgentSessionTest, SequenceSkippingAheadIsRefusedNamingTheNextExpected) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+
+  const Status s = send(*sut, batchMessage(makeKeyframeBatch(3, 1, 1)));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument);
+  EXPECT_THAT(s.error().message(), AllOf(HasSubstr("batch sequence 3 skips ahead"), HasSubstr("the next is 2")));
+  EXPECT_EQ(record()->read()->stored_sequence, 1U);
+  EXPECT_EQ(keyframesInMaps(), 1U);
+}
+
+TEST_F(AgentSessionTest, SequenceZeroIsRefused) {
+  greet(*sut);
+
+  const Status s = send(*sut, batchMessage(makeKeyframeBatch(0, 0, 1)));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument);
+  EXPECT_THAT(s.error().message(), HasSubstr("sequences start at 1"));
+}
+
+TEST_F(AgentSessionTest, BatchThatFailsValidationIsRefusedAndChangesNothing) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  v1::MapBatch bad = makeKeyframeBatch(2, 2, 2);
+  bad.mutable_points(1)->set_reference_keyframe(99);  // the last part is bad; the rest would be valid
+  const std::size_t maps_before = core_.missions().find(kMission)->stack().maps().size();
+  const std::size_t keyframes_before = keyframesInMaps();
+
+  const Status s = send(*sut, batchMessage(bad));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kInvalidArgument);
+  EXPECT_THAT(s.error().message(), AllOf(HasSubstr("batch 2"), HasSubstr("map point 4:3"),
+                                         HasSubstr("keyframe 4:99, which the server never received")));
+  EXPECT_EQ(core_.missions().find(kMission)->stack().maps().size(), maps_before);
+  EXPECT_EQ(keyframesInMaps(), keyframes_before);
+  auto r = record()->read();
+  EXPECT_EQ(r->stored_sequence, 1U);
+  EXPECT_EQ(r->keyframes.size(), 2U);
+  EXPECT_EQ(r->points.size(), 2U);
+  EXPECT_EQ(r->refused_messages, 1U);
+  EXPECT_THAT(r->last_error, HasSubstr("keyframe 4:99"));
+}
+
+TEST_F(AgentSessionTest, StoredBatchIsCountedByKindWithItsSerializedBytes) {
+  greet(*sut);
+  const v1::MapBatch batch = makeKeyframeBatch(1, 0, 3);
+  std::uint64_t keyframe_bytes = 0;
+  for (const auto& k : batch.keyframes()) keyframe_bytes += k.ByteSizeLong();
+  std::uint64_t observation_bytes = 0;
+  for (const auto& o : batch.observations()) observation_bytes += o.ByteSizeLong();
+  const v1::AgentUplink message = batchMessage(batch);
+
+  sendOk(*sut, message);
+
+  auto r = record()->read();
+  EXPECT_EQ(r->up.at("keyframe").messages, 3U);
+  EXPECT_EQ(r->up.at("keyframe").bytes, keyframe_bytes);
+  EXPECT_EQ(r->up.at("point").messages, 3U);
+  EXPECT_EQ(r->up.at("observation").messages, 5U);
+  EXPECT_EQ(r->up.at("observation").bytes, observation_bytes);
+  EXPECT_EQ(r->up.at("batch").bytes, message.ByteSizeLong());
+  EXPECT_EQ(r->up.at("message").messages, 2U);  // the Hello and the batch
+  EXPECT_EQ(r->down.at("welcome").messages, 1U);
+}
+
+TEST_F(AgentSessionTest, GoodbyeAtTheEndOfTheMissionMarksTheAgentFinished) {
+  greet(*sut);
+
+  sendOk(*sut, test::goodbyeMessage(true));
+
+  EXPECT_TRUE(record()->read()->finished);
+  EXPECT_EQ(record()->read()->up.at("goodbye").messages, 1U);
+}
+
+// ---- Reconnects and a second process ----
+
+TEST_F(AgentSessionTest, CloseMarksTheAgentDisconnectedAndKeepsWhatItStored) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+
+  sut->close(Status::Ok());
+
+  auto r = record()->read();
+  EXPECT_FALSE(r->connected);
+  EXPECT_EQ(r->stored_sequence, 1U);
+  EXPECT_EQ(r->keyframes.size(), 2U);
+}
+
+TEST_F(AgentSessionTest, ReconnectGetsTheStoredSequenceInItsWelcome) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  sendBatch(*sut, 2, 2, 1);
+  sut->close(Status::Ok());
+  auto reconnected = openSession();
+
+  const Status s = send(*reconnected, helloMessage(kMission, kAgent, kSession));
+
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  ASSERT_TRUE(reply_.has_welcome());
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 2U);
+  EXPECT_EQ(reply_.welcome().keyframes_held(), 3U);
+  EXPECT_EQ(reply_.welcome().points_held(), 3U);
+  EXPECT_EQ(reply_.acked_sequence(), 2U);
+  EXPECT_EQ(record()->read()->connections, 2U);
+}
+
+TEST_F(AgentSessionTest, ReconnectOfTheSameProcessTakesOverItsLingeringStream) {
+  int old_stream_cancelled = 0;
+  auto old_stream = openSession(&old_stream_cancelled);
+  greet(*old_stream);
+  sendBatch(*old_stream, 1, 0, 1);
+  auto reconnected = openSession();
+
+  const Status s = send(*reconnected, helloMessage(kMission, kAgent, kSession));  // the old one never closed
+
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 1U);
+  EXPECT_EQ(old_stream_cancelled, 1);
+  const Status late = send(*old_stream, batchMessage(makeKeyframeBatch(2, 1, 1)));
+  ASSERT_FALSE(late.ok());
+  EXPECT_EQ(late.error().code(), ErrorCode::kAlreadyExists);
+  EXPECT_THAT(late.error().message(), HasSubstr("a newer stream of this agent took over"));
+  old_stream->close(late);  // the old stream ending must not disconnect the new one
+  EXPECT_TRUE(record()->read()->connected);
+  sendBatch(*reconnected, 2, 1, 1);
+  EXPECT_EQ(record()->read()->stored_sequence, 2U);
+}
+
+TEST_F(AgentSessionTest, SecondProcessClaimingAConnectedAgentIsRefusedAsAlreadyExists) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+  auto intruder = openSession();
+
+  const Status s = send(*intruder, helloMessage(kMission, kAgent, kOtherProcess));
+
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kAlreadyExists);
+  EXPECT_THAT(s.error().message(), AllOf(HasSubstr("agent 4 of mission 'hall-1'"), HasSubstr("another process")));
+  intruder->close(s);
+  // The first process is untouched: still connected, and its next batch is stored.
+  EXPECT_TRUE(record()->read()->connected);
+  EXPECT_EQ(record()->read()->connections, 1U);
+  sendBatch(*sut, 2, 1, 1);
+  EXPECT_EQ(record()->read()->stored_sequence, 2U);
+}
+
+TEST_F(AgentSessionTest, SecondProcessIsWelcomedOnceTheFirstHasDisconnected) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+  sut->close(Status::Ok());
+  auto restarted = openSession();
+
+  const Status s = send(*restarted, helloMessage(kMission, kAgent, kOtherProcess));
+
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 1U);
+}
+
+// ---- The server's corrections ----
+
+TEST_F(AgentSessionTest, CorrectedKeyframeIsSentDownOnceUntilCorrectedAgain) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 3);
+  v1::ServerDownlink down;
+  ASSERT_TRUE(sut->nextDownlink(later(1), down));
+  ASSERT_EQ(down.corrected_keyframes_size(), 0);
+  const geometry::SE3d T_m_s(geometry::SO3d::exp(Eigen::Vector3d(0.1, -0.2, 0.3)), Eigen::Vector3d(1.5, -2.5, 0.25));
+  const Eigen::Vector3d v_m(0.5, 0.25, -0.125);
+  imu::ImuBias bias;
+  bias.gyro = Eigen::Vector3d(0.01, 0.02, 0.03);
+  bias.accel = Eigen::Vector3d(-0.1, -0.2, -0.3);
+
+  ASSERT_TRUE(core_.correctKeyframe(kMission, KeyframeId{kAgent, 1}, T_m_s, v_m, bias).ok());
+  v1::ServerDownlink corrected;
+  v1::ServerDownlink after;
+  const bool sent = sut->nextDownlink(later(2), corrected);
+  const bool sent_again = sut->nextDownlink(later(4), after);
+
+  ASSERT_TRUE(sent);
+  ASSERT_EQ(corrected.corrected_keyframes_size(), 1);
+  const v1::KeyframeState& state = corrected.corrected_keyframes(0);
+  EXPECT_EQ(state.counter(), 1U);
+  EXPECT_NEAR(state.t_w_s().px(), 1.5, 1e-12);  // the agent map's frame is the server map's (no merge yet)
+  EXPECT_NEAR(state.t_w_s().pz(), 0.25, 1e-12);
+  EXPECT_NEAR(state.t_w_s().qx(), T_m_s.so3().quaternion().x(), 1e-7);
+  EXPECT_NEAR(state.t_w_s().qw(), T_m_s.so3().quaternion().w(), 1e-7);
+  EXPECT_FLOAT_EQ(state.v_w(2), -0.125F);
+  EXPECT_FLOAT_EQ(state.bias_accel(1), -0.2F);
+  EXPECT_EQ(corrected.acked_sequence(), 1U);
+  EXPECT_FALSE(sent_again);  // sent once
+
+  ASSERT_TRUE(core_.correctKeyframe(kMission, KeyframeId{kAgent, 1}, T_m_s, v_m, bias).ok());
+  v1::ServerDownlink again;
+  ASSERT_TRUE(sut->nextDownlink(later(6), again));
+  ASSERT_EQ(again.corrected_keyframes_size(), 1);
+  EXPECT_EQ(again.corrected_keyframes(0).counter(), 1U);
+  EXPECT_EQ(record()->read()->down.at("correction").messages, 2U);
+}
+
+TEST_F(AgentSessionTest, CorrectingAKeyframeTheServerDoesNotHoldIsNotFound) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 1);
+
+  const Status unknown_keyframe = core_.correctKeyframe(kMission, KeyframeId{kAgent, 9}, {}, {}, {});
+  const Status unknown_mission = core_.correctKeyframe("elsewhere", KeyframeId{kAgent, 0}, {}, {}, {});
+
+  ASSERT_FALSE(unknown_keyframe.ok());
+  EXPECT_EQ(unknown_keyframe.error().code(), ErrorCode::kNotFound);
+  EXPECT_THAT(unknown_keyframe.error().message(), HasSubstr("keyframe 4:9"));
+  ASSERT_FALSE(unknown_mission.ok());
+  EXPECT_EQ(unknown_mission.error().code(), ErrorCode::kNotFound);
+}
+
+}  // namespace
+}  // namespace cvislam::server

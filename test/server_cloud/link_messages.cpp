@@ -1,0 +1,157 @@
+#include "test/server_cloud/link_messages.hpp"
+
+#include <cmath>
+#include <random>
+
+namespace cvislam::server::test {
+
+std::int64_t keyframeTime(std::uint32_t counter) {
+  return kFirstKeyframeNs + static_cast<std::int64_t>(counter) * kKeyframeSpacingNs;
+}
+
+v1::Hello makeHello(const std::string& mission, std::uint32_t agent_id, std::uint64_t session) {
+  v1::Hello hello;
+  hello.set_protocol_version(1);
+  hello.set_mission(mission);
+  hello.set_agent_id(agent_id);
+  hello.set_session(session);
+  hello.set_mode(v1::SENSOR_MODE_MONO);
+  hello.set_uses_imu(true);
+  hello.set_software("server test");
+  // EuRoC cam0.
+  v1::CameraCalibration* cam = hello.mutable_cam0();
+  cam->set_width(kImageWidth);
+  cam->set_height(kImageHeight);
+  cam->set_rate_hz(20.0);
+  cam->set_fx(458.654);
+  cam->set_fy(457.296);
+  cam->set_cx(367.215);
+  cam->set_cy(248.375);
+  cam->set_distortion(v1::DISTORTION_RADIAL_TANGENTIAL);
+  for (double k : {-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05}) cam->add_distortion_coefficients(k);
+  v1::Pose* T_s_c = cam->mutable_t_s_c();
+  T_s_c->set_px(-0.0216401454975);
+  T_s_c->set_py(-0.064676986768);
+  T_s_c->set_pz(0.00981073058949);
+  T_s_c->set_qw(1.0F);
+  // EuRoC imu0.
+  v1::ImuCalibration* imu = hello.mutable_imu();
+  imu->set_rate_hz(200.0);
+  imu->set_gyro_noise_density(1.6968e-4);
+  imu->set_gyro_random_walk(1.9393e-5);
+  imu->set_accel_noise_density(2.0e-3);
+  imu->set_accel_random_walk(3.0e-3);
+  return hello;
+}
+
+v1::AgentUplink helloMessage(const std::string& mission, std::uint32_t agent_id, std::uint64_t session) {
+  v1::AgentUplink message;
+  *message.mutable_hello() = makeHello(mission, agent_id, session);
+  return message;
+}
+
+v1::KeyframeState makeState(std::uint32_t counter) {
+  const double c = counter;
+  const double yaw = 0.05 * c;
+  v1::KeyframeState state;
+  state.set_counter(counter);
+  v1::Pose* pose = state.mutable_t_w_s();
+  pose->set_px(0.1 * c);
+  pose->set_py(0.02 * c);
+  pose->set_pz(1.0);
+  pose->set_qx(0.0F);
+  pose->set_qy(0.0F);
+  pose->set_qz(static_cast<float>(std::sin(yaw / 2)));
+  pose->set_qw(static_cast<float>(std::cos(yaw / 2)));
+  for (float v : {1.0F, 0.1F * static_cast<float>(counter), 0.0F}) state.add_v_w(v);
+  for (float b : {0.001F, 0.002F, 0.003F}) state.add_bias_gyro(b);
+  for (float b : {0.01F, 0.02F, 0.03F}) state.add_bias_accel(b);
+  return state;
+}
+
+v1::Keyframe makeKeyframe(std::uint32_t counter, std::uint32_t agent_map, std::optional<std::uint32_t> imu_from) {
+  v1::Keyframe kf;
+  kf.set_counter(counter);
+  kf.set_agent_map(agent_map);
+  kf.set_t_ns(keyframeTime(counter));
+  *kf.mutable_state() = makeState(counter);
+
+  std::mt19937 rng(counter);  // descriptors differ per keyframe, and are the same on every run
+  std::uniform_int_distribution<int> byte(0, 255);
+  v1::Keypoints* kp = kf.mutable_keypoints();
+  std::string octave;
+  std::string angle;
+  std::string descriptors;
+  for (int i = 0; i < kKeypointsPerKeyframe; ++i) {
+    const int column = i % 10;
+    const int row = i / 10;
+    kp->add_xy(20.0F + static_cast<float>(column) * 70.0F);  // x in [20, 650]
+    kp->add_xy(20.0F + static_cast<float>(row) * 100.0F);    // y in [20, 420]
+    octave.push_back(static_cast<char>(i % 4));
+    angle.push_back(static_cast<char>((i * 5) % 256));
+    for (int b = 0; b < 32; ++b) descriptors.push_back(static_cast<char>(byte(rng)));
+  }
+  kp->set_octave(octave);
+  kp->set_angle(angle);
+  kp->set_descriptors(descriptors);
+
+  if (imu_from) {
+    kf.set_imu_from(*imu_from);
+    const std::int64_t t0 = keyframeTime(*imu_from);
+    const std::int64_t t1 = keyframeTime(counter);
+    v1::ImuSamples* imu = kf.mutable_imu();
+    for (std::int64_t t = t0; t <= t1; t += kImuPeriodNs) {
+      imu->add_dt_ns(t == t0 ? t0 - t1 : kImuPeriodNs);  // the first relative to this keyframe's time
+      for (float g : {0.01F, -0.02F, 0.05F}) imu->add_gyro(g);
+      for (float a : {0.1F, 0.0F, 9.81F}) imu->add_accel(a);
+    }
+  }
+  return kf;
+}
+
+v1::MapPoint makePoint(std::uint32_t counter, std::uint32_t reference_keyframe) {
+  v1::MapPoint p;
+  p.set_counter(counter);
+  p.set_reference_keyframe(reference_keyframe);
+  for (float v : {0.1F * static_cast<float>(counter), 2.0F, 5.0F}) p.add_p_w(v);
+  std::string orb(32, '\0');
+  for (int b = 0; b < 32; ++b) orb[static_cast<std::size_t>(b)] = static_cast<char>((counter * 7 + b) % 256);
+  p.set_orb(orb);
+  p.set_octave(1);
+  return p;
+}
+
+void addObservations(v1::MapBatch& batch, std::uint32_t keyframe, const std::vector<std::uint32_t>& keypoint,
+                     const std::vector<std::uint32_t>& point) {
+  v1::Observations* o = batch.add_observations();
+  o->set_keyframe(keyframe);
+  for (std::uint32_t k : keypoint) o->add_keypoint(k);
+  for (std::uint32_t p : point) o->add_point(p);
+}
+
+v1::MapBatch makeKeyframeBatch(std::uint64_t sequence, std::uint32_t first, std::uint32_t count) {
+  v1::MapBatch batch;
+  batch.set_sequence(sequence);
+  batch.set_sensor_time_ns(keyframeTime(first + count - 1));
+  for (std::uint32_t c = first; c < first + count; ++c) {
+    *batch.add_keyframes() = makeKeyframe(c, 0, c > 0 ? std::optional<std::uint32_t>(c - 1) : std::nullopt);
+    *batch.add_points() = makePoint(c, c);
+    addObservations(batch, c, {0}, {c});
+    if (c > first) addObservations(batch, c - 1, {1}, {c});
+  }
+  return batch;
+}
+
+v1::AgentUplink batchMessage(const v1::MapBatch& batch) {
+  v1::AgentUplink message;
+  *message.mutable_batch() = batch;
+  return message;
+}
+
+v1::AgentUplink goodbyeMessage(bool end_of_mission) {
+  v1::AgentUplink message;
+  message.mutable_goodbye()->set_end_of_mission(end_of_mission);
+  return message;
+}
+
+}  // namespace cvislam::server::test
