@@ -24,8 +24,9 @@ packages=(
   libyaml-cpp-dev libcli11-dev libfmt-dev nlohmann-json3-dev
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev
-  # deploy/run_mission.sh reads cvislam_eval's JSON
-  jq
+  # deploy/run_mission.sh's report (deploy/mission_report.py, standard library only); jq for
+  # test/bench/agent_accuracy.sh
+  python3 jq
 )
 
 missing=()

@@ -8,20 +8,52 @@
 //
 // Default dataset: the real V1_01 excerpt ($CVISLAM_DATA_DIR/euroc-v101-excerpt), stereo. Each pass runs
 // the sequence from scratch (a new tracker and map), so every pass includes the start-up frames.
+//
+// With --server HOST:PORT (a cvislam_server running elsewhere, e.g. unpinned), passes alternate between no link
+// and a link thread in this process streaming mapping's deltas to that server, so both see the same machine:
+// two tables, without and with the link, in one run. Pinned with taskset, the link thread shares the core.
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <fstream>
 #include <iostream>
+#include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
 
+#include "agent_rt/link/link.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
+#include "test/support/delta_queue.hpp"
 #include "test/support/inline_agent.hpp"
 #include "test/support/test_data.hpp"
 
 namespace {
+// Per-frame figures of one kind of pass.
+struct Recorders {
+  explicit Recorders(std::size_t capacity)
+      : total("tracking_total", capacity),
+        orb("orb_extraction", capacity),
+        matching("matching", capacity),
+        pose("pose_optimisation", capacity),
+        motion("motion_ba", capacity) {}
+  cvislam::agent::LatencyRecorder total;
+  cvislam::agent::LatencyRecorder orb;
+  cvislam::agent::LatencyRecorder matching;
+  cvislam::agent::LatencyRecorder pose;
+  cvislam::agent::LatencyRecorder motion;
+  std::size_t frames = 0;
+  std::size_t tracked = 0;
+  std::size_t keyframes = 0;
+  std::uint64_t batches = 0;
+  std::uint64_t up_bytes = 0;
+  int unflushed = 0;
+  std::size_t dropped = 0;
+};
+
 std::int64_t nowNs() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now().time_since_epoch())
       .count();
@@ -34,7 +66,10 @@ int main(int argc, char** argv) {
   std::string mode = "stereo";
   std::string json;
   int passes = 5;
+  std::string server;
   app.add_option("--dataset", dataset, "Sequence folder that holds mav0");
+  app.add_option("--server", server,
+                 "cvislam_server HOST:PORT: alternate passes without and with the link streaming to it");
   app.add_option("--mode", mode, "stereo or mono")->check(CLI::IsMember({"stereo", "mono"}));
   app.add_option("--passes", passes, "Runs over the whole sequence")->check(CLI::PositiveNumber);
   app.add_option("--json", json, "Write the summary here as JSON");
@@ -46,43 +81,91 @@ int main(int argc, char** argv) {
     return 1;
   }
   const std::size_t capacity = static_cast<std::size_t>(passes) * sequence->cam0().frames.size();
-  cvislam::agent::LatencyRecorder total("tracking_total", capacity);
-  cvislam::agent::LatencyRecorder orb("orb_extraction", capacity);
-  cvislam::agent::LatencyRecorder matching("matching", capacity);
-  cvislam::agent::LatencyRecorder pose("pose_optimisation", capacity);
-  cvislam::agent::LatencyRecorder motion("motion_ba", capacity);
-  std::size_t tracked = 0;
-  std::size_t frames = 0;
-  std::size_t keyframes = 0;
-  for (int pass = 0; pass < passes; ++pass) {
+  // Index 0: without the link; 1: with it.
+  std::vector<Recorders> recorders;
+  recorders.emplace_back(capacity);
+  if (!server.empty()) recorders.emplace_back(capacity);
+  const int total_passes = server.empty() ? passes : 2 * passes;
+  for (int pass = 0; pass < total_passes; ++pass) {
+    const bool with_link = !server.empty() && pass % 2 == 1;
+    Recorders& rec = recorders[with_link ? 1 : 0];
     auto agent = cvislam::test::InlineAgent::create(*sequence, mode == "stereo");
     if (!agent) {
       std::cerr << "bench_agent_tracking: " << agent.error().toString() << "\n";
       return 1;
+    }
+    std::unique_ptr<cvislam::agent::Link> link;
+    std::unique_ptr<cvislam::agent::test::DeltaQueue> deltas;
+    std::atomic<bool> stop{false};
+    std::thread link_thread;
+    if (with_link) {
+      cvislam::agent::LinkOptions options;
+      options.server = server;
+      options.mission = "bench";
+      options.flush_timeout_s = 5.0;
+      cvislam::agent::LinkSensors sensors;
+      sensors.stereo = mode == "stereo";
+      sensors.cam0 = sequence->cam0().calibration;
+      sensors.T_s_c0 = sequence->cam0().calibration.T_b_c;
+      if (sensors.stereo) {
+        sensors.cam1 = sequence->cam1()->calibration;
+        sensors.T_s_c1 = sequence->cam1()->calibration.T_b_c;
+      }
+      auto created = cvislam::agent::Link::create(options, static_cast<cvislam::AgentId>(pass), sensors);
+      if (!created) {
+        std::cerr << "bench_agent_tracking: " << created.error().toString() << "\n";
+        return 1;
+      }
+      link = std::move(created.value());
+      deltas = std::make_unique<cvislam::agent::test::DeltaQueue>(64);
+      (*agent)->onDelta([&](const cvislam::agent::MapDeltaMessage& d) { deltas->push(d); });
+      link_thread = std::thread([&] { link->run(*deltas, stop); });
     }
     for (std::size_t i = 0; i < (*agent)->frameCount(); ++i) {
       if (!(*agent)->load(i).ok()) continue;
       std::int64_t t0 = 0;
       std::int64_t t1 = 0;
       const cvislam::agent::FrameResult r = (*agent)->track([&] { t0 = nowNs(); }, [&] { t1 = nowNs(); });
-      ++frames;
-      total.add(t1 - t0);
-      orb.add(r.times.orb_ns);
+      ++rec.frames;
+      rec.total.add(t1 - t0);
+      rec.orb.add(r.times.orb_ns);
       if (r.tracked) {
-        ++tracked;
-        matching.add(r.times.matching_ns);
-        pose.add(r.times.pose_ns);
-        if (r.times.motion_ba_ns > 0) motion.add(r.times.motion_ba_ns);
+        ++rec.tracked;
+        rec.matching.add(r.times.matching_ns);
+        rec.pose.add(r.times.pose_ns);
+        if (r.times.motion_ba_ns > 0) rec.motion.add(r.times.motion_ba_ns);
       }
-      keyframes += r.keyframe ? 1 : 0;
+      rec.keyframes += r.keyframe ? 1 : 0;
+    }
+    if (with_link) {
+      stop.store(true);
+      link_thread.join();
+      const cvislam::agent::LinkStatus status = link->status();
+      rec.batches += status.acked_sequence;
+      rec.up_bytes += status.up_bytes;
+      rec.unflushed += status.flushed ? 0 : 1;
+      rec.dropped += deltas->dropped();
     }
   }
-  std::vector<cvislam::agent::StageSummary> stages;
-  for (const auto* r : {&total, &orb, &matching, &pose, &motion}) stages.push_back(cvislam::agent::summarise(*r));
-  std::printf("%s: %zu frames (%d passes), %zu tracked, %zu keyframes\n%s", dataset.c_str(), frames, passes, tracked,
-              keyframes, cvislam::agent::formatLatencyTable(stages).c_str());
-  const double determinism = stages[0].p50_ms > 0 ? stages[0].p99_ms / stages[0].p50_ms : 0.0;
-  std::printf("tracking p99/p50 = %.2f\n", determinism);
-  if (!json.empty()) std::ofstream(json) << cvislam::agent::latencyJson(stages);
+  nlohmann::json out = nlohmann::json::object();
+  for (std::size_t k = 0; k < recorders.size(); ++k) {
+    Recorders& rec = recorders[k];
+    std::vector<cvislam::agent::StageSummary> stages;
+    for (const auto* r : {&rec.total, &rec.orb, &rec.matching, &rec.pose, &rec.motion}) {
+      stages.push_back(cvislam::agent::summarise(*r));
+    }
+    const char* label = k == 0 ? "without the link" : "with the link streaming to the server";
+    std::printf("%s, %s: %zu frames (%d passes), %zu tracked, %zu keyframes\n%s", dataset.c_str(), label, rec.frames,
+                passes, rec.tracked, rec.keyframes, cvislam::agent::formatLatencyTable(stages).c_str());
+    const double determinism = stages[0].p50_ms > 0 ? stages[0].p99_ms / stages[0].p50_ms : 0.0;
+    std::printf("tracking p99/p50 = %.2f\n", determinism);
+    if (k == 1) {
+      std::printf("link: %llu batches acknowledged, %.2f MB up, %d passes not flushed, %zu deltas dropped\n",
+                  static_cast<unsigned long long>(rec.batches), static_cast<double>(rec.up_bytes) * 1e-6, rec.unflushed,
+                  rec.dropped);
+    }
+    out[k == 0 ? "without_link" : "with_link"] = nlohmann::json::parse(cvislam::agent::latencyJson(stages));
+  }
+  if (!json.empty()) std::ofstream(json) << (server.empty() ? out["without_link"].dump(2) : out.dump(2)) << "\n";
   return 0;
 }

@@ -1,7 +1,10 @@
 #include "test/server_cloud/link_messages.hpp"
 
+#include <array>
 #include <cmath>
 #include <random>
+
+#include "proto/wire/wire.hpp"
 
 namespace cvislam::server::test {
 
@@ -81,7 +84,6 @@ v1::Keyframe makeKeyframe(std::uint32_t counter, std::uint32_t agent_map, std::o
   v1::Keypoints* kp = kf.mutable_keypoints();
   std::string octave;
   std::string angle;
-  std::string descriptors;
   for (int i = 0; i < kKeypointsPerKeyframe; ++i) {
     const int column = i % 10;
     const int row = i / 10;
@@ -89,11 +91,12 @@ v1::Keyframe makeKeyframe(std::uint32_t counter, std::uint32_t agent_map, std::o
     kp->add_xy(20.0F + static_cast<float>(row) * 100.0F);    // y in [20, 420]
     octave.push_back(static_cast<char>(i % 4));
     angle.push_back(static_cast<char>((i * 5) % 256));
-    for (int b = 0; b < 32; ++b) descriptors.push_back(static_cast<char>(byte(rng)));
+    std::array<std::uint8_t, 32> descriptor{};
+    for (auto& b : descriptor) b = static_cast<std::uint8_t>(byte(rng));
+    wire::packDescriptor(descriptor.data(), kp->mutable_descriptors());
   }
   kp->set_octave(octave);
   kp->set_angle(angle);
-  kp->set_descriptors(descriptors);
 
   if (imu_from) {
     kf.set_imu_from(*imu_from);
@@ -114,9 +117,9 @@ v1::MapPoint makePoint(std::uint32_t counter, std::uint32_t reference_keyframe) 
   p.set_counter(counter);
   p.set_reference_keyframe(reference_keyframe);
   for (float v : {0.1F * static_cast<float>(counter), 2.0F, 5.0F}) p.add_p_w(v);
-  std::string orb(32, '\0');
-  for (int b = 0; b < 32; ++b) orb[static_cast<std::size_t>(b)] = static_cast<char>((counter * 7 + b) % 256);
-  p.set_orb(orb);
+  std::array<std::uint8_t, 32> orb{};
+  for (int b = 0; b < 32; ++b) orb[static_cast<std::size_t>(b)] = static_cast<std::uint8_t>((counter * 7 + b) % 256);
+  wire::packDescriptor(orb.data(), p.mutable_orb());
   p.set_octave(1);
   return p;
 }

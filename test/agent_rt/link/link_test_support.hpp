@@ -12,12 +12,12 @@
 
 #include <gtest/gtest.h>
 
-#include "agent_rt/link/link.hpp"
 #include "agent_rt/runtime/message_conversions.hpp"
 #include "agent_rt/runtime/messages.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 #include "server_cloud/core/server_core.hpp"
+#include "test/support/delta_queue.hpp"
 
 namespace cvislam::agent::test {
 
@@ -256,48 +256,6 @@ class ServerSide {
   bool stereo_ = false;
   std::unique_ptr<server::ServerCore> core_;
   std::unique_ptr<server::AgentSession> session_;
-};
-
-// Mapping's deltas handed to a link thread: a bounded queue of preallocated messages (the agent uses iceoryx).
-class DeltaQueue final : public DeltaSource {
- public:
-  explicit DeltaQueue(std::size_t capacity) {
-    for (std::size_t i = 0; i < capacity; ++i) slots_.push_back(std::make_unique<MapDeltaMessage>());
-  }
-  // Copies the delta in; false (and counted) when the link has fallen `capacity` deltas behind.
-  bool push(const MapDeltaMessage& delta) {
-    std::lock_guard lock(mutex_);
-    if (count_ == slots_.size()) {
-      ++dropped_;
-      return false;
-    }
-    *slots_[(head_ + count_) % slots_.size()] = delta;
-    ++count_;
-    return true;
-  }
-  const MapDeltaMessage* next() override {
-    if (on_poll) on_poll();  // on the link thread, every iteration of its loop
-    std::lock_guard lock(mutex_);
-    return count_ == 0 ? nullptr : slots_[head_].get();
-  }
-  void release() override {
-    std::lock_guard lock(mutex_);
-    head_ = (head_ + 1) % slots_.size();
-    --count_;
-  }
-  std::function<void()> on_poll;  // set before the link thread starts
-
-  [[nodiscard]] std::size_t dropped() const {
-    std::lock_guard lock(mutex_);
-    return dropped_;
-  }
-
- private:
-  mutable std::mutex mutex_;
-  std::vector<std::unique_ptr<MapDeltaMessage>> slots_;
-  std::size_t head_ = 0;
-  std::size_t count_ = 0;
-  std::size_t dropped_ = 0;
 };
 
 }  // namespace cvislam::agent::test

@@ -3,6 +3,7 @@
 #include "proto/wire/wire.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -179,6 +180,25 @@ TEST(Wire, AngleCodeRoundTripsWithinHalfAStepAndWrapsAroundTheTurn) {
   EXPECT_EQ(encodeAngle(720.0F + 45.0F), encodeAngle(45.0F));
   EXPECT_EQ(encodeAngle(359.9F), 0);
   EXPECT_EQ(encodeAngle(90.0F), 64);
+}
+
+}  // namespace
+}  // namespace cvislam::wire
+
+namespace cvislam::wire {
+namespace {
+
+TEST(DescriptorWords, ThirtyTwoBytesGoIntoFourWordsAndBackInTheProtocolsByteOrder) {
+  std::array<std::uint8_t, 32> bytes{};
+  for (std::size_t i = 0; i < bytes.size(); ++i) bytes[i] = static_cast<std::uint8_t>(7 * i + 3);
+  google::protobuf::RepeatedField<std::uint64_t> words;
+  packDescriptor(bytes.data(), &words);
+  ASSERT_EQ(words.size(), 4);
+  // Byte 8w+b is bits 8b..8b+7 of word w: byte 9 (= 66) is the second byte of word 1.
+  EXPECT_EQ((words.Get(1) >> 8U) & 0xFFU, 66U);
+  std::array<std::uint8_t, 32> back{};
+  unpackDescriptor(words.data(), back.data());
+  EXPECT_EQ(back, bytes);
 }
 
 }  // namespace

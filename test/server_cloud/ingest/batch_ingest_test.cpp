@@ -19,6 +19,7 @@
 
 #include "common/camera/camera_model.hpp"
 #include "cvislam/v1/agent_link.pb.h"
+#include "proto/wire/wire.hpp"
 #include "test/server_cloud/link_messages.hpp"
 
 namespace cvislam::server {
@@ -154,8 +155,9 @@ TEST_F(BatchIngestTest, KeyframeIsStoredWithTheStateAndKeypointsItWasSentWith) {
   EXPECT_FLOAT_EQ(kf->keypoints[13].px.x(), sent.keypoints().xy(26));
   EXPECT_FLOAT_EQ(kf->keypoints[13].px.y(), sent.keypoints().xy(27));
   EXPECT_EQ(kf->keypoints[13].octave, static_cast<std::uint8_t>(sent.keypoints().octave()[13]));
-  EXPECT_EQ(
-      0, std::memcmp(kf->descriptors[13].data(), sent.keypoints().descriptors().data() + std::ptrdiff_t{32} * 13, 32));
+  std::array<std::uint8_t, 32> sent_descriptor{};
+  wire::unpackDescriptor(sent.keypoints().descriptors().data() + 4 * 13, sent_descriptor.data());
+  EXPECT_EQ(kf->descriptors[13], sent_descriptor);
   const ServerMapPoint* point = content->point(ptId(1));
   ASSERT_NE(point, nullptr);
   EXPECT_EQ(point->reference, kfId(1));
@@ -463,8 +465,8 @@ const std::vector<BadBatchCase>& badBatchCases() {
   static const std::vector<BadBatchCase> cases = {
       // Malformed parts: columns whose sizes disagree.
       {"KeypointDescriptorsShorterThanTheKeypoints",
-       [](auto& b) { newKeyframe(b).mutable_keypoints()->mutable_descriptors()->resize(32 * 49); },
-       {"keyframe 3:2", "keypoint columns disagree", "1568 descriptor bytes"}},
+       [](auto& b) { newKeyframe(b).mutable_keypoints()->mutable_descriptors()->Truncate(4 * 49); },
+       {"keyframe 3:2", "keypoint columns disagree", "196 descriptor words"}},
       {"KeypointCoordinatesOfOddCount",
        [](auto& b) { newKeyframe(b).mutable_keypoints()->add_xy(1.0F); },
        {"keyframe 3:2", "keypoint columns disagree", "101 coordinates"}},
@@ -623,8 +625,8 @@ const std::vector<BadBatchCase>& badBatchCases() {
        [](auto& b) { (*newKeyframe(b).mutable_keypoints()->mutable_octave())[4] = 40; },
        {"keyframe 3:2", "keypoint 4 has octave 40"}},
       {"PointDescriptorOf31Bytes",
-       [](auto& b) { b.mutable_points(0)->mutable_orb()->pop_back(); },
-       {"map point 3:2", "descriptor of 31 bytes, expected 32"}},
+       [](auto& b) { b.mutable_points(0)->mutable_orb()->RemoveLast(); },
+       {"map point 3:2", "descriptor of 3 words, expected 4 (32 bytes)"}},
       {"PointOctaveOutOfRange", [](auto& b) { b.mutable_points(0)->set_octave(40); }, {"map point 3:2", "octave 40"}},
       {"MergeOfAPointIntoItself",
        [](auto& b) {

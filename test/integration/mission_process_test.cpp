@@ -1,0 +1,267 @@
+// The collaborative mission's parts as separate processes, as a user runs them: cvislam_server, cvislam_agent
+// processes, iox-roudi, real gRPC over loopback. A short simulated mission (overlap2, 8 s, stereo, seed 3) is
+// rendered once. The link's faults are real too: the server killed with SIGKILL and restarted, and the agent's
+// TCP connection cut by a proxy while the server lives on.
+#include <signal.h>
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <set>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include <nlohmann/json.hpp>
+
+#include "common/core/diagnostics.hpp"
+#include "common/dataset/trajectory_io.hpp"
+#include "test/sim/mission_writer.hpp"
+#include "test/sim/presets.hpp"
+#include "test/support/child_process.hpp"
+#include "test/support/tcp_proxy.hpp"
+#include "test/support/temp_dir.hpp"
+
+namespace cvislam {
+namespace {
+
+using std::chrono::milliseconds;
+using test::ChildProcess;
+
+std::string readFile(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+nlohmann::json readJson(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  return nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
+}
+
+// Keyframe time [ns] -> position, from a TUM file (both sides write times exactly).
+std::map<std::int64_t, Eigen::Vector3d> keyframes(const std::filesystem::path& path) {
+  std::map<std::int64_t, Eigen::Vector3d> out;
+  Diagnostics diagnostics;
+  auto trajectory = dataset::readTrajectory(path, {}, diagnostics);
+  if (!trajectory.ok()) return out;
+  for (const auto& pose : *trajectory) out[pose.t_ns] = pose.T_w_b.translation();
+  return out;
+}
+
+// Lines of a TUM file that are poses (duplicates count twice).
+std::size_t poseLines(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  std::size_t n = 0;
+  for (std::string line; std::getline(in, line);) n += (!line.empty() && line[0] != '#') ? 1 : 0;
+  return n;
+}
+
+class MissionProcesses : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    mission_ = new test::TempDir();
+    sim::MissionPlanOptions plan_options;
+    plan_options.preset = "overlap2";
+    plan_options.seed = 3;
+    plan_options.duration_s = 8.0;
+    auto plan = sim::planMission(plan_options);
+    ASSERT_TRUE(plan.ok());
+    sim::MissionWriterOptions writer = sim::defaultWriterOptions();
+    writer.out_dir = mission_->path();
+    writer.seed = 3;
+    writer.stereo = true;
+    writer.threads = 2;
+    ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+  }
+  static void TearDownTestSuite() { delete mission_; }
+
+  // A server on `port` (0: any), writing `output` at shutdown; returns it once it serves, and its port.
+  std::unique_ptr<ChildProcess> startServer(int port, const std::filesystem::path& output, int* bound_port) {
+    const std::filesystem::path port_file = dir_ / ("server_port_" + std::to_string(servers_++));
+    auto server = std::make_unique<ChildProcess>(
+        std::vector<std::string>{CVISLAM_SERVER_BINARY, "--listen", "127.0.0.1:" + std::to_string(port), "--output",
+                                 output.string(), "--port-file", port_file.string(), "--quiet"},
+        dir_ / ("server_" + std::to_string(servers_) + ".log"));
+    const bool up =
+        test::waitFor([&] { return std::filesystem::exists(port_file) || !server->running(); }, milliseconds(10000));
+    EXPECT_TRUE(up && server->running()) << readFile(server->log());
+    if (bound_port != nullptr) *bound_port = std::stoi(readFile(port_file));
+    return server;
+  }
+
+  std::unique_ptr<ChildProcess> startAgent(int agent, const std::string& server, const std::string& mission,
+                                           const std::vector<std::string>& extra) {
+    std::vector<std::string> argv = {CVISLAM_AGENT_BINARY,
+                                     "--dataset",
+                                     (mission_->path() / ("agent" + std::to_string(agent))).string(),
+                                     "--output",
+                                     agentOut(agent).string(),
+                                     "--agent-id",
+                                     std::to_string(agent),
+                                     "--server",
+                                     server,
+                                     "--mission",
+                                     mission,
+                                     "--mode",
+                                     "stereo"};
+    argv.insert(argv.end(), extra.begin(), extra.end());
+    return std::make_unique<ChildProcess>(argv, dir_ / ("agent" + std::to_string(agent) + ".log"));
+  }
+
+  [[nodiscard]] std::filesystem::path agentOut(int agent) const { return dir_ / ("agent" + std::to_string(agent)); }
+
+  // Waits for the agent; expects a clean exit.
+  void finish(ChildProcess& agent, milliseconds timeout = milliseconds(240000)) {
+    const auto status = agent.wait(timeout);
+    ASSERT_TRUE(status.has_value()) << "the agent did not finish; its log:\n" << readFile(agent.log());
+    EXPECT_EQ(*status, 0) << readFile(agent.log());
+  }
+
+  void stopServer(ChildProcess& server) {
+    server.signal(SIGTERM);
+    const auto status = server.wait(milliseconds(20000));
+    ASSERT_TRUE(status.has_value()) << readFile(server.log());
+    EXPECT_EQ(*status, 0) << readFile(server.log());
+  }
+
+  // The agent kept tracking through whatever the link went through: one map, nearly every frame tracked.
+  void expectTrackedThroughout(int agent) {
+    const nlohmann::json summary = readJson(agentOut(agent) / "summary.json");
+    ASSERT_TRUE(summary.is_object());
+    EXPECT_EQ(summary["new_maps"].get<int>(), 1);
+    EXPECT_GE(summary["tracked_frames"].get<double>(), 0.95 * summary["frames"].get<double>());
+  }
+
+  static test::TempDir* mission_;
+  test::TempDir dir_;
+  int servers_ = 0;
+};
+test::TempDir* MissionProcesses::mission_ = nullptr;
+
+TEST_F(MissionProcesses, TwoAgentProcessesSendTheServerEveryKeyframeWithItsFinalState) {
+  // Two agents on one machine share an external RouDi.
+  ChildProcess roudi({"/usr/bin/iox-roudi", "-m", "off", "-c", CVISLAM_ROUDI_CONFIG}, dir_ / "roudi.log");
+  ASSERT_TRUE(test::waitFor([&] { return readFile(roudi.log()).find("RouDi is ready") != std::string::npos; },
+                            milliseconds(10000)))
+      << readFile(roudi.log());
+  int port = 0;
+  auto server = startServer(0, dir_ / "server", &port);
+  const std::string address = "127.0.0.1:" + std::to_string(port);
+  auto agent0 = startAgent(0, address, "it", {"--roudi", "external", "--pace", "sync"});
+  auto agent1 = startAgent(1, address, "it", {"--roudi", "external", "--pace", "sync"});
+  finish(*agent0);
+  finish(*agent1);
+  stopServer(*server);
+  roudi.signal(SIGTERM);
+  (void)roudi.wait(milliseconds(5000));
+
+  const nlohmann::json stats = readJson(dir_ / "server" / "stats.json");
+  ASSERT_TRUE(stats.is_object()) << "no stats.json";
+  for (int a = 0; a < 2; ++a) {
+    SCOPED_TRACE("agent " + std::to_string(a));
+    const auto onboard = keyframes(agentOut(a) / "keyframes.txt");
+    const auto on_server = keyframes(dir_ / "server" / "it" / ("keyframes_agent" + std::to_string(a) + ".txt"));
+    ASSERT_GT(onboard.size(), 10U);
+    EXPECT_EQ(on_server.size(), onboard.size());
+    EXPECT_EQ(poseLines(dir_ / "server" / "it" / ("keyframes_agent" + std::to_string(a) + ".txt")), onboard.size());
+    for (const auto& [t, p] : onboard) {
+      auto it = on_server.find(t);
+      ASSERT_NE(it, on_server.end()) << "keyframe at " << t << " ns is not on the server";
+      EXPECT_LT((it->second - p).norm(), 1e-3) << "keyframe at " << t << " ns";
+    }
+    const nlohmann::json link = readJson(agentOut(a) / "link.json");
+    EXPECT_TRUE(link["flushed"].get<bool>());
+    EXPECT_EQ(link["keyframes_unacknowledged"].get<int>(), 0);
+    EXPECT_EQ(link["deltas_lost"].get<int>(), 0);
+  }
+  for (const auto& a : stats["agents"]) {
+    EXPECT_EQ(std::stoi(a["refused_messages"].get<std::string>()), 0) << a.dump();
+    EXPECT_TRUE(a["finished"].get<bool>());
+  }
+}
+
+TEST_F(MissionProcesses, AServerKilledAndRestartedThreeTimesGetsTheAgentsCurrentMapWhileTheAgentTracksOn) {
+  const int port = test::freeLoopbackPort();
+  ASSERT_GT(port, 0);
+  const std::string address = "127.0.0.1:" + std::to_string(port);
+  auto server = startServer(port, dir_ / "server0", nullptr);
+  auto agent = startAgent(0, address, "restarts", {"--pace", "realtime"});
+  for (int k = 1; k <= 3; ++k) {
+    std::this_thread::sleep_for(milliseconds(1800));
+    server->signal(SIGKILL);  // no goodbye, no outputs: everything it held is gone
+    ASSERT_TRUE(server->wait(milliseconds(5000)).has_value());
+    std::this_thread::sleep_for(milliseconds(300));
+    server = startServer(port, dir_ / ("server" + std::to_string(k)), nullptr);
+  }
+  finish(*agent);
+  stopServer(*server);
+
+  expectTrackedThroughout(0);
+  const nlohmann::json link = readJson(agentOut(0) / "link.json");
+  EXPECT_GE(link["connections"].get<int>(), 4);
+  EXPECT_TRUE(link["flushed"].get<bool>());
+  // The last server started empty: the agent sent it its current map again. Its newest keyframes (the local
+  // map's 20) are all there, each once, with the agent's final states.
+  const auto onboard = keyframes(agentOut(0) / "keyframes.txt");
+  const std::filesystem::path last = dir_ / "server3" / "restarts" / "keyframes_agent0.txt";
+  const auto on_server = keyframes(last);
+  EXPECT_EQ(poseLines(last), on_server.size());
+  ASSERT_GE(onboard.size(), 10U);
+  std::size_t checked = 0;
+  for (auto it = onboard.rbegin(); it != onboard.rend() && checked < 20; ++it, ++checked) {
+    auto found = on_server.find(it->first);
+    ASSERT_NE(found, on_server.end()) << "keyframe at " << it->first << " ns missing after the restarts";
+    EXPECT_LT((found->second - it->second).norm(), 1e-3);
+  }
+  for (const auto& [t, p] : on_server) EXPECT_EQ(onboard.count(t), 1U) << "a keyframe the agent never made";
+}
+
+TEST_F(MissionProcesses, AStreamCutThreeTimesWithTheServerAliveEndsWithEveryKeyframeExactlyOnce) {
+  int port = 0;
+  auto server = startServer(0, dir_ / "server", &port);
+  test::TcpProxy proxy(port);
+  ASSERT_GT(proxy.port(), 0);
+  auto agent = startAgent(1, "127.0.0.1:" + std::to_string(proxy.port()), "cuts", {"--pace", "realtime"});
+  for (int k = 0; k < 3; ++k) {
+    std::this_thread::sleep_for(milliseconds(1800));
+    proxy.cutAll();
+  }
+  finish(*agent);
+  stopServer(*server);
+
+  expectTrackedThroughout(1);
+  EXPECT_GE(proxy.connectionsAccepted(), 4);
+  const auto onboard = keyframes(agentOut(1) / "keyframes.txt");
+  const std::filesystem::path held = dir_ / "server" / "cuts" / "keyframes_agent1.txt";
+  const auto on_server = keyframes(held);
+  ASSERT_GT(onboard.size(), 10U);
+  EXPECT_EQ(poseLines(held), onboard.size());  // each once
+  for (const auto& [t, p] : onboard) {
+    auto it = on_server.find(t);
+    ASSERT_NE(it, on_server.end()) << "keyframe at " << t << " ns lost";
+    EXPECT_LT((it->second - p).norm(), 1e-3);
+  }
+  const nlohmann::json stats = readJson(dir_ / "server" / "stats.json");
+  ASSERT_EQ(stats["agents"].size(), 1U);
+  EXPECT_GE(stats["agents"][0]["connections"].get<int>(), 4);
+  EXPECT_EQ(std::stoi(stats["agents"][0]["refused_messages"].get<std::string>()), 0);
+}
+
+TEST_F(MissionProcesses, AnAgentWhoseServerNeverAnswersRunsAsTheVioAloneAndSaysWhatWasNotSent) {
+  const int port = test::freeLoopbackPort();  // nobody listens there
+  test::writeTextFile(dir_ / "agent.yaml", "link:\n  flush_timeout_s: 1\n");
+  auto agent = startAgent(0, "127.0.0.1:" + std::to_string(port), "nobody",
+                          {"--pace", "sync", "--config", (dir_ / "agent.yaml").string()});
+  finish(*agent);
+  expectTrackedThroughout(0);
+  const nlohmann::json link = readJson(agentOut(0) / "link.json");
+  EXPECT_FALSE(link["flushed"].get<bool>());
+  EXPECT_EQ(link["connections"].get<int>(), 0);
+  EXPECT_GT(link["keyframes_unacknowledged"].get<int>(), 10);
+  EXPECT_NE(readFile(dir_ / "agent0.log").find("NOT flushed"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace cvislam
