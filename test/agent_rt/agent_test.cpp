@@ -31,17 +31,8 @@ class AgentTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = new test::TempDir();
-    sim::MissionPlanOptions plan_options;
-    plan_options.preset = "loop";
-    plan_options.seed = 11;
-    plan_options.duration_s = 12.0;
-    auto plan = sim::planMission(plan_options);
-    ASSERT_TRUE(plan.ok()) << plan.error().toString();
-    sim::MissionWriterOptions writer = sim::defaultWriterOptions();
-    writer.out_dir = dir_->path() / "sim";
-    writer.seed = 11;
-    writer.stereo = true;
-    ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+    const Status rendered = sim::renderPreset("loop", 11, 12.0, /*stereo=*/true, dir_->path() / "sim");
+    ASSERT_TRUE(rendered.ok()) << rendered.error().toString();
   }
   static void TearDownTestSuite() {
     delete dir_;

@@ -62,18 +62,7 @@ class MissionProcesses : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     mission_ = new test::TempDir();
-    sim::MissionPlanOptions plan_options;
-    plan_options.preset = "overlap2";
-    plan_options.seed = 3;
-    plan_options.duration_s = 8.0;
-    auto plan = sim::planMission(plan_options);
-    ASSERT_TRUE(plan.ok());
-    sim::MissionWriterOptions writer = sim::defaultWriterOptions();
-    writer.out_dir = mission_->path();
-    writer.seed = 3;
-    writer.stereo = true;
-    writer.threads = 2;
-    ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+    ASSERT_TRUE(sim::renderPreset("overlap2", 3, 8.0, /*stereo=*/true, mission_->path(), /*threads=*/2).ok());
   }
   static void TearDownTestSuite() { delete mission_; }
 

@@ -193,4 +193,20 @@ Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options
   return Status::Ok();
 }
 
+Status renderPreset(const std::string& preset, std::uint64_t seed, double duration_s, bool stereo,
+                    const std::filesystem::path& out_dir, int threads) {
+  MissionPlanOptions plan_options;
+  plan_options.preset = preset;
+  plan_options.seed = seed;
+  plan_options.duration_s = duration_s;
+  Result<MissionPlan> plan = planMission(plan_options);
+  if (!plan) return plan.error();
+  MissionWriterOptions writer = defaultWriterOptions();
+  writer.out_dir = out_dir;
+  writer.seed = seed;
+  writer.stereo = stereo;
+  writer.threads = threads;
+  return writeMission(*plan, writer);
+}
+
 }  // namespace cvislam::sim

@@ -41,4 +41,9 @@ MissionWriterOptions defaultWriterOptions();
 // Writes every agent of the plan; fails (naming the file) at the first write error.
 Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options);
 
+// Plans and writes a preset in one call, with the default writer (EuRoC cameras and IMU, no pixel noise); the
+// simulator's seed is used for both. For tests that need a short mission on disk.
+Status renderPreset(const std::string& preset, std::uint64_t seed, double duration_s, bool stereo,
+                    const std::filesystem::path& out_dir, int threads = 1);
+
 }  // namespace cvislam::sim

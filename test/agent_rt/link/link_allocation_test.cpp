@@ -25,17 +25,7 @@ namespace {
 TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   cvislam::test::TempDir dir;
   constexpr double kDurationS = 8.0;
-  sim::MissionPlanOptions plan_options;
-  plan_options.preset = "loop";
-  plan_options.seed = 5;
-  plan_options.duration_s = kDurationS;
-  auto plan = sim::planMission(plan_options);
-  ASSERT_TRUE(plan.ok());
-  sim::MissionWriterOptions writer = sim::defaultWriterOptions();
-  writer.out_dir = dir.path();
-  writer.seed = 5;
-  writer.stereo = true;
-  ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+  ASSERT_TRUE(sim::renderPreset("loop", 5, kDurationS, /*stereo=*/true, dir.path()).ok());
   auto seq = dataset::EurocSequence::open(dir.path() / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
 

@@ -57,17 +57,7 @@ class LinkRoundTrip : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = new cvislam::test::TempDir();
-    sim::MissionPlanOptions plan_options;
-    plan_options.preset = "loop";
-    plan_options.seed = 11;
-    plan_options.duration_s = 9.0;
-    auto plan = sim::planMission(plan_options);
-    ASSERT_TRUE(plan.ok());
-    sim::MissionWriterOptions writer = sim::defaultWriterOptions();
-    writer.out_dir = dir_->path();
-    writer.seed = 11;
-    writer.stereo = true;
-    ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+    ASSERT_TRUE(sim::renderPreset("loop", 11, 9.0, /*stereo=*/true, dir_->path()).ok());
   }
   static void TearDownTestSuite() { delete dir_; }
 

@@ -19,17 +19,7 @@ namespace {
 // Tracks the rendered loop and expects no allocation inside track() in the steady state.
 void expectSteadyStateAllocatesNothing(const TrackerOptions& options) {
   test::TempDir dir;
-  sim::MissionPlanOptions plan_options;
-  plan_options.preset = "loop";
-  plan_options.seed = 5;
-  plan_options.duration_s = 8.0;
-  auto plan = sim::planMission(plan_options);
-  ASSERT_TRUE(plan.ok());
-  sim::MissionWriterOptions writer = sim::defaultWriterOptions();
-  writer.out_dir = dir.path();
-  writer.seed = 5;
-  writer.stereo = true;
-  ASSERT_TRUE(sim::writeMission(*plan, writer).ok());
+  ASSERT_TRUE(sim::renderPreset("loop", 5, 8.0, /*stereo=*/true, dir.path()).ok());
   auto seq = dataset::EurocSequence::open(dir.path() / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
   auto agent = test::InlineAgent::create(*seq, true, options);
