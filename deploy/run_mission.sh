@@ -80,7 +80,7 @@ if [ ! -f "$cache/.complete" ]; then
   rm -rf "$cache" "$cache.partial"
   mkdir -p "$cache_root"
   "$bin/cvislam_sim" --preset "$preset" --seed "$seed" --duration "$duration" --stereo --out "$cache.partial" \
-    | awk '/frames,/ { if (++n % 2 == 0) print; next } { print }'
+    | awk '/frames,/ { if (++n % 2 == 0) { print; fflush() } next } { print; fflush() }'
   mv "$cache.partial" "$cache"
   touch "$cache/.complete"
 else

@@ -157,7 +157,9 @@ Status ServerCore::correctKeyframe(const std::string& mission_name, const Keyfra
                                    const Eigen::Vector3d& v_m, const imu::ImuBias& bias) {
   auto mission = missions_.find(mission_name);
   if (!mission) return Error{ErrorCode::kNotFound, "no mission '" + mission_name + "'"};
-  auto shared = mission->agent(id.agent);
+  auto shared = mission->findAgent(id.agent);
+  if (!shared)
+    return Error{ErrorCode::kNotFound, "no agent " + std::to_string(id.agent) + " in '" + mission_name + "'"};
   auto record = shared->write();
   auto held = record->keyframes.find(id.counter);
   if (held == record->keyframes.end()) return Error{ErrorCode::kNotFound, "no keyframe " + id.toString()};

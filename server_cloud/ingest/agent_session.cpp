@@ -88,6 +88,9 @@ Status SessionOptions::validate() const {
       ingest.max_maps_per_agent < 1) {
     return invalid("ingest limits must be >= 1");
   }
+  if (ingest.max_keypoints_per_keyframe > 65535) {
+    return invalid("max_keypoints_per_keyframe must be at most 65535 (keypoint indices are 16-bit)");
+  }
   return Status::Ok();
 }
 

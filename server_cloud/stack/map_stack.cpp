@@ -33,6 +33,12 @@ SharedAgentRecord Mission::agent(AgentId id) {
   return slot;
 }
 
+SharedAgentRecord Mission::findAgent(AgentId id) const {
+  auto agents = agents_.read();
+  auto it = agents->find(id);
+  return it == agents->end() ? nullptr : it->second;
+}
+
 std::vector<SharedAgentRecord> Mission::agents() const {
   auto agents = agents_.read();
   std::vector<SharedAgentRecord> out;

@@ -129,6 +129,8 @@ class Mission {
 
   // The agent's record, made on first use.
   SharedAgentRecord agent(AgentId id);
+  // The agent's record, or nullptr when the agent never connected.
+  [[nodiscard]] SharedAgentRecord findAgent(AgentId id) const;
   [[nodiscard]] std::vector<SharedAgentRecord> agents() const;  // by id
 
  private:

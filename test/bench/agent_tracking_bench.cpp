@@ -101,7 +101,7 @@ int main(int argc, char** argv) {
     if (with_link) {
       cvislam::agent::LinkOptions options;
       options.server = server;
-      options.mission = "bench";
+      options.mission = "bench-pass" + std::to_string(pass);  // a fresh mission each pass: same ids, no clash
       options.flush_timeout_s = 5.0;
       cvislam::agent::LinkSensors sensors;
       sensors.stereo = mode == "stereo";
@@ -111,7 +111,7 @@ int main(int argc, char** argv) {
         sensors.cam1 = sequence->cam1()->calibration;
         sensors.T_s_c1 = sequence->cam1()->calibration.T_b_c;
       }
-      auto created = cvislam::agent::Link::create(options, static_cast<cvislam::AgentId>(pass), sensors);
+      auto created = cvislam::agent::Link::create(options, 0, sensors);  // the inline agent's id
       if (!created) {
         std::cerr << "bench_agent_tracking: " << created.error().toString() << "\n";
         return 1;

@@ -236,6 +236,44 @@ TEST_F(LinkStoreTest, AFullStoreDropsTheOldestUnsentKeyframesThatLeftTheLocalMap
   EXPECT_NE(server.keyframe(10), nullptr);
 }
 
+TEST_F(LinkStoreTest, ANewMapOfTheAgentBecomesASecondServerMapAndTheFirstStays) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100});
+  sut.onDelta(map.finish());
+  map.addKeyframe(1, {100}, {101});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  // Tracking was lost: mapping clears its local map and starts map 1, not ready until its IMU is initialised.
+  map.keyframes.clear();
+  map.points.clear();
+  map.map_id = 1;
+  map.ready = false;
+  map.change();
+  for (std::uint32_t k : {0U, 1U}) map.event(MapEventType::kKeyframeRemoved, MapEventReason::kRemoved, k, 0);
+  for (std::uint32_t p : {100U, 101U}) map.event(MapEventType::kPointRemoved, MapEventReason::kRemoved, 0, p);
+  sut.onDelta(map.finish());
+  map.addKeyframe(2, {}, {102});
+  sut.onDelta(map.finish());
+  EXPECT_FALSE(sendNext());
+  map.ready = true;
+  map.addKeyframe(3, {102}, {103});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  EXPECT_EQ(batch.keyframes_size(), 2);
+  EXPECT_EQ(batch.keyframes(0).agent_map(), 1U);
+  // Two server maps: the first with its two keyframes as they were, the second with the new ones.
+  int maps = 0;
+  server.forEachMap([&](const server::MapContent& m) {
+    ++maps;
+    EXPECT_EQ(m.keyframes().size(), 2U);
+  });
+  EXPECT_EQ(maps, 2);
+  EXPECT_NE(server.keyframe(0), nullptr);
+  EXPECT_NE(server.point(100), nullptr);
+  EXPECT_TRUE(server.consistent().ok());
+}
+
 TEST_F(LinkStoreTest, AGapInMappingsDeltasIsCounted) {
   map.addKeyframe(0, {}, {});
   sut.onDelta(map.finish());
