@@ -305,6 +305,13 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
   return true;
 }
 
+void AgentSession::countRefused(const Status& reason) {
+  if (!record_ || reason.ok()) return;
+  auto record = record_->write();
+  ++record->refused_messages;
+  record->last_error = reason.error().toString();
+}
+
 void AgentSession::close(const Status& reason) {
   if (closed_) return;
   closed_ = true;

@@ -57,6 +57,10 @@ class AgentSession {
   // The periodic message (acknowledgement, corrections) when one is due at `now`; false when none is.
   bool nextDownlink(Clock::time_point now, v1::ServerDownlink& out);
 
+  // A message the adapter refused before it reached handle() (bytes that do not parse): counted like any other
+  // refused message. The stream ends with it.
+  void countRefused(const Status& reason);
+
   // The stream ended: the agent closed it, it broke, or a message was refused (`reason`).
   void close(const Status& reason);
 

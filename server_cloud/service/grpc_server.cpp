@@ -10,6 +10,8 @@
 
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/support/byte_buffer.h>
+#include <grpcpp/support/proto_buffer_reader.h>
 
 #include "cvislam/v1/agent_link.grpc.pb.h"
 #include "cvislam/v1/monitor.grpc.pb.h"
@@ -63,7 +65,9 @@ class ReactorRegistry {
 
 // One agent's stream: reads the agent's messages into its AgentSession and writes what the session returns,
 // one write at a time. Every callback and the periodic tick lock `mutex_`, so the session sees one caller.
-class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::ServerDownlink> {
+// It works on raw bytes and parses them itself: a typed reactor hears a message that does not parse exactly
+// like the agent closing its side, and could not refuse it with INVALID_ARGUMENT.
+class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer> {
  public:
   LinkReactor(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry)
       : handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
@@ -82,8 +86,18 @@ class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::Se
       finishLocked(grpc::Status::OK);
       return;
     }
+    const std::size_t wire_bytes = in_.Length();
+    if (!grpc::SerializationTraits<v1::AgentUplink>::Deserialize(&in_, &parsed_).ok()) {
+      const Status malformed =
+          Error{ErrorCode::kInvalidArgument,
+                "a message of " + std::to_string(wire_bytes) + " bytes that does not parse as cvislam.v1.AgentUplink"};
+      closing_status_ = malformed;
+      session_->countRefused(malformed);
+      finishLocked(toGrpc(malformed));
+      return;
+    }
     bool reply_due = false;
-    const Status status = session_->handle(in_, in_.ByteSizeLong(), reply_, reply_due);
+    const Status status = session_->handle(parsed_, wire_bytes, reply_, reply_due);
     if (!status.ok()) {
       closing_status_ = status;
       finishLocked(toGrpc(status));
@@ -133,7 +147,10 @@ class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::Se
 
  private:
   void enqueueLocked(const v1::ServerDownlink& message) {
-    queue_.push_back(message);
+    grpc::ByteBuffer bytes;
+    bool own = false;
+    if (!grpc::SerializationTraits<v1::ServerDownlink>::Serialize(message, &bytes, &own).ok()) return;
+    queue_.push_back(std::move(bytes));
     writeNextLocked();
   }
   void writeNextLocked() {
@@ -163,21 +180,22 @@ class LinkReactor final : public grpc::ServerBidiReactor<v1::AgentUplink, v1::Se
   ReactorRegistry& registry_;
   std::mutex mutex_;
   std::unique_ptr<AgentSession> session_;
-  v1::AgentUplink in_;
+  grpc::ByteBuffer in_;
+  v1::AgentUplink parsed_;
   v1::ServerDownlink reply_;
   v1::ServerDownlink periodic_;
-  v1::ServerDownlink out_;
-  std::deque<v1::ServerDownlink> queue_;
+  grpc::ByteBuffer out_;
+  std::deque<grpc::ByteBuffer> queue_;
   bool writing_ = false;
   bool finish_called_ = false;
   std::optional<grpc::Status> pending_finish_;
   Status closing_status_;
 };
 
-class AgentLinkService final : public v1::AgentLink::CallbackService {
+class AgentLinkService final : public v1::AgentLink::WithRawCallbackMethod_Connect<v1::AgentLink::Service> {
  public:
   explicit AgentLinkService(ServerCore& core) : core_(core) {}
-  grpc::ServerBidiReactor<v1::AgentUplink, v1::ServerDownlink>* Connect(grpc::CallbackServerContext* context) override {
+  grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* Connect(grpc::CallbackServerContext* context) override {
     return new LinkReactor(context, core_, registry_);  // deletes itself in OnDone()
   }
   ReactorRegistry& registry() { return registry_; }

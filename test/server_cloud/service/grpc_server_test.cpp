@@ -336,10 +336,9 @@ TEST_F(GrpcServerTest, GetStatsReportsKeyframesAndBytesByKind) {
 
 // ---- Hostile inputs: each ends its own stream; the good agent is served throughout ----
 
-// What gRPC 1.51 does with bytes that do not parse: the callback reactor's OnReadDone(false) looks exactly like the
-// client closing its side, so the server ends the stream with OK and no message. The protocol promises
-// INVALID_ARGUMENT here; the typed callback service cannot tell the two apart (see the branch's report).
-TEST_F(GrpcServerTest, MalformedBytesEndTheStreamWithoutAReplyAsOkAndTheOtherAgentIsServed) {
+// Bytes that do not parse as an AgentUplink: the link's reactor reads raw bytes and parses them itself, so it can
+// refuse them (a typed reactor would hear them like the client closing its side, and end with OK).
+TEST_F(GrpcServerTest, MalformedBytesEndTheStreamAsInvalidArgumentAndTheOtherAgentIsServed) {
   start();
   connectGoodAgent();
   grpc::GenericStub generic(channel_);
@@ -379,8 +378,8 @@ TEST_F(GrpcServerTest, MalformedBytesEndTheStreamWithoutAReplyAsOkAndTheOtherAge
   }
 
   EXPECT_FALSE(got_a_reply);
-  EXPECT_EQ(status.error_code(), grpc::StatusCode::OK) << status.error_message();
-  EXPECT_EQ(status.error_message(), "");
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+  EXPECT_THAT(status.error_message(), ::testing::HasSubstr("6 bytes that does not parse as cvislam.v1.AgentUplink"));
   EXPECT_EQ(stats().agents_size(), 1);  // nothing was registered for the garbage
   expectGoodAgentUntouchedAndServed();
 }
