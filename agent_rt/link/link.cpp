@@ -123,18 +123,28 @@ struct Link::Impl {
           removal_bytes);
   }
 
-  void publishStatus(bool connected, bool flushed) {
+  // Publishes a copy for other threads; everything is computed before the lock is taken.
+  void publishStatus(bool connected, bool flushed, std::uint64_t sent_sequence) {
+    const LinkBacklog backlog = store.backlog();
+    const auto total = [](std::map<std::string, std::pair<std::uint64_t, std::uint64_t>>& by_kind) {
+      auto it = by_kind.find("message");
+      return it == by_kind.end() ? std::pair<std::uint64_t, std::uint64_t>{0, 0} : it->second;
+    };
+    const auto up = total(up_by_kind);
+    const auto down = total(down_by_kind);
+    std::string error = connected ? std::string() : client.lastError();
     std::lock_guard lock(status_mutex);
     status.connected = connected;
-    status.last_error = connected ? std::string() : client.lastError();
-    status.backlog = store.backlog();
+    status.last_error.swap(error);
+    status.backlog = backlog;
     status.store = store.counters();
     status.acked_sequence = store.acked();
+    status.sent_sequence = sent_sequence;
     status.flushed = flushed;
-    status.up_messages = up_by_kind.count("message") != 0 ? up_by_kind["message"].first : 0;
-    status.up_bytes = up_by_kind.count("message") != 0 ? up_by_kind["message"].second : 0;
-    status.down_messages = down_by_kind.count("message") != 0 ? down_by_kind["message"].first : 0;
-    status.down_bytes = down_by_kind.count("message") != 0 ? down_by_kind["message"].second : 0;
+    status.up_messages = up.first;
+    status.up_bytes = up.second;
+    status.down_messages = down.first;
+    status.down_bytes = down.second;
   }
 };
 
@@ -164,37 +174,40 @@ Link::~Link() = default;
 
 void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
   Impl& s = *impl_;
-  const auto period =
-      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / s.options.max_rate_hz));
-  const auto backoff_min =
-      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_min_s));
-  const auto backoff_max =
-      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s.options.reconnect_max_s));
+  const auto seconds = [](double v) {
+    return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(v));
+  };
+  const auto period = seconds(1.0 / s.options.max_rate_hz);
+  const auto backoff_min = seconds(s.options.reconnect_min_s);
+  const auto backoff_max = seconds(s.options.reconnect_max_s);
   auto backoff = backoff_min;
   auto next_attempt = Clock::now();
-  auto last_send = Clock::now() - period;
+  auto next_build = Clock::now();
   auto next_sample = Clock::now();
+  auto next_status = Clock::now();
   std::optional<Clock::time_point> stop_at;
   std::uint64_t next_sequence = 1;
   std::uint64_t last_sent = 0;
   bool connected = false;
   bool nothing_due = false;
+  bool flushed = false;
 
   while (true) {
-    // Mapping's deltas, in order.
+    // Read the stop request before draining: a delta published before it is then always applied.
+    const bool stopping = stop.load();
     for (const MapDeltaMessage* d = source.next(); d != nullptr; d = source.next()) {
       s.store.onDelta(*d);
       source.release();
       nothing_due = false;
+      next_build = std::min(next_build, Clock::now());
     }
     const auto now = Clock::now();
-    if (stop.load() && !stop_at) stop_at = now;
-    const bool flushed = connected && nothing_due && s.store.acked() >= last_sent;
+    if (stopping && !stop_at) stop_at = now;
+    flushed = connected && nothing_due && s.store.acked() >= last_sent;
     if (stop_at) {
       const double waited = std::chrono::duration<double>(now - *stop_at).count();
       if (flushed || waited >= s.options.flush_timeout_s) {
         s.flush_wait_s = waited;
-        s.publishStatus(connected, flushed);
         break;
       }
     }
@@ -202,26 +215,26 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
     if (!connected && now >= next_attempt) {
       s.hello.mutable_hello()->set_last_acked_sequence(s.store.acked());
       auto welcome = s.client.connect(s.hello);
-      std::lock_guard lock(s.status_mutex);
       if (welcome) {
         connected = true;
-        ++s.status.connections;
         const std::uint64_t stored = (*welcome)->welcome().stored_sequence();
         s.store.onWelcome(stored);
         next_sequence = stored + 1;
         last_sent = std::min(last_sent, stored);
         backoff = backoff_min;
         nothing_due = false;
+        next_build = now;
         const std::uint64_t bytes = (*welcome)->ByteSizeLong();
         s.count(s.down_by_kind, "message", 1, bytes);
         s.count(s.down_by_kind, "welcome", 1, bytes);
         s.count(s.up_by_kind, "message", 1, s.hello.ByteSizeLong());
         s.count(s.up_by_kind, "hello", 1, s.hello.ByteSizeLong());
       } else {
-        ++s.status.failed_attempts;
         next_attempt = now + backoff;
         backoff = std::min(backoff * 2, backoff_max);
       }
+      std::lock_guard lock(s.status_mutex);
+      (welcome ? s.status.connections : s.status.failed_attempts) += 1;
     }
     if (connected) {
       while (s.client.poll(s.downlink)) {
@@ -244,25 +257,25 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
         next_attempt = now + backoff;
       }
     }
-    if (connected && now - last_send >= period) {
+    // At most max_rate_hz batches a second; while nothing is due, the store is looked at again only after a
+    // delta, a reconnection, or one period.
+    if (connected && now >= next_build) {
       // Made on the arena once, reused while nothing is due, and dropped with the arena's reset after a send.
       if (s.uplink == nullptr) s.uplink = google::protobuf::Arena::CreateMessage<v1::AgentUplink>(&s.arena);
       v1::AgentUplink* uplink = s.uplink;
       v1::MapBatch& batch = *uplink->mutable_batch();
+      next_build = now + period;
       if (s.store.buildBatch(next_sequence, s.store.newestSensorTime(), s.options.max_batch_bytes, batch)) {
         const std::uint64_t bytes = uplink->ByteSizeLong();
-        if (s.client.send(*uplink)) {
+        const bool sent = s.client.send(*uplink);
+        if (sent) {
           last_sent = next_sequence++;
           s.countBatch(batch, bytes);
-          s.resetArena();
-          last_send = now;
-          std::lock_guard lock(s.status_mutex);
-          s.status.sent_sequence = last_sent;
         } else {
-          s.resetArena();
-          connected = false;  // what the batch carried is sent again after the Welcome
+          connected = false;  // what the batch carried is sent again after the next Welcome
           next_attempt = now + backoff;
         }
+        s.resetArena();
       } else {
         nothing_due = true;
       }
@@ -275,23 +288,33 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
                             b.keyframes_unsent + b.keyframes_unacked});
       next_sample += std::chrono::seconds(1);
     }
-    s.publishStatus(connected, false);
+    if (now >= next_status) {
+      s.publishStatus(connected, false, last_sent);
+      next_status = now + std::chrono::milliseconds(100);
+    }
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
   // The last row: what was sent and received in all, the final flush included.
+  const LinkBacklog last = s.store.backlog();
   s.timeline.push_back({std::chrono::duration<double>(Clock::now() - s.start).count(),
                         s.up_by_kind.count("message") != 0 ? s.up_by_kind["message"].second : 0,
                         s.down_by_kind.count("message") != 0 ? s.down_by_kind["message"].second : 0, connected,
-                        s.store.backlog().keyframes_unsent + s.store.backlog().keyframes_unacked});
-  if (connected) {
+                        last.keyframes_unsent + last.keyframes_unacked});
+  if (connected && flushed) {
     s.goodbye.mutable_goodbye()->set_end_of_mission(true);
     if (s.client.send(s.goodbye)) {
       s.count(s.up_by_kind, "message", 1, s.goodbye.ByteSizeLong());
       s.count(s.up_by_kind, "goodbye", 1, s.goodbye.ByteSizeLong());
     }
     (void)s.client.close(std::chrono::milliseconds(2000));
+  } else {
+    s.client.abandon();  // no goodbye to a server that is away or not reading: a write could block
   }
-  s.publishStatus(false, s.status.flushed);
+  s.publishStatus(false, flushed, last_sent);
+}
+
+void Link::abort() {
+  impl_->client.cancel();
 }
 
 LinkStatus Link::status() const {

@@ -97,6 +97,10 @@ class Link {
   // passed): reads deltas from `source`, keeps the stream up, sends, reads acknowledgements.
   void run(DeltaSource& source, const std::atomic<bool>& stop);
 
+  // From another thread: ends the current stream at once (a write blocked on a server that stopped reading
+  // returns). run() goes on, and reconnects unless it was stopping.
+  void abort();
+
   [[nodiscard]] LinkStatus status() const;
   // One line for the agent's progress output, e.g. "link up, 2 KF waiting" or "link DOWN (retrying), 14 KF waiting".
   [[nodiscard]] std::string progressText() const;

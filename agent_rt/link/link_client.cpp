@@ -34,6 +34,7 @@ struct LinkClient::Impl {
   std::unique_ptr<grpc::ClientReaderWriter<v1::AgentUplink, v1::ServerDownlink>> stream;
   std::thread reader;
 
+  std::mutex context_mutex;  // guards `context` against cancel() from another thread
   mutable std::mutex mutex;  // guards what the reader thread shares
   std::condition_variable arrived;
   std::deque<v1::ServerDownlink> inbox;
@@ -52,7 +53,9 @@ struct LinkClient::Impl {
       v1::ServerDownlink message;
       while (stream->Read(&message)) {
         std::lock_guard lock(mutex);
-        if (inbox.size() < 256) inbox.push_back(message);  // the server sends at most a few per second
+        // The server sends at most a few per second; acknowledgements are cumulative, so the oldest can go.
+        if (inbox.size() >= 256) inbox.pop_front();
+        inbox.push_back(message);
         arrived.notify_all();
       }
       std::lock_guard lock(mutex);
@@ -69,7 +72,10 @@ struct LinkClient::Impl {
     if (reader.joinable()) reader.join();
     grpc::Status status = stream->Finish();
     stream.reset();
-    context.reset();
+    {
+      std::lock_guard lock(context_mutex);
+      context.reset();
+    }
     std::lock_guard lock(mutex);
     broken = true;
     return status;
@@ -106,7 +112,10 @@ Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connect(const v1::AgentU
     s.last_error = "server " + s.options.server + " unreachable";
     return Error{ErrorCode::kUnavailable, s.last_error};
   }
-  s.context = std::make_unique<grpc::ClientContext>();
+  {
+    std::lock_guard lock(s.context_mutex);
+    s.context = std::make_unique<grpc::ClientContext>();
+  }
   s.stream = s.stub->Connect(s.context.get());
   s.startReader();
   if (!s.stream->Write(hello)) {
@@ -177,6 +186,15 @@ Status LinkClient::close(std::chrono::milliseconds timeout) {
   const grpc::Status status = s.teardown();
   if (status.ok() || status.error_code() == grpc::StatusCode::CANCELLED) return Status::Ok();
   return Error{ErrorCode::kUnavailable, describe(status)};
+}
+
+void LinkClient::abandon() {
+  impl_->teardown();
+}
+
+void LinkClient::cancel() {
+  std::lock_guard lock(impl_->context_mutex);
+  if (impl_->context) impl_->context->TryCancel();
 }
 
 std::string LinkClient::lastError() const {

@@ -42,6 +42,10 @@ class LinkClient {
   bool poll(v1::ServerDownlink& out);
   // Half-closes the stream and waits up to `timeout` for the server to end it; returns the final status.
   Status close(std::chrono::milliseconds timeout);
+  // Ends the stream without a half-close (for a server that is away or not reading).
+  void abandon();
+  // Safe from any thread: cancels the open stream, so that a blocked write returns false.
+  void cancel();
   // Why the last stream ended ("" while it is open).
   [[nodiscard]] std::string lastError() const;
 

@@ -51,6 +51,7 @@ struct LinkStore::Point {
   std::uint64_t full_sent = 0;
   std::uint64_t pos_sent = 0;
   std::uint64_t stamp = 0;
+  std::uint64_t pinned = 0;  // the forget pass that found it still needed (an observation or merge to send)
   bool in_local_map = true;
 };
 
@@ -258,6 +259,7 @@ void LinkStore::addPoint(const NewPointMsg& n, std::uint32_t map_id) {
   p.full_sent = 0;
   p.pos_sent = 0;
   p.stamp = delta_stamp_;
+  p.pinned = 0;
   p.in_local_map = true;
   point_index_->insert(p.counter, *handle);
 }
@@ -313,6 +315,11 @@ void LinkStore::mergePoints(std::uint32_t drop, std::uint32_t keep) {
       kf.obs[k] = keep;
     }
   });
+  // A merge still waiting for `drop` to reach the server as the kept point now keeps `keep` instead.
+  auto& stones = *tombstones_;
+  for (std::size_t i = 0; i < tombstone_count_; ++i) {
+    if (stones[i].merge && stones[i].sent == 0 && stones[i].keep == drop) stones[i].keep = keep;
+  }
   const PoolHandle* h = point_index_->find(drop);
   if (h == nullptr) return;
   const Point& d = *points_->get(*h);
@@ -328,7 +335,6 @@ void LinkStore::onDelta(const MapDeltaMessage& d) {
   counters_.delta_events_lost += d.events_lost;
   newest_t_ns_ = std::max(newest_t_ns_, d.t_ns);
   ++delta_stamp_;
-  setMapReady(d.map_id, d.ready != 0);
 
   const bool own_keyframe = d.has_keyframe != 0 && d.keyframe.id.agent == agent_;
   if (own_keyframe) addKeyframe(d);
@@ -396,6 +402,9 @@ void LinkStore::onDelta(const MapDeltaMessage& d) {
     if (p.in_local_map && p.stamp != delta_stamp_) gone.push_back(p.counter);
   });
   for (std::uint32_t c : gone) leaveLocalMapPoint(c, false);
+  // Readiness last: what left the local map in this very delta was judged by the map's state before it (an
+  // object that left while the IMU initialisation ran still has a state in the old frame, and is forgotten).
+  setMapReady(d.map_id, d.ready != 0);
   forgetAcknowledged();
 }
 
@@ -452,9 +461,23 @@ void LinkStore::forgetAcknowledged() {
   for (std::uint32_t c : done) {
     if (const PoolHandle* h = keyframe_index_->find(c)) eraseKeyframe(*h);
   }
+  // Points that something still to be acknowledged refers to stay: an observation of a stored keyframe, or a
+  // merge into them (else the observation would be dropped, or the merge become a removal).
+  ++forget_pass_;
+  keyframes_->forEach([&](PoolHandle, const Keyframe& kf) {
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (kf.has_obs[k] == 0 || acknowledged(kf.obs_sent[k])) continue;
+      if (Point* p = point(kf.obs[k])) p->pinned = forget_pass_;
+    }
+  });
+  for (std::size_t i = 0; i < tombstone_count_; ++i) {
+    const Tombstone& t = (*tombstones_)[i];
+    if (!t.merge || acknowledged(t.sent)) continue;
+    if (Point* p = point(t.keep)) p->pinned = forget_pass_;
+  }
   done.clear();
   points_->forEach([&](PoolHandle, const Point& p) {
-    if (p.in_local_map || !acknowledged(p.full_sent) || !acknowledged(p.pos_sent)) return;
+    if (p.in_local_map || p.pinned == forget_pass_ || !acknowledged(p.full_sent) || !acknowledged(p.pos_sent)) return;
     done.push_back(p.counter);
   });
   for (std::uint32_t c : done) {

@@ -132,6 +132,7 @@ class LinkStore {
   std::uint64_t expected_delta_ = 0;
   bool seen_delta_ = false;
   std::uint64_t delta_stamp_ = 0;
+  std::uint64_t forget_pass_ = 0;
   std::uint64_t acked_ = 0;
   std::uint64_t last_sent_ = 0;  // the newest batch built
   std::int64_t newest_t_ns_ = 0;

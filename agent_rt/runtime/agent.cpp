@@ -544,6 +544,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   // The link to the server, when there is one: its own thread, fed by mapping's deltas.
   std::unique_ptr<Link> link;
   std::atomic<bool> link_stop{false};
+  std::atomic<bool> link_done{false};
   std::thread link_thread;
   if (!options.link.server.empty()) {
     LinkSensors sensors;
@@ -570,6 +571,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
       IceoryxDeltaSource source(subscriber);
       link->run(source, link_stop);
+      link_done.store(true);
     });
   }
 
@@ -720,6 +722,15 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     // Mapping has published its last delta: the link sends what is left and waits for the acknowledgements.
     if (!options.quiet) std::fprintf(stderr, "[link] end of run: %s; flushing\n", link->progressText().c_str());
     link_stop.store(true);
+    // The link ends within its flush timeout, unless a write is stuck on a server that stopped reading (it still
+    // answers keepalive pings): then its stream is cancelled.
+    const auto give_up = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                            std::chrono::duration<double>(options.link.flush_timeout_s + 5.0));
+    while (!link_done.load() && Clock::now() < give_up) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    if (!link_done.load()) {
+      std::fprintf(stderr, "[link] the server stopped reading: cancelling the stream\n");
+      link->abort();
+    }
     link_thread.join();
     summary.link_enabled = true;
     summary.link = link->status();

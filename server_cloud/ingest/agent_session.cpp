@@ -152,6 +152,16 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
   std::function<void()> replace_old;
   {
     auto record = shared_record->write();
+    if (!record->connected && record->session != 0 && record->session != hello.session() &&
+        record->stored_sequence > 0) {
+      // Another process streamed as this agent before. A new process counts its keyframes and points from 0
+      // again: its ids would land on the old process's objects.
+      return Error{ErrorCode::kFailedPrecondition,
+                   "agent " + std::to_string(agent_id) + " of mission '" + hello.mission() +
+                       "' was streamed by another process before (" + std::to_string(record->keyframes.size()) +
+                       " keyframes held): a new process starts its ids again, so give it another --agent-id or "
+                       "--mission"};
+    }
     if (record->connected) {
       if (record->session != hello.session()) {
         return Error{ErrorCode::kAlreadyExists, "agent " + std::to_string(agent_id) + " of mission '" +

@@ -275,12 +275,12 @@ class Checker {
       kf.imu_from = keyframeId(k.imu_from());
     }
 
-    auto map = mapOfAgentMap(k.agent_map());
-    if (!map) return map.error();
     if (agent_.keyframes.count(c) != 0) {
-      ++report_.duplicate_objects;  // held already: a resend; dropped
+      ++report_.duplicate_objects;  // held already: a resend; dropped (and it opens no map)
       return Status::Ok();
     }
+    auto map = mapOfAgentMap(k.agent_map());
+    if (!map) return map.error();
     new_keyframes_[c] = KnownKeyframe{*map, k.agent_map(), static_cast<std::uint32_t>(n)};
     plan_.keyframes.push_back({std::move(kf), *map});
     return Status::Ok();

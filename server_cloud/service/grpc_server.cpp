@@ -86,6 +86,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
       finishLocked(grpc::Status::OK);
       return;
     }
+    if (finish_called_ || pending_finish_) return;  // ending already (cancelled, or a write failed): no more reads
     const std::size_t wire_bytes = in_.Length();
     if (!grpc::SerializationTraits<v1::AgentUplink>::Deserialize(&in_, &parsed_).ok()) {
       const Status malformed =
@@ -141,7 +142,9 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   // From the periodic thread: the session's acknowledgement and corrections, when due.
   void tick(AgentSession::Clock::time_point now) {
     std::lock_guard lock(mutex_);
-    if (finish_called_ || pending_finish_) return;
+    // One message in flight and none waiting: an agent that does not read gets no queue that grows (its
+    // acknowledgements are cumulative and its corrections wait in its record).
+    if (finish_called_ || pending_finish_ || writing_ || !queue_.empty()) return;
     if (session_->nextDownlink(now, periodic_)) enqueueLocked(periodic_);
   }
 

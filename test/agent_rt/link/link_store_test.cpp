@@ -274,6 +274,74 @@ TEST_F(LinkStoreTest, ANewMapOfTheAgentBecomesASecondServerMapAndTheFirstStays) 
   EXPECT_TRUE(server.consistent().ok());
 }
 
+TEST_F(LinkStoreTest, APointThatLeftTheLocalMapStaysUntilTheObservationsOfItAreAcknowledged) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  ackAll();
+  // Keyframe 1 observes point 100, which then leaves the bounded local map.
+  map.addKeyframe(1, {100}, {101});
+  map.points.erase(100);
+  map.event(MapEventType::kPointRemoved, MapEventReason::kEvicted, 0, 100);
+  sut.onDelta(map.finish());
+  // A small budget: the keyframe goes in one batch, its observations in the next.
+  ASSERT_TRUE(sendNext(1024));
+  EXPECT_EQ(batch.observations_size(), 0);
+  ackAll();  // point 100 is acknowledged and out of the local map, but keyframe 1's link to it is not sent yet
+  while (sendNext()) {
+  }
+  ASSERT_NE(server.keyframe(1), nullptr);
+  EXPECT_EQ(server.keyframe(1)->observationCount(), 2);
+  EXPECT_EQ(server.point(100)->observations.size(), 2U);
+}
+
+TEST_F(LinkStoreTest, AMergeIntoAPointThatLeftTheLocalMapIsStillAMergeOnTheServer) {
+  reconnect();
+  map.ready = true;
+  map.addKeyframe(0, {}, {100, 101});
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  ackAll();
+  // The server is away: mapping merges 101 into 100, then 100 leaves the local map.
+  map.change();
+  map.event(MapEventType::kPointsMerged, MapEventReason::kNone, 0, 101, 100);
+  map.points.erase(101);
+  map.points.erase(100);
+  map.event(MapEventType::kPointRemoved, MapEventReason::kEvicted, 0, 100);
+  sut.onDelta(map.finish());
+  sut.onAck(server.stored());  // a late acknowledgement while the merge is still unsent
+  ASSERT_TRUE(sendNext());
+  ASSERT_EQ(batch.merges().drop_size(), 1);
+  EXPECT_EQ(batch.removed_points_size(), 0);
+  EXPECT_EQ(server.point(101), nullptr);
+  ASSERT_NE(server.point(100), nullptr);
+  EXPECT_EQ(server.keyframe(0)->observationCount(), 1);  // its link to 101 went with the merge (it saw both)
+}
+
+TEST_F(LinkStoreTest, AKeyframeThatLeavesInTheDeltaThatMakesTheMapReadyIsForgotten) {
+  reconnect();
+  map.addKeyframe(0, {}, {100});
+  sut.onDelta(map.finish());
+  map.addKeyframe(1, {}, {101});
+  sut.onDelta(map.finish());
+  // In the keyframe whose IMU initialisation succeeds, keyframe 0 is evicted first: its state is still in the
+  // frame before the initialisation, so it must not go up.
+  map.ready = true;
+  map.keyframes.erase(0);
+  map.points.erase(100);
+  map.addKeyframe(2, {101}, {102});
+  map.event(MapEventType::kKeyframeRemoved, MapEventReason::kEvicted, 0, 0);
+  map.event(MapEventType::kPointRemoved, MapEventReason::kEvicted, 0, 100);
+  sut.onDelta(map.finish());
+  ASSERT_TRUE(sendNext());
+  EXPECT_EQ(server.keyframe(0), nullptr);
+  EXPECT_EQ(server.point(100), nullptr);
+  EXPECT_NE(server.keyframe(1), nullptr);
+  EXPECT_NE(server.keyframe(2), nullptr);
+}
+
 TEST_F(LinkStoreTest, AGapInMappingsDeltasIsCounted) {
   map.addKeyframe(0, {}, {});
   sut.onDelta(map.finish());

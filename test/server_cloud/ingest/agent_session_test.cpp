@@ -446,7 +446,7 @@ TEST_F(AgentSessionTest, SecondProcessClaimingAConnectedAgentIsRefusedAsAlreadyE
   EXPECT_EQ(record()->read()->stored_sequence, 2U);
 }
 
-TEST_F(AgentSessionTest, SecondProcessIsWelcomedOnceTheFirstHasDisconnected) {
+TEST_F(AgentSessionTest, ANewProcessAfterOneThatStoredDataIsRefusedBecauseItsIdsWouldClash) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 1);
   sut->close(Status::Ok());
@@ -454,8 +454,22 @@ TEST_F(AgentSessionTest, SecondProcessIsWelcomedOnceTheFirstHasDisconnected) {
 
   const Status s = send(*restarted, helloMessage(kMission, kAgent, kOtherProcess));
 
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kFailedPrecondition);
+  EXPECT_THAT(s.error().message(), HasSubstr("streamed by another process before"));
+  EXPECT_THAT(s.error().message(), HasSubstr("another --agent-id or --mission"));
+  EXPECT_EQ(record()->read()->stored_sequence, 1U);  // what the first process sent stays
+}
+
+TEST_F(AgentSessionTest, ANewProcessIsWelcomedWhenTheOneBeforeStoredNothing) {
+  greet(*sut);
+  sut->close(Status::Ok());
+  auto restarted = openSession();
+
+  const Status s = send(*restarted, helloMessage(kMission, kAgent, kOtherProcess));
+
   ASSERT_TRUE(s.ok()) << s.error().toString();
-  EXPECT_EQ(reply_.welcome().stored_sequence(), 1U);
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 0U);
 }
 
 // ---- The server's corrections ----

@@ -542,12 +542,16 @@ TEST_F(GrpcServerTest, AgentVanishingWhileADownlinkIsInFlightIsDisconnectedAndCa
     connected = agentStats(kHostileAgent)->connected();
   }
   EXPECT_FALSE(connected);
-  // ...so a restarted agent process (another session) is welcomed instead of refused as a second process.
+  // ...so the same process coming back is welcomed with what it stored, and another process claiming the agent is
+  // refused because its ids would clash (FAILED_PRECONDITION), not as a second live process (ALREADY_EXISTS).
   AgentClient restarted(channel_);
-  auto welcome = restarted.greet(kHostileAgent, kHostileSession + 1);
+  EXPECT_FALSE(restarted.greet(kHostileAgent, kHostileSession + 1).has_value());
+  EXPECT_EQ(restarted.awaitEnd().error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  AgentClient back(channel_);
+  auto welcome = back.greet(kHostileAgent, kHostileSession);
   ASSERT_TRUE(welcome.has_value());
   EXPECT_EQ(welcome->stored_sequence(), 1U);
-  EXPECT_TRUE(restarted.close().ok());
+  EXPECT_TRUE(back.close().ok());
 }
 
 TEST_F(GrpcServerTest, AgentVanishingAfterARefusalWhileADownlinkIsInFlightIsDisconnected) {
@@ -569,8 +573,8 @@ TEST_F(GrpcServerTest, AgentVanishingAfterARefusalWhileADownlinkIsInFlightIsDisc
   }
   EXPECT_FALSE(connected);
   AgentClient restarted(channel_);
-  EXPECT_TRUE(restarted.greet(kHostileAgent, kHostileSession + 1).has_value());
-  EXPECT_TRUE(restarted.close().ok());
+  EXPECT_FALSE(restarted.greet(kHostileAgent, kHostileSession + 1).has_value());
+  EXPECT_EQ(restarted.awaitEnd().error_code(), grpc::StatusCode::FAILED_PRECONDITION);  // not ALREADY_EXISTS
 }
 
 TEST_F(GrpcServerTest, StartOnAPortInUseFailsNamingTheAddress) {
