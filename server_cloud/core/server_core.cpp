@@ -150,6 +150,10 @@ void ServerCore::sampleTimeline() {
     }
   }
   auto timeline = timeline_.write();
+  // Bounded for a server that runs for days: when full, the older half goes (timeline.csv then starts later).
+  if (timeline->size() + samples.size() > kMaxTimelineSamples) {
+    timeline->erase(timeline->begin(), timeline->begin() + static_cast<std::ptrdiff_t>(timeline->size() / 2));
+  }
   timeline->insert(timeline->end(), samples.begin(), samples.end());
 }
 

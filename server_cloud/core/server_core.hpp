@@ -52,6 +52,8 @@ struct TimelineSample {
 class ServerCore {
  public:
   using Clock = std::chrono::steady_clock;
+  // Timeline samples kept (about 80 bytes each): 24 h of 10 agents at 1 Hz fit.
+  static constexpr std::size_t kMaxTimelineSamples = 1U << 20U;
 
   explicit ServerCore(const ServerOptions& options);
 
