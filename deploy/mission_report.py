@@ -17,6 +17,7 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import mission_pictures  # noqa: E402  (deploy/mission_pictures.py: the SVGs and the HTML page)
+from mission_pictures import load_json  # noqa: E402
 
 
 def run_eval(eval_bin, pairs, json_path, align=None, per_pose=False):
@@ -35,28 +36,6 @@ def run_eval(eval_bin, pairs, json_path, align=None, per_pose=False):
         return None
     with open(json_path) as f:
         return json.load(f)
-
-
-def load_json(path):
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except (OSError, ValueError):
-        return None
-
-
-def read_csv(path):
-    rows = []
-    try:
-        with open(path) as f:
-            header = f.readline().strip().split(",")
-            for line in f:
-                values = line.strip().split(",")
-                if len(values) == len(header):
-                    rows.append(dict(zip(header, values)))
-    except OSError:
-        pass
-    return rows
 
 
 def counter(stats_map, kind):

@@ -20,15 +20,6 @@ namespace cvislam::agent {
 
 using Clock = std::chrono::steady_clock;
 
-namespace {
-// Bytes of an unsigned varint: what an id costs in a packed repeated field.
-std::uint64_t varintBytes(std::uint64_t v) {
-  std::uint64_t n = 1;
-  for (; v >= 128; v >>= 7U) ++n;
-  return n;
-}
-}  // namespace
-
 Status LinkOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "link: " + what}; };
   if (server.empty()) return Status::Ok();
@@ -77,8 +68,9 @@ struct Link::Impl {
     uplink = nullptr;
     arena.Reset();
   }
-  std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> up_by_kind;  // messages, bytes
-  std::map<std::string, std::pair<std::uint64_t, std::uint64_t>> down_by_kind;
+  using ByKind = std::map<std::string, std::pair<std::uint64_t, std::uint64_t>>;  // kind -> (messages, bytes)
+  ByKind up_by_kind;
+  ByKind down_by_kind;
   std::vector<TimelineRow> timeline;
   Clock::time_point start = Clock::now();
   double flush_wait_s = 0.0;
@@ -86,8 +78,7 @@ struct Link::Impl {
   mutable std::mutex status_mutex;
   LinkStatus status;  // guarded by status_mutex
 
-  void count(std::map<std::string, std::pair<std::uint64_t, std::uint64_t>>& by_kind, const std::string& kind,
-             std::uint64_t n, std::uint64_t bytes) {
+  static void count(ByKind& by_kind, const std::string& kind, std::uint64_t n, std::uint64_t bytes) {
     auto& c = by_kind[kind];
     c.first += n;
     c.second += bytes;
@@ -96,42 +87,25 @@ struct Link::Impl {
   void countBatch(const v1::MapBatch& b, std::uint64_t bytes) {
     count(up_by_kind, "message", 1, bytes);
     count(up_by_kind, "batch", 1, bytes);
-    std::uint64_t sum = 0;
-    for (const auto& k : b.keyframes()) sum += k.ByteSizeLong();
-    count(up_by_kind, "keyframe", static_cast<std::uint64_t>(b.keyframes_size()), sum);
-    sum = 0;
-    for (const auto& p : b.points()) sum += p.ByteSizeLong();
-    count(up_by_kind, "point", static_cast<std::uint64_t>(b.points_size()), sum);
-    sum = 0;
-    std::uint64_t observations = 0;
-    for (const auto& o : b.observations()) {
-      sum += o.ByteSizeLong();
-      observations += static_cast<std::uint64_t>(o.keypoint_size());
-    }
-    count(up_by_kind, "observation", observations, sum);
-    sum = 0;
-    for (const auto& u : b.keyframe_updates()) sum += u.ByteSizeLong();
-    count(up_by_kind, "keyframe_update", static_cast<std::uint64_t>(b.keyframe_updates_size()), sum);
-    count(up_by_kind, "point_update", static_cast<std::uint64_t>(b.point_updates().point_size()),
-          b.has_point_updates() ? b.point_updates().ByteSizeLong() : 0);
-    count(up_by_kind, "merge", static_cast<std::uint64_t>(b.merges().drop_size()),
-          b.has_merges() ? b.merges().ByteSizeLong() : 0);
-    std::uint64_t removal_bytes = 0;
-    for (std::uint32_t c : b.removed_points()) removal_bytes += varintBytes(c);
-    for (std::uint32_t c : b.removed_keyframes()) removal_bytes += varintBytes(c);
-    count(up_by_kind, "removal", static_cast<std::uint64_t>(b.removed_points_size() + b.removed_keyframes_size()),
-          removal_bytes);
+    for (const wire::BatchPart& part : wire::batchParts(b)) count(up_by_kind, part.kind, part.count, part.bytes);
+  }
+
+  static std::uint64_t messageBytes(const ByKind& by_kind) {
+    auto it = by_kind.find("message");
+    return it == by_kind.end() ? 0 : it->second.second;
+  }
+
+  void addTimelineRow(Clock::time_point now, bool connected) {
+    const LinkBacklog b = store.backlog();
+    timeline.push_back({std::chrono::duration<double>(now - start).count(), messageBytes(up_by_kind),
+                        messageBytes(down_by_kind), connected, b.keyframes_unsent + b.keyframes_unacked});
   }
 
   // Publishes a copy for other threads; everything is computed before the lock is taken.
   void publishStatus(bool connected, bool flushed, std::uint64_t sent_sequence) {
     const LinkBacklog backlog = store.backlog();
-    const auto total = [](std::map<std::string, std::pair<std::uint64_t, std::uint64_t>>& by_kind) {
-      auto it = by_kind.find("message");
-      return it == by_kind.end() ? std::pair<std::uint64_t, std::uint64_t>{0, 0} : it->second;
-    };
-    const auto up = total(up_by_kind);
-    const auto down = total(down_by_kind);
+    const std::uint64_t up = messageBytes(up_by_kind);
+    const std::uint64_t down = messageBytes(down_by_kind);
     std::string error = connected ? std::string() : client.lastError();
     std::lock_guard lock(status_mutex);
     status.connected = connected;
@@ -141,10 +115,8 @@ struct Link::Impl {
     status.acked_sequence = store.acked();
     status.sent_sequence = sent_sequence;
     status.flushed = flushed;
-    status.up_messages = up.first;
-    status.up_bytes = up.second;
-    status.down_messages = down.first;
-    status.down_bytes = down.second;
+    status.up_bytes = up;
+    status.down_bytes = down;
   }
 };
 
@@ -281,11 +253,7 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
       }
     }
     if (now >= next_sample) {
-      const LinkBacklog b = s.store.backlog();
-      s.timeline.push_back({std::chrono::duration<double>(now - s.start).count(),
-                            s.up_by_kind.count("message") != 0 ? s.up_by_kind["message"].second : 0,
-                            s.down_by_kind.count("message") != 0 ? s.down_by_kind["message"].second : 0, connected,
-                            b.keyframes_unsent + b.keyframes_unacked});
+      s.addTimelineRow(now, connected);
       next_sample += std::chrono::seconds(1);
     }
     if (now >= next_status) {
@@ -294,12 +262,7 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
-  // The last row: what was sent and received in all, the final flush included.
-  const LinkBacklog last = s.store.backlog();
-  s.timeline.push_back({std::chrono::duration<double>(Clock::now() - s.start).count(),
-                        s.up_by_kind.count("message") != 0 ? s.up_by_kind["message"].second : 0,
-                        s.down_by_kind.count("message") != 0 ? s.down_by_kind["message"].second : 0, connected,
-                        last.keyframes_unsent + last.keyframes_unacked});
+  s.addTimelineRow(Clock::now(), connected);  // the last row: everything, the final flush included
   if (connected && flushed) {
     s.goodbye.mutable_goodbye()->set_end_of_mission(true);
     if (s.client.send(s.goodbye)) {

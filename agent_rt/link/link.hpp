@@ -78,11 +78,8 @@ struct LinkStatus {
   LinkStoreCounters store;
   std::uint64_t acked_sequence = 0;
   std::uint64_t sent_sequence = 0;
-  std::uint64_t up_messages = 0;
   std::uint64_t up_bytes = 0;
-  std::uint64_t down_messages = 0;
   std::uint64_t down_bytes = 0;
-  std::uint64_t corrections = 0;
   bool flushed = false;  // at the end: everything acknowledged
 };
 

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 #include <string>
 
 #include "agent_rt/runtime/message_conversions.hpp"
@@ -85,6 +86,28 @@ float distance(const std::array<float, 3>& a, const std::array<float, 3>& b) {
   return std::sqrt(dx * dx + dy * dy + dz * dz);
 }
 
+// What to give up when a pool is full: an object that has left the local map, an acknowledged one first, then the
+// oldest by `age`. Nothing when every object is still in the local map.
+struct Eviction {
+  PoolHandle handle;
+  bool acked = false;
+};
+template <typename Pool, typename Age>
+std::optional<Eviction> evictionCandidate(const Pool& pool, std::uint64_t acked, Age age) {
+  std::optional<Eviction> best;
+  std::int64_t best_age = 0;
+  pool.forEach([&](PoolHandle h, const auto& object) {
+    if (object.in_local_map) return;
+    const bool is_acked = object.full_sent != 0 && object.full_sent <= acked;
+    const std::int64_t a = age(object);
+    if (!best || (is_acked && !best->acked) || (is_acked == best->acked && a < best_age)) {
+      best = Eviction{h, is_acked};
+      best_age = a;
+    }
+  });
+  return best;
+}
+
 void writeState(std::uint32_t counter, const KeyframeStateMsg& m, v1::KeyframeState* out) {
   wire::toProto(counter, wire::KeyframeStateValues{fromMsg(m.T_w_s), toVector3(m.v_w), biasFromMsg(m.bias)}, out);
 }
@@ -157,24 +180,10 @@ void LinkStore::erasePoint(PoolHandle handle) {
 }
 
 bool LinkStore::makeRoomForKeyframe() {
-  // The oldest keyframe that has left the local map: acknowledged ones first, else one the server never got.
-  PoolHandle best;
-  bool found = false;
-  bool best_acked = false;
-  std::int64_t best_t = 0;
-  keyframes_->forEach([&](PoolHandle h, const Keyframe& kf) {
-    if (kf.in_local_map) return;
-    const bool acked = kf.full_sent != 0 && kf.full_sent <= acked_;
-    if (!found || (acked && !best_acked) || (acked == best_acked && kf.t_ns < best_t)) {
-      best = h;
-      best_acked = acked;
-      best_t = kf.t_ns;
-      found = true;
-    }
-  });
-  if (!found) return false;
-  if (!best_acked) ++counters_.keyframes_dropped;
-  eraseKeyframe(best);
+  const auto victim = evictionCandidate(*keyframes_, acked_, [](const Keyframe& kf) { return kf.t_ns; });
+  if (!victim) return false;
+  if (!victim->acked) ++counters_.keyframes_dropped;
+  eraseKeyframe(victim->handle);
   return true;
 }
 
@@ -224,27 +233,10 @@ void LinkStore::addKeyframe(const MapDeltaMessage& d) {
 void LinkStore::addPoint(const NewPointMsg& n, std::uint32_t map_id) {
   if (point(n.id.counter) != nullptr) return;
   if (points_->full()) {
-    // The oldest-made point that has left the local map goes (acknowledged ones first).
-    PoolHandle victim;
-    bool found = false;
-    bool victim_acked = false;
-    std::uint32_t victim_counter = 0;
-    points_->forEach([&](PoolHandle h, const Point& p) {
-      if (p.in_local_map) return;
-      const bool acked = p.full_sent != 0 && p.full_sent <= acked_;
-      if (!found || (acked && !victim_acked) || (acked == victim_acked && p.counter < victim_counter)) {
-        victim = h;
-        victim_acked = acked;
-        victim_counter = p.counter;
-        found = true;
-      }
-    });
-    if (!found) {
-      ++counters_.points_dropped;
-      return;
-    }
-    if (!victim_acked) ++counters_.points_dropped;
-    erasePoint(victim);
+    const auto victim = evictionCandidate(*points_, acked_, [](const Point& p) { return std::int64_t{p.counter}; });
+    if (!victim || !victim->acked) ++counters_.points_dropped;
+    if (!victim) return;
+    erasePoint(victim->handle);
   }
   const auto handle = points_->acquire();
   if (!handle) return;

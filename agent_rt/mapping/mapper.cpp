@@ -8,6 +8,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "agent_rt/mapping/map_delta_writer.hpp"
 #include "agent_rt/mapping/two_view_initialiser.hpp"
 #include "agent_rt/runtime/message_conversions.hpp"
 #include "agent_rt/tracking/projection_search.hpp"
@@ -72,27 +73,7 @@ struct Mapper::State {
   bool seen_message = false;
   std::uint32_t keyframe_map_id = 0;  // the map the keyframe being processed was inserted into
 
-  // Records the local map's events into the delta being written.
-  class DeltaEvents final : public MapEventSink {
-   public:
-    void start(MapDeltaMessage* delta) {
-      delta_ = delta;
-      delta_->event_count = 0;
-      delta_->events_lost = 0;
-    }
-    void record(const MapEvent& event) override {
-      if (delta_->event_count < delta_->events.size()) {
-        delta_->events[delta_->event_count++] = event;
-      } else {
-        ++delta_->events_lost;
-      }
-    }
-
-   private:
-    MapDeltaMessage* delta_ = nullptr;
-  };
-  DeltaEvents delta_events;
-  std::vector<MapPointId> created_ids;  // scratch: points made with this keyframe
+  MapDeltaWriter delta_writer;  // the link's delta, when one is asked for
 
   // Scratch (mapping may allocate, but reuses).
   KeyframeData scratch;
@@ -173,7 +154,6 @@ Result<std::unique_ptr<Mapper>> Mapper::create(const MapperOptions& options, con
     state->options.ba.T_c1_c0 = T_c0_c1.inverse();
   }
   state->imu_samples.reserve(kMaxImuSamplesPerKeyframe);
-  state->created_ids.reserve(kMaxKeypointsPerKeyframe * 4);
   state->point_index.reserve(kMaxMapPoints * 2);
   return std::unique_ptr<Mapper>(new Mapper(std::move(state)));
 }
@@ -413,12 +393,7 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
   s.keyframe_slot.assign(kMaxKeyframes, -1);
   s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
     s.keyframe_slot[h.index] = out.keyframe_count;
-    KeyframeStateMsg& m = out.keyframes[out.keyframe_count++];
-    m.id = kf.id;
-    m.t_ns = kf.t_ns;
-    m.T_w_s = toMsg(kf.T_w_s);
-    m.v_w = toArray(kf.v_w);
-    m.bias = toMsg(kf.bias);
+    out.keyframes[out.keyframe_count++] = toStateMsg(kf);
   });
   out.point_count = 0;
   const bool ready = !s.right ? s.mono_initialised : true;
@@ -579,85 +554,14 @@ Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& re
   return Status::Ok();
 }
 
-// What changed with this keyframe, for the link: the keyframe in full (when it is still in the map), the points
-// made with it, the events recorded while processing it (already in `delta`), and the states and positions of
-// everything in the local map now.
-void writeDelta(Mapper::State& s, const KeyframeMessage& msg, MapDeltaMessage& delta) {
-  delta.map_id = s.map_id;
-  delta.map_epoch = s.epoch;
-  const bool started = s.right.has_value() || s.mono_initialised;
-  delta.ready = (s.options.use_imu ? s.imu_initialised : started) ? 1 : 0;
-  delta.t_ns = msg.state.t_ns;
-  delta.has_keyframe = 0;
-  delta.keypoint_count = 0;
-  delta.imu_count = 0;
-  delta.keyframe_count = 0;
-  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) {
-    KeyframeStateMsg& m = delta.keyframes[delta.keyframe_count++];
-    m.id = kf.id;
-    m.t_ns = kf.t_ns;
-    m.T_w_s = toMsg(kf.T_w_s);
-    m.v_w = toArray(kf.v_w);
-    m.bias = toMsg(kf.bias);
-    if (!(kf.id == msg.state.id)) return;
-    delta.has_keyframe = 1;
-    delta.keyframe_map_id = s.keyframe_map_id;
-    delta.keyframe = m;
-    delta.has_imu_link = kf.has_preintegration ? 1 : 0;
-    delta.imu_from = kf.preintegration_from;
-    delta.keypoint_count = kf.keypoint_count;
-    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
-      delta.keypoints[k] = msg.keypoints[k];
-      delta.descriptors[k] = kf.descriptors[k];
-      delta.has_right[k] = kf.has_right[k] ? 1 : 0;
-      delta.right_px[k] = {static_cast<float>(kf.right_undistorted_px[k].x()),
-                           static_cast<float>(kf.right_undistorted_px[k].y())};
-      delta.right_octave[k] = kf.right_octave[k];
-      delta.has_observation[k] = kf.has_map_point[k] ? 1 : 0;
-      if (const MapPointData* p = kf.has_map_point[k] ? s.map.mapPoints().get(kf.map_point[k]) : nullptr) {
-        delta.observation[k] = p->id;
-      } else {
-        delta.has_observation[k] = 0;
-      }
-    }
-    delta.imu_count = std::min<std::uint32_t>(msg.imu_count, static_cast<std::uint32_t>(delta.imu.size()));
-    std::copy_n(msg.imu.begin(), delta.imu_count, delta.imu.begin());
-  });
-  // Points made with this keyframe, found among all points while their positions are written.
-  s.created_ids.clear();
-  for (std::uint16_t i = 0; i < delta.event_count; ++i) {
-    if (delta.events[i].type == MapEventType::kPointCreated) s.created_ids.push_back(delta.events[i].point);
-  }
-  std::sort(s.created_ids.begin(), s.created_ids.end());
-  delta.point_count = 0;
-  delta.new_point_count = 0;
-  s.map.mapPoints().forEach([&](PoolHandle h, const MapPointData& p) {
-    const auto p_w = s.map.pointInWorld(h);
-    if (!p_w || !p_w->allFinite()) return;
-    const std::array<float, 3> position{static_cast<float>(p_w->x()), static_cast<float>(p_w->y()),
-                                        static_cast<float>(p_w->z())};
-    delta.points[delta.point_count++] = {p.id, position};
-    if (!std::binary_search(s.created_ids.begin(), s.created_ids.end(), p.id)) return;
-    if (delta.new_point_count >= delta.new_points.size()) return;
-    const KeyframeData* reference = s.map.keyframes().get(p.reference);
-    if (reference == nullptr) return;
-    NewPointMsg& n = delta.new_points[delta.new_point_count++];
-    n.id = p.id;
-    n.reference = reference->id;
-    n.p_w = position;
-    n.descriptor = p.descriptor;
-    n.octave = p.octave;
-  });
-}
-
 }  // namespace
 
 Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta) {
   State& s = *s_;
   MapperReport report;
   if (delta != nullptr) {
-    s.delta_events.start(delta);
-    s.map.setEventSink(&s.delta_events);
+    s.delta_writer.start(*delta);
+    s.map.setEventSink(&s.delta_writer);
   }
   // Whatever path leaves this function, the sink is detached and the delta written.
   struct DeltaGuard {
@@ -668,7 +572,9 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     ~DeltaGuard() {
       if (delta == nullptr) return;
       s.map.setEventSink(nullptr);
-      writeDelta(s, msg, *delta);
+      const bool started = s.right.has_value() || s.mono_initialised;
+      s.delta_writer.finish(s.map, msg,
+                            {s.map_id, s.epoch, s.options.use_imu ? s.imu_initialised : started, s.keyframe_map_id});
       report.delta_events_lost = delta->events_lost;
     }
   } delta_guard{s, delta, msg, report};

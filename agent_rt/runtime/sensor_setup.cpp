@@ -59,4 +59,19 @@ std::span<const dataset::ImuSample> imuCovering(std::span<const dataset::ImuSamp
   return {&*first, static_cast<std::size_t>(last - first)};
 }
 
+LinkSensors linkSensors(const dataset::EurocSequence& sequence, const SensorSetup& setup, bool stereo, bool uses_imu) {
+  LinkSensors sensors;
+  sensors.stereo = stereo;
+  sensors.uses_imu = uses_imu;
+  sensors.cam0 = sequence.cam0().calibration;
+  sensors.T_s_c0 = setup.T_s_c;
+  if (stereo && sequence.cam1() != nullptr) {
+    sensors.cam1 = sequence.cam1()->calibration;
+    sensors.T_s_c1 = setup.T_s_c * setup.T_c0_c1;
+  }
+  sensors.imu_noise = setup.noise;
+  if (sequence.imuCalibration()) sensors.imu_rate_hz = sequence.imuCalibration()->rate_hz;
+  return sensors;
+}
+
 }  // namespace cvislam::agent

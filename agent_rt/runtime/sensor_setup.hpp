@@ -9,6 +9,7 @@
 #include <span>
 #include <vector>
 
+#include "agent_rt/link/link.hpp"
 #include "agent_rt/mapping/mapper.hpp"
 #include "agent_rt/tracking/tracker.hpp"
 #include "common/camera/camera_model.hpp"
@@ -34,6 +35,10 @@ Result<SensorSetup> makeSensorSetup(const dataset::EurocSequence& sequence, bool
 // Fills what the options take from the sensors: IMU noise, intrinsics, the ORB pyramid shared by tracking and
 // mapping, and (stereo) IMU initialisation after at most 10 keyframes, since the map is metric already.
 void applySensorSetup(const SensorSetup& setup, TrackerOptions& tracking, MapperOptions& mapping);
+
+// What the link's Hello tells the server about the sensors: calibrations, extrinsics and the IMU noise as the
+// agent uses it.
+LinkSensors linkSensors(const dataset::EurocSequence& sequence, const SensorSetup& setup, bool stereo, bool uses_imu);
 
 // The frames to run, in time order: stereo pairs, or every cam0 frame.
 std::vector<dataset::RigFrame> framesToRun(const dataset::EurocSequence& sequence, bool stereo);

@@ -2,6 +2,7 @@
 
 #include <cmath>
 
+#include "cvislam/v1/agent_link.pb.h"
 #include "cvislam/v1/types.pb.h"
 #include "google/protobuf/repeated_field.h"
 
@@ -187,6 +188,34 @@ void unpackDescriptor(const std::uint64_t* words4, std::uint8_t* bytes32) {
       bytes32[8 * w + b] = static_cast<std::uint8_t>((words4[w] >> (8U * static_cast<unsigned>(b))) & 0xFFU);
     }
   }
+}
+
+std::uint64_t varintBytes(std::uint64_t value) {
+  std::uint64_t n = 1;
+  for (; value >= 128; value >>= 7U) ++n;
+  return n;
+}
+
+std::array<BatchPart, 7> batchParts(const v1::MapBatch& b) {
+  const auto sum = [](const auto& messages) {
+    std::uint64_t bytes = 0;
+    for (const auto& m : messages) bytes += m.ByteSizeLong();
+    return bytes;
+  };
+  std::uint64_t observations = 0;
+  for (const auto& o : b.observations()) observations += static_cast<std::uint64_t>(o.keypoint_size());
+  std::uint64_t removal_bytes = 0;
+  for (std::uint32_t c : b.removed_points()) removal_bytes += varintBytes(c);
+  for (std::uint32_t c : b.removed_keyframes()) removal_bytes += varintBytes(c);
+  const auto count = [](int n) { return static_cast<std::uint64_t>(n); };
+  return {{{"keyframe", count(b.keyframes_size()), sum(b.keyframes())},
+           {"point", count(b.points_size()), sum(b.points())},
+           {"observation", observations, sum(b.observations())},
+           {"merge", count(b.merges().drop_size()), b.has_merges() ? b.merges().ByteSizeLong() : 0},
+           {"keyframe_update", count(b.keyframe_updates_size()), sum(b.keyframe_updates())},
+           {"point_update", count(b.point_updates().point_size()),
+            b.has_point_updates() ? b.point_updates().ByteSizeLong() : 0},
+           {"removal", count(b.removed_points_size() + b.removed_keyframes_size()), removal_bytes}}};
 }
 
 std::uint8_t encodeAngle(float angle_deg) {

@@ -3,6 +3,7 @@
 // values is an error that names the field, never a crash.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <string>
 
@@ -14,6 +15,7 @@
 #include "common/imu/preintegration.hpp"
 
 namespace cvislam::v1 {
+class MapBatch;
 class Pose;
 class KeyframeState;
 class CameraCalibration;
@@ -56,6 +58,18 @@ Status checkFinite(const google::protobuf::RepeatedField<float>& values, int cou
 // A 32-byte descriptor as the 4 words of the protocol (byte 8w+b is bits 8b..8b+7 of word w), and back.
 void packDescriptor(const std::uint8_t* bytes32, google::protobuf::RepeatedField<std::uint64_t>* words);
 void unpackDescriptor(const std::uint64_t* words4, std::uint8_t* bytes32);
+
+// What one batch carries, part by part: (objects, serialized bytes) per kind, so that the agent and the server
+// count traffic the same way. Kinds: keyframe, point, observation, merge, keyframe_update, point_update, removal.
+struct BatchPart {
+  const char* kind;
+  std::uint64_t count;
+  std::uint64_t bytes;
+};
+std::array<BatchPart, 7> batchParts(const v1::MapBatch& batch);
+
+// Bytes of an unsigned varint: what an id costs in a packed repeated field.
+std::uint64_t varintBytes(std::uint64_t value);
 
 // Keypoint orientation, 256 steps per turn.
 std::uint8_t encodeAngle(float angle_deg);

@@ -176,7 +176,6 @@ Status ServerCore::correctKeyframe(const std::string& mission_name, const Keyfra
     kf->T_w_s = T_m_s;
     kf->v_w = v_m;
     kf->bias = bias;
-    ++kf->server_version;
   }
   record->corrections.insert(id.counter);
   return Status::Ok();

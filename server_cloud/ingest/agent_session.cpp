@@ -15,15 +15,6 @@ Error invalid(const std::string& what) {
   return Error{ErrorCode::kInvalidArgument, what};
 }
 
-std::uint64_t varintSize(std::uint64_t v) {
-  std::uint64_t n = 1;
-  while (v >= 128) {
-    v >>= 7U;
-    ++n;
-  }
-  return n;
-}
-
 // A mission name: 1 to 128 characters of [A-Za-z0-9._-], so that it can name files and metrics safely.
 Status checkMissionName(const std::string& name) {
   if (name.empty() || name.size() > 128) {
@@ -238,31 +229,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   record->imu_links_missing += static_cast<std::uint64_t>(report->imu_links_missing);
 
   // Traffic by kind: the serialized size of each part.
-  std::uint64_t bytes = 0;
-  for (const auto& k : batch.keyframes()) bytes += k.ByteSizeLong();
-  record->up["keyframe"].add(static_cast<std::uint64_t>(batch.keyframes_size()), bytes);
-  bytes = 0;
-  for (const auto& p : batch.points()) bytes += p.ByteSizeLong();
-  record->up["point"].add(static_cast<std::uint64_t>(batch.points_size()), bytes);
-  bytes = 0;
-  std::uint64_t observations = 0;
-  for (const auto& o : batch.observations()) {
-    bytes += o.ByteSizeLong();
-    observations += static_cast<std::uint64_t>(o.keypoint_size());
-  }
-  record->up["observation"].add(observations, bytes);
-  record->up["merge"].add(static_cast<std::uint64_t>(batch.merges().drop_size()),
-                          batch.has_merges() ? batch.merges().ByteSizeLong() : 0);
-  bytes = 0;
-  for (const auto& u : batch.keyframe_updates()) bytes += u.ByteSizeLong();
-  record->up["keyframe_update"].add(static_cast<std::uint64_t>(batch.keyframe_updates_size()), bytes);
-  record->up["point_update"].add(static_cast<std::uint64_t>(batch.point_updates().point_size()),
-                                 batch.has_point_updates() ? batch.point_updates().ByteSizeLong() : 0);
-  bytes = 0;
-  for (std::uint32_t c : batch.removed_points()) bytes += varintSize(c);
-  for (std::uint32_t c : batch.removed_keyframes()) bytes += varintSize(c);
-  record->up["removal"].add(static_cast<std::uint64_t>(batch.removed_points_size() + batch.removed_keyframes_size()),
-                            bytes);
+  for (const wire::BatchPart& part : wire::batchParts(batch)) record->up[part.kind].add(part.count, part.bytes);
   return Status::Ok();
 }
 

@@ -40,9 +40,6 @@ struct ServerKeyframe {
   geometry::SE3d T_w_s;  // in the server map's frame M
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
   imu::ImuBias bias;
-  // Counts the server's own changes of the state (global BA, loop closure, merge), so that the downlink sends a
-  // keyframe again only after it changed again. The agent's updates do not count.
-  std::uint64_t server_version = 0;
   std::vector<features::Keypoint> keypoints;
   std::vector<features::Descriptor> descriptors;
   std::vector<RightObservation> right;

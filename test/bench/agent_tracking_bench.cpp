@@ -27,6 +27,7 @@
 
 #include "agent_rt/link/link.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
+#include "agent_rt/runtime/sensor_setup.hpp"
 #include "test/support/delta_queue.hpp"
 #include "test/support/inline_agent.hpp"
 #include "test/support/test_data.hpp"
@@ -103,15 +104,13 @@ int main(int argc, char** argv) {
       options.server = server;
       options.mission = "bench-pass" + std::to_string(pass);  // a fresh mission each pass: same ids, no clash
       options.flush_timeout_s = 5.0;
-      cvislam::agent::LinkSensors sensors;
-      sensors.stereo = mode == "stereo";
-      sensors.cam0 = sequence->cam0().calibration;
-      sensors.T_s_c0 = sequence->cam0().calibration.T_b_c;
-      if (sensors.stereo) {
-        sensors.cam1 = sequence->cam1()->calibration;
-        sensors.T_s_c1 = sequence->cam1()->calibration.T_b_c;
+      auto setup = cvislam::agent::makeSensorSetup(*sequence, mode == "stereo", 1.0);
+      if (!setup) {
+        std::cerr << "bench_agent_tracking: " << setup.error().toString() << "\n";
+        return 1;
       }
-      auto created = cvislam::agent::Link::create(options, 0, sensors);  // the inline agent's id
+      auto created = cvislam::agent::Link::create(  // agent 0: the inline agent's id
+          options, 0, cvislam::agent::linkSensors(*sequence, *setup, mode == "stereo", true));
       if (!created) {
         std::cerr << "bench_agent_tracking: " << created.error().toString() << "\n";
         return 1;

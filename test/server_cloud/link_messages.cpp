@@ -4,6 +4,7 @@
 #include <cmath>
 #include <random>
 
+#include "common/dataset/euroc_calibration.hpp"
 #include "proto/wire/wire.hpp"
 
 namespace cvislam::server::test {
@@ -12,38 +13,24 @@ std::int64_t keyframeTime(std::uint32_t counter) {
   return kFirstKeyframeNs + static_cast<std::int64_t>(counter) * kKeyframeSpacingNs;
 }
 
-v1::Hello makeHello(const std::string& mission, std::uint32_t agent_id, std::uint64_t session) {
+v1::Hello makeHello(const std::string& mission, std::uint32_t agent_id, std::uint64_t session, bool stereo) {
   v1::Hello hello;
-  hello.set_protocol_version(1);
+  hello.set_protocol_version(wire::kProtocolVersion);
   hello.set_mission(mission);
   hello.set_agent_id(agent_id);
   hello.set_session(session);
-  hello.set_mode(v1::SENSOR_MODE_MONO);
+  hello.set_mode(stereo ? v1::SENSOR_MODE_STEREO : v1::SENSOR_MODE_MONO);
   hello.set_uses_imu(true);
   hello.set_software("server test");
-  // EuRoC cam0.
-  v1::CameraCalibration* cam = hello.mutable_cam0();
-  cam->set_width(kImageWidth);
-  cam->set_height(kImageHeight);
-  cam->set_rate_hz(20.0);
-  cam->set_fx(458.654);
-  cam->set_fy(457.296);
-  cam->set_cx(367.215);
-  cam->set_cy(248.375);
-  cam->set_distortion(v1::DISTORTION_RADIAL_TANGENTIAL);
-  for (double k : {-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05}) cam->add_distortion_coefficients(k);
-  v1::Pose* T_s_c = cam->mutable_t_s_c();
-  T_s_c->set_px(-0.0216401454975);
-  T_s_c->set_py(-0.064676986768);
-  T_s_c->set_pz(0.00981073058949);
-  T_s_c->set_qw(1.0F);
-  // EuRoC imu0.
-  v1::ImuCalibration* imu = hello.mutable_imu();
-  imu->set_rate_hz(200.0);
-  imu->set_gyro_noise_density(1.6968e-4);
-  imu->set_gyro_random_walk(1.9393e-5);
-  imu->set_accel_noise_density(2.0e-3);
-  imu->set_accel_random_walk(3.0e-3);
+  // EuRoC's cameras and IMU (body = IMU frame, so T_s_c is the camera's T_BS).
+  const dataset::CameraCalibration cam0 = dataset::eurocCam0();
+  wire::toProto(cam0, cam0.T_b_c, hello.mutable_cam0());
+  if (stereo) {
+    const dataset::CameraCalibration cam1 = dataset::eurocCam1();
+    wire::toProto(cam1, cam1.T_b_c, hello.mutable_cam1());
+  }
+  const dataset::ImuCalibration imu = dataset::eurocImu();
+  wire::toProto(imu::ImuNoise::fromCalibration(imu), imu.rate_hz, hello.mutable_imu());
   return hello;
 }
 

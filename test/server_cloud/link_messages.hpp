@@ -22,7 +22,8 @@ inline constexpr std::int64_t kFirstKeyframeNs = 1'000'000'000;
 // The time of keyframe `counter` when keyframes are kKeyframeSpacingNs apart.
 std::int64_t keyframeTime(std::uint32_t counter);
 
-v1::Hello makeHello(const std::string& mission, std::uint32_t agent_id, std::uint64_t session);
+// A Hello of an agent with EuRoC's sensors: cam0 (and cam1 when `stereo`) and the IMU.
+v1::Hello makeHello(const std::string& mission, std::uint32_t agent_id, std::uint64_t session, bool stereo = false);
 v1::AgentUplink helloMessage(const std::string& mission, std::uint32_t agent_id, std::uint64_t session);
 
 // The state of keyframe `counter`: a pose that moves along x and turns about z, unit quaternion, a velocity

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <cstdio>
 #include <functional>
 #include <memory>
 #include <vector>
@@ -35,6 +36,38 @@ class InlineAgent {
     return result;
   }
   [[nodiscard]] bool imuInitialised() const { return tracker_->imuInitialised(); }
+
+  // What countSteadyAllocations() saw once the IMU was initialised.
+  struct SteadyAllocations {
+    int frames = 0;
+    int tracked = 0;
+    int keyframes = 0;
+    long allocations = 0;
+  };
+  // Loads and tracks every frame. Once the IMU is initialised, adds up `count()` (an allocation counter) taken
+  // just before and after each track(), and prints the frames that allocated. `after_frame(i)` runs after each.
+  template <typename Count, typename AfterFrame>
+  Result<SteadyAllocations> countSteadyAllocations(Count&& count, AfterFrame&& after_frame) {
+    SteadyAllocations out;
+    for (std::size_t i = 0; i < frameCount(); ++i) {
+      if (Status s = load(i); !s.ok()) return s.error();
+      const bool steady = imuInitialised();
+      long before = 0;
+      long after = 0;
+      const agent::FrameResult r = track([&] { before = count(); }, [&] { after = count(); });
+      after_frame(i);
+      if (!steady) continue;
+      ++out.frames;
+      out.tracked += r.tracked ? 1 : 0;
+      out.keyframes += r.keyframe ? 1 : 0;
+      out.allocations += after - before;
+      if (after != before) {
+        std::printf("frame %zu: %ld allocations (keyframe %d, issue %s)\n", i, after - before, r.keyframe ? 1 : 0,
+                    agent::toString(r.issue));
+      }
+    }
+    return out;
+  }
   // From now on mapping also writes its map delta (what the link to the server reads) after each keyframe and
   // hands it to `sink`, on this thread.
   void onDelta(std::function<void(const agent::MapDeltaMessage&)> sink) {

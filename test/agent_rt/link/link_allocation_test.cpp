@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include "agent_rt/link/link.hpp"
+#include "agent_rt/runtime/sensor_setup.hpp"
 #include "cvislam/v1/monitor.pb.h"
 #include "server_cloud/service/grpc_server.hpp"
 #include "test/agent_rt/link/link_test_support.hpp"
@@ -39,13 +40,9 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   LinkOptions link_options;
   link_options.server = (*grpc_server)->address();
   link_options.mission = "allocations";
-  LinkSensors sensors;
-  sensors.stereo = true;
-  sensors.cam0 = seq->cam0().calibration;
-  sensors.T_s_c0 = seq->cam0().calibration.T_b_c;
-  sensors.cam1 = seq->cam1()->calibration;
-  sensors.T_s_c1 = seq->cam1()->calibration.T_b_c;
-  auto link = Link::create(link_options, test::kAgent, sensors);
+  auto setup = makeSensorSetup(*seq, /*stereo=*/true, 1.0);
+  ASSERT_TRUE(setup.ok()) << setup.error().toString();
+  auto link = Link::create(link_options, test::kAgent, linkSensors(*seq, *setup, /*stereo=*/true, /*uses_imu=*/true));
   ASSERT_TRUE(link.ok()) << link.error().toString();
   test::DeltaQueue deltas(16);
   // The link thread's own allocation count, sampled by the link thread itself once half the sequence has passed.
@@ -76,25 +73,20 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   auto agent = cvislam::test::InlineAgent::create(*seq, true, tracker_options, mapper_options);
   ASSERT_TRUE(agent.ok()) << agent.error().toString();
   (*agent)->onDelta([&](const MapDeltaMessage& d) { deltas.push(d); });
-  long steady_allocations = 0;
-  int steady_frames = 0;
-  int steady_keyframes = 0;
-  for (std::size_t i = 0; i < (*agent)->frameCount(); ++i) {
-    ASSERT_TRUE((*agent)->load(i).ok());
-    const bool steady = (*agent)->imuInitialised();
-    long before = 0;
-    long after = 0;
-    const FrameResult r = (*agent)->track([&] { before = cvislam::test::threadMallocCount(); },
-                                          [&] { after = cvislam::test::threadMallocCount(); });
-    // Paced like the sensor (20 Hz), so that the link streams while tracking runs.
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    if (i == (*agent)->frameCount() / 2) halfway.store(true);
-    if (i + 1 == (*agent)->frameCount()) end_at = std::chrono::steady_clock::now();
-    if (!steady) continue;
-    ++steady_frames;
-    steady_keyframes += r.keyframe ? 1 : 0;
-    steady_allocations += after - before;
-  }
+  auto counted = (*agent)->countSteadyAllocations([] { return cvislam::test::threadMallocCount(); },
+                                                  [&](std::size_t i) {
+                                                    // Paced like the sensor (20 Hz): the link streams while tracking
+                                                    // runs.
+                                                    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+                                                    if (i == (*agent)->frameCount() / 2) halfway.store(true);
+                                                    if (i + 1 == (*agent)->frameCount()) {
+                                                      end_at = std::chrono::steady_clock::now();
+                                                    }
+                                                  });
+  ASSERT_TRUE(counted.ok()) << counted.error().toString();
+  const int steady_frames = counted->frames;
+  const int steady_keyframes = counted->keyframes;
+  const long steady_allocations = counted->allocations;
   stop.store(true);
   link_thread.join();
   const LinkStatus status = (*link)->status();

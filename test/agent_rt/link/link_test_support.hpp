@@ -17,6 +17,7 @@
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 #include "server_cloud/core/server_core.hpp"
+#include "test/server_cloud/link_messages.hpp"
 #include "test/support/delta_queue.hpp"
 
 namespace cvislam::agent::test {
@@ -179,17 +180,8 @@ class ServerSide {
   std::uint64_t connect(std::uint64_t last_acked) {
     session_ = core_->openSession({});
     v1::AgentUplink hello;
-    v1::Hello& h = *hello.mutable_hello();
-    h.set_protocol_version(wire::kProtocolVersion);
-    h.set_mission(mission_);
-    h.set_agent_id(kAgent);
-    h.set_session(42);
-    h.set_last_acked_sequence(last_acked);
-    h.set_mode(stereo_ ? v1::SENSOR_MODE_STEREO : v1::SENSOR_MODE_MONO);
-    h.set_uses_imu(true);
-    wire::toProto(dataset::CameraCalibration{}, geometry::SE3d(), h.mutable_cam0());
-    if (stereo_) wire::toProto(dataset::CameraCalibration{}, geometry::SE3d(), h.mutable_cam1());
-    wire::toProto(imu::ImuNoise{}, 200.0, h.mutable_imu());
+    *hello.mutable_hello() = server::test::makeHello(mission_, kAgent, 42, stereo_);
+    hello.mutable_hello()->set_last_acked_sequence(last_acked);
     v1::ServerDownlink welcome;
     bool due = false;
     const Status s = session_->handle(hello, hello.ByteSizeLong(), welcome, due);

@@ -25,26 +25,12 @@ void expectSteadyStateAllocatesNothing(const TrackerOptions& options) {
   auto agent = test::InlineAgent::create(*seq, true, options);
   ASSERT_TRUE(agent.ok()) << agent.error().toString();
 
-  long steady_allocations = 0;
-  int steady_frames = 0;
-  int steady_tracked = 0;
-  int steady_keyframes = 0;
-  for (std::size_t i = 0; i < (*agent)->frameCount(); ++i) {
-    ASSERT_TRUE((*agent)->load(i).ok());
-    const bool steady = (*agent)->imuInitialised();
-    long before = 0;
-    long after = 0;
-    const FrameResult r = (*agent)->track([&] { before = test::mallocCount(); }, [&] { after = test::mallocCount(); });
-    if (!steady) continue;
-    ++steady_frames;
-    steady_tracked += r.tracked ? 1 : 0;
-    steady_keyframes += r.keyframe ? 1 : 0;
-    steady_allocations += after - before;
-    if (after != before) {
-      std::printf("frame %zu: %ld allocations (keyframe %d, issue %s)\n", i, after - before, r.keyframe ? 1 : 0,
-                  toString(r.issue));
-    }
-  }
+  auto counted = (*agent)->countSteadyAllocations([] { return test::mallocCount(); }, [](std::size_t) {});
+  ASSERT_TRUE(counted.ok()) << counted.error().toString();
+  const int steady_frames = counted->frames;
+  const int steady_tracked = counted->tracked;
+  const int steady_keyframes = counted->keyframes;
+  const long steady_allocations = counted->allocations;
   std::printf("steady state: %d frames, %d tracked, %d keyframes, %ld allocations\n", steady_frames, steady_tracked,
               steady_keyframes, steady_allocations);
   ASSERT_GE(steady_frames, 100);  // the IMU was initialised early enough to count a real stretch

@@ -171,7 +171,11 @@ TEST_F(AgentSessionTest, HelloWithoutTheCalibrationsTheSensorsNeedIsRefused) {
   v1::AgentUplink imu_without_calibration = helloMessage(kMission, kAgent, kSession);
   imu_without_calibration.mutable_hello()->clear_imu();
   v1::AgentUplink bad_quaternion = helloMessage(kMission, kAgent, kSession);
-  bad_quaternion.mutable_hello()->mutable_cam0()->mutable_t_s_c()->set_qw(0.5F);
+  v1::Pose& bad = *bad_quaternion.mutable_hello()->mutable_cam0()->mutable_t_s_c();
+  bad.set_qx(0.0F);
+  bad.set_qy(0.0F);
+  bad.set_qz(0.0F);
+  bad.set_qw(0.5F);  // norm 0.5
 
   const Status a = send(*openSession(), no_cam0);
   const Status b = send(*openSession(), stereo_without_cam1);

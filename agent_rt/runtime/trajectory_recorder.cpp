@@ -1,0 +1,68 @@
+#include "agent_rt/runtime/trajectory_recorder.hpp"
+
+#include <algorithm>
+
+#include "agent_rt/runtime/message_conversions.hpp"
+
+namespace cvislam::agent {
+
+using geometry::SE3d;
+
+TrajectoryRecorder::TrajectoryRecorder(std::size_t frames) {
+  frames_.reserve(frames);
+  keyframes_.resize(frames + 1);
+}
+
+void TrajectoryRecorder::addFrame(std::int64_t t_ns, const FrameResult& r) {
+  if (frames_.size() == frames_.capacity()) return;
+  frames_.push_back({t_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U, r.has_reference, r.tracked,
+                     r.keyframe, r.map_id, r.map_epoch});
+}
+
+void TrajectoryRecorder::addSnapshot(const MapSnapshotMessage& s) {
+  if (s.map_id == map_id_ && s.map_epoch == epoch_ + 1) {
+    // The world frame changed (IMU initialisation): move what was recorded in the old one.
+    const SE3d T = fromMsg(s.epoch_transform);
+    const double scale = s.epoch_scale;
+    for (Keyframe& kf : keyframes_) {
+      if (kf.valid && kf.map_id == s.map_id && kf.epoch == epoch_) {
+        kf.T_w_s = SE3d(T.so3() * kf.T_w_s.so3(), scale * (T.so3() * kf.T_w_s.translation()) + T.translation());
+        kf.epoch = s.map_epoch;
+      }
+    }
+    for (Frame& f : frames_) {
+      if (f.map_id == s.map_id && f.epoch == epoch_) {
+        f.T_ref_s.translation() *= scale;
+        f.T_w_s = SE3d(T.so3() * f.T_w_s.so3(), scale * (T.so3() * f.T_w_s.translation()) + T.translation());
+        f.epoch = s.map_epoch;
+      }
+    }
+  }
+  map_id_ = s.map_id;
+  epoch_ = s.map_epoch;
+  for (std::uint16_t i = 0; i < s.keyframe_count; ++i) {
+    const KeyframeStateMsg& m = s.keyframes[i];
+    if (m.id.counter >= keyframes_.size()) continue;
+    Keyframe& kf = keyframes_[m.id.counter];
+    kf = {true, m.t_ns, fromMsg(m.T_w_s), s.map_id, s.map_epoch};
+  }
+}
+
+void TrajectoryRecorder::build(dataset::Trajectory& refined, dataset::Trajectory& online,
+                               dataset::Trajectory& keyframes) const {
+  for (const Frame& f : frames_) {
+    const bool refinable = f.has_reference && f.reference < keyframes_.size() && keyframes_[f.reference].valid &&
+                           keyframes_[f.reference].map_id == f.map_id && keyframes_[f.reference].epoch == f.epoch;
+    // Tracked frames, and keyframes made before the map existed once mapping has placed them (a monocular
+    // start drops the keyframes between its two views: those are left out).
+    if (!f.tracked && !(f.keyframe && refinable)) continue;
+    online.push_back({f.t_ns, f.T_w_s});
+    refined.push_back({f.t_ns, refinable ? keyframes_[f.reference].T_w_s * f.T_ref_s : f.T_w_s});
+  }
+  for (const Keyframe& kf : keyframes_) {
+    if (kf.valid) keyframes.push_back({kf.t_ns, kf.T_w_s});
+  }
+  std::sort(keyframes.begin(), keyframes.end(), [](const auto& a, const auto& b) { return a.t_ns < b.t_ns; });
+}
+
+}  // namespace cvislam::agent
