@@ -135,6 +135,43 @@ std::pair<std::size_t, std::size_t> shareOf(std::size_t n, int shares, int t) {
   return {n * i / s, n * (i + 1) / s};
 }
 
+// Lookup: from the root to the closest child at every level (the first on a tie), until a node without children.
+// x86-64 code built for no particular CPU (the project sets no -march) makes each popcount a library call; the
+// lookup gets a second version using the POPCNT instruction, picked when the program loads if the CPU has it
+// (75 instead of 520 ns per word with the shipped vocabulary), so builds stay portable.
+#if defined(__x86_64__) && defined(__has_attribute)
+#if __has_attribute(target_clones)
+#define CVISLAM_VOCABULARY_POPCNT_CLONES __attribute__((target_clones("popcnt", "default")))
+#endif
+#endif
+#ifndef CVISLAM_VOCABULARY_POPCNT_CLONES
+#define CVISLAM_VOCABULARY_POPCNT_CLONES
+#endif
+
+CVISLAM_VOCABULARY_POPCNT_CLONES
+NodeId descendTree(const Bits* descriptors, const NodeId* first_child, const std::uint32_t* child_count, const Bits& d,
+                   int level, NodeId& at_level) {
+  NodeId node = 0;
+  at_level = 0;
+  int node_depth = 0;
+  while (child_count[node] > 0) {
+    const NodeId first = first_child[node];
+    const NodeId end = first + child_count[node];
+    NodeId best = first;
+    int best_distance = distance(d, descriptors[first]);
+    for (NodeId c = first + 1; c < end; ++c) {
+      const int dc = distance(d, descriptors[c]);
+      if (dc < best_distance) {
+        best_distance = dc;
+        best = c;
+      }
+    }
+    node = best;
+    if (++node_depth <= level) at_level = node;
+  }
+  return node;
+}
+
 struct Cluster {
   Bits centre;
   std::vector<std::uint32_t> members;  // indices into the training descriptors, ascending
@@ -321,28 +358,10 @@ struct Vocabulary::Impl {
     return Status::Ok();
   }
 
-  // The leaf a descriptor descends to (the closest child at every level, the first on a tie); `at_level` gets the
-  // node it passes at depth `level`, or the leaf when that lies shallower.
+  // The leaf a descriptor descends to; `at_level` gets the node it passes at depth `level`, or the leaf when that
+  // lies shallower.
   NodeId descend(const Bits& d, int level, NodeId& at_level) const {
-    NodeId node = 0;
-    at_level = 0;
-    int node_depth = 0;
-    while (child_count[node] > 0) {
-      const NodeId first = first_child[node];
-      const NodeId end = first + child_count[node];
-      NodeId best = first;
-      int best_distance = distance(d, descriptor[first]);
-      for (NodeId c = first + 1; c < end; ++c) {
-        const int dc = distance(d, descriptor[c]);
-        if (dc < best_distance) {
-          best_distance = dc;
-          best = c;
-        }
-      }
-      node = best;
-      if (++node_depth <= level) at_level = node;
-    }
-    return node;
+    return descendTree(descriptor.data(), first_child.data(), child_count.data(), d, level, at_level);
   }
 
   [[nodiscard]] std::size_t fileSize() const {
