@@ -51,6 +51,92 @@ def cm(value):
     return "   n/a" if value is None or math.isnan(value) else f"{value * 100:6.2f}"
 
 
+def quat_mul(a, b):
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def quat_rotate(q, v):
+    w, x, y, z = quat_mul(quat_mul(q, (0.0, *v)), (q[0], -q[1], -q[2], -q[3]))
+    return (x, y, z)
+
+
+def quat_inv(q):
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def pose_apply(T, p):
+    r = quat_rotate(T[0], p)
+    return tuple(r[i] + T[1][i] for i in range(3))
+
+
+def pose_inv(T):
+    qi = quat_inv(T[0])
+    t = quat_rotate(qi, T[1])
+    return (qi, tuple(-c for c in t))
+
+
+def pose_mul(A, B):
+    return (quat_mul(A[0], B[0]), pose_apply(A, B[1]))
+
+
+def report_recognition(out, mission, map_to_truth, summary):
+    """The server's place recognition: counters, and each accepted map match against the ground truth (each agent's
+    single server map aligned to the ground truth in SE3 gives the true transform between two maps)."""
+    rows = []
+    for name in [mission.get("mission", mission["preset"])]:
+        rec = load_json(os.path.join(out, "server", name, "recognition.json"))
+        if rec is None:
+            continue
+        errors_t, errors_r, wrong, scored = [], [], 0, 0
+        for m in rec.get("matches", []):
+            if m["kind"] != "map_match":
+                continue
+            qa, ca = (name, m["query"][0]), (name, m["candidate"][0])
+            if qa not in map_to_truth or ca not in map_to_truth:
+                continue
+            to_pose = lambda t: (tuple(t["quaternion_wxyz"]), tuple(t["translation"]))  # noqa: E731
+            T_gt_q, T_gt_c = to_pose(map_to_truth[qa]), to_pose(map_to_truth[ca])
+            true = pose_mul(pose_inv(T_gt_q), T_gt_c)
+            x, y, z, qx, qy, qz, qw = m["T_qmap_cmap"]
+            est = ((qw, qx, qy, qz), (x, y, z))
+            p = tuple(m["p_cmap_query"])
+            dt = math.dist(pose_apply(true, p), pose_apply(est, p))
+            dq = quat_mul(quat_inv(true[0]), est[0])
+            dr = math.degrees(2.0 * math.acos(min(1.0, abs(dq[0]))))
+            scored += 1
+            errors_t.append(dt)
+            errors_r.append(dr)
+            wrong += 1 if (dt > 0.5 or dr > 5.0) else 0
+        errors_t.sort()
+        errors_r.sort()
+        row = {"mission": name, "keyframes": rec["keyframes"], "queries": rec["queries"],
+               "candidates": rec["candidates"], "loops": rec["loops"], "map_matches": rec["map_matches"],
+               "busy_s": rec["busy_s"], "map_matches_scored": scored, "map_matches_wrong": wrong,
+               "translation_error_p50_m": errors_t[len(errors_t) // 2] if errors_t else None,
+               "translation_error_max_m": errors_t[-1] if errors_t else None,
+               "rotation_error_p50_deg": errors_r[len(errors_r) // 2] if errors_r else None,
+               "rotation_error_max_deg": errors_r[-1] if errors_r else None}
+        rows.append(row)
+    if not rows:
+        return
+    summary["recognition"] = rows
+    print()
+    print("== place recognition on the server, on the agents' own maps (loops: inside a map; map matches: across "
+          "maps; not acted on until map fusion lands)")
+    print(f"{'mission':10} {'KFs':>5} {'queries':>8} {'verified':>9} {'loops':>6} {'matches':>8} {'busy[s]':>8}  "
+          "map matches against ground truth: wrong (>0.5 m or 5 deg), error p50 / max")
+    for r in rows:
+        errs = (f"{r['map_matches_wrong']} of {r['map_matches_scored']} wrong, "
+                f"{cm(r['translation_error_p50_m'])} / {cm(r['translation_error_max_m'])} cm, "
+                f"{r['rotation_error_p50_deg']:.2f} / {r['rotation_error_max_deg']:.2f} deg"
+                if r["map_matches_scored"] else "none scored")
+        print(f"{r['mission']:10} {r['keyframes']:5d} {r['queries']:8d} {r['candidates']:9d} {r['loops']:6d} "
+              f"{r['map_matches']:8d} {r['busy_s']:8.1f}  {errs}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="the mission's output folder")
@@ -76,6 +162,7 @@ def main():
     print(f"{'agent':8} {'frames':>6} {'onboard ATE[cm]':>16} {'scale err%':>10} {'server KFs':>10} "
           f"{'server ATE[cm]':>15} {'scale err%':>10} {'maps':>5}")
     pairs_server = []
+    map_to_truth = {}
     for a in mission["agents"]:
         agent_id = int(a.replace("agent", ""))
         gt = os.path.join(mission["dataset"], a)
@@ -100,6 +187,8 @@ def main():
             server = run_eval(args.eval, [(server_file, gt)], os.path.join(eval_dir, f"server_{a}.json"),
                               per_pose=True)
             pairs_server.append((server_file, gt))
+            if server is not None and "transform_gt_est" in server.get("se3", {}):
+                map_to_truth[(name, agent_id)] = server["se3"]["transform_gt_est"]
         s = server_agents.get((name, agent_id), {})
         row = {"agent": a, "frames": onboard["poses"] if onboard else 0,
                "onboard_ate_se3_m": ate(onboard), "onboard_ate_sim3_m": ate(onboard, "sim3"),
@@ -213,6 +302,8 @@ def main():
         for s in stages:
             cells.append(f"{lat[s]['p50_ms']:6.1f} / {lat[s]['p99_ms']:5.1f}" if s in lat else f"{'n/a':>15}")
         print(f"{a:8} " + " ".join(f"{c:>15}" for c in cells))
+
+    report_recognition(out, mission, map_to_truth, summary)
 
     # Real images: the V1_01 excerpt through the same server.
     real_out = os.path.join(out, "agents", "real_v101")

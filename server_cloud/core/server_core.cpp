@@ -7,6 +7,7 @@
 #include <sstream>
 
 #include <google/protobuf/util/json_util.h>
+#include <nlohmann/json.hpp>
 
 #include "common/config/yaml_section.hpp"
 #include "common/dataset/trajectory_io.hpp"
@@ -31,7 +32,8 @@ Status ServerOptions::validate() const {
   if (!std::isfinite(timeline_interval_s) || !(timeline_interval_s >= 0.05)) {
     return invalid("timeline_interval_s must be >= 0.05");
   }
-  return session.validate();
+  if (Status s = session.validate(); !s.ok()) return s;
+  return recognition.enabled ? recognition.validate() : Status::Ok();
 }
 
 std::string ServerOptions::describe() const {
@@ -46,12 +48,16 @@ std::string ServerOptions::describe() const {
       << "  max_corrections_per_message:  " << session.max_corrections_per_message << "\n"
       << "  max_keypoints_per_keyframe:   " << session.ingest.max_keypoints_per_keyframe << "\n"
       << "  max_imu_samples_per_keyframe: " << session.ingest.max_imu_samples_per_keyframe << "\n"
-      << "  max_maps_per_agent:           " << session.ingest.max_maps_per_agent << "\n";
+      << "  max_maps_per_agent:           " << session.ingest.max_maps_per_agent << "\n"
+      << "  recognition.enabled:          " << (recognition.enabled ? "true" : "false") << "\n"
+      << "  recognition.vocabulary:       " << recognition.vocabulary.string() << "\n"
+      << "  recognition.delay_keyframes:  " << recognition.delay_keyframes << "\n"
+      << "  recognition:                  " << recognition.recognition.describe() << "\n";
   return out.str();
 }
 
 Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
-  auto loaded = config::loadSections(file.string(), {"server", "link", "limits"});
+  auto loaded = config::loadSections(file.string(), {"server", "link", "limits", "recognition"});
   if (!loaded) return loaded.error();
   const YAML::Node& root = *loaded;
   const auto in_file = [&](const Status& s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
@@ -77,13 +83,56 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   limits.read("max_imu_samples_per_keyframe", o.session.ingest.max_imu_samples_per_keyframe);
   limits.read("max_maps_per_agent", o.session.ingest.max_maps_per_agent);
   if (Status s = limits.finish(); !s.ok()) return in_file(s);
+
+  config::YamlSection recognition(root["recognition"], "recognition");
+  std::string vocabulary = o.recognition.vocabulary.string();
+  recognition::RecognitionOptions& r = o.recognition.recognition;
+  recognition.read("enabled", o.recognition.enabled);
+  recognition.read("vocabulary", vocabulary);
+  recognition.read("queue_capacity", o.recognition.queue_capacity);
+  recognition.read("delay_keyframes", o.recognition.delay_keyframes);
+  recognition.read("max_candidates", r.max_candidates);
+  recognition.read("min_score_ratio", r.min_score_ratio);
+  recognition.read("loop_min_interval_s", r.loop_min_interval_s);
+  recognition.read("min_matches", r.min_matches);
+  recognition.read("min_inliers", r.min_inliers);
+  recognition.read("max_reprojection_px", r.max_reprojection_px);
+  recognition.read("max_tilt_deg", r.max_tilt_deg);
+  recognition.read("max_scale_error", r.max_scale_error);
+  if (Status s = recognition.finish(); !s.ok()) return in_file(s);
+  if (!vocabulary.empty()) o.recognition.vocabulary = vocabulary;  // "": the shipped one
   return in_file(o.validate());
+}
+
+recognition::RecognitionWorkerOptions defaultRecognitionOptions() {
+  recognition::RecognitionWorkerOptions o;
+  o.vocabulary = CVISLAM_DEFAULT_VOCABULARY;
+  return o;
 }
 
 ServerCore::ServerCore(const ServerOptions& options) : options_(options), start_(Clock::now()) {}
 
+ServerCore::~ServerCore() = default;
+
+Status ServerCore::startRecognition() {
+  if (!options_.recognition.enabled || recognition_) return Status::Ok();
+  Result<std::unique_ptr<recognition::RecognitionWorker>> worker =
+      recognition::RecognitionWorker::create(options_.recognition, missions_);
+  if (!worker) return worker.error();
+  recognition_ = std::move(worker).value();
+  return Status::Ok();
+}
+
 std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream) {
-  return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream));
+  AgentSession::StoredListener on_stored;
+  if (recognition::RecognitionWorker* worker = recognition_.get(); worker != nullptr) {
+    on_stored = [worker](const std::string& mission, const IngestReport& report) {
+      using Event = recognition::KeyframeEvent;
+      for (const KeyframeId& id : report.removed_keyframe_ids) worker->enqueue(Event{Event::Kind::kRemoved, mission, 0, id});
+      for (const auto& [map, id] : report.added_keyframes) worker->enqueue(Event{Event::Kind::kAdded, mission, map, id});
+    };
+  }
+  return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), std::move(on_stored));
 }
 
 void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& out) const {
@@ -181,6 +230,50 @@ Status ServerCore::correctKeyframe(const std::string& mission_name, const Keyfra
   return Status::Ok();
 }
 
+namespace {
+
+Status writeRecognition(const std::filesystem::path& path, const recognition::RecognitionCounters& c,
+                        const std::vector<recognition::MatchRecord>& matches) {
+  nlohmann::json j;
+  j["keyframes"] = c.keyframes;
+  j["queries"] = c.queries;
+  j["candidates"] = c.candidates;
+  j["loops"] = c.loops;
+  j["map_matches"] = c.map_matches;
+  j["rejections"] = c.rejections;
+  j["dropped_events"] = c.dropped_events;
+  j["skipped"] = c.skipped;
+  j["busy_s"] = c.busy_s;
+  nlohmann::json list = nlohmann::json::array();
+  for (const recognition::MatchRecord& r : matches) {
+    const recognition::VerifiedMatch& m = r.match;
+    const Eigen::Quaterniond& q = m.T_qmap_cmap.quaternion();
+    const Eigen::Vector3d& t = m.T_qmap_cmap.translation();
+    nlohmann::json e;
+    e["kind"] = r.kind == recognition::QueryKind::kLoop ? "loop" : "map_match";
+    e["query"] = {m.query.agent, m.query.counter};
+    e["candidate"] = {m.candidate.agent, m.candidate.counter};
+    e["query_map"] = m.query_map;
+    e["candidate_map"] = m.candidate_map;
+    e["T_qmap_cmap"] = {t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()};  // x y z qx qy qz qw
+    const Eigen::Vector3d& p_cq = m.T_cmap_cq.translation();
+    e["p_cmap_query"] = {p_cq.x(), p_cq.y(), p_cq.z()};  // the query camera in the candidate map
+    e["inliers"] = m.inliers;
+    e["bow_score"] = m.bow_score;
+    e["tilt_deg"] = m.tilt_deg;
+    e["point_pairs"] = m.point_pairs.size();
+    if (m.scale) e["scale"] = *m.scale;
+    list.push_back(std::move(e));
+  }
+  j["matches"] = std::move(list);
+  std::ofstream out(path);
+  out << j.dump(1) << "\n";
+  if (!out) return Error{ErrorCode::kIoError, "cannot write " + path.string()};
+  return Status::Ok();
+}
+
+}  // namespace
+
 Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
   std::error_code ec;
   std::filesystem::create_directories(dir, ec);
@@ -228,6 +321,19 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
     return Error{ErrorCode::kInternal, "cannot print the statistics as JSON"};
   }
   std::ofstream(dir / "stats.json") << json;
+
+  if (recognition_) {
+    recognition_->drain();  // the last keyframes of every agent get their turn
+    for (const std::string& name : recognition_->missions()) {
+      const auto mission_dir = dir / name;
+      std::filesystem::create_directories(mission_dir, ec);
+      if (Status s = writeRecognition(mission_dir / "recognition.json", recognition_->counters(name),
+                                      recognition_->matches(name));
+          !s.ok()) {
+        return s;
+      }
+    }
+  }
 
   std::ofstream timeline(dir / "timeline.csv");
   timeline << "t_s,mission,agent,connected,keyframes,points,up_bytes,down_bytes\n";

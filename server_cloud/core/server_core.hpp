@@ -13,6 +13,7 @@
 #include "common/core/result.hpp"
 #include "common/core/synchronized.hpp"
 #include "server_cloud/ingest/agent_session.hpp"
+#include "server_cloud/recognition/recognition_worker.hpp"
 #include "server_cloud/stack/map_stack.hpp"
 
 namespace cvislam::v1 {
@@ -20,6 +21,10 @@ class ServerStats;
 }
 
 namespace cvislam::server {
+
+// Place recognition's defaults, with the vocabulary file of this build's source tree
+// (deploy/vocabulary/orb_k10_l5.cvvoc).
+recognition::RecognitionWorkerOptions defaultRecognitionOptions();
 
 struct ServerOptions {
   std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
@@ -29,6 +34,8 @@ struct ServerOptions {
   int keepalive_timeout_ms = 5000;
   double timeline_interval_s = 1.0;  // keyframes and traffic per agent, sampled for timeline.csv
   SessionOptions session;
+  // Started by startRecognition(); the vocabulary defaults to the one the project ships.
+  recognition::RecognitionWorkerOptions recognition = defaultRecognitionOptions();
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line
@@ -56,6 +63,13 @@ class ServerCore {
   static constexpr std::size_t kMaxTimelineSamples = 1U << 20U;
 
   explicit ServerCore(const ServerOptions& options);
+  ~ServerCore();
+
+  // Loads the vocabulary and starts place recognition for every keyframe stored from now on (when
+  // options.recognition.enabled; otherwise does nothing). The error names the vocabulary file and the problem.
+  Status startRecognition();
+  // The worker, or nullptr when recognition is not running.
+  [[nodiscard]] recognition::RecognitionWorker* recognition() const { return recognition_.get(); }
 
   [[nodiscard]] const ServerOptions& options() const { return options_; }
   [[nodiscard]] MissionRegistry& missions() { return missions_; }
@@ -75,7 +89,8 @@ class ServerCore {
   Status correctKeyframe(const std::string& mission, const KeyframeId& id, const geometry::SE3d& T_m_s,
                          const Eigen::Vector3d& v_m, const imu::ImuBias& bias);
 
-  // Writes, under `dir`: stats.json, timeline.csv and, per mission, <mission>/keyframes_agent<N>.txt (TUM, the
+  // Writes, under `dir`: stats.json, timeline.csv and, per mission, <mission>/recognition.json (when recognition
+  // runs: its counters and every verified loop and map match, after the worker caught up), <mission>/keyframes_agent<N>.txt (TUM, the
   // agent's keyframes in its server map's frame, all maps) and, for an agent with several maps,
   // <mission>/keyframes_agent<N>_map<M>.txt per map.
   Status writeOutputs(const std::filesystem::path& dir) const;
@@ -85,6 +100,7 @@ class ServerCore {
   Clock::time_point start_;
   MissionRegistry missions_;
   Synchronized<std::vector<TimelineSample>> timeline_;
+  std::unique_ptr<recognition::RecognitionWorker> recognition_;
 };
 
 }  // namespace cvislam::server

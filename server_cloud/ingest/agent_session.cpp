@@ -86,8 +86,11 @@ Status SessionOptions::validate() const {
 }
 
 AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& options,
-                           std::function<void()> cancel_stream)
-    : missions_(missions), options_(options), cancel_stream_(std::move(cancel_stream)) {}
+                           std::function<void()> cancel_stream, StoredListener on_stored)
+    : missions_(missions),
+      options_(options),
+      cancel_stream_(std::move(cancel_stream)),
+      on_stored_(std::move(on_stored)) {}
 
 AgentSession::~AgentSession() {
   close(Status::Ok());
@@ -230,6 +233,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
 
   // Traffic by kind: the serialized size of each part.
   for (const wire::BatchPart& part : wire::batchParts(batch)) record->up[part.kind].add(part.count, part.bytes);
+  if (on_stored_) on_stored_(mission_name_, *report);
   return Status::Ok();
 }
 

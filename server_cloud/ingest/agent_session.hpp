@@ -45,7 +45,11 @@ class AgentSession {
   // `cancel_stream` ends this session's stream from outside, when a reconnect of the same agent process takes
   // over from it. It is called without any lock held, possibly after the stream ended, so it must be safe to
   // call at any time; it may be empty.
-  AgentSession(MissionRegistry& missions, const SessionOptions& options, std::function<void()> cancel_stream);
+  // `on_stored`, when set, hears of every batch stored (mission name, what changed); it is called with the
+  // agent's record locked, so it must only hand the news on (place recognition queues it).
+  using StoredListener = std::function<void(const std::string& mission, const IngestReport& report)>;
+  AgentSession(MissionRegistry& missions, const SessionOptions& options, std::function<void()> cancel_stream,
+               StoredListener on_stored = {});
   ~AgentSession();
   AgentSession(const AgentSession&) = delete;
   AgentSession& operator=(const AgentSession&) = delete;
@@ -76,6 +80,7 @@ class AgentSession {
   MissionRegistry& missions_;
   SessionOptions options_;
   std::function<void()> cancel_stream_;
+  StoredListener on_stored_;
   std::shared_ptr<Mission> mission_;
   SharedAgentRecord record_;
   std::string mission_name_;

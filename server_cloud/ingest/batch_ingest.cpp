@@ -475,6 +475,7 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
       }
     }
     (void)map.addKeyframe(std::move(kf));
+    report.added_keyframes.emplace_back(map.id(), KeyframeId{agent.id, counter});
     agent.keyframes[counter] = AgentRecord::HeldKeyframe{map.id(), agent_map, keypoints};
     ++report.keyframes;
   }
@@ -527,6 +528,7 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
     std::vector<MapPointId> went;  // points that went with it (no observer left)
     (void)map.removeKeyframe(KeyframeId{agent.id, c}, &went);
     agent.keyframes.erase(c);
+    report.removed_keyframe_ids.push_back(KeyframeId{agent.id, c});
     for (const MapPointId& p : went) {
       if (p.agent == agent.id) agent.points.erase(p.counter);
     }

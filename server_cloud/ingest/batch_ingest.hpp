@@ -7,6 +7,8 @@
 #pragma once
 
 #include <cstdint>
+#include <utility>
+#include <vector>
 
 #include "common/core/result.hpp"
 #include "server_cloud/stack/map_stack.hpp"
@@ -36,6 +38,8 @@ struct IngestReport {
   int duplicate_objects = 0;     // keyframes or points sent in full again: dropped
   int observations_refused = 0;  // a second keypoint of one keyframe on the same point: dropped
   int imu_links_missing = 0;     // the IMU predecessor is not held (or its samples do not cover the gap)
+  std::vector<std::pair<MapId, KeyframeId>> added_keyframes;  // for place recognition
+  std::vector<KeyframeId> removed_keyframe_ids;
 };
 
 // `agent` is the caller's (locked) record of the agent; its sensors must be known (a Hello came first).

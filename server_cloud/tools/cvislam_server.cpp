@@ -67,6 +67,17 @@ void printSummary(const cvislam::server::ServerCore& core) {
                 static_cast<unsigned long long>(a.duplicate_batches()));
     if (!a.last_error().empty()) std::printf("  last error of agent %u: %s\n", a.agent_id(), a.last_error().c_str());
   }
+  if (const auto* worker = core.recognition(); worker != nullptr) {
+    for (const std::string& mission : worker->missions()) {
+      const auto c = worker->counters(mission);
+      std::printf("recognition %s: %llu keyframes, %llu queries, %llu candidates verified, %llu loops and %llu map "
+                  "matches accepted, %.1f s busy, %llu events dropped\n",
+                  mission.c_str(), static_cast<unsigned long long>(c.keyframes),
+                  static_cast<unsigned long long>(c.queries), static_cast<unsigned long long>(c.candidates),
+                  static_cast<unsigned long long>(c.loops), static_cast<unsigned long long>(c.map_matches), c.busy_s,
+                  static_cast<unsigned long long>(c.dropped_events));
+    }
+  }
 }
 
 }  // namespace
@@ -79,6 +90,8 @@ int main(int argc, char** argv) {
   std::string port_file;
   double status_interval_s = 10.0;
   bool quiet = false;
+  std::string vocabulary;
+  bool no_recognition = false;
   app.add_option("--listen", listen, "host:port to serve on; port 0 takes a free port [127.0.0.1:50051]");
   app.add_option("--config", config, "YAML config (see deploy/server_config.yaml); command-line options win");
   app.add_option("--output", output,
@@ -86,6 +99,9 @@ int main(int argc, char** argv) {
   app.add_option("--port-file", port_file, "Write the bound port here once serving (for scripts using port 0)");
   app.add_option("--status-interval", status_interval_s, "Seconds between status lines on stderr; 0: none [10]");
   app.add_flag("--quiet", quiet, "Print neither the options nor status lines");
+  app.add_option("--vocabulary", vocabulary,
+                 "Place recognition's vocabulary file [the shipped deploy/vocabulary/orb_k10_l5.cvvoc]");
+  app.add_flag("--no-recognition", no_recognition, "Run without place recognition");
   CLI11_PARSE(app, argc, argv);
 
   ServerOptions options;
@@ -97,6 +113,8 @@ int main(int argc, char** argv) {
   }
   if (!listen.empty()) options.listen = listen;
   if (!output.empty()) options.output = output;
+  if (!vocabulary.empty()) options.recognition.vocabulary = vocabulary;
+  if (no_recognition) options.recognition.enabled = false;
   if (auto s = options.validate(); !s.ok()) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 2;
@@ -117,6 +135,10 @@ int main(int argc, char** argv) {
 
   if (!quiet) std::fprintf(stderr, "[server] options:\n%s", options.describe().c_str());
   cvislam::server::ServerCore core(options);
+  if (auto s = core.startRecognition(); !s.ok()) {
+    std::cerr << "cvislam_server: " << s.error().message() << "\n";
+    return 1;
+  }
   auto server = cvislam::server::GrpcServer::start(core);
   if (!server) {
     std::cerr << "cvislam_server: " << server.error().message() << "\n";

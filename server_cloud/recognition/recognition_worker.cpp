@@ -1,0 +1,257 @@
+#include "server_cloud/recognition/recognition_worker.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <limits>
+#include <unordered_map>
+#include <utility>
+
+namespace cvislam::server::recognition {
+
+struct RecognitionWorker::MissionState {
+  explicit MissionState(std::size_t words) : database(words) {}
+  // The worker thread's own.
+  KeyframeDatabase database;
+  std::map<AgentId, std::deque<std::pair<MapId, KeyframeId>>> pending;  // waiting for delay_keyframes more
+  std::map<AgentId, std::unique_ptr<AgentCamera>> cameras;
+  // Read by other threads: under the worker's mutex.
+  RecognitionCounters counters;
+  std::vector<MatchRecord> matches;
+};
+
+Status RecognitionWorkerOptions::validate() const {
+  if (queue_capacity == 0) return Error(ErrorCode::kInvalidArgument, "recognition.queue_capacity must be positive");
+  if (delay_keyframes < 0) return Error(ErrorCode::kInvalidArgument, "recognition.delay_keyframes must be >= 0");
+  return recognition.validate();
+}
+
+Result<std::unique_ptr<RecognitionWorker>> RecognitionWorker::create(const RecognitionWorkerOptions& options,
+                                                                     MissionRegistry& missions) {
+  if (Status s = options.validate(); !s) return s.error();
+  Result<features::Vocabulary> vocabulary = features::Vocabulary::load(options.vocabulary);
+  if (!vocabulary) {
+    return vocabulary.error().withContext(
+        "recognition.vocabulary (set it to the vocabulary file, or recognition.enabled: false to run without)");
+  }
+  return std::unique_ptr<RecognitionWorker>(new RecognitionWorker(options, missions, std::move(vocabulary).value()));
+}
+
+RecognitionWorker::RecognitionWorker(const RecognitionWorkerOptions& options, MissionRegistry& missions,
+                                     features::Vocabulary vocabulary)
+    : options_(options), missions_(missions), vocabulary_(std::move(vocabulary)) {
+  thread_ = std::thread([this] { run(); });
+}
+
+RecognitionWorker::~RecognitionWorker() {
+  {
+    const std::lock_guard lock(mutex_);
+    stop_ = true;
+  }
+  wake_.notify_all();
+  thread_.join();
+}
+
+bool RecognitionWorker::enqueue(KeyframeEvent event) {
+  {
+    const std::lock_guard lock(mutex_);
+    if (queue_.size() >= options_.queue_capacity) {
+      auto& state = states_[event.mission];
+      if (!state) state = std::make_unique<MissionState>(vocabulary_.wordCount());
+      ++state->counters.dropped_events;
+      return false;
+    }
+    queue_.push_back(std::move(event));
+  }
+  wake_.notify_one();
+  return true;
+}
+
+void RecognitionWorker::drain() {
+  std::vector<std::string> names;
+  {
+    const std::lock_guard lock(mutex_);
+    for (const auto& [name, state] : states_) names.push_back(name);
+  }
+  // A flush per mission (a kRemoved of no keyframe, map max), so the last keyframes get their turn too.
+  for (const std::string& name : names) {
+    KeyframeEvent flush;
+    flush.kind = KeyframeEvent::Kind::kRemoved;
+    flush.mission = name;
+    flush.map = std::numeric_limits<MapId>::max();
+    const std::lock_guard lock(mutex_);
+    queue_.push_back(std::move(flush));
+  }
+  wake_.notify_one();
+  std::unique_lock lock(mutex_);
+  idle_.wait(lock, [this] { return (queue_.empty() && !busy_) || stop_; });
+}
+
+RecognitionCounters RecognitionWorker::counters(const std::string& mission) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = states_.find(mission);
+  return it == states_.end() ? RecognitionCounters{} : it->second->counters;
+}
+
+std::vector<MatchRecord> RecognitionWorker::matches(const std::string& mission) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = states_.find(mission);
+  return it == states_.end() ? std::vector<MatchRecord>{} : it->second->matches;
+}
+
+std::vector<std::string> RecognitionWorker::missions() const {
+  const std::lock_guard lock(mutex_);
+  std::vector<std::string> names;
+  for (const auto& [name, state] : states_) names.push_back(name);
+  return names;
+}
+
+void RecognitionWorker::run() {
+  std::unique_lock lock(mutex_);
+  while (true) {
+    wake_.wait(lock, [this] { return stop_ || !queue_.empty(); });
+    if (stop_) break;
+    KeyframeEvent event = std::move(queue_.front());
+    queue_.pop_front();
+    busy_ = true;
+    lock.unlock();
+    handle(event);
+    lock.lock();
+    busy_ = false;
+    if (queue_.empty()) idle_.notify_all();
+  }
+  idle_.notify_all();
+}
+
+const AgentCamera* RecognitionWorker::camera(MissionState& state, Mission& mission, AgentId agent) {
+  auto& slot = state.cameras[agent];
+  if (!slot) {
+    const SharedAgentRecord record = mission.findAgent(agent);
+    if (!record) return nullptr;
+    const auto r = record->read();
+    if (!r->sensors) return nullptr;
+    slot = std::make_unique<AgentCamera>(AgentCamera{r->sensors->cam0, r->sensors->T_s_c0});
+  }
+  return slot.get();
+}
+
+void RecognitionWorker::handle(const KeyframeEvent& event) {
+  const std::shared_ptr<Mission> mission = missions_.find(event.mission);
+  MissionState* state = nullptr;
+  {
+    const std::lock_guard lock(mutex_);
+    auto& slot = states_[event.mission];
+    if (!slot) slot = std::make_unique<MissionState>(vocabulary_.wordCount());
+    state = slot.get();
+  }
+  if (!mission) return;
+  const bool flush = event.kind == KeyframeEvent::Kind::kRemoved && event.map == std::numeric_limits<MapId>::max();
+  if (flush) {
+    for (auto& [agent, pending] : state->pending) {
+      while (!pending.empty()) {
+        const KeyframeId id = pending.front().second;
+        pending.pop_front();
+        query(*state, *mission, id);
+      }
+    }
+    return;
+  }
+  if (event.kind == KeyframeEvent::Kind::kRemoved) {
+    (void)state->database.remove(event.keyframe);  // kNotFound: it never got in
+    auto& pending = state->pending[event.keyframe.agent];
+    std::erase_if(pending, [&](const auto& p) { return p.second == event.keyframe; });
+    const std::lock_guard lock(mutex_);
+    state->counters.keyframes = state->database.size();
+    return;
+  }
+  // Added: into the database now, queried delay_keyframes keyframes of its agent later.
+  const std::shared_ptr<ServerMap> map = mission->stack().find(event.map);
+  if (!map) return;
+  std::vector<features::Descriptor> descriptors;
+  {
+    const auto content = map->read();
+    const ServerKeyframe* kf = content->keyframe(event.keyframe);
+    if (kf == nullptr) return;
+    descriptors = kf->descriptors;
+  }
+  features::BowVector bow;
+  features::FeatureVector fv;
+  vocabulary_.transform(descriptors, bow, &fv, options_.recognition.direct_level);
+  if (!state->database.add(event.keyframe, event.map, std::move(bow), std::move(fv)).ok()) return;
+  {
+    const std::lock_guard lock(mutex_);
+    state->counters.keyframes = state->database.size();
+  }
+  auto& pending = state->pending[event.keyframe.agent];
+  pending.emplace_back(event.map, event.keyframe);
+  while (pending.size() > static_cast<std::size_t>(options_.delay_keyframes)) {
+    const KeyframeId id = pending.front().second;
+    pending.pop_front();
+    query(*state, *mission, id);
+  }
+}
+
+void RecognitionWorker::query(MissionState& state, Mission& mission, const KeyframeId& keyframe) {
+  const auto start = std::chrono::steady_clock::now();
+  const DatabaseEntry* entry = state.database.find(keyframe);
+  if (entry == nullptr) return;
+  // The cameras first: an agent record is locked before any map, never while holding one.
+  for (const SharedAgentRecord& record : mission.agents()) {
+    AgentId agent = 0;
+    {
+      agent = record->read()->id;
+    }
+    (void)camera(state, mission, agent);
+  }
+  // Every map of the mission under its read lock, in id order (the stack's lock order).
+  const std::vector<std::shared_ptr<ServerMap>> maps = mission.stack().maps();
+  std::vector<decltype(maps.front()->read())> locked;
+  locked.reserve(maps.size());
+  std::unordered_map<MapId, const MapContent*> by_id;
+  for (const auto& m : maps) {
+    locked.push_back(m->read());
+    by_id.emplace(m->id(), &*locked.back());
+  }
+  const auto it = by_id.find(entry->map);
+  if (it == by_id.end() || it->second->keyframe(keyframe) == nullptr) {
+    const std::lock_guard lock(mutex_);
+    ++state.counters.skipped;
+    return;
+  }
+  const MapLookup lookup = [&](MapId id) -> const MapContent* {
+    const auto found = by_id.find(id);
+    return found == by_id.end() ? nullptr : found->second;
+  };
+  const CameraLookup cameras = [&](AgentId agent) -> const AgentCamera* {
+    const auto found = state.cameras.find(agent);
+    return found == state.cameras.end() ? nullptr : found->second.get();
+  };
+  std::vector<MatchRecord> accepted;
+  RecognitionCounters delta;
+  for (const QueryKind kind : {QueryKind::kLoop, QueryKind::kMapMatch}) {
+    Result<RecognitionResult> result =
+        recognize(state.database, *it->second, keyframe, kind, lookup, cameras, options_.recognition);
+    ++delta.queries;
+    if (!result) continue;
+    delta.candidates += result->search.candidates.size();
+    for (const Verification& v : result->verifications) {
+      if (!v.accepted()) ++delta.rejections[std::string(toString(v.rejection))];
+    }
+    if (result->best) {
+      ++(kind == QueryKind::kLoop ? delta.loops : delta.map_matches);
+      accepted.push_back(MatchRecord{kind, *result->best});
+    }
+  }
+  locked.clear();
+  const double busy_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const std::lock_guard lock(mutex_);
+  RecognitionCounters& c = state.counters;
+  c.queries += delta.queries;
+  c.candidates += delta.candidates;
+  c.loops += delta.loops;
+  c.map_matches += delta.map_matches;
+  for (const auto& [reason, n] : delta.rejections) c.rejections[reason] += n;
+  c.busy_s += busy_s;
+  for (MatchRecord& m : accepted) state.matches.push_back(std::move(m));
+}
+
+}  // namespace cvislam::server::recognition

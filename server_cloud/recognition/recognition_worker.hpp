@@ -1,0 +1,109 @@
+// The server's place-recognition worker (CVI-SLAM IV-A): one thread, fed by ingest through a bounded queue, that
+// keeps a keyframe database per mission and runs loop detection and map matching for every new keyframe.
+//
+// Ingest only enqueues (keyframe added, keyframe removed) and never waits: when the queue is full the event is
+// dropped and counted. A keyframe is queried `delay_keyframes` keyframes of its agent after it arrived, so that
+// mapping has sent its points and its covisibility links (the query's neighbours are excluded from loops).
+// The worker reads the mission's maps under their read locks, all of them in id order (the stack's lock order),
+// for the few milliseconds a query takes; ingest of those maps waits that long at most.
+//
+// Verified matches are kept per mission: the fusion issue acts on them; for now they are counted and written.
+#pragma once
+
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "common/core/result.hpp"
+#include "common/features/vocabulary.hpp"
+#include "server_cloud/recognition/place_recognition.hpp"
+#include "server_cloud/stack/map_stack.hpp"
+
+namespace cvislam::server::recognition {
+
+struct RecognitionWorkerOptions {
+  bool enabled = true;
+  std::filesystem::path vocabulary;  // the default is the file the project ships
+  std::size_t queue_capacity = 100'000;
+  int delay_keyframes = 5;
+  RecognitionOptions recognition;
+
+  [[nodiscard]] Status validate() const;
+};
+
+// What ingest tells the worker.
+struct KeyframeEvent {
+  enum class Kind { kAdded, kRemoved };
+  Kind kind = Kind::kAdded;
+  std::string mission;
+  MapId map = 0;
+  KeyframeId keyframe;
+};
+
+struct MatchRecord {
+  QueryKind kind = QueryKind::kLoop;
+  VerifiedMatch match;
+};
+
+struct RecognitionCounters {
+  std::uint64_t keyframes = 0;  // in the database
+  std::uint64_t queries = 0;    // loop and map-match queries run
+  std::uint64_t candidates = 0;
+  std::uint64_t loops = 0;        // accepted
+  std::uint64_t map_matches = 0;  // accepted
+  std::map<std::string, std::uint64_t> rejections;  // by reason
+  std::uint64_t dropped_events = 0;                 // the queue was full
+  std::uint64_t skipped = 0;                        // keyframes gone before their turn
+  double busy_s = 0.0;                              // time spent on queries
+};
+
+class RecognitionWorker {
+ public:
+  // Loads the vocabulary (the error names the file) and starts the thread.
+  static Result<std::unique_ptr<RecognitionWorker>> create(const RecognitionWorkerOptions& options,
+                                                           MissionRegistry& missions);
+  ~RecognitionWorker();  // stops the thread; events still queued are dropped
+  RecognitionWorker(const RecognitionWorker&) = delete;
+  RecognitionWorker& operator=(const RecognitionWorker&) = delete;
+
+  // Never blocks on recognition: false when the queue was full (the event is dropped and counted).
+  bool enqueue(KeyframeEvent event);
+  // Waits until every queued event has been handled (for tests and the shutdown output).
+  void drain();
+
+  [[nodiscard]] RecognitionCounters counters(const std::string& mission) const;
+  [[nodiscard]] std::vector<MatchRecord> matches(const std::string& mission) const;
+  [[nodiscard]] std::vector<std::string> missions() const;
+  [[nodiscard]] const features::Vocabulary& vocabulary() const { return vocabulary_; }
+
+ private:
+  struct MissionState;
+  RecognitionWorker(const RecognitionWorkerOptions& options, MissionRegistry& missions,
+                    features::Vocabulary vocabulary);
+  void run();
+  void handle(const KeyframeEvent& event);
+  void query(MissionState& state, Mission& mission, const KeyframeId& keyframe);
+  const AgentCamera* camera(MissionState& state, Mission& mission, AgentId agent);
+
+  RecognitionWorkerOptions options_;
+  MissionRegistry& missions_;
+  features::Vocabulary vocabulary_;
+
+  mutable std::mutex mutex_;  // guards the queue, `busy_`, `stop_` and the missions' results
+  std::condition_variable wake_;
+  std::condition_variable idle_;
+  std::deque<KeyframeEvent> queue_;
+  bool busy_ = false;
+  bool stop_ = false;
+  std::map<std::string, std::unique_ptr<MissionState>> states_;
+  std::thread thread_;
+};
+
+}  // namespace cvislam::server::recognition
