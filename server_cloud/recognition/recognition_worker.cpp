@@ -67,19 +67,10 @@ bool RecognitionWorker::enqueue(KeyframeEvent event) {
 }
 
 void RecognitionWorker::drain() {
-  std::vector<std::string> names;
   {
+    // Behind everything queued: the last keyframes of every agent get their turn too.
     const std::lock_guard lock(mutex_);
-    for (const auto& [name, state] : states_) names.push_back(name);
-  }
-  // A flush per mission (a kRemoved of no keyframe, map max), so the last keyframes get their turn too.
-  for (const std::string& name : names) {
-    KeyframeEvent flush;
-    flush.kind = KeyframeEvent::Kind::kRemoved;
-    flush.mission = name;
-    flush.map = std::numeric_limits<MapId>::max();
-    const std::lock_guard lock(mutex_);
-    queue_.push_back(std::move(flush));
+    queue_.push_back(KeyframeEvent{KeyframeEvent::Kind::kFlush, {}, 0, {}});
   }
   wake_.notify_one();
   std::unique_lock lock(mutex_);
@@ -135,6 +126,25 @@ const AgentCamera* RecognitionWorker::camera(MissionState& state, Mission& missi
 }
 
 void RecognitionWorker::handle(const KeyframeEvent& event) {
+  if (event.kind == KeyframeEvent::Kind::kFlush) {
+    std::vector<std::pair<std::string, MissionState*>> states;
+    {
+      const std::lock_guard lock(mutex_);
+      for (const auto& [name, state] : states_) states.emplace_back(name, state.get());
+    }
+    for (const auto& [name, state] : states) {
+      const std::shared_ptr<Mission> mission = missions_.find(name);
+      if (!mission) continue;
+      for (auto& [agent, pending] : state->pending) {
+        while (!pending.empty()) {
+          const KeyframeId id = pending.front().second;
+          pending.pop_front();
+          query(*state, *mission, id);
+        }
+      }
+    }
+    return;
+  }
   const std::shared_ptr<Mission> mission = missions_.find(event.mission);
   MissionState* state = nullptr;
   {
@@ -144,17 +154,6 @@ void RecognitionWorker::handle(const KeyframeEvent& event) {
     state = slot.get();
   }
   if (!mission) return;
-  const bool flush = event.kind == KeyframeEvent::Kind::kRemoved && event.map == std::numeric_limits<MapId>::max();
-  if (flush) {
-    for (auto& [agent, pending] : state->pending) {
-      while (!pending.empty()) {
-        const KeyframeId id = pending.front().second;
-        pending.pop_front();
-        query(*state, *mission, id);
-      }
-    }
-    return;
-  }
   if (event.kind == KeyframeEvent::Kind::kRemoved) {
     (void)state->database.remove(event.keyframe);  // kNotFound: it never got in
     auto& pending = state->pending[event.keyframe.agent];

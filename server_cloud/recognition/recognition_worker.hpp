@@ -40,7 +40,7 @@ struct RecognitionWorkerOptions {
 
 // What ingest tells the worker.
 struct KeyframeEvent {
-  enum class Kind { kAdded, kRemoved };
+  enum class Kind { kAdded, kRemoved, kFlush };  // kFlush (drain's): query every waiting keyframe now
   Kind kind = Kind::kAdded;
   std::string mission;
   MapId map = 0;
