@@ -128,8 +128,10 @@ std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> canc
   if (recognition::RecognitionWorker* worker = recognition_.get(); worker != nullptr) {
     on_stored = [worker](const std::string& mission, const IngestReport& report) {
       using Event = recognition::KeyframeEvent;
-      for (const KeyframeId& id : report.removed_keyframe_ids) worker->enqueue(Event{Event::Kind::kRemoved, mission, 0, id});
-      for (const auto& [map, id] : report.added_keyframes) worker->enqueue(Event{Event::Kind::kAdded, mission, map, id});
+      for (const KeyframeId& id : report.removed_keyframe_ids)
+        worker->enqueue(Event{Event::Kind::kRemoved, mission, 0, id});
+      for (const auto& [map, id] : report.added_keyframes)
+        worker->enqueue(Event{Event::Kind::kAdded, mission, map, id});
     };
   }
   return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), std::move(on_stored));

@@ -90,9 +90,9 @@ class ServerCore {
                          const Eigen::Vector3d& v_m, const imu::ImuBias& bias);
 
   // Writes, under `dir`: stats.json, timeline.csv and, per mission, <mission>/recognition.json (when recognition
-  // runs: its counters and every verified loop and map match, after the worker caught up), <mission>/keyframes_agent<N>.txt (TUM, the
-  // agent's keyframes in its server map's frame, all maps) and, for an agent with several maps,
-  // <mission>/keyframes_agent<N>_map<M>.txt per map.
+  // runs: its counters and every verified loop and map match, after the worker caught up),
+  // <mission>/keyframes_agent<N>.txt (TUM, the agent's keyframes in its server map's frame, all maps) and, for an agent
+  // with several maps, <mission>/keyframes_agent<N>_map<M>.txt per map.
   Status writeOutputs(const std::filesystem::path& dir) const;
 
  private:

@@ -144,8 +144,8 @@ Status KeyframeDatabase::checkConsistency() const {
     words += entries_[slot].bow.size();
   }
   if (words != postings) {
-    return Error(ErrorCode::kInternal, std::to_string(words) + " words in the entries but " +
-                                           std::to_string(postings) + " postings");
+    return Error(ErrorCode::kInternal,
+                 std::to_string(words) + " words in the entries but " + std::to_string(postings) + " postings");
   }
   return {};
 }

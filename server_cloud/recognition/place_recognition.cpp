@@ -125,27 +125,37 @@ Status RecognitionOptions::validate() const {
 
 std::string RecognitionOptions::describe() const {
   std::ostringstream out;
-  out << "loops >= " << loop_min_interval_s << " s apart; candidates: score >= max(" << min_score << ", " << min_score_ratio << " x best covisible neighbour), "
+  out << "loops >= " << loop_min_interval_s << " s apart; candidates: score >= max(" << min_score << ", "
+      << min_score_ratio << " x best covisible neighbour), "
       << "groups of " << group_neighbours << " >= " << group_score_ratio << " x best, at most " << max_candidates
       << "; matching: direct level " << direct_level << ", distance <= " << max_descriptor_distance << ", ratio "
       << match_ratio << ", >= " << min_matches << "; RANSAC " << ransac_iterations << " it, " << ransac_threshold_px
-      << " px, >= " << min_ransac_inliers << "; guided search " << guided_radius_px << " px over "
-      << guided_neighbours << " neighbours; accept >= " << min_inliers << " inliers within " << max_reprojection_px
+      << " px, >= " << min_ransac_inliers << "; guided search " << guided_radius_px << " px over " << guided_neighbours
+      << " neighbours; accept >= " << min_inliers << " inliers within " << max_reprojection_px
       << " px, tilt <= " << max_tilt_deg << " deg, |scale - 1| <= " << max_scale_error;
   return out.str();
 }
 
-std::string_view toString(QueryKind kind) { return kind == QueryKind::kLoop ? "loop" : "map match"; }
+std::string_view toString(QueryKind kind) {
+  return kind == QueryKind::kLoop ? "loop" : "map match";
+}
 
 std::string_view toString(Rejection rejection) {
   switch (rejection) {
-    case Rejection::kNone: return "accepted";
-    case Rejection::kMissing: return "missing";
-    case Rejection::kTooFewMatches: return "too few matches";
-    case Rejection::kPoseFailed: return "no pose";
-    case Rejection::kTooFewInliers: return "too few inliers";
-    case Rejection::kTilted: return "tilted";
-    case Rejection::kScale: return "scale";
+    case Rejection::kNone:
+      return "accepted";
+    case Rejection::kMissing:
+      return "missing";
+    case Rejection::kTooFewMatches:
+      return "too few matches";
+    case Rejection::kPoseFailed:
+      return "no pose";
+    case Rejection::kTooFewInliers:
+      return "too few inliers";
+    case Rejection::kTilted:
+      return "tilted";
+    case Rejection::kScale:
+      return "scale";
   }
   return "?";
 }
@@ -332,8 +342,8 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
   bool solved = false;
   try {
     solved = cv::solvePnPRansac(object, image, cv::Mat::eye(3, 3, CV_64F), cv::noArray(), rvec, tvec, false,
-                                options.ransac_iterations, options.ransac_threshold_px / focal, 0.999,
-                                ransac_inliers, cv::SOLVEPNP_AP3P);
+                                options.ransac_iterations, options.ransac_threshold_px / focal, 0.999, ransac_inliers,
+                                cv::SOLVEPNP_AP3P);
   } catch (const cv::Exception& e) {
     return reject(Rejection::kPoseFailed, std::string("RANSAC failed: ") + e.what());
   }
@@ -386,8 +396,8 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
         const ServerMapPoint* p = candidate_map.point(kf->point[k]);
         if (p == nullptr || !have.insert(p->id).second) continue;
         const std::optional<Eigen::Vector2d> projected = camera->camera.project(T_c_m * p->p_w);
-        if (!projected || projected->x() < 0.0 || projected->y() < 0.0 ||
-            projected->x() >= camera->camera.width() || projected->y() >= camera->camera.height()) {
+        if (!projected || projected->x() < 0.0 || projected->y() < 0.0 || projected->x() >= camera->camera.width() ||
+            projected->y() >= camera->camera.height()) {
           continue;
         }
         int best = options.guided_max_distance + 1;

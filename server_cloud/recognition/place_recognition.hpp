@@ -42,8 +42,8 @@ namespace cvislam::server::recognition {
 
 struct RecognitionOptions {
   // Candidates.
-  double min_score = 0.01;        // absolute BoW floor
-  double min_score_ratio = 0.25;  // of the query's best covisible neighbour's score
+  double min_score = 0.01;               // absolute BoW floor
+  double min_score_ratio = 0.25;         // of the query's best covisible neighbour's score
   int neighbour_min_shared_points = 15;  // a covisible neighbour (paper: >= 15 shared map points)
   double min_common_words_ratio = 0.8;
   int group_neighbours = 10;        // a candidate's group: itself and its most covisible keyframes
@@ -67,11 +67,11 @@ struct RecognitionOptions {
   int guided_max_distance = 50;
   // Acceptance.
   int min_inliers = 40;
-  double max_tilt_deg = 5.0;         // roll/pitch of T_qmap_cmap
-  int min_pairs_for_scale = 12;      // point pairs needed to check the scale
-  double max_scale_error = 0.15;     // |s - 1| of the pairs' Sim3 alignment
+  double max_tilt_deg = 5.0;            // roll/pitch of T_qmap_cmap
+  int min_pairs_for_scale = 12;         // point pairs needed to check the scale
+  double max_scale_error = 0.15;        // |s - 1| of the pairs' Sim3 alignment
   double pair_inlier_distance_m = 0.3;  // a pair agrees with T_qmap_cmap within this (for the scale check)
-  std::uint64_t seed = 1;            // RANSAC sampling
+  std::uint64_t seed = 1;               // RANSAC sampling
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;
@@ -128,12 +128,12 @@ struct VerifiedMatch {
 
 enum class Rejection {
   kNone,
-  kMissing,           // a keyframe, its database entry or its camera is unknown
-  kTooFewMatches,     // descriptor matches below min_matches
-  kPoseFailed,        // RANSAC found no pose, or too few inliers
-  kTooFewInliers,     // below min_inliers after the guided search
-  kTilted,            // roll/pitch above max_tilt_deg
-  kScale,             // the point pairs disagree on scale
+  kMissing,        // a keyframe, its database entry or its camera is unknown
+  kTooFewMatches,  // descriptor matches below min_matches
+  kPoseFailed,     // RANSAC found no pose, or too few inliers
+  kTooFewInliers,  // below min_inliers after the guided search
+  kTilted,         // roll/pitch above max_tilt_deg
+  kScale,          // the point pairs disagree on scale
 };
 std::string_view toString(Rejection rejection);
 

@@ -196,9 +196,7 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
   // The cameras first: an agent record is locked before any map, never while holding one.
   for (const SharedAgentRecord& record : mission.agents()) {
     AgentId agent = 0;
-    {
-      agent = record->read()->id;
-    }
+    { agent = record->read()->id; }
     (void)camera(state, mission, agent);
   }
   // Every map of the mission under its read lock, in id order (the stack's lock order).

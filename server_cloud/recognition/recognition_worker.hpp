@@ -56,8 +56,8 @@ struct RecognitionCounters {
   std::uint64_t keyframes = 0;  // in the database
   std::uint64_t queries = 0;    // loop and map-match queries run
   std::uint64_t candidates = 0;
-  std::uint64_t loops = 0;        // accepted
-  std::uint64_t map_matches = 0;  // accepted
+  std::uint64_t loops = 0;                          // accepted
+  std::uint64_t map_matches = 0;                    // accepted
   std::map<std::string, std::uint64_t> rejections;  // by reason
   std::uint64_t dropped_events = 0;                 // the queue was full
   std::uint64_t skipped = 0;                        // keyframes gone before their turn

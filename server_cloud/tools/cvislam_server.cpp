@@ -70,12 +70,12 @@ void printSummary(const cvislam::server::ServerCore& core) {
   if (const auto* worker = core.recognition(); worker != nullptr) {
     for (const std::string& mission : worker->missions()) {
       const auto c = worker->counters(mission);
-      std::printf("recognition %s: %llu keyframes, %llu queries, %llu candidates verified, %llu loops and %llu map "
-                  "matches accepted, %.1f s busy, %llu events dropped\n",
-                  mission.c_str(), static_cast<unsigned long long>(c.keyframes),
-                  static_cast<unsigned long long>(c.queries), static_cast<unsigned long long>(c.candidates),
-                  static_cast<unsigned long long>(c.loops), static_cast<unsigned long long>(c.map_matches), c.busy_s,
-                  static_cast<unsigned long long>(c.dropped_events));
+      std::printf(
+          "recognition %s: %llu keyframes, %llu queries, %llu candidates verified, %llu loops and %llu map "
+          "matches accepted, %.1f s busy, %llu events dropped\n",
+          mission.c_str(), static_cast<unsigned long long>(c.keyframes), static_cast<unsigned long long>(c.queries),
+          static_cast<unsigned long long>(c.candidates), static_cast<unsigned long long>(c.loops),
+          static_cast<unsigned long long>(c.map_matches), c.busy_s, static_cast<unsigned long long>(c.dropped_events));
     }
   }
 }

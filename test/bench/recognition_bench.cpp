@@ -82,8 +82,8 @@ void BM_DatabaseQuery(benchmark::State& state) {
   rec::KeyframeDatabase db(vocabulary()->wordCount());
   for (std::size_t i = 0; i < n; ++i) {
     const std::size_t k = i % real.bow.size();
-    (void)db.add(KeyframeId{static_cast<AgentId>(i % 4), static_cast<std::uint32_t>(i)}, static_cast<server::MapId>(i % 4),
-                 real.bow[k], real.features[k]);
+    (void)db.add(KeyframeId{static_cast<AgentId>(i % 4), static_cast<std::uint32_t>(i)},
+                 static_cast<server::MapId>(i % 4), real.bow[k], real.features[k]);
   }
   rec::DatabaseQuery query;
   query.scope = rec::QueryScope::kOtherMaps;

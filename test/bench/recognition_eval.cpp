@@ -21,7 +21,9 @@ namespace {
 using cvislam::test::QueryStats;
 using cvislam::test::RecognitionEvaluation;
 
-double pct(const std::vector<double>& v, double p) { return cvislam::bench::percentile(v, p); }
+double pct(const std::vector<double>& v, double p) {
+  return cvislam::bench::percentile(v, p);
+}
 
 nlohmann::json toJson(const QueryStats& s) {
   nlohmann::json j;
@@ -37,16 +39,18 @@ nlohmann::json toJson(const QueryStats& s) {
   j["found"] = s.found;
   j["recall"] = s.true_revisits > 0 ? static_cast<double>(s.found) / s.true_revisits : 0.0;
   j["precision"] = s.accepted > 0 ? 1.0 - static_cast<double>(s.accepted_false) / s.accepted : 1.0;
-  j["translation_error_m"] = {{"p50", pct(s.translation_error_m, 0.5)}, {"p99", pct(s.translation_error_m, 0.99)},
+  j["translation_error_m"] = {{"p50", pct(s.translation_error_m, 0.5)},
+                              {"p99", pct(s.translation_error_m, 0.99)},
                               {"max", pct(s.translation_error_m, 1.0)}};
-  j["rotation_error_deg"] = {{"p50", pct(s.rotation_error_deg, 0.5)}, {"p99", pct(s.rotation_error_deg, 0.99)},
+  j["rotation_error_deg"] = {{"p50", pct(s.rotation_error_deg, 0.5)},
+                             {"p99", pct(s.rotation_error_deg, 0.99)},
                              {"max", pct(s.rotation_error_deg, 1.0)}};
   j["candidate_search_ms"] = {{"p50", pct(s.query_ms, 0.5)}, {"p99", pct(s.query_ms, 0.99)}};
   j["verification_ms_per_candidate"] = {{"p50", pct(s.verification_ms, 0.5)}, {"p99", pct(s.verification_ms, 0.99)}};
   nlohmann::json rejections;
   for (std::size_t r = 0; r < s.rejections.size(); ++r) {
-    rejections[std::string(cvislam::server::recognition::toString(static_cast<cvislam::server::recognition::Rejection>(r)))] =
-        s.rejections[r];
+    rejections[std::string(cvislam::server::recognition::toString(
+        static_cast<cvislam::server::recognition::Rejection>(r)))] = s.rejections[r];
   }
   j["verifications"] = rejections;
   return j;
@@ -62,8 +66,9 @@ void printRow(const char* kind, const RecognitionEvaluation& e, const QueryStats
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"Place recognition on the simulator's missions: true revisits (ground truth), BoW candidates, "
-               "verified matches and false ones, per preset. Figures are SIMULATED."};
+  CLI::App app{
+      "Place recognition on the simulator's missions: true revisits (ground truth), BoW candidates, "
+      "verified matches and false ones, per preset. Figures are SIMULATED."};
   std::vector<std::string> presets{"loop", "overlap2", "hall4", "hall8", "euroc-mh"};
   std::uint64_t seed = 1;
   double duration_s = 60.0;
@@ -73,8 +78,12 @@ int main(int argc, char** argv) {
   std::string json_path;
   app.add_option("--preset", presets, "presets to run (comma-separated)")->delimiter(',');
   app.add_option("--seed", seed, "simulator seed (world, trajectories, drift)")->capture_default_str();
-  app.add_option("--duration", duration_s, "seconds of flight per agent")->capture_default_str()->check(CLI::PositiveNumber);
-  app.add_option("--keyframe-interval", interval_s, "seconds between keyframes")->capture_default_str()->check(CLI::PositiveNumber);
+  app.add_option("--duration", duration_s, "seconds of flight per agent")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.add_option("--keyframe-interval", interval_s, "seconds between keyframes")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   app.add_option("--threads", threads, "rendering threads")->capture_default_str()->check(CLI::Range(1, 64));
   app.add_option("--vocabulary", vocabulary_path, "vocabulary file")->capture_default_str();
   app.add_option("--json", json_path, "write every figure as JSON here");
@@ -111,19 +120,22 @@ int main(int argc, char** argv) {
     j["keyframes"] = e->keyframes;
     j["loop"] = toJson(e->loop);
     j["map_match"] = toJson(e->match);
-    j["bow_score_true_revisit"] = {{"p50", pct(e->revisit_scores, 0.5)}, {"p10", pct(e->revisit_scores, 0.1)},
-                                   {"n", e->revisit_scores.size()}};
-    j["bow_score_far_apart"] = {{"p50", pct(e->different_scores, 0.5)}, {"p90", pct(e->different_scores, 0.9)},
-                                {"p99", pct(e->different_scores, 0.99)}, {"n", e->different_scores.size()}};
+    j["bow_score_true_revisit"] = {
+        {"p50", pct(e->revisit_scores, 0.5)}, {"p10", pct(e->revisit_scores, 0.1)}, {"n", e->revisit_scores.size()}};
+    j["bow_score_far_apart"] = {{"p50", pct(e->different_scores, 0.5)},
+                                {"p90", pct(e->different_scores, 0.9)},
+                                {"p99", pct(e->different_scores, 0.99)},
+                                {"n", e->different_scores.size()}};
     j["database_bytes_per_keyframe"] = e->keyframes > 0 ? static_cast<double>(e->database_bytes) / e->keyframes : 0.0;
     j["render_s"] = e->render_s;
     j["recognition_s"] = e->recognition_s;
     all.push_back(j);
   }
 
-  std::printf("== place recognition, SIMULATED (seed %llu, %.0f s per agent, a keyframe every %.2f s); "
-              "trans/rot: error of the accepted correct matches, p50 and max\n",
-              static_cast<unsigned long long>(seed), duration_s, interval_s);
+  std::printf(
+      "== place recognition, SIMULATED (seed %llu, %.0f s per agent, a keyframe every %.2f s); "
+      "trans/rot: error of the accepted correct matches, p50 and max\n",
+      static_cast<unsigned long long>(seed), duration_s, interval_s);
   std::printf("%-9s %-5s %7s %8s %9s %8s %8s %6s %7s %7s %8s %8s %6s %6s\n", "preset", "kind", "queries", "revisits",
               "cands", "bow-true", "accepted", "false", "found", "recall", "t50[m]", "tmax[m]", "r50[d]", "rmax[d]");
   for (const RecognitionEvaluation& e : results) {

@@ -19,7 +19,9 @@ features::BowVector bowOf(std::vector<features::WordId> words) {
   return bow;
 }
 
-KeyframeId kf(AgentId agent, std::uint32_t counter) { return KeyframeId{agent, counter}; }
+KeyframeId kf(AgentId agent, std::uint32_t counter) {
+  return KeyframeId{agent, counter};
+}
 
 TEST(KeyframeDatabase, ScoresOnlyTheSharedWordsAndRanksByScore) {
   KeyframeDatabase db(100);

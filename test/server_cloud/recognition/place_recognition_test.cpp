@@ -60,8 +60,8 @@ class PlaceRecognitionTest : public ::testing::Test {
   }
 
   // Builds a map of `agent` from views at the given poses, each moved into the map by E_map_w.
-  void buildMap(MapContent& map, AgentId agent, const std::vector<geometry::SE3d>& poses,
-                const geometry::SE3d& E_map_w, bool mirror = false) {
+  void buildMap(MapContent& map, AgentId agent, const std::vector<geometry::SE3d>& poses, const geometry::SE3d& E_map_w,
+                bool mirror = false) {
     test::SyntheticMap builder(map, *world_, agent, test::SyntheticMapOptions{});
     for (const geometry::SE3d& T_w_s : poses) {
       const test::SyntheticView view = maker_->render(*world_, T_w_s, mirror);
@@ -161,9 +161,9 @@ TEST_F(PlaceRecognitionTest, RejectsATransformWithTwentyDegreesOfRoll) {
   MapContent a(0);
   MapContent b(1);
   // B's frame is not gravity-aligned with A's: 20 deg of roll about the world's x axis.
-  const geometry::SE3d E_b_w = geometry::SE3d(geometry::SO3d::exp(Eigen::Vector3d(20.0 * kDeg, 0.0, 0.0)),
-                                              Eigen::Vector3d(1.0, 2.0, 0.0)) *
-                               kE_b_w;
+  const geometry::SE3d E_b_w =
+      geometry::SE3d(geometry::SO3d::exp(Eigen::Vector3d(20.0 * kDeg, 0.0, 0.0)), Eigen::Vector3d(1.0, 2.0, 0.0)) *
+      kE_b_w;
   buildMap(b, 1, {pose(14.0), pose(14.5), pose(15.0)}, E_b_w);
   buildMap(a, 0, {pose(14.5), pose(15.0)}, geometry::SE3d());
   const Verification v = verify(a, KeyframeId{0, 0}, b, KeyframeId{1, 1});

@@ -147,8 +147,8 @@ TEST_F(RealLoopClosureTest, TheDatabaseProposesTheSamePlaceAndItIsTheMatch) {
   const MapLookup maps = [&](MapId id) -> const MapContent* { return id < kFrames ? maps_[id].get() : nullptr; };
   for (int i = 0; i < kFrames; ++i) {
     const KeyframeId q{static_cast<AgentId>(i), 0};
-    auto result = recognize(*database_, *maps_[static_cast<std::size_t>(i)], q, QueryKind::kMapMatch, maps, cameras,
-                            options_);
+    auto result =
+        recognize(*database_, *maps_[static_cast<std::size_t>(i)], q, QueryKind::kMapMatch, maps, cameras, options_);
     ASSERT_TRUE(result.ok()) << result.error().message();
     bool proposed = false;
     for (const Candidate& c : result->search.candidates) proposed = proposed || samePlace(i, static_cast<int>(c.map));

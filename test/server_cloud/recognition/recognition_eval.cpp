@@ -28,7 +28,9 @@ constexpr std::uint64_t kFrameStream = 0x5eed0001;
 constexpr std::uint64_t kDriftStream = 0x5eed0002;
 constexpr std::uint64_t kSampleStream = 0x5eed0003;
 
-double ms(Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); }
+double ms(Clock::duration d) {
+  return std::chrono::duration<double, std::milli>(d).count();
+}
 
 struct Keyframe {
   std::size_t agent = 0;
@@ -232,8 +234,7 @@ Result<RecognitionEvaluation> evaluateRecognition(const RecognitionEvalOptions& 
 
       // The recogniser.
       const Clock::time_point t0 = Clock::now();
-      Result<rec::CandidateSearch> search =
-          rec::findCandidates(database, map, *id, kind, map_of, options.recognition);
+      Result<rec::CandidateSearch> search = rec::findCandidates(database, map, *id, kind, map_of, options.recognition);
       stats.query_ms.push_back(ms(Clock::now() - t0));
       if (!search) return search.error();
       if (!search->candidates.empty()) ++stats.with_candidates;
@@ -246,8 +247,8 @@ Result<RecognitionEvaluation> evaluateRecognition(const RecognitionEvalOptions& 
           bow_found = true;
         }
         const Clock::time_point v0 = Clock::now();
-        const rec::Verification v = rec::verifyCandidate(database, map, *id, *maps[c.map], c.keyframe, c.score,
-                                                         cameras, options.recognition);
+        const rec::Verification v =
+            rec::verifyCandidate(database, map, *id, *maps[c.map], c.keyframe, c.score, cameras, options.recognition);
         stats.verification_ms.push_back(ms(Clock::now() - v0));
         stats.rejections[static_cast<std::size_t>(v.rejection)] += 1.0;
         if (v.accepted() && (!best || v.match->inliers > best->inliers)) best = v.match;

@@ -7,11 +7,11 @@
 // and a map-match query (the other maps), on the database of everything that arrived before.
 //
 // Ground truth. A true revisit of query q is an earlier keyframe c in the query's scope (for loops: the same
-// map, not covisible with q, at least loop_min_interval_s earlier) whose camera is within max_revisit_distance_m and max_revisit_angle_deg of q's
-// and that sees a common surface patch: at least min_shared_spots of q's keypoints' surface points are in
-// c's image, in front of it and not hidden. An accepted match is false when the query camera's pose it gives in
-// the candidate map is off the truth by more than false_translation_m or false_rotation_deg. Recall counts
-// the queries that have a true revisit and got a correct match.
+// map, not covisible with q, at least loop_min_interval_s earlier) whose camera is within max_revisit_distance_m and
+// max_revisit_angle_deg of q's and that sees a common surface patch: at least min_shared_spots of q's keypoints'
+// surface points are in c's image, in front of it and not hidden. An accepted match is false when the query camera's
+// pose it gives in the candidate map is off the truth by more than false_translation_m or false_rotation_deg. Recall
+// counts the queries that have a true revisit and got a correct match.
 #pragma once
 
 #include <cstdint>
@@ -48,15 +48,15 @@ struct RecognitionEvalOptions {
 
 struct QueryStats {
   int queries = 0;
-  int true_revisits = 0;        // queries with at least one true revisit
-  int with_candidates = 0;      // queries BoW gave candidates for
-  int candidates = 0;           // candidates verified, all queries
-  int candidates_true = 0;      // of those, true revisits
-  int bow_found = 0;            // queries with a true revisit among their candidates
-  int accepted = 0;             // queries with an accepted match
-  int accepted_false = 0;       // accepted, but the pose is wrong
-  int accepted_not_revisit = 0;  // accepted and correct, but beyond the revisit definition
-  int found = 0;                // true revisits with a correct accepted match
+  int true_revisits = 0;                    // queries with at least one true revisit
+  int with_candidates = 0;                  // queries BoW gave candidates for
+  int candidates = 0;                       // candidates verified, all queries
+  int candidates_true = 0;                  // of those, true revisits
+  int bow_found = 0;                        // queries with a true revisit among their candidates
+  int accepted = 0;                         // queries with an accepted match
+  int accepted_false = 0;                   // accepted, but the pose is wrong
+  int accepted_not_revisit = 0;             // accepted and correct, but beyond the revisit definition
+  int found = 0;                            // true revisits with a correct accepted match
   std::vector<double> translation_error_m;  // of the accepted correct matches
   std::vector<double> rotation_error_deg;
   std::vector<double> query_ms;         // candidate search, per query

@@ -58,9 +58,9 @@ class ViewMaker {
 };
 
 struct SyntheticMapOptions {
-  int association_window = 20;   // keyframes within which a surface spot keeps its map point
-  double cell_m = 0.02;          // surface spots closer than this (on one face) are one map point
-  double depth_noise = 0.01;     // point noise along the ray, as a fraction of the depth (1 sigma)
+  int association_window = 20;  // keyframes within which a surface spot keeps its map point
+  double cell_m = 0.02;         // surface spots closer than this (on one face) are one map point
+  double depth_noise = 0.01;    // point noise along the ray, as a fraction of the depth (1 sigma)
   std::uint64_t seed = 1;
 };
 
