@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "test/support/run_command.hpp"
 #include "test/support/temp_dir.hpp"
 #include "test/support/test_data.hpp"
 
@@ -17,21 +18,10 @@ namespace {
 
 using ::testing::HasSubstr;
 
-struct CommandResult {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
+using cvislam::test::CommandResult;
 
 CommandResult runVocab(const std::string& args) {
-  const std::string command = std::string(CVISLAM_VOCAB_BINARY) + " " + args + " 2>&1";
-  CommandResult run;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return run;
-  std::array<char, 4096> buffer{};
-  while (fgets(buffer.data(), buffer.size(), pipe) != nullptr) run.output += buffer.data();
-  const int status = pclose(pipe);
-  run.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return run;
+  return cvislam::test::runCommand(CVISLAM_VOCAB_BINARY, args);
 }
 
 std::string readBytes(const std::filesystem::path& path) {
