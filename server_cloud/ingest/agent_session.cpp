@@ -48,6 +48,7 @@ Result<AgentSensors> sensorsFromHello(const v1::Hello& hello) {
                        .cam0 = *model0,
                        .cam1 = std::nullopt,
                        .T_s_c0 = cam0->second,
+                       .T_s_c1 = {},
                        .imu_noise = {},
                        .imu_rate_hz = 200.0};
   if (mode == SensorMode::kStereo) {
@@ -57,6 +58,7 @@ Result<AgentSensors> sensorsFromHello(const v1::Hello& hello) {
     auto model1 = camera::CameraModel::create(cam1->first);
     if (!model1) return model1.error().withContext("hello cam1");
     sensors.cam1 = *model1;
+    sensors.T_s_c1 = cam1->second;
   }
   if (sensors.uses_imu) {
     if (!hello.has_imu()) return invalid("hello: an agent that uses its IMU sent no IMU calibration");

@@ -65,6 +65,11 @@ bool RecognitionWorker::enqueue(KeyframeEvent event) {
   return true;
 }
 
+void RecognitionWorker::setMatchListener(MatchListener listener) {
+  const std::lock_guard lock(mutex_);
+  on_match_ = std::move(listener);
+}
+
 void RecognitionWorker::drain() {
   {
     // Behind everything queued: the last keyframes of every agent get their turn too.
@@ -153,6 +158,15 @@ void RecognitionWorker::handle(const KeyframeEvent& event) {
     state = slot.get();
   }
   if (!mission) return;
+  if (event.kind == KeyframeEvent::Kind::kMerged) {
+    state->database.moveMap(event.from_map, event.map);
+    for (auto& [agent, pending] : state->pending) {
+      for (auto& [map, id] : pending) {
+        if (map == event.from_map) map = event.map;
+      }
+    }
+    return;
+  }
   if (event.kind == KeyframeEvent::Kind::kRemoved) {
     (void)state->database.remove(event.keyframe);  // kNotFound: it never got in
     auto& pending = state->pending[event.keyframe.agent];
@@ -161,8 +175,16 @@ void RecognitionWorker::handle(const KeyframeEvent& event) {
     state->counters.keyframes = state->database.size();
     return;
   }
-  // Added: into the database now, queried delay_keyframes keyframes of its agent later.
-  const std::shared_ptr<ServerMap> map = mission->stack().find(event.map);
+  // Added: into the database now, queried delay_keyframes keyframes of its agent later. The map comes from the
+  // agent's record: a merge since ingest may have moved the keyframe into another map.
+  MapId map_id = event.map;
+  if (const SharedAgentRecord record = mission->findAgent(event.keyframe.agent)) {
+    const auto r = record->read();
+    if (const auto held = r->keyframes.find(event.keyframe.counter); held != r->keyframes.end()) {
+      map_id = held->second.map;
+    }
+  }
+  const std::shared_ptr<ServerMap> map = mission->stack().find(map_id);
   if (!map) return;
   std::vector<features::Descriptor> descriptors;
   {
@@ -174,13 +196,13 @@ void RecognitionWorker::handle(const KeyframeEvent& event) {
   features::BowVector bow;
   features::FeatureVector fv;
   vocabulary_.transform(descriptors, bow, &fv, options_.recognition.direct_level);
-  if (!state->database.add(event.keyframe, event.map, std::move(bow), std::move(fv)).ok()) return;
+  if (!state->database.add(event.keyframe, map_id, std::move(bow), std::move(fv)).ok()) return;
   {
     const std::lock_guard lock(mutex_);
     state->counters.keyframes = state->database.size();
   }
   auto& pending = state->pending[event.keyframe.agent];
-  pending.emplace_back(event.map, event.keyframe);
+  pending.emplace_back(map_id, event.keyframe);
   while (pending.size() > static_cast<std::size_t>(options_.delay_keyframes)) {
     const KeyframeId id = pending.front().second;
     pending.pop_front();
@@ -239,15 +261,22 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
   }
   locked.clear();
   const double busy_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  const std::lock_guard lock(mutex_);
-  RecognitionCounters& c = state.counters;
-  c.queries += delta.queries;
-  c.candidates += delta.candidates;
-  c.loops += delta.loops;
-  c.map_matches += delta.map_matches;
-  for (const auto& [reason, n] : delta.rejections) c.rejections[reason] += n;
-  c.busy_s += busy_s;
-  for (MatchRecord& m : accepted) state.matches.push_back(std::move(m));
+  MatchListener listener;
+  {
+    const std::lock_guard lock(mutex_);
+    RecognitionCounters& c = state.counters;
+    c.queries += delta.queries;
+    c.candidates += delta.candidates;
+    c.loops += delta.loops;
+    c.map_matches += delta.map_matches;
+    for (const auto& [reason, n] : delta.rejections) c.rejections[reason] += n;
+    c.busy_s += busy_s;
+    for (const MatchRecord& m : accepted) state.matches.push_back(m);
+    listener = on_match_;
+  }
+  if (listener) {
+    for (const MatchRecord& m : accepted) listener(mission.name(), m);
+  }
 }
 
 }  // namespace cvislam::server::recognition

@@ -7,13 +7,15 @@
 // The worker reads the mission's maps under their read locks, all of them in id order (the stack's lock order),
 // for the few milliseconds a query takes; ingest of those maps waits that long at most.
 //
-// Verified matches are kept per mission: the fusion issue acts on them; for now they are counted and written.
+// Verified matches are kept per mission, written at the end, and handed to the back-end (setMatchListener), which
+// merges maps and closes loops; it tells the worker of merges (kMerged) and removals, so the database follows.
 #pragma once
 
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -39,12 +41,15 @@ struct RecognitionWorkerOptions {
 };
 
 // What ingest tells the worker.
+// What ingest and the back-end tell the worker.
 struct KeyframeEvent {
-  enum class Kind { kAdded, kRemoved, kFlush };  // kFlush (drain's): query every waiting keyframe now
+  // kFlush (drain's): query every waiting keyframe now. kMerged: map `from_map` went into `map`.
+  enum class Kind { kAdded, kRemoved, kFlush, kMerged };
   Kind kind = Kind::kAdded;
   std::string mission;
   MapId map = 0;
   KeyframeId keyframe;
+  MapId from_map = 0;
 };
 
 struct MatchRecord {
@@ -75,6 +80,9 @@ class RecognitionWorker {
 
   // Never blocks on recognition: false when the queue was full (the event is dropped and counted).
   bool enqueue(KeyframeEvent event);
+  // Hears of every accepted match, from the worker thread, with no lock held (the back-end queues it).
+  using MatchListener = std::function<void(const std::string& mission, const MatchRecord& match)>;
+  void setMatchListener(MatchListener listener);
   // Waits until every queued event has been handled (for tests and the shutdown output).
   void drain();
 
@@ -103,6 +111,7 @@ class RecognitionWorker {
   bool busy_ = false;
   bool stop_ = false;
   std::map<std::string, std::unique_ptr<MissionState>> states_;
+  MatchListener on_match_;
   std::thread thread_;
 };
 

@@ -84,7 +84,7 @@ void MapContent::unlink(ServerKeyframe& kf, std::uint16_t keypoint) {
 Status MapContent::addObservation(const KeyframeId& keyframe, std::uint16_t keypoint, const MapPointId& point) {
   auto kf = keyframes_.find(keyframe);
   if (kf == keyframes_.end()) return notFound("keyframe " + keyframe.toString() + " is not in the map");
-  auto p = points_.find(point);
+  auto p = points_.find(resolvePoint(point));
   if (p == points_.end()) return notFound("map point " + point.toString() + " is not in the map");
   if (keypoint >= kf->second.keypoints.size()) {
     return Error{ErrorCode::kInvalidArgument, "keyframe " + keyframe.toString() + " has " +
@@ -92,11 +92,11 @@ Status MapContent::addObservation(const KeyframeId& keyframe, std::uint16_t keyp
                                                   std::to_string(keypoint + 1)};
   }
   ServerKeyframe& k = kf->second;
-  if (k.has_point[keypoint] != 0 && k.point[keypoint] == point) return Status::Ok();
+  if (k.has_point[keypoint] != 0 && k.point[keypoint] == p->first) return Status::Ok();
   for (const auto& o : p->second.observations) {
     if (o.keyframe == keyframe) {
       return Error{ErrorCode::kAlreadyExists, "keyframe " + keyframe.toString() + " observes map point " +
-                                                  point.toString() + " already, at keypoint " +
+                                                  p->first.toString() + " already, at keypoint " +
                                                   std::to_string(o.keypoint)};
     }
   }
@@ -105,10 +105,16 @@ Status MapContent::addObservation(const KeyframeId& keyframe, std::uint16_t keyp
   return Status::Ok();
 }
 
-Status MapContent::mergePoints(const MapPointId& drop, const MapPointId& keep) {
-  if (drop == keep) return Error{ErrorCode::kInvalidArgument, "map point " + drop.toString() + " merged into itself"};
+Status MapContent::mergePoints(const MapPointId& drop_id, const MapPointId& keep_id) {
+  if (drop_id == keep_id) {
+    return Error{ErrorCode::kInvalidArgument, "map point " + drop_id.toString() + " merged into itself"};
+  }
+  // Either may have been merged away by the server already: the points they became.
+  const MapPointId drop = resolvePoint(drop_id);
+  const MapPointId keep = resolvePoint(keep_id);
+  if (drop == keep && points_.count(drop) != 0) return Status::Ok();
   auto d = points_.find(drop);
-  if (d == points_.end()) return notFound("merge: map point " + drop.toString() + " is not in the map");
+  if (d == points_.end()) return notFound("merge: map point " + drop_id.toString() + " is not in the map");
   auto k = points_.find(keep);
   if (k == points_.end()) return notFound("merge: map point " + keep.toString() + " is not in the map");
   const std::vector<ServerMapPoint::Observation> moved = d->second.observations;
@@ -121,7 +127,41 @@ Status MapContent::mergePoints(const MapPointId& drop, const MapPointId& keep) {
     if (!observes_keep) link(kf, o.keypoint, k->second);
   }
   points_.erase(d);
+  aliases_[drop] = keep;
   return Status::Ok();
+}
+
+MapPointId MapContent::resolvePoint(const MapPointId& id) const {
+  MapPointId current = id;
+  // Chains stay short (a point is merged away once); the bound guards against a cycle.
+  for (int hops = 0; hops < 64 && points_.count(current) == 0; ++hops) {
+    const auto it = aliases_.find(current);
+    if (it == aliases_.end()) break;
+    current = it->second;
+  }
+  return current;
+}
+
+void MapContent::absorb(MapContent& other, const geometry::SE3d& T_this_other) {
+  for (auto& [id, kf] : other.keyframes_) {
+    kf.T_w_s = T_this_other * kf.T_w_s;
+    kf.v_w = T_this_other.so3() * kf.v_w;
+    keyframes_.emplace(id, std::move(kf));
+  }
+  for (auto& [id, p] : other.points_) {
+    p.p_w = T_this_other * p.p_w;
+    points_.emplace(id, std::move(p));
+  }
+  for (auto& [id, links] : other.covisibility_) covisibility_.emplace(id, std::move(links));
+  for (auto& [from, to] : other.aliases_) aliases_.emplace(from, to);
+  edges_ += other.edges_;
+  agents_.insert(other.agents_.begin(), other.agents_.end());
+  other.keyframes_.clear();
+  other.points_.clear();
+  other.covisibility_.clear();
+  other.aliases_.clear();
+  other.edges_ = 0;
+  other.agents_.clear();
 }
 
 Status MapContent::removePoint(const MapPointId& id) {

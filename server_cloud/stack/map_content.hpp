@@ -80,8 +80,15 @@ class MapContent {
   // again is a no-op). kNotFound for unknown ids, kInvalidArgument for a keypoint out of range.
   Status addObservation(const KeyframeId& keyframe, std::uint16_t keypoint, const MapPointId& point);
   // `drop` and `keep` are one physical point: every observation of `drop` becomes one of `keep` (a keyframe
-  // that observes both keeps its `keep` link) and `drop` goes.
+  // that observes both keeps its `keep` link) and `drop` goes. The map remembers that `drop` became `keep`:
+  // an agent that later observes or merges `drop` reaches `keep` (addObservation and mergePoints resolve ids).
   Status mergePoints(const MapPointId& drop, const MapPointId& keep);
+  // The point `id` became through merges: itself when it is held or was never merged away.
+  [[nodiscard]] MapPointId resolvePoint(const MapPointId& id) const;
+  // Moves every keyframe, point, observation, covisibility link and merge record of `other` into this map, with
+  // T_this_other applied to poses, velocities and positions (map fusion). Ids are unique across a mission's
+  // maps. `other` is left empty.
+  void absorb(MapContent& other, const geometry::SE3d& T_this_other);
   Status removePoint(const MapPointId& id);
   // Removes the keyframe and its observations. Its points move their reference to another observing
   // keyframe, or go when none is left; a keyframe whose IMU link started here loses it. The points that went
@@ -116,6 +123,7 @@ class MapContent {
   std::unordered_map<KeyframeId, std::unordered_map<KeyframeId, int>> covisibility_;
   std::size_t edges_ = 0;
   std::set<AgentId> agents_;
+  std::unordered_map<MapPointId, MapPointId> aliases_;  // merged away -> merged into
 };
 
 }  // namespace cvislam::server

@@ -15,6 +15,10 @@ std::shared_ptr<ServerMap> MapStack::find(MapId id) const {
   return it == maps->by_id.end() ? nullptr : it->second;
 }
 
+void MapStack::remove(MapId id) {
+  maps_.write()->by_id.erase(id);
+}
+
 std::vector<std::shared_ptr<ServerMap>> MapStack::maps() const {
   auto maps = maps_.read();
   std::vector<std::shared_ptr<ServerMap>> out;

@@ -45,6 +45,8 @@ class MapStack {
   // A new, empty map with the next id of this stack (ids are per mission, from 0).
   std::shared_ptr<ServerMap> createMap();
   [[nodiscard]] std::shared_ptr<ServerMap> find(MapId id) const;
+  // Drops a map from the stack (map fusion moved its content into another); holders of it keep it alive.
+  void remove(MapId id);
   [[nodiscard]] std::vector<std::shared_ptr<ServerMap>> maps() const;  // by id
 
  private:
@@ -64,6 +66,7 @@ struct AgentSensors {
   camera::CameraModel cam0;
   std::optional<camera::CameraModel> cam1;
   geometry::SE3d T_s_c0;
+  geometry::SE3d T_s_c1;  // stereo only
   imu::ImuNoise imu_noise;
   double imu_rate_hz = 200.0;
 };
@@ -108,6 +111,9 @@ struct AgentRecord {
   std::unordered_map<std::uint32_t, MapId> points;
   // Keyframes whose state the server changed since it last sent them down.
   std::unordered_set<std::uint32_t> corrections;
+  // Keyframes the server removed as redundant. They stay in `keyframes`, so that what the agent still sends
+  // about them (an update, a removal) is accepted and dropped rather than refused.
+  std::unordered_set<std::uint32_t> server_removed_keyframes;
   // Statistics.
   std::map<std::string, TrafficCount> up;
   std::map<std::string, TrafficCount> down;

@@ -57,6 +57,7 @@ AgentSensors euRocMonoSensors() {
                       .cam0 = *cam0,
                       .cam1 = std::nullopt,
                       .T_s_c0 = geometry::SE3d(),
+                      .T_s_c1 = geometry::SE3d(),
                       .imu_noise = imu::ImuNoise{},
                       .imu_rate_hz = 200.0};
 }

@@ -1,0 +1,545 @@
+#include "server_cloud/backend/backend_worker.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <sstream>
+#include <unordered_map>
+
+namespace cvislam::server::backend {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+using geometry::SE3d;
+
+double secondsSince(Clock::time_point t) {
+  return std::chrono::duration<double>(Clock::now() - t).count();
+}
+
+// The agent records of some agents and some maps, locked for writing in the stack's order.
+class StackLocks {
+ public:
+  StackLocks(Mission& mission, const std::vector<std::shared_ptr<ServerMap>>& maps) {
+    std::set<AgentId> agents;
+    for (const auto& map : maps) {
+      const auto content = map->read();
+      agents.insert(content->agents().begin(), content->agents().end());
+    }
+    for (AgentId agent : agents) {
+      if (SharedAgentRecord shared = mission.findAgent(agent)) {
+        records_.push_back(shared->write());
+        by_agent_.emplace(agent, &*records_.back());
+      }
+    }
+    std::vector<std::shared_ptr<ServerMap>> sorted = maps;
+    std::sort(sorted.begin(), sorted.end(), [](const auto& a, const auto& b) { return a->id() < b->id(); });
+    sorted.erase(std::unique(sorted.begin(), sorted.end()), sorted.end());
+    for (const auto& map : sorted) {
+      maps_.push_back(map->write());
+      by_map_.emplace(map->id(), &*maps_.back());
+    }
+  }
+  [[nodiscard]] MapContent& map(MapId id) { return *by_map_.at(id); }
+  [[nodiscard]] std::map<AgentId, AgentRecord*>& records() { return by_agent_; }
+
+ private:
+  std::vector<Synchronized<AgentRecord>::WriteLocked> records_;
+  std::vector<decltype(std::declval<ServerMap&>().write())> maps_;
+  std::map<AgentId, AgentRecord*> by_agent_;
+  std::map<MapId, MapContent*> by_map_;
+};
+
+AgentSensorsMap sensorsOf(const Mission& mission) {
+  AgentSensorsMap out;
+  for (const SharedAgentRecord& shared : mission.agents()) {
+    const auto record = shared->read();
+    if (record->sensors) out.emplace(record->id, *record->sensors);
+  }
+  return out;
+}
+
+std::map<AgentId, recognition::AgentCamera> camerasOf(const AgentSensorsMap& sensors) {
+  std::map<AgentId, recognition::AgentCamera> out;
+  for (const auto& [agent, s] : sensors) out.emplace(agent, recognition::AgentCamera{s.cam0, s.T_s_c0});
+  return out;
+}
+
+// Brings the records up to date after `applied` changed the map: each agent map's T_m_w follows its newest
+// keyframe, and every changed keyframe is queued for the downlink.
+void updateRecords(std::map<AgentId, AgentRecord*>& records, const AppliedCorrections& applied) {
+  for (const auto& [key, change] : applied.newest_change) {
+    const auto it = records.find(key.first);
+    if (it == records.end()) continue;
+    const auto agent_map = it->second->agent_maps.find(key.second);
+    if (agent_map != it->second->agent_maps.end()) agent_map->second.T_m_w = change * agent_map->second.T_m_w;
+  }
+  for (const KeyframeId& id : applied.changed) {
+    const auto it = records.find(id.agent);
+    if (it != records.end()) it->second->corrections.insert(id.counter);
+  }
+}
+
+}  // namespace
+
+struct BackendWorker::MissionState {
+  std::map<MapId, std::vector<LoopEdge>> loops;  // every loop closed per map, for later pose graphs
+  std::map<AgentId, std::uint32_t> last_loop_query;
+  std::map<MapId, int> keyframes_since_redundancy;
+  std::set<MapId> changed_since_gba;
+  std::mt19937_64 rng;
+  BackendStats stats;  // under the worker's mutex
+};
+
+Status BackendOptions::validate() const {
+  if (loop_cooldown_keyframes < 0) return Error{ErrorCode::kInvalidArgument, "backend.loop_cooldown_keyframes < 0"};
+  if (redundancy_every_keyframes < 1) {
+    return Error{ErrorCode::kInvalidArgument, "backend.redundancy_every_keyframes must be >= 1"};
+  }
+  if (queue_capacity == 0) return Error{ErrorCode::kInvalidArgument, "backend.queue_capacity must be positive"};
+  if (Status s = gba.validate(); !s.ok()) return s;
+  if (Status s = pose_graph.validate(); !s.ok()) return s;
+  if (Status s = fusion.validate(); !s.ok()) return s;
+  return redundancy.validate();
+}
+
+std::string BackendOptions::describe() const {
+  std::ostringstream out;
+  out << "merge maps " << (merge_maps ? "on" : "off") << ", loop closure " << (close_loops ? "on" : "off")
+      << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
+      << gba.full_iterations << " iterations, " << gba.threads << " threads), redundancy removal "
+      << (redundancy.enabled ? "on" : "off") << " (" << redundancy.redundant_fraction
+      << " of points seen by >= " << redundancy.min_other_observers
+      << " others, IMU gap <= " << redundancy.max_imu_gap_s << " s)";
+  return out.str();
+}
+
+BackendWorker::BackendWorker(const BackendOptions& options, MissionRegistry& missions,
+                             recognition::RecognitionWorker* recognition)
+    : options_(options), missions_(missions), recognition_(recognition) {
+  control_ = std::thread([this] { runControl(); });
+  gba_thread_ = std::thread([this] { runGba(); });
+}
+
+BackendWorker::~BackendWorker() {
+  {
+    const std::lock_guard lock(mutex_);
+    stop_ = true;
+  }
+  gba_cancel_ = true;
+  control_wake_.notify_all();
+  gba_wake_.notify_all();
+  control_.join();
+  gba_thread_.join();
+}
+
+BackendWorker::MissionState& BackendWorker::state(const std::string& mission) {
+  auto& slot = states_[mission];
+  if (!slot) {
+    slot = std::make_unique<MissionState>();
+    slot->rng.seed(options_.redundancy.seed);
+  }
+  return *slot;
+}
+
+bool BackendWorker::push(Event event) {
+  {
+    const std::lock_guard lock(mutex_);
+    if (queue_.size() >= options_.queue_capacity) {
+      ++state(event.mission).stats.dropped_events;
+      return false;
+    }
+    event.arrived = Clock::now();
+    queue_.push_back(std::move(event));
+  }
+  control_wake_.notify_one();
+  return true;
+}
+
+bool BackendWorker::onMatch(const std::string& mission, const recognition::MatchRecord& match) {
+  Event e;
+  e.kind = Event::Kind::kMatch;
+  e.mission = mission;
+  e.match = match;
+  return push(std::move(e));
+}
+
+bool BackendWorker::onKeyframesAdded(const std::string& mission, const std::vector<MapId>& maps) {
+  Event e;
+  e.kind = Event::Kind::kKeyframes;
+  e.mission = mission;
+  e.maps = maps;
+  return push(std::move(e));
+}
+
+void BackendWorker::drain(bool final_gba) {
+  const auto wait_idle = [this] {
+    push(Event{Event::Kind::kFlush, {}, std::nullopt, {}, {}});
+    std::unique_lock lock(mutex_);
+    idle_.wait(lock,
+               [this] { return stop_ || (queue_.empty() && !control_busy_ && gba_queue_.empty() && !gba_running_); });
+  };
+  wait_idle();
+  if (!final_gba) return;
+  std::vector<std::pair<std::string, MapId>> todo;
+  for (const auto& mission : missions_.missions()) {
+    std::set<MapId> changed;
+    {
+      const std::lock_guard lock(mutex_);
+      MissionState& s = state(mission->name());
+      changed = s.changed_since_gba;
+    }
+    for (const auto& map : mission->stack().maps()) {
+      // Every map with keyframes gets its final GBA unless nothing changed since its last one.
+      const bool has_keyframes = map->read()->keyframes().size() >= 2;
+      if (has_keyframes) todo.emplace_back(mission->name(), map->id());
+    }
+    (void)changed;
+  }
+  for (const auto& [mission, map] : todo) requestGba(mission, map, true, std::nullopt, Clock::now());
+  wait_idle();
+}
+
+BackendStats BackendWorker::stats(const std::string& mission) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = states_.find(mission);
+  return it == states_.end() ? BackendStats{} : it->second->stats;
+}
+
+std::vector<std::string> BackendWorker::missions() const {
+  const std::lock_guard lock(mutex_);
+  std::vector<std::string> out;
+  for (const auto& [name, s] : states_) out.push_back(name);
+  return out;
+}
+
+void BackendWorker::runControl() {
+  std::unique_lock lock(mutex_);
+  while (true) {
+    control_wake_.wait(lock, [this] { return stop_ || !queue_.empty(); });
+    if (stop_) break;
+    Event event = std::move(queue_.front());
+    queue_.pop_front();
+    control_busy_ = true;
+    lock.unlock();
+    if (event.kind == Event::Kind::kMatch) {
+      handleMatch(event);
+    } else if (event.kind == Event::Kind::kKeyframes && options_.redundancy.enabled) {
+      const std::shared_ptr<Mission> mission = missions_.find(event.mission);
+      if (mission) {
+        std::vector<MapId> due;
+        {
+          const std::lock_guard guard(mutex_);
+          MissionState& s = state(event.mission);
+          for (MapId map : event.maps) {
+            if (++s.keyframes_since_redundancy[map] >= options_.redundancy_every_keyframes) {
+              s.keyframes_since_redundancy[map] = 0;
+              due.push_back(map);
+            }
+          }
+        }
+        for (MapId map : due) {
+          MissionState* s = nullptr;
+          {
+            const std::lock_guard guard(mutex_);
+            s = &state(event.mission);
+          }
+          removeRedundant(*mission, *s, map);
+        }
+      }
+    }
+    lock.lock();
+    control_busy_ = false;
+    if (queue_.empty()) idle_.notify_all();
+  }
+  idle_.notify_all();
+}
+
+void BackendWorker::handleMatch(const Event& event) {
+  const std::shared_ptr<Mission> mission = missions_.find(event.mission);
+  if (!mission || !event.match) return;
+  MissionState* s = nullptr;
+  {
+    const std::lock_guard lock(mutex_);
+    s = &state(event.mission);
+  }
+  const recognition::VerifiedMatch& match = event.match->match;
+  if (event.match->kind == recognition::QueryKind::kMapMatch) {
+    if (options_.merge_maps) merge(*mission, *s, match, event.arrived);
+  } else if (options_.close_loops) {
+    closeLoop(*mission, *s, match, event.arrived);
+  }
+}
+
+void BackendWorker::merge(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
+                          Clock::time_point arrived) {
+  const std::shared_ptr<ServerMap> from = mission.stack().find(match.query_map);
+  const std::shared_ptr<ServerMap> into = mission.stack().find(match.candidate_map);
+  const auto stale = [&] {
+    const std::lock_guard lock(mutex_);
+    ++state.stats.stale_matches;
+  };
+  if (!from || !into || from == into) return stale();
+  cancelGba(mission.name(), from->id());
+  cancelGba(mission.name(), into->id());
+  const AgentSensorsMap sensors = sensorsOf(mission);
+  const std::map<AgentId, recognition::AgentCamera> cameras = camerasOf(sensors);
+  const recognition::CameraLookup camera_lookup = [&](AgentId agent) -> const recognition::AgentCamera* {
+    const auto it = cameras.find(agent);
+    return it == cameras.end() ? nullptr : &it->second;
+  };
+
+  MergeRecord record;
+  {
+    StackLocks locks(mission, {from, into});
+    const auto start = Clock::now();
+    MapContent& q = locks.map(from->id());
+    MapContent& c = locks.map(into->id());
+    const ServerKeyframe* query = q.keyframe(match.query);
+    if (query == nullptr || c.keyframe(match.candidate) == nullptr) return stale();
+    // The match's transform takes the candidate map into the query's; the query's map moves, in 4 DoF.
+    const SE3d T_into_from = fourDofTransform(match.T_qmap_cmap.inverse(), query->T_w_s.translation());
+    c.absorb(q, T_into_from);
+    for (auto& [agent, r] : locks.records()) {
+      for (auto& [index, agent_map] : r->agent_maps) {
+        if (agent_map.map != from->id()) continue;
+        agent_map.map = into->id();
+        agent_map.T_m_w = T_into_from * agent_map.T_m_w;
+      }
+      for (auto& [counter, held] : r->keyframes) {
+        if (held.map == from->id()) held.map = into->id();
+      }
+      for (auto& [counter, map] : r->points) {
+        if (map == from->id()) map = into->id();
+      }
+    }
+    record.fusion = fuseMatch(c, match, camera_lookup, options_.fusion);
+    record.from = from->id();
+    record.into = into->id();
+    record.query = match.query;
+    record.candidate = match.candidate;
+    record.T_into_from = T_into_from;
+    record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+  }
+  mission.stack().remove(from->id());
+  if (recognition_ != nullptr) {
+    recognition_->enqueue(recognition::KeyframeEvent{
+        recognition::KeyframeEvent::Kind::kMerged, mission.name(), into->id(), {}, from->id()});
+  }
+  record.match_to_merged_s = secondsSince(arrived);
+  std::size_t index = 0;
+  {
+    const std::lock_guard lock(mutex_);
+    auto& loops = state.loops[into->id()];
+    auto& moved = state.loops[from->id()];
+    loops.insert(loops.end(), moved.begin(), moved.end());
+    state.loops.erase(from->id());
+    state.changed_since_gba.insert(into->id());
+    state.changed_since_gba.erase(from->id());
+    state.stats.merges.push_back(record);
+    index = state.stats.merges.size() - 1;
+  }
+  if (options_.gba_after_change) requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived);
+}
+
+void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
+                              Clock::time_point arrived) {
+  const std::shared_ptr<ServerMap> map = mission.stack().find(match.query_map);
+  if (!map || match.query_map != match.candidate_map) {
+    const std::lock_guard lock(mutex_);
+    ++state.stats.stale_matches;
+    return;
+  }
+  {
+    const std::lock_guard lock(mutex_);
+    const auto last = state.last_loop_query.find(match.query.agent);
+    if (last != state.last_loop_query.end() &&
+        match.query.counter < last->second + static_cast<std::uint32_t>(options_.loop_cooldown_keyframes)) {
+      ++state.stats.loops_in_cooldown;
+      return;
+    }
+  }
+  cancelGba(mission.name(), map->id());
+  const AgentSensorsMap sensors = sensorsOf(mission);
+  const auto sensor = sensors.find(match.query.agent);
+  if (sensor == sensors.end()) return;
+
+  // The loop edge and the graph, from the map as it is (read lock); the solve without any lock.
+  LoopRecord record;
+  record.map = map->id();
+  record.query = match.query;
+  record.candidate = match.candidate;
+  PoseGraph graph;
+  {
+    const auto content = map->read();
+    const ServerKeyframe* query = content->keyframe(match.query);
+    const ServerKeyframe* candidate = content->keyframe(match.candidate);
+    if (query == nullptr || candidate == nullptr) {
+      const std::lock_guard lock(mutex_);
+      ++state.stats.stale_matches;
+      return;
+    }
+    const SE3d T_m_qs = match.T_cmap_cq * sensor->second.T_s_c0.inverse();
+    const LoopEdge edge{match.candidate, match.query, candidate->T_w_s.inverse() * T_m_qs};
+    std::vector<LoopEdge> loops;
+    {
+      const std::lock_guard lock(mutex_);
+      state.loops[map->id()].push_back(edge);
+      loops = state.loops[map->id()];
+      state.last_loop_query[match.query.agent] = match.query.counter;
+    }
+    graph = buildPoseGraph(*content, loops, options_.pose_graph);
+  }
+  const auto solve_start = Clock::now();
+  Result<std::vector<KeyframeCorrection>> corrections = solvePoseGraph(graph, options_.pose_graph);
+  record.solve_ms = std::chrono::duration<double, std::milli>(Clock::now() - solve_start).count();
+  if (!corrections) return;
+  record.graph = graph.summary;
+  for (const KeyframeCorrection& c : *corrections) {
+    if (c.id != match.query) continue;
+    const SE3d delta = c.T_w_s_before.inverse() * c.T_w_s_after;
+    record.correction_m = delta.translation().norm();
+    record.correction_deg = delta.so3().log().norm() * 180.0 / M_PI;
+  }
+  const std::map<AgentId, recognition::AgentCamera> cameras = camerasOf(sensors);
+  const recognition::CameraLookup camera_lookup = [&](AgentId agent) -> const recognition::AgentCamera* {
+    const auto it = cameras.find(agent);
+    return it == cameras.end() ? nullptr : &it->second;
+  };
+  {
+    StackLocks locks(mission, {map});
+    MapContent& content = locks.map(map->id());
+    const AppliedCorrections applied = applyCorrections(content, *corrections, {});
+    updateRecords(locks.records(), applied);
+    record.fusion = fuseMatch(content, match, camera_lookup, options_.fusion);
+  }
+  std::size_t index = 0;
+  {
+    const std::lock_guard lock(mutex_);
+    state.changed_since_gba.insert(map->id());
+    state.stats.loops.push_back(record);
+    index = state.stats.loops.size() - 1;
+  }
+  if (options_.gba_after_change) requestGba(mission.name(), map->id(), false, std::make_pair(false, index), arrived);
+}
+
+void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId map_id) {
+  const std::shared_ptr<ServerMap> map = mission.stack().find(map_id);
+  if (!map) return;
+  const AgentSensorsMap sensors = sensorsOf(mission);
+  RedundancyReport report;
+  {
+    StackLocks locks(mission, {map});
+    report = removeRedundantKeyframes(locks.map(map_id), sensors, options_.redundancy, state.rng);
+    for (const KeyframeId& id : report.removed_keyframes) {
+      const auto it = locks.records().find(id.agent);
+      if (it == locks.records().end()) continue;
+      it->second->server_removed_keyframes.insert(id.counter);
+      it->second->corrections.erase(id.counter);
+    }
+  }
+  if (recognition_ != nullptr) {
+    for (const KeyframeId& id : report.removed_keyframes) {
+      recognition_->enqueue(
+          recognition::KeyframeEvent{recognition::KeyframeEvent::Kind::kRemoved, mission.name(), map_id, id, 0});
+    }
+  }
+  const std::lock_guard lock(mutex_);
+  state.stats.redundancy_checked += static_cast<std::uint64_t>(report.checked);
+  state.stats.redundant_removed += report.removed_keyframes.size();
+  state.stats.points_removed += report.removed_points.size();
+  if (!report.removed_keyframes.empty()) state.changed_since_gba.insert(map_id);
+}
+
+void BackendWorker::requestGba(const std::string& mission, MapId map, bool final,
+                               std::optional<std::pair<bool, std::size_t>> waiter, Clock::time_point since) {
+  {
+    const std::lock_guard lock(mutex_);
+    auto it = std::find_if(gba_queue_.begin(), gba_queue_.end(),
+                           [&](const GbaRequest& r) { return r.mission == mission && r.map == map; });
+    if (it == gba_queue_.end()) {
+      gba_queue_.push_back(GbaRequest{mission, map, final, {}, since});
+      it = std::prev(gba_queue_.end());
+    }
+    it->since = std::min(it->since, since);
+    it->final = it->final || final;
+    if (waiter) it->waiting.push_back(*waiter);
+  }
+  gba_wake_.notify_one();
+}
+
+void BackendWorker::cancelGba(const std::string& mission, MapId map) {
+  const std::lock_guard lock(mutex_);
+  if (gba_running_ && gba_running_->mission == mission && gba_running_->map == map) {
+    gba_cancel_ = true;
+    ++state(mission).stats.gba_cancelled;
+    // Its waiters move to the GBA that the change will request.
+    GbaRequest again = *gba_running_;
+    again.final = false;
+    gba_queue_.push_front(std::move(again));
+  }
+}
+
+void BackendWorker::runGba() {
+  std::unique_lock lock(mutex_);
+  while (true) {
+    gba_wake_.wait(lock, [this] { return stop_ || !gba_queue_.empty(); });
+    if (stop_) break;
+    gba_running_ = std::move(gba_queue_.front());
+    gba_queue_.pop_front();
+    gba_cancel_ = false;
+    const GbaRequest request = *gba_running_;
+    lock.unlock();
+    gba(request);
+    lock.lock();
+    gba_running_.reset();
+    if (queue_.empty() && !control_busy_ && gba_queue_.empty()) idle_.notify_all();
+  }
+  idle_.notify_all();
+}
+
+void BackendWorker::gba(const GbaRequest& request) {
+  const std::shared_ptr<Mission> mission = missions_.find(request.mission);
+  if (!mission) return;
+  const std::shared_ptr<ServerMap> map = mission->stack().find(request.map);
+  if (!map) return;  // merged into another meanwhile: that one has its own request
+  const AgentSensorsMap sensors = sensorsOf(*mission);
+  GbaRecord record;
+  record.map = request.map;
+  record.final = request.final;
+  Result<GbaSnapshot> snapshot = Error{ErrorCode::kInternal, "no snapshot"};
+  {
+    const auto start = Clock::now();
+    const auto content = map->read();
+    snapshot = makeGbaSnapshot(*content, sensors);
+    record.snapshot_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+  }
+  if (!snapshot) return;
+  Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options_.gba, &gba_cancel_);
+  if (!summary) return;
+  record.summary = *summary;
+  if (!summary->cancelled && !gba_cancel_) {
+    StackLocks locks(*mission, {map});
+    if (gba_cancel_) {
+      record.summary.cancelled = true;
+    } else {
+      const auto start = Clock::now();
+      const AppliedCorrections applied =
+          applyCorrections(locks.map(request.map), keyframeCorrections(*snapshot), pointCorrections(*snapshot));
+      updateRecords(locks.records(), applied);
+      record.keyframes_propagated = applied.keyframes_propagated;
+      record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+    }
+  }
+  const std::lock_guard lock(mutex_);
+  MissionState& s = state(request.mission);
+  s.stats.gba.push_back(record);
+  if (record.summary.cancelled) return;
+  s.changed_since_gba.erase(request.map);
+  const double since = secondsSince(request.since);
+  for (const auto& [is_merge, index] : request.waiting) {
+    if (is_merge && index < s.stats.merges.size()) s.stats.merges[index].match_to_optimised_s = since;
+    if (!is_merge && index < s.stats.loops.size()) s.stats.loops[index].match_to_optimised_s = since;
+  }
+}
+
+}  // namespace cvislam::server::backend

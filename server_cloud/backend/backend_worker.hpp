@@ -1,0 +1,182 @@
+// The server's back-end (CVI-SLAM IV-E, IV-F): map fusion, loop closure, global BA and redundancy removal, on two
+// threads of their own while agents keep streaming.
+//
+//   control thread  verified matches from place recognition (a map match merges the query's map into the
+//                   candidate's; a loop runs the pose graph), and redundancy removal every
+//                   `redundancy_every_keyframes` new keyframes of a map. Each holds the locks of the maps it
+//                   changes for the milliseconds it takes.
+//   GBA thread      global BA of a map after every merge or loop (and of every map at drain(true), the end of a
+//                   mission), on a snapshot; ingest carries on meanwhile, and the result is applied with the
+//                   corrections of what arrived (applyCorrections). A merge or loop on a map cancels its
+//                   running GBA, which then starts again on the changed map.
+//
+// After every change the agent records are brought up to date: which server map holds each agent map, and its
+// T_m_w (the agent's world frame in the map's frame), so that what agents send next lands where the map expects
+// it; changed keyframes are queued for the downlink. Locks are taken in the stack's order: the agent records of
+// the maps' agents (by id), then the maps (by id).
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <filesystem>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <random>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "common/core/result.hpp"
+#include "server_cloud/backend/global_ba.hpp"
+#include "server_cloud/backend/map_fusion.hpp"
+#include "server_cloud/backend/pose_graph.hpp"
+#include "server_cloud/backend/redundancy.hpp"
+#include "server_cloud/recognition/recognition_worker.hpp"
+#include "server_cloud/stack/map_stack.hpp"
+
+namespace cvislam::server::backend {
+
+struct BackendOptions {
+  bool enabled = true;
+  bool merge_maps = true;
+  bool close_loops = true;
+  bool gba_after_change = true;  // after every merge and loop
+  // A loop whose query keyframe is within this many keyframes of its agent's previous loop is left out (the
+  // pose graph and GBA of the previous one already hold it).
+  int loop_cooldown_keyframes = 20;
+  int redundancy_every_keyframes = 10;  // per map
+  std::size_t queue_capacity = 100'000;
+  GlobalBaOptions gba;
+  PoseGraphOptions pose_graph;
+  FusionOptions fusion;
+  RedundancyOptions redundancy;
+
+  [[nodiscard]] Status validate() const;
+  [[nodiscard]] std::string describe() const;
+};
+
+struct MergeRecord {
+  MapId from = 0;
+  MapId into = 0;
+  KeyframeId query;
+  KeyframeId candidate;
+  geometry::SE3d T_into_from;  // 4-DoF
+  FusionReport fusion;
+  double apply_ms = 0.0;               // under the locks
+  double match_to_merged_s = 0.0;      // from the match's arrival to the joined map
+  double match_to_optimised_s = -1.0;  // to the GBA after it applied (-1: none did)
+};
+
+struct LoopRecord {
+  MapId map = 0;
+  KeyframeId query;
+  KeyframeId candidate;
+  double correction_m = 0.0;  // how far the pose graph moved the query keyframe
+  double correction_deg = 0.0;
+  PoseGraphSummary graph;
+  FusionReport fusion;
+  double solve_ms = 0.0;
+  double match_to_optimised_s = -1.0;
+};
+
+struct GbaRecord {
+  MapId map = 0;
+  GlobalBaSummary summary;
+  double snapshot_ms = 0.0;
+  double apply_ms = 0.0;
+  int keyframes_propagated = 0;  // arrived while it ran
+  bool final = false;            // the drain's
+};
+
+struct BackendStats {
+  std::vector<MergeRecord> merges;
+  std::vector<LoopRecord> loops;
+  std::vector<GbaRecord> gba;
+  std::uint64_t gba_cancelled = 0;
+  std::uint64_t stale_matches = 0;  // maps merged or keyframes gone before their turn
+  std::uint64_t loops_in_cooldown = 0;
+  std::uint64_t redundancy_checked = 0;
+  std::uint64_t redundant_removed = 0;
+  std::uint64_t points_removed = 0;
+  std::uint64_t dropped_events = 0;
+};
+
+class BackendWorker {
+ public:
+  // `recognition`, when given, hears of merges and removals (its database follows the maps).
+  BackendWorker(const BackendOptions& options, MissionRegistry& missions, recognition::RecognitionWorker* recognition);
+  ~BackendWorker();
+  BackendWorker(const BackendWorker&) = delete;
+  BackendWorker& operator=(const BackendWorker&) = delete;
+
+  // Never block: false when the queue is full (the event is dropped and counted).
+  bool onMatch(const std::string& mission, const recognition::MatchRecord& match);
+  bool onKeyframesAdded(const std::string& mission, const std::vector<MapId>& maps);
+
+  // Waits until every queued event is handled and no GBA runs; with `final_gba`, then runs GBA on every map of
+  // every mission that changed since its last one (the end of a mission).
+  void drain(bool final_gba);
+
+  [[nodiscard]] BackendStats stats(const std::string& mission) const;
+  [[nodiscard]] std::vector<std::string> missions() const;
+
+ private:
+  struct Event {
+    enum class Kind { kMatch, kKeyframes, kFlush } kind = Kind::kMatch;
+    std::string mission;
+    std::optional<recognition::MatchRecord> match;
+    std::vector<MapId> maps;
+    std::chrono::steady_clock::time_point arrived;
+  };
+  struct MissionState;
+  struct GbaRequest {
+    std::string mission;
+    MapId map = 0;
+    bool final = false;
+    // Merges and loops waiting for this GBA to report their time to optimised.
+    std::vector<std::pair<bool, std::size_t>> waiting;  // (is merge, index)
+    std::chrono::steady_clock::time_point since;
+  };
+
+  bool push(Event event);
+  void runControl();
+  void runGba();
+  void handleMatch(const Event& event);
+  void merge(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
+             std::chrono::steady_clock::time_point arrived);
+  void closeLoop(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
+                 std::chrono::steady_clock::time_point arrived);
+  void removeRedundant(Mission& mission, MissionState& state, MapId map);
+  void requestGba(const std::string& mission, MapId map, bool final, std::optional<std::pair<bool, std::size_t>> waiter,
+                  std::chrono::steady_clock::time_point since);
+  void cancelGba(const std::string& mission, MapId map);
+  void gba(const GbaRequest& request);
+  MissionState& state(const std::string& mission);
+
+  BackendOptions options_;
+  MissionRegistry& missions_;
+  recognition::RecognitionWorker* recognition_;
+
+  mutable std::mutex mutex_;  // guards everything below except the threads
+  std::condition_variable control_wake_;
+  std::condition_variable gba_wake_;
+  std::condition_variable idle_;
+  std::deque<Event> queue_;
+  bool control_busy_ = false;
+  std::deque<GbaRequest> gba_queue_;
+  std::optional<GbaRequest> gba_running_;
+  std::atomic<bool> gba_cancel_{false};
+  bool stop_ = false;
+  std::map<std::string, std::unique_ptr<MissionState>> states_;
+  std::thread control_;
+  std::thread gba_thread_;
+};
+
+}  // namespace cvislam::server::backend

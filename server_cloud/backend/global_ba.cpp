@@ -1,0 +1,392 @@
+#include "server_cloud/backend/global_ba.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <memory>
+#include <unordered_map>
+
+#include <ceres/ceres.h>
+
+#include "common/factors/imu_factor.hpp"
+#include "common/factors/manifolds.hpp"
+#include "common/factors/prior_factor.hpp"
+#include "common/factors/world_point_factor.hpp"
+
+namespace cvislam::server::backend {
+
+namespace {
+
+using geometry::SE3d;
+
+factors::PinholeIntrinsics pinholeOf(const camera::CameraModel& model) {
+  const auto& c = model.calibration();
+  return {c.fx, c.fy, c.cx, c.cy};
+}
+
+class CancelCallback final : public ceres::IterationCallback {
+ public:
+  explicit CancelCallback(const std::atomic<bool>* cancel) : cancel_(cancel) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary& /*summary*/) override {
+    return cancel_ != nullptr && cancel_->load(std::memory_order_relaxed) ? ceres::SOLVER_ABORT
+                                                                          : ceres::SOLVER_CONTINUE;
+  }
+
+ private:
+  const std::atomic<bool>* cancel_;
+};
+
+}  // namespace
+
+Status GlobalBaOptions::validate() const {
+  const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "global_ba." + what}; };
+  if (!(sigma_px > 0.0)) return bad("sigma_px must be positive");
+  if (!(pyramid_scale_factor >= 1.0)) return bad("pyramid_scale_factor must be >= 1");
+  if (!(cauchy_scale > 0.0)) return bad("cauchy_scale must be positive");
+  if (structure_iterations < 0 || full_iterations < 1) {
+    return bad("iterations: structure_iterations >= 0 and full_iterations >= 1");
+  }
+  if (threads < 1) return bad("threads must be >= 1");
+  if (!(max_solver_time_s > 0.0)) return bad("max_solver_time_s must be positive");
+  if (!(gauge_sigma_m > 0.0) || !(gauge_sigma_rad > 0.0)) return bad("gauge sigmas must be positive");
+  return Status::Ok();
+}
+
+Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors) {
+  GbaSnapshot snapshot;
+  snapshot.map = map.id();
+  std::map<AgentId, const AgentSensors*> used;
+  for (AgentId agent : map.agents()) {
+    const auto it = sensors.find(agent);
+    if (it == sensors.end()) {
+      return Error{ErrorCode::kFailedPrecondition,
+                   "global BA of map " + std::to_string(map.id()) + ": no sensors of agent " + std::to_string(agent)};
+    }
+    const AgentSensors& s = it->second;
+    GbaAgent a;
+    a.cam0 = pinholeOf(s.cam0);
+    a.T_c0_s = s.T_s_c0.inverse();
+    if (s.cam1) {
+      a.cam1 = pinholeOf(*s.cam1);
+      a.T_c1_s = s.T_s_c1.inverse();
+    }
+    a.uses_imu = s.uses_imu;
+    a.noise = s.imu_noise;
+    snapshot.agents.emplace(agent, a);
+    used.emplace(agent, &s);
+  }
+
+  // Keyframes in a stable order; points indexed on first sight.
+  std::vector<const ServerKeyframe*> keyframes;
+  keyframes.reserve(map.keyframes().size());
+  for (const auto& [id, kf] : map.keyframes()) keyframes.push_back(&kf);
+  std::sort(keyframes.begin(), keyframes.end(),
+            [](const ServerKeyframe* a, const ServerKeyframe* b) { return a->id < b->id; });
+  std::unordered_map<KeyframeId, int> keyframe_index;
+  for (std::size_t i = 0; i < keyframes.size(); ++i) keyframe_index.emplace(keyframes[i]->id, static_cast<int>(i));
+
+  std::unordered_map<MapPointId, std::uint32_t> point_index;
+  std::vector<int> point_keyframes;  // observing keyframes per point
+  std::vector<std::uint8_t> point_stereo;
+  snapshot.keyframes.resize(keyframes.size());
+  for (std::size_t i = 0; i < keyframes.size(); ++i) {
+    const ServerKeyframe& kf = *keyframes[i];
+    const AgentSensors& s = *used.at(kf.id.agent);
+    GbaKeyframe& out = snapshot.keyframes[i];
+    out.id = kf.id;
+    out.agent_map = kf.agent_map;
+    out.t_ns = kf.t_ns;
+    out.T_w_s = kf.T_w_s;
+    out.T_w_s_before = kf.T_w_s;
+    out.v_w = kf.v_w;
+    out.bias = kf.bias;
+    if (kf.imu_from && kf.preintegration && s.uses_imu) {
+      const auto it = keyframe_index.find(*kf.imu_from);
+      if (it != keyframe_index.end()) {
+        out.imu_from = it->second;
+        out.preintegration = kf.preintegration;
+      }
+    }
+    std::vector<int> right_of(kf.keypoints.size(), -1);
+    for (std::size_t r = 0; r < kf.right.size(); ++r) right_of[kf.right[r].keypoint] = static_cast<int>(r);
+    for (std::size_t k = 0; k < kf.keypoints.size(); ++k) {
+      if (kf.has_point[k] == 0) continue;
+      const auto [it, added] = point_index.emplace(kf.point[k], static_cast<std::uint32_t>(point_index.size()));
+      if (added) {
+        point_keyframes.push_back(0);
+        point_stereo.push_back(0);
+      }
+      ++point_keyframes[it->second];
+      GbaObservation o;
+      o.point = it->second;
+      o.px_undistorted = s.cam0.undistortPixel(kf.keypoints[k].px.cast<double>());
+      o.octave = kf.keypoints[k].octave;
+      out.observations.push_back(o);
+      if (right_of[k] >= 0 && s.cam1) {
+        const RightObservation& r = kf.right[static_cast<std::size_t>(right_of[k])];
+        out.observations.push_back({it->second, r.px_undistorted.cast<double>(), r.octave, true});
+        point_stereo[it->second] = 1;
+      }
+    }
+  }
+
+  // Points that two keyframes (or both cameras of one) see; the rest only follow their reference keyframe.
+  std::vector<std::int64_t> remap(point_index.size(), -1);
+  snapshot.points.reserve(point_index.size());
+  std::vector<MapPointId> ids(point_index.size());
+  for (const auto& [id, index] : point_index) ids[index] = id;
+  for (std::size_t p = 0; p < ids.size(); ++p) {
+    if (point_keyframes[p] < 2 && point_stereo[p] == 0) continue;
+    const ServerMapPoint* point = map.point(ids[p]);
+    if (point == nullptr) continue;
+    remap[p] = static_cast<std::int64_t>(snapshot.points.size());
+    snapshot.points.push_back({point->id, point->p_w, point->p_w});
+  }
+  for (GbaKeyframe& kf : snapshot.keyframes) {
+    std::erase_if(kf.observations, [&](const GbaObservation& o) { return remap[o.point] < 0; });
+    for (GbaObservation& o : kf.observations) o.point = static_cast<std::uint32_t>(remap[o.point]);
+  }
+  return snapshot;
+}
+
+Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions& options,
+                                    const std::atomic<bool>* cancel) {
+  if (Status s = options.validate(); !s.ok()) return s.error();
+  GlobalBaSummary summary;
+  summary.keyframes = static_cast<int>(snapshot.keyframes.size());
+  summary.points = static_cast<int>(snapshot.points.size());
+  if (snapshot.keyframes.size() < 2) return summary;
+
+  const std::size_t n = snapshot.keyframes.size();
+  std::vector<factors::PoseBlock> poses(n);
+  std::vector<Eigen::Vector3d> velocities(n);
+  std::vector<Eigen::Matrix<double, 6, 1>> biases(n);
+  std::vector<Eigen::Vector3d> points(snapshot.points.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    const GbaKeyframe& kf = snapshot.keyframes[i];
+    poses[i] = factors::poseToBlock(kf.T_w_s);
+    velocities[i] = kf.v_w;
+    biases[i] << kf.bias.gyro, kf.bias.accel;
+  }
+  for (std::size_t p = 0; p < points.size(); ++p) points[p] = snapshot.points[p].p_w;
+
+  ceres::Problem::Options problem_options;
+  problem_options.manifold_ownership = ceres::TAKE_OWNERSHIP;
+  ceres::Problem problem(problem_options);
+  auto* pose_manifold = new factors::PoseManifold();
+  for (std::size_t i = 0; i < n; ++i) problem.AddParameterBlock(poses[i].data(), factors::kPoseSize, pose_manifold);
+  for (Eigen::Vector3d& p : points) problem.AddParameterBlock(p.data(), factors::kPointSize);
+
+  // Reprojection.
+  std::vector<std::uint8_t> point_used(points.size(), 0);
+  for (std::size_t i = 0; i < n; ++i) {
+    const GbaKeyframe& kf = snapshot.keyframes[i];
+    const GbaAgent& agent = snapshot.agents.at(kf.id.agent);
+    for (const GbaObservation& o : kf.observations) {
+      const double sigma = options.sigma_px * std::pow(options.pyramid_scale_factor, o.octave);
+      std::unique_ptr<ceres::CostFunction> cost;
+      if (o.second_camera) {
+        cost =
+            std::make_unique<factors::WorldPointReprojectionFactor>(o.px_undistorted, *agent.cam1, sigma, agent.T_c1_s);
+      } else {
+        cost =
+            std::make_unique<factors::WorldPointReprojectionFactor>(o.px_undistorted, agent.cam0, sigma, agent.T_c0_s);
+      }
+      // A point behind the camera at the start (a bad association) cannot be evaluated: leave it out.
+      const double* blocks[] = {poses[i].data(), points[o.point].data()};
+      Eigen::Vector2d residual;
+      if (!cost->Evaluate(blocks, residual.data(), nullptr)) continue;
+      problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), poses[i].data(),
+                               points[o.point].data());
+      point_used[o.point] = 1;
+      ++summary.reprojection_factors;
+    }
+  }
+  for (std::size_t p = 0; p < points.size(); ++p) {
+    if (point_used[p] == 0) problem.SetParameterBlockConstant(points[p].data());
+  }
+
+  // IMU links inside each agent.
+  std::vector<std::uint8_t> has_imu_state(n, 0);
+  for (std::size_t j = 0; j < n; ++j) {
+    const GbaKeyframe& kf = snapshot.keyframes[j];
+    if (kf.imu_from < 0 || !kf.preintegration) continue;
+    const auto i = static_cast<std::size_t>(kf.imu_from);
+    for (const std::size_t k : {i, j}) {
+      if (has_imu_state[k] != 0) continue;
+      has_imu_state[k] = 1;
+      problem.AddParameterBlock(velocities[k].data(), 3);
+      problem.AddParameterBlock(biases[k].data(), 6);
+    }
+    problem.AddResidualBlock(new factors::ImuFactor(*kf.preintegration), nullptr, poses[i].data(), velocities[i].data(),
+                             biases[i].data(), poses[j].data(), velocities[j].data());
+    problem.AddResidualBlock(
+        new factors::BiasRandomWalkFactor(snapshot.agents.at(kf.id.agent).noise, kf.preintegration->dt()), nullptr,
+        biases[i].data(), biases[j].data());
+    ++summary.imu_factors;
+  }
+
+  // The gauge: the oldest keyframe's pose.
+  std::size_t oldest = 0;
+  for (std::size_t i = 1; i < n; ++i) {
+    if (snapshot.keyframes[i].t_ns < snapshot.keyframes[oldest].t_ns) oldest = i;
+  }
+  Eigen::Matrix<double, 6, 1> gauge_sqrt_information;
+  gauge_sqrt_information << Eigen::Vector3d::Constant(1.0 / options.gauge_sigma_m),
+      Eigen::Vector3d::Constant(1.0 / options.gauge_sigma_rad);
+  problem.AddResidualBlock(new factors::PosePriorFactor(snapshot.keyframes[oldest].T_w_s,
+                                                        gauge_sqrt_information.asDiagonal().toDenseMatrix()),
+                           nullptr, poses[oldest].data());
+
+  CancelCallback callback(cancel);
+  ceres::Solver::Options solver;
+  solver.linear_solver_type = ceres::SPARSE_SCHUR;
+  solver.num_threads = options.threads;
+  solver.max_solver_time_in_seconds = options.max_solver_time_s;
+  solver.callbacks.push_back(&callback);
+  solver.update_state_every_iteration = false;
+
+  const auto solve = [&](int iterations, int& done, double& seconds) -> Status {
+    if (iterations == 0) return Status::Ok();
+    solver.max_num_iterations = iterations;
+    // Points first (Schur-eliminated), then the keyframe states; Ceres prunes the held blocks from the ordering
+    // it is given, so each solve gets its own.
+    auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
+    for (Eigen::Vector3d& p : points) ordering->AddElementToGroup(p.data(), 0);
+    for (std::size_t i = 0; i < n; ++i) {
+      ordering->AddElementToGroup(poses[i].data(), 1);
+      if (has_imu_state[i] != 0) {
+        ordering->AddElementToGroup(velocities[i].data(), 1);
+        ordering->AddElementToGroup(biases[i].data(), 1);
+      }
+    }
+    solver.linear_solver_ordering = ordering;
+    ceres::Solver::Summary s;
+    const auto start = std::chrono::steady_clock::now();
+    ceres::Solve(solver, &problem, &s);
+    seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (s.termination_type == ceres::USER_FAILURE) {
+      summary.cancelled = true;
+      return Status::Ok();
+    }
+    if (!s.IsSolutionUsable()) return Error{ErrorCode::kDegenerate, "global BA failed: " + s.message};
+    done = static_cast<int>(s.iterations.size()) - 1;
+    if (summary.initial_cost == 0.0) summary.initial_cost = s.initial_cost;
+    summary.final_cost = s.final_cost;
+    return Status::Ok();
+  };
+
+  // Step 1: structure, velocities and biases with the poses held.
+  for (std::size_t i = 0; i < n; ++i) problem.SetParameterBlockConstant(poses[i].data());
+  if (Status s = solve(options.structure_iterations, summary.structure_iterations, summary.structure_s); !s.ok()) {
+    return s.error();
+  }
+  if (summary.cancelled) return summary;
+  // Step 2: everything.
+  for (std::size_t i = 0; i < n; ++i) problem.SetParameterBlockVariable(poses[i].data());
+  if (Status s = solve(options.full_iterations, summary.full_iterations, summary.full_s); !s.ok()) return s.error();
+  if (summary.cancelled) return summary;
+
+  for (std::size_t i = 0; i < n; ++i) {
+    GbaKeyframe& kf = snapshot.keyframes[i];
+    kf.T_w_s = factors::poseFromBlock(poses[i].data());
+    if (has_imu_state[i] != 0) {
+      kf.v_w = velocities[i];
+      kf.bias.gyro = biases[i].head<3>();
+      kf.bias.accel = biases[i].tail<3>();
+    }
+  }
+  for (std::size_t p = 0; p < points.size(); ++p) snapshot.points[p].p_w = points[p];
+  return summary;
+}
+
+std::vector<KeyframeCorrection> keyframeCorrections(const GbaSnapshot& snapshot) {
+  std::vector<bool> has_imu(snapshot.keyframes.size(), false);
+  for (std::size_t j = 0; j < snapshot.keyframes.size(); ++j) {
+    const int i = snapshot.keyframes[j].imu_from;
+    if (i >= 0 && snapshot.keyframes[j].preintegration) {
+      has_imu[j] = true;
+      has_imu[static_cast<std::size_t>(i)] = true;
+    }
+  }
+  std::vector<KeyframeCorrection> out;
+  out.reserve(snapshot.keyframes.size());
+  for (std::size_t i = 0; i < snapshot.keyframes.size(); ++i) {
+    const GbaKeyframe& kf = snapshot.keyframes[i];
+    KeyframeCorrection c{kf.id, kf.T_w_s_before, kf.T_w_s, std::nullopt};
+    if (has_imu[i]) c.velocity_bias_after = std::make_pair(kf.v_w, kf.bias);
+    out.push_back(std::move(c));
+  }
+  return out;
+}
+
+std::vector<PointCorrection> pointCorrections(const GbaSnapshot& snapshot) {
+  std::vector<PointCorrection> out;
+  out.reserve(snapshot.points.size());
+  for (const GbaPoint& p : snapshot.points) out.push_back({p.id, p.p_w_before, p.p_w});
+  return out;
+}
+
+AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeCorrection>& keyframes,
+                                    const std::vector<PointCorrection>& points) {
+  AppliedCorrections applied;
+  // The change of every corrected keyframe, and per agent map its corrected keyframes by time.
+  std::unordered_map<KeyframeId, SE3d> change;
+  std::map<std::pair<AgentId, std::uint32_t>, std::map<std::int64_t, SE3d>> by_time;
+  for (const KeyframeCorrection& c : keyframes) {
+    ServerKeyframe* kf = map.keyframe(c.id);
+    if (kf == nullptr) continue;  // removed meanwhile
+    const SE3d delta = c.T_w_s_after * c.T_w_s_before.inverse();
+    change.emplace(c.id, delta);
+    by_time[{kf->id.agent, kf->agent_map}].emplace(kf->t_ns, delta);
+    kf->T_w_s = delta * kf->T_w_s;
+    if (c.velocity_bias_after) {
+      // The solve's velocity, plus whatever the agent changed meanwhile (rotated with the keyframe).
+      kf->v_w = c.velocity_bias_after->first;
+      kf->bias = c.velocity_bias_after->second;
+    } else {
+      kf->v_w = delta.so3() * kf->v_w;
+    }
+    ++applied.keyframes_optimised;
+    applied.changed.push_back(c.id);
+  }
+  // Keyframes that arrived meanwhile: their agent map's nearest corrected keyframe in time (earlier first).
+  for (const auto& [id, kf_const] : map.keyframes()) {
+    if (change.count(id) != 0) continue;
+    const auto series = by_time.find({id.agent, kf_const.agent_map});
+    if (series == by_time.end() || series->second.empty()) continue;
+    auto it = series->second.upper_bound(kf_const.t_ns);
+    if (it != series->second.begin()) --it;
+    const SE3d delta = it->second;
+    ServerKeyframe* kf = map.keyframe(id);
+    kf->T_w_s = delta * kf->T_w_s;
+    kf->v_w = delta.so3() * kf->v_w;
+    change.emplace(id, delta);
+    ++applied.keyframes_propagated;
+    applied.changed.push_back(id);
+  }
+  for (const auto& [key, series] : by_time) {
+    if (!series.empty()) applied.newest_change[key] = series.rbegin()->second;
+  }
+  // Points: their own change, else their reference keyframe's.
+  std::unordered_map<MapPointId, const PointCorrection*> corrected;
+  for (const PointCorrection& c : points) corrected.emplace(c.id, &c);
+  std::vector<MapPointId> ids;
+  ids.reserve(map.points().size());
+  for (const auto& [id, p] : map.points()) ids.push_back(id);
+  for (const MapPointId& id : ids) {
+    ServerMapPoint* p = map.point(id);
+    if (const auto it = corrected.find(id); it != corrected.end()) {
+      p->p_w = it->second->p_w_after + (p->p_w - it->second->p_w_before);
+      ++applied.points_optimised;
+      continue;
+    }
+    const auto it = change.find(p->reference);
+    if (it == change.end()) continue;
+    p->p_w = it->second * p->p_w;
+    ++applied.points_propagated;
+  }
+  return applied;
+}
+
+}  // namespace cvislam::server::backend

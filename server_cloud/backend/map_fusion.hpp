@@ -1,0 +1,62 @@
+// Map fusion (CVI-SLAM IV-F) and the point fusion that loop closure shares with it.
+//
+// A verified match between two maps says where the query keyframe's camera is in the candidate's map. Both
+// maps are metric and gravity-aligned, so the query map moves into the candidate map by a 4-DoF transform:
+// the yaw of the match's rotation about gravity (z) and the translation that puts the query keyframe where the
+// match saw it. The match's roll and pitch (a few tenths of a degree of noise) are dropped.
+//
+// Duplicated points (one physical point made by both maps) are then fused: first the pairs the match found,
+// then a projection search: the points of the candidate's covisible neighbourhood are projected into the
+// query's neighbourhood keyframes, and a keypoint close to the projection with a close descriptor observes the
+// point; when the keypoint already observes another point, the two become one (the point seen more keeps).
+#pragma once
+
+#include <vector>
+
+#include "common/core/ids.hpp"
+#include "common/core/result.hpp"
+#include "common/geometry/lie.hpp"
+#include "server_cloud/recognition/place_recognition.hpp"
+#include "server_cloud/stack/map_content.hpp"
+
+namespace cvislam::server::backend {
+
+struct FusionOptions {
+  int neighbours = 10;            // a keyframe's neighbourhood: itself and its most covisible keyframes
+  double search_radius_px = 5.0;  // at octave 0; grows with the pyramid scale of the point's octave
+  int max_descriptor_distance = 50;
+  double pyramid_scale_factor = 1.2;
+
+  [[nodiscard]] Status validate() const;
+};
+
+struct FusionReport {
+  int pairs_fused = 0;        // the match's point pairs
+  int keypoints_linked = 0;   // the match's keypoint inliers that now observe the candidate's point
+  int projection_fused = 0;   // duplicates found by projection
+  int projection_linked = 0;  // keypoints without a point that now observe one
+};
+
+// The 4-DoF transform (yaw about z, translation) closest to T_to_from that maps `p_from_anchor` exactly to
+// T_to_from * p_from_anchor.
+geometry::SE3d fourDofTransform(const geometry::SE3d& T_to_from, const Eigen::Vector3d& p_from_anchor);
+
+// Yaw about z of a rotation (ZYX Euler angles), in radians.
+double yawOf(const Eigen::Matrix3d& R);
+
+// The keyframe and its `count` most covisible keyframes (fewer when it has fewer neighbours).
+std::vector<KeyframeId> neighbourhood(const MapContent& map, const KeyframeId& keyframe, int count);
+
+// The points the keyframes observe (each once).
+std::vector<MapPointId> pointsOf(const MapContent& map, const std::vector<KeyframeId>& keyframes);
+
+// Projects `points` into `keyframes` and links or fuses (see the header comment). Adds to `report`.
+void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes, const std::vector<MapPointId>& points,
+                      const recognition::CameraLookup& cameras, const FusionOptions& options, FusionReport& report);
+
+// Everything a verified match lets the (single, already joined) map fuse: its point pairs, its keypoint inliers,
+// then the projection search between the two neighbourhoods.
+FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,
+                       const recognition::CameraLookup& cameras, const FusionOptions& options);
+
+}  // namespace cvislam::server::backend

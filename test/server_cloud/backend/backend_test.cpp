@@ -1,0 +1,428 @@
+// The server's back-end on synthetic visual-inertial maps with exact ground truth (test/support/vi_scenario): a
+// smooth trajectory with IMU samples from its analytic derivatives, points on a box, pixel observations. Agents'
+// maps are built from it as the server would hold them (keypoints, descriptors, observations, raw IMU and its
+// preintegration between consecutive keyframes), then moved, drifted or perturbed; the back-end must recover
+// the truth. Real Ceres solves and the real worker threads; no mocks.
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <thread>
+
+#include <gtest/gtest.h>
+
+#include "server_cloud/backend/backend_worker.hpp"
+#include "server_cloud/backend/global_ba.hpp"
+#include "server_cloud/backend/map_fusion.hpp"
+#include "server_cloud/backend/redundancy.hpp"
+#include "test/support/vi_scenario.hpp"
+
+namespace cvislam::server::backend {
+namespace {
+
+using Eigen::Vector3d;
+using geometry::SE3d;
+using geometry::SO3d;
+
+constexpr std::uint32_t kGeneration = 100'000;  // point counters: generation * kGeneration + scenario index
+
+camera::CameraModel pinholeCamera(const test::ViScenario& s) {
+  dataset::CameraCalibration c;
+  c.width = 752;
+  c.height = 480;
+  c.fx = s.intrinsics.fx;
+  c.fy = s.intrinsics.fy;
+  c.cx = s.intrinsics.cx;
+  c.cy = s.intrinsics.cy;
+  c.distortion_coefficients = {0.0, 0.0, 0.0, 0.0};
+  c.T_b_c = s.T_s_c;
+  return *camera::CameraModel::create(c);
+}
+
+AgentSensors sensorsOf(const test::ViScenario& s) {
+  AgentSensors sensors{.mode = SensorMode::kMono,
+                       .uses_imu = true,
+                       .cam0 = pinholeCamera(s),
+                       .cam1 = std::nullopt,
+                       .T_s_c0 = s.T_s_c,
+                       .T_s_c1 = {},
+                       .imu_noise = s.noise,
+                       .imu_rate_hz = s.options.imu_rate_hz};
+  return sensors;
+}
+
+features::Descriptor descriptorOf(std::uint32_t point) {
+  std::mt19937_64 rng(1000 + point);
+  features::Descriptor d{};
+  for (auto& byte : d) byte = static_cast<std::uint8_t>(rng() & 0xFFU);
+  return d;
+}
+
+// How an agent's map is built from the scenario.
+struct AgentPlan {
+  AgentId agent = 0;
+  int first = 0;  // scenario keyframes [first, last]
+  int last = 0;
+  // The estimate of keyframe k in the map frame is E(k) * truth (map frame and drift).
+  std::function<SE3d(int)> E = [](int) { return SE3d(); };
+  // Keyframes of one generation share points; a new generation makes new points (as after drift).
+  std::function<int(int)> generation = [](int) { return 0; };
+};
+
+// Adds the plan's keyframes and points to `map`, and what the server would keep in `record`.
+void buildAgentMap(MapContent& map, const test::ViScenario& s, const AgentPlan& plan, AgentRecord* record) {
+  std::map<int, std::vector<const test::ViObservation*>> by_keyframe;
+  for (const auto& o : s.observations) by_keyframe[o.keyframe].push_back(&o);
+  std::set<std::uint32_t> made;
+  for (int k = plan.first; k <= plan.last; ++k) {
+    ServerKeyframe kf;
+    kf.id = KeyframeId{plan.agent, static_cast<std::uint32_t>(k)};
+    kf.t_ns = s.keyframe_t_ns[static_cast<std::size_t>(k)] + 1'000'000'000;
+    const SE3d E = plan.E(k);
+    kf.T_w_s = E * s.keyframe_states[static_cast<std::size_t>(k)].T_w_s;
+    kf.v_w = E.so3() * s.keyframe_states[static_cast<std::size_t>(k)].v_w;
+    for (const test::ViObservation* o : by_keyframe[k]) {
+      features::Keypoint key;
+      key.px = o->keypoint_px.cast<float>();
+      kf.keypoints.push_back(key);
+      kf.descriptors.push_back(descriptorOf(static_cast<std::uint32_t>(o->point)));
+    }
+    kf.point.resize(kf.keypoints.size());
+    kf.has_point.assign(kf.keypoints.size(), 0);
+    if (k > plan.first) {
+      kf.imu_from = KeyframeId{plan.agent, static_cast<std::uint32_t>(k - 1)};
+      for (const dataset::ImuSample& sample : s.imu) {
+        if (sample.t_ns >= s.keyframe_t_ns[static_cast<std::size_t>(k - 1)] &&
+            sample.t_ns <= s.keyframe_t_ns[static_cast<std::size_t>(k)]) {
+          dataset::ImuSample shifted = sample;
+          shifted.t_ns += 1'000'000'000;
+          kf.imu.push_back(shifted);
+        }
+      }
+      kf.preintegration = s.preintegrations[static_cast<std::size_t>(k - 1)];
+    }
+    const std::size_t keypoints = kf.keypoints.size();
+    ASSERT_TRUE(map.addKeyframe(std::move(kf)).ok());
+    if (record != nullptr) {
+      record->keyframes[static_cast<std::uint32_t>(k)] =
+          AgentRecord::HeldKeyframe{map.id(), 0, static_cast<std::uint32_t>(keypoints)};
+    }
+    const int generation = plan.generation(k);
+    for (std::size_t i = 0; i < by_keyframe[k].size(); ++i) {
+      const test::ViObservation& o = *by_keyframe[k][i];
+      const auto counter = static_cast<std::uint32_t>(generation) * kGeneration + static_cast<std::uint32_t>(o.point);
+      const MapPointId id{plan.agent, counter};
+      if (made.insert(counter).second) {
+        ServerMapPoint p;
+        p.id = id;
+        p.reference = KeyframeId{plan.agent, static_cast<std::uint32_t>(k)};
+        p.p_w = E * s.points[static_cast<std::size_t>(o.point)].p_w;
+        p.descriptor = descriptorOf(static_cast<std::uint32_t>(o.point));
+        ASSERT_TRUE(map.addPoint(p).ok());
+        if (record != nullptr) record->points[counter] = map.id();
+      }
+      ASSERT_TRUE(
+          map.addObservation(KeyframeId{plan.agent, static_cast<std::uint32_t>(k)}, static_cast<std::uint16_t>(i), id)
+              .ok());
+    }
+  }
+}
+
+// The largest position error of the agent's keyframes against the truth, after mapping the map frame by T.
+double maxPositionError(const MapContent& map, const test::ViScenario& s, AgentId agent, const SE3d& T_truth_map = {}) {
+  double worst = 0.0;
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (id.agent != agent) continue;
+    const Vector3d truth = s.keyframe_states[id.counter].T_w_s.translation();
+    worst = std::max(worst, ((T_truth_map * kf.T_w_s).translation() - truth).norm());
+  }
+  return worst;
+}
+
+test::ViScenario scenario(int keyframes, double interval_s, double pixel_sigma) {
+  test::ViScenarioOptions o;
+  o.keyframes = keyframes;
+  o.keyframe_interval_s = interval_s;
+  o.points = 300;
+  o.imu_rate_hz = 200.0;
+  o.pixel_sigma = pixel_sigma;
+  o.seed = 11;
+  return test::makeViScenario(o);
+}
+
+// ---------------------------------------------------------------------------------------------- global BA
+TEST(GlobalBa, ConvergesToTheTruthFromAPerturbedStartWithImuFactorsOnlyInsideEachAgent) {
+  const test::ViScenario s = scenario(16, 0.5, 0.5);
+  MapContent map(0);
+  // Two agents over the same place: agent 1 flies keyframes 0-7, agent 2 keyframes 8-15, seeing the same points.
+  buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 7}, nullptr);
+  buildAgentMap(map, s, AgentPlan{.agent = 2, .first = 8, .last = 15}, nullptr);
+  // Agent 2's points are agent 1's where both see them: fuse them as a merge would.
+  for (std::size_t p = 0; p < s.points.size(); ++p) {
+    const MapPointId a{1, static_cast<std::uint32_t>(p)};
+    const MapPointId b{2, static_cast<std::uint32_t>(p)};
+    if (map.point(a) != nullptr && map.point(b) != nullptr) {
+      ASSERT_TRUE(map.mergePoints(b, a).ok());
+    }
+  }
+  ASSERT_TRUE(map.checkConsistency().ok());
+  // The best the data allows: the solve started at the truth (0.5 px noise on 5-9 m points).
+  GlobalBaOptions options;
+  options.full_iterations = 30;
+  Result<GbaSnapshot> from_truth = makeGbaSnapshot(map, {{1, sensorsOf(s)}, {2, sensorsOf(s)}});
+  ASSERT_TRUE(from_truth.ok());
+  ASSERT_TRUE(runGlobalBa(*from_truth, options).ok());
+  // Perturb every keyframe but the oldest (the gauge) and every point, seeded.
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> noise(0.0, 1.0);
+  const auto vec = [&](double sigma) {
+    const double x = noise(rng);
+    const double y = noise(rng);
+    const double z = noise(rng);
+    return Vector3d(sigma * x, sigma * y, sigma * z);
+  };
+  for (const auto& [id, kf_const] : map.keyframes()) {
+    if (id == KeyframeId{1, 0}) continue;
+    ServerKeyframe* kf = map.keyframe(id);
+    kf->T_w_s = SE3d(kf->T_w_s.so3() * SO3d::exp(vec(0.01)), kf->T_w_s.translation() + vec(0.05));
+    kf->v_w += vec(0.05);
+  }
+  std::vector<MapPointId> ids;
+  for (const auto& [id, p] : map.points()) ids.push_back(id);
+  for (const MapPointId& id : ids) map.point(id)->p_w += vec(0.05);
+  const double before = std::max(maxPositionError(map, s, 1), maxPositionError(map, s, 2));
+  ASSERT_GT(before, 0.05);
+
+  Result<GbaSnapshot> snapshot = makeGbaSnapshot(map, {{1, sensorsOf(s)}, {2, sensorsOf(s)}});
+  ASSERT_TRUE(snapshot.ok()) << snapshot.error().toString();
+  Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options);
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  // IMU only between consecutive keyframes of one agent: 7 + 7, never across agents.
+  EXPECT_EQ(summary->imu_factors, 14);
+  EXPECT_LT(summary->final_cost, 0.2 * summary->initial_cost);
+  const AppliedCorrections applied = applyCorrections(map, keyframeCorrections(*snapshot), pointCorrections(*snapshot));
+  EXPECT_EQ(applied.keyframes_optimised, 16);
+  const double after = std::max(maxPositionError(map, s, 1), maxPositionError(map, s, 2));
+  EXPECT_LT(after, 0.01) << "before " << before;
+  // From the perturbed start it reaches the same optimum as from the truth.
+  ASSERT_EQ(snapshot->points.size(), from_truth->points.size());
+  double worst_point = 0.0;
+  for (std::size_t p = 0; p < snapshot->points.size(); ++p) {
+    worst_point = std::max(worst_point, (snapshot->points[p].p_w - from_truth->points[p].p_w).norm());
+  }
+  EXPECT_LT(worst_point, 0.005);
+  double worst_pose = 0.0;
+  for (std::size_t k = 0; k < snapshot->keyframes.size(); ++k) {
+    worst_pose = std::max(
+        worst_pose, (snapshot->keyframes[k].T_w_s.translation() - from_truth->keyframes[k].T_w_s.translation()).norm());
+  }
+  EXPECT_LT(worst_pose, 0.001);
+}
+
+TEST(GlobalBa, ACancelledSolveSaysSoAndChangesNothing) {
+  const test::ViScenario s = scenario(8, 0.5, 0.5);
+  MapContent map(0);
+  buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 7}, nullptr);
+  Result<GbaSnapshot> snapshot = makeGbaSnapshot(map, {{1, sensorsOf(s)}});
+  ASSERT_TRUE(snapshot.ok());
+  const std::atomic<bool> cancel{true};
+  Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, GlobalBaOptions{}, &cancel);
+  ASSERT_TRUE(summary.ok());
+  EXPECT_TRUE(summary->cancelled);
+  EXPECT_FALSE(makeGbaSnapshot(map, {}).ok());  // no sensors: the error names the agent
+}
+
+// -------------------------------------------------------------------------------- the worker: a mission
+class BackendWorkerTest : public ::testing::Test {
+ protected:
+  void SetUp() override { mission_ = registry_.getOrCreate("m"); }
+
+  // A map for `plan` with the agent's record, as ingest would have left them.
+  std::shared_ptr<ServerMap> addAgent(const test::ViScenario& s, const AgentPlan& plan) {
+    std::shared_ptr<ServerMap> map = mission_->stack().createMap();
+    auto record = mission_->agent(plan.agent)->write();
+    record->sensors = sensorsOf(s);
+    record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+    buildAgentMap(*map->write(), s, plan, &*record);
+    return map;
+  }
+
+  MissionRegistry registry_;
+  std::shared_ptr<Mission> mission_;
+};
+
+TEST_F(BackendWorkerTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesItsPointsAndOptimises) {
+  const test::ViScenario s = scenario(16, 0.5, 0.3);
+  // Agent 1's map is the truth frame; agent 2's map frame is turned by 40 deg about gravity and moved.
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, 0.7)), Vector3d(3.0, -2.0, 0.5));
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 7});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 8, .last = 15, .E = [&](int) { return T_2_truth; }});
+  const std::size_t points_before = map1->read()->points().size() + map2->read()->points().size();
+
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  BackendWorker worker(options, registry_, nullptr);
+  // What place recognition would report: agent 2's keyframe 9 seen from agent 1's keyframe 6, with the
+  // match's rotation off by 0.3 deg of roll (the merge keeps 4 DoF and drops it).
+  recognition::MatchRecord record;
+  record.kind = recognition::QueryKind::kMapMatch;
+  record.match.query = KeyframeId{2, 9};
+  record.match.candidate = KeyframeId{1, 6};
+  record.match.query_map = map2->id();
+  record.match.candidate_map = map1->id();
+  record.match.T_qmap_cmap = SE3d(SO3d::exp(Vector3d(0.005, 0.0, 0.0)), Vector3d::Zero()) * T_2_truth;
+  ASSERT_TRUE(worker.onMatch("m", record));
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.merges.size(), 1U);
+  EXPECT_EQ(mission_->stack().find(map2->id()), nullptr) << "the query's map went into the candidate's";
+  const auto merged = map1->read();
+  EXPECT_EQ(merged->agents(), (std::set<AgentId>{1, 2}));
+  EXPECT_TRUE(merged->checkConsistency().ok());
+  // The transform is recovered: agent 2's keyframes sit on the truth (4-DoF from a roll-perturbed match).
+  EXPECT_LT(maxPositionError(*merged, s, 2), 0.02);
+  EXPECT_LT(stats.merges[0].T_into_from.so3().log().head<2>().norm(), 1e-9) << "no roll or pitch";
+  // Duplicated points became one.
+  EXPECT_GT(stats.merges[0].fusion.projection_fused, 50);
+  EXPECT_LT(merged->points().size(), points_before - 50);
+  // The GBA after the merge ran and reported the time from the match to the optimised map.
+  ASSERT_FALSE(stats.gba.empty());
+  EXPECT_FALSE(stats.gba.back().summary.cancelled);
+  EXPECT_GE(stats.merges[0].match_to_optimised_s, stats.merges[0].match_to_merged_s);
+  // The records follow: agent 2's map is map 1, and its world frame maps into it by the inverse transform.
+  const auto agent2 = mission_->findAgent(2)->read();
+  EXPECT_EQ(agent2->agent_maps.at(0).map, map1->id());
+  const SE3d T_m_w = agent2->agent_maps.at(0).T_m_w;
+  EXPECT_LT((T_m_w * T_2_truth).translation().norm(), 0.05);
+  EXPECT_EQ(agent2->keyframes.at(9).map, map1->id());
+}
+
+TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  // From keyframe 12 on the estimate drifts, as VIO does, a little more at every keyframe up to 3 deg of yaw and
+  // 0.4 m at keyframe 23, with points made anew (nobody re-associated them). A loop from keyframe 22 to keyframe
+  // 3 sees the truth.
+  const Vector3d drift_xi(0.3, -0.25, 0.05);
+  const auto drift_at = [&](int k) {
+    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * drift_xi);
+  };
+  const SE3d drift = drift_at(22);
+  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 23, .E = drift_at, .generation = [](int k) {
+                                           return k >= 12 ? 1 : 0;
+                                         }});
+  const double before = maxPositionError(*map->read(), s, 1);
+  ASSERT_GT(before, 0.25);
+
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  BackendWorker worker(options, registry_, nullptr);
+  recognition::MatchRecord record;
+  record.kind = recognition::QueryKind::kLoop;
+  record.match.query = KeyframeId{1, 22};
+  record.match.candidate = KeyframeId{1, 3};
+  record.match.query_map = map->id();
+  record.match.candidate_map = map->id();
+  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;  // the query camera, from the old points
+  ASSERT_TRUE(worker.onMatch("m", record));
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.loops.size(), 1U);
+  // The pose graph alone took out most of the query keyframe's drift (GBA the rest, below).
+  const Vector3d p22 = s.keyframe_states[22].T_w_s.translation();
+  const double drift_m = (drift * p22 - p22).norm();
+  EXPECT_GT(stats.loops[0].correction_m, 0.8 * drift_m);
+  EXPECT_LT(stats.loops[0].correction_m, 1.1 * drift_m);
+  EXPECT_GT(stats.loops[0].fusion.projection_fused, 50) << "the new points are the old ones";
+  ASSERT_FALSE(stats.gba.empty());
+  const auto content = map->read();
+  EXPECT_TRUE(content->checkConsistency().ok());
+  const double after = maxPositionError(*content, s, 1);
+  EXPECT_LT(after, 0.02) << "before " << before;
+}
+
+TEST_F(BackendWorkerTest, RedundancyRemovalNeverLeavesAnImuGapOver2sAndKeepsTheMapAccurate) {
+  // 0.1 s between keyframes that all see the same box: most are redundant.
+  const test::ViScenario s = scenario(60, 0.1, 0.3);
+  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 59});
+  RedundancyOptions options;
+  options.checks_per_round = 1000;
+  std::mt19937_64 rng(3);
+  RedundancyReport report;
+  {
+    auto content = map->write();
+    report = removeRedundantKeyframes(*content, {{1, sensorsOf(s)}}, options, rng);
+    EXPECT_TRUE(content->checkConsistency().ok());
+  }
+  EXPECT_GT(report.removed_keyframes.size(), 20U);
+  const auto content = map->read();
+  EXPECT_EQ(content->keyframes().size(), 60U - report.removed_keyframes.size());
+  // Every IMU link spans at most 2 s and its preintegration covers exactly its keyframes' interval.
+  int links = 0;
+  for (const auto& [id, kf] : content->keyframes()) {
+    if (!kf.imu_from) continue;
+    const ServerKeyframe* before = content->keyframe(*kf.imu_from);
+    ASSERT_NE(before, nullptr) << id.toString() << " links to a removed keyframe";
+    const double gap_s = static_cast<double>(kf.t_ns - before->t_ns) * 1e-9;
+    EXPECT_LE(gap_s, 2.0 + 1e-9);
+    ASSERT_TRUE(kf.preintegration.has_value());
+    EXPECT_NEAR(kf.preintegration->dt(), gap_s, 1e-6);
+    ++links;
+  }
+  EXPECT_EQ(links, static_cast<int>(content->keyframes().size()) - 1) << "one unbroken IMU chain";
+  // The newest keep_newest keyframes stay.
+  for (int k = 50; k < 60; ++k) EXPECT_NE(content->keyframe(KeyframeId{1, static_cast<std::uint32_t>(k)}), nullptr);
+  // GBA on the lean map (joined preintegrations) stays on the truth.
+  Result<GbaSnapshot> snapshot = makeGbaSnapshot(*content, {{1, sensorsOf(s)}});
+  ASSERT_TRUE(snapshot.ok());
+  ASSERT_TRUE(runGlobalBa(*snapshot, GlobalBaOptions{}).ok());
+  double worst = 0.0;
+  for (const GbaKeyframe& kf : snapshot->keyframes) {
+    worst = std::max(worst, (kf.T_w_s.translation() - s.keyframe_states[kf.id.counter].T_w_s.translation()).norm());
+  }
+  EXPECT_LT(worst, 0.01);
+}
+
+TEST_F(BackendWorkerTest, GbaWhileKeyframesStreamInLosesNoneAndCarriesTheNewOnesAlong) {
+  const test::ViScenario s = scenario(40, 0.25, 0.5);
+  // The map holds keyframes 0-29 with a perturbation; 30-39 arrive while GBA runs.
+  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 29});
+  {
+    auto content = map->write();
+    std::mt19937_64 rng(9);
+    std::normal_distribution<double> noise(0.0, 0.03);
+    for (std::uint32_t k = 1; k < 30; ++k) {
+      ServerKeyframe* kf = content->keyframe(KeyframeId{1, k});
+      kf->T_w_s = SE3d(kf->T_w_s.so3(), kf->T_w_s.translation() + Vector3d(noise(rng), noise(rng), noise(rng)));
+    }
+  }
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  BackendWorker worker(options, registry_, nullptr);
+  std::thread gba([&] { worker.drain(true); });
+  MapContent late(99);
+  buildAgentMap(late, s, AgentPlan{.agent = 1, .first = 30, .last = 39}, nullptr);
+  for (std::uint32_t k = 30; k < 40; ++k) {
+    auto content = map->write();
+    ServerKeyframe kf = *late.keyframe(KeyframeId{1, k});
+    kf.point.assign(kf.keypoints.size(), MapPointId{});
+    kf.has_point.assign(kf.keypoints.size(), 0);
+    ASSERT_TRUE(content->addKeyframe(std::move(kf)).ok());
+  }
+  gba.join();
+  const BackendStats stats = worker.stats("m");
+  ASSERT_FALSE(stats.gba.empty());
+  EXPECT_FALSE(stats.gba.back().summary.cancelled);
+  const auto content = map->read();
+  EXPECT_EQ(content->keyframes().size(), 40U);
+  const int optimised = stats.gba.back().summary.keyframes;
+  EXPECT_EQ(optimised + stats.gba.back().keyframes_propagated, 40);
+  // The keyframes GBA saw are on the truth; those that came later kept their pose relative to the newest
+  // optimised one (the same change applied).
+  EXPECT_LT(maxPositionError(*content, s, 1), 0.05 + (optimised < 40 ? 0.1 : 0.0));
+  EXPECT_TRUE(content->checkConsistency().ok());
+}
+
+}  // namespace
+}  // namespace cvislam::server::backend
