@@ -125,7 +125,7 @@ def report_recognition(out, mission, map_to_truth, summary):
     summary["recognition"] = rows
     print()
     print("== place recognition on the server, on the agents' own maps (loops: inside a map; map matches: across "
-          "maps; not acted on until map fusion lands)")
+          "maps; the back-end merges maps on map matches and closes loops: see backend.json)")
     print(f"{'mission':10} {'KFs':>5} {'queries':>8} {'verified':>9} {'loops':>6} {'matches':>8} {'busy[s]':>8}  "
           "map matches against ground truth: wrong (>0.5 m or 5 deg), error p50 / max")
     for r in rows:
@@ -187,8 +187,10 @@ def main():
             server = run_eval(args.eval, [(server_file, gt)], os.path.join(eval_dir, f"server_{a}.json"),
                               per_pose=True)
             pairs_server.append((server_file, gt))
-            if server is not None and "transform_gt_est" in server.get("se3", {}):
-                map_to_truth[(name, agent_id)] = server["se3"]["transform_gt_est"]
+        # The agent's own world frame is its server map's frame until a merge moves it: matches are scored
+        # against the onboard trajectory's alignment, which stays that of the frame the match was made in.
+        if onboard is not None and "transform_gt_est" in onboard.get("se3", {}):
+            map_to_truth[(name, agent_id)] = onboard["se3"]["transform_gt_est"]
         s = server_agents.get((name, agent_id), {})
         row = {"agent": a, "frames": onboard["poses"] if onboard else 0,
                "onboard_ate_se3_m": ate(onboard), "onboard_ate_sim3_m": ate(onboard, "sim3"),
@@ -208,10 +210,13 @@ def main():
             print(f"{'':8} tracking restarted: {row['server_maps']} maps; the server figure pools the maps, each aligned "
                   f"on its own; the onboard figure aligns the whole trajectory at once")
 
-    # Joint: every agent's server keyframes against the ground truth. The server's maps are separate until
-    # map fusion lands, so each map is aligned on its own and the errors are pooled.
+    # Joint: every agent's server keyframes against the ground truth. When the back-end fused every agent into one
+    # map, one transform aligns them all; otherwise each map is aligned on its own and the errors are pooled.
+    mission_maps = [m for m in server_stats.get("maps", []) if m.get("mission") == name and int(m.get("keyframes", 0)) > 0]
+    fused = len(mission_maps) == 1 and len(mission_maps[0].get("agents", [])) == len(mission["agents"])
     if pairs_server:
-        joint = run_eval(args.eval, pairs_server, os.path.join(eval_dir, "joint_server.json"), align="each")
+        joint = run_eval(args.eval, pairs_server, os.path.join(eval_dir, "joint_server.json"),
+                         align="joint" if fused else "each")
         if joint is not None and "joint" in joint:
             j = joint["joint"]
             summary["joint"] = {"align": joint.get("align", "each"), "poses": j.get("poses"),
@@ -225,7 +230,8 @@ def main():
                                 "ate_sim3_m": None}
         jt = summary["joint"]
         print(f"{'joint':8} {'':6} {'':>16} {'':>10} {jt['poses'] or 0:10d} {cm(jt['ate_se3_m']):>15}   "
-              f"(server keyframes of all agents; each server map aligned on its own: the maps are not fused yet)")
+              + ("(server keyframes of all agents in one fused map, aligned with one transform)" if fused else
+                 f"(server keyframes of all agents; {len(mission_maps)} server maps, each aligned on its own)"))
 
     # Traffic per agent and direction (paper, Table IV: 0.12-0.15 MB/s up, about 0.7 MB/s down).
     print()

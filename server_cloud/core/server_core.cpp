@@ -33,6 +33,9 @@ Status ServerOptions::validate() const {
     return invalid("timeline_interval_s must be >= 0.05");
   }
   if (Status s = session.validate(); !s.ok()) return s;
+  if (backend.enabled) {
+    if (Status s = backend.validate(); !s.ok()) return s;
+  }
   return recognition.enabled ? recognition.validate() : Status::Ok();
 }
 
@@ -52,12 +55,15 @@ std::string ServerOptions::describe() const {
       << "  recognition.enabled:          " << (recognition.enabled ? "true" : "false") << "\n"
       << "  recognition.vocabulary:       " << recognition.vocabulary.string() << "\n"
       << "  recognition.delay_keyframes:  " << recognition.delay_keyframes << "\n"
-      << "  recognition:                  " << recognition.recognition.describe() << "\n";
+      << "  recognition:                  " << recognition.recognition.describe() << "\n"
+      << "  backend.enabled:              " << (backend.enabled ? "true" : "false") << "\n"
+      << "  backend:                      " << backend.describe() << "\n"
+      << "  final_gba:                    " << (final_gba ? "true" : "false") << "\n";
   return out.str();
 }
 
 Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
-  auto loaded = config::loadSections(file.string(), {"server", "link", "limits", "recognition"});
+  auto loaded = config::loadSections(file.string(), {"server", "link", "limits", "recognition", "backend"});
   if (!loaded) return loaded.error();
   const YAML::Node& root = *loaded;
   const auto in_file = [&](const Status& s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
@@ -101,6 +107,30 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   recognition.read("max_scale_error", r.max_scale_error);
   if (Status s = recognition.finish(); !s.ok()) return in_file(s);
   if (!vocabulary.empty()) o.recognition.vocabulary = vocabulary;  // "": the shipped one
+
+  config::YamlSection backend(root["backend"], "backend");
+  backend::BackendOptions& b = o.backend;
+  backend.read("enabled", b.enabled);
+  backend.read("merge_maps", b.merge_maps);
+  backend.read("close_loops", b.close_loops);
+  backend.read("gba_after_change", b.gba_after_change);
+  backend.read("final_gba", o.final_gba);
+  backend.read("loop_cooldown_keyframes", b.loop_cooldown_keyframes);
+  backend.read("gba_structure_iterations", b.gba.structure_iterations);
+  backend.read("gba_full_iterations", b.gba.full_iterations);
+  backend.read("gba_threads", b.gba.threads);
+  backend.read("gba_max_solver_time_s", b.gba.max_solver_time_s);
+  backend.read("pose_graph_strong_covisibility", b.pose_graph.strong_covisibility);
+  backend.read("fusion_search_radius_px", b.fusion.search_radius_px);
+  backend.read("fusion_max_descriptor_distance", b.fusion.max_descriptor_distance);
+  backend.read("redundancy_removal", b.redundancy.enabled);
+  backend.read("redundancy_every_keyframes", b.redundancy_every_keyframes);
+  backend.read("redundant_fraction", b.redundancy.redundant_fraction);
+  backend.read("redundancy_min_other_observers", b.redundancy.min_other_observers);
+  backend.read("redundancy_max_imu_gap_s", b.redundancy.max_imu_gap_s);
+  backend.read("redundancy_keep_newest", b.redundancy.keep_newest);
+  backend.read("redundancy_seed", b.redundancy.seed);
+  if (Status s = backend.finish(); !s.ok()) return in_file(s);
   return in_file(o.validate());
 }
 
@@ -114,24 +144,52 @@ ServerCore::ServerCore(const ServerOptions& options) : options_(options), start_
 
 ServerCore::~ServerCore() = default;
 
-Status ServerCore::startRecognition() {
-  if (!options_.recognition.enabled || recognition_) return Status::Ok();
-  Result<std::unique_ptr<recognition::RecognitionWorker>> worker =
-      recognition::RecognitionWorker::create(options_.recognition, missions_);
-  if (!worker) return worker.error();
-  recognition_ = std::move(worker).value();
+Status ServerCore::startWorkers() {
+  if (options_.recognition.enabled && !recognition_) {
+    Result<std::unique_ptr<recognition::RecognitionWorker>> worker =
+        recognition::RecognitionWorker::create(options_.recognition, missions_);
+    if (!worker) return worker.error();
+    recognition_ = std::move(worker).value();
+  }
+  if (options_.backend.enabled && !backend_) {
+    if (Status s = options_.backend.validate(); !s.ok()) return s;
+    backend_ = std::make_unique<backend::BackendWorker>(options_.backend, missions_, recognition_.get());
+    if (recognition_) {
+      backend::BackendWorker* b = backend_.get();
+      recognition_->setMatchListener(
+          [b](const std::string& mission, const recognition::MatchRecord& match) { b->onMatch(mission, match); });
+    }
+  }
   return Status::Ok();
+}
+
+void ServerCore::drainWorkers(bool final_gba) const {
+  if (recognition_) recognition_->drain();  // the last keyframes of every agent get their turn
+  if (backend_) backend_->drain(final_gba);
+  // A merge or removal the back-end made tells recognition: let it follow.
+  if (recognition_) recognition_->drain();
 }
 
 std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream) {
   AgentSession::StoredListener on_stored;
-  if (recognition::RecognitionWorker* worker = recognition_.get(); worker != nullptr) {
-    on_stored = [worker](const std::string& mission, const IngestReport& report) {
+  recognition::RecognitionWorker* worker = recognition_.get();
+  backend::BackendWorker* back_end = backend_.get();
+  if (worker != nullptr || back_end != nullptr) {
+    on_stored = [worker, back_end](const std::string& mission, const IngestReport& report) {
       using Event = recognition::KeyframeEvent;
-      for (const KeyframeId& id : report.removed_keyframe_ids)
-        worker->enqueue(Event{Event::Kind::kRemoved, mission, 0, id});
-      for (const auto& [map, id] : report.added_keyframes)
-        worker->enqueue(Event{Event::Kind::kAdded, mission, map, id});
+      if (worker != nullptr) {
+        for (const KeyframeId& id : report.removed_keyframe_ids) {
+          worker->enqueue(Event{Event::Kind::kRemoved, mission, 0, id});
+        }
+        for (const auto& [map, id] : report.added_keyframes) {
+          worker->enqueue(Event{Event::Kind::kAdded, mission, map, id});
+        }
+      }
+      if (back_end != nullptr && !report.added_keyframes.empty()) {
+        std::vector<MapId> maps;
+        for (const auto& [map, id] : report.added_keyframes) maps.push_back(map);
+        back_end->onKeyframesAdded(mission, maps);
+      }
     };
   }
   return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), std::move(on_stored));
@@ -194,6 +252,7 @@ void ServerCore::sampleTimeline() {
       s.agent = record->id;
       s.connected = record->connected;
       s.keyframes = record->keyframes.size();
+      s.server_keyframes = s.keyframes - std::min<std::uint64_t>(s.keyframes, record->server_removed_keyframes.size());
       s.points = record->points.size();
       if (auto it = record->up.find("message"); it != record->up.end()) s.up_bytes = it->second.bytes;
       if (auto it = record->down.find("message"); it != record->down.end()) s.down_bytes = it->second.bytes;
@@ -274,12 +333,87 @@ Status writeRecognition(const std::filesystem::path& path, const recognition::Re
   return Status::Ok();
 }
 
+nlohmann::json toJson(const geometry::SE3d& T) {
+  const Eigen::Quaterniond& q = T.quaternion();
+  const Eigen::Vector3d& t = T.translation();
+  return {t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()};
+}
+
+nlohmann::json toJson(const backend::FusionReport& f) {
+  return {{"pairs_fused", f.pairs_fused},
+          {"keypoints_linked", f.keypoints_linked},
+          {"projection_fused", f.projection_fused},
+          {"projection_linked", f.projection_linked}};
+}
+
+Status writeBackend(const std::filesystem::path& path, const backend::BackendStats& b) {
+  nlohmann::json j;
+  nlohmann::json merges = nlohmann::json::array();
+  for (const backend::MergeRecord& m : b.merges) {
+    merges.push_back({{"from_map", m.from},
+                      {"into_map", m.into},
+                      {"query", {m.query.agent, m.query.counter}},
+                      {"candidate", {m.candidate.agent, m.candidate.counter}},
+                      {"T_into_from", toJson(m.T_into_from)},
+                      {"fusion", toJson(m.fusion)},
+                      {"apply_ms", m.apply_ms},
+                      {"match_to_merged_s", m.match_to_merged_s},
+                      {"match_to_optimised_s", m.match_to_optimised_s}});
+  }
+  nlohmann::json loops = nlohmann::json::array();
+  for (const backend::LoopRecord& l : b.loops) {
+    loops.push_back({{"map", l.map},
+                     {"query", {l.query.agent, l.query.counter}},
+                     {"candidate", {l.candidate.agent, l.candidate.counter}},
+                     {"correction_m", l.correction_m},
+                     {"correction_deg", l.correction_deg},
+                     {"graph_keyframes", l.graph.keyframes},
+                     {"graph_edges", l.graph.tree_edges + l.graph.covisibility_edges + l.graph.loop_edges},
+                     {"loop_edges", l.graph.loop_edges},
+                     {"solve_ms", l.solve_ms},
+                     {"fusion", toJson(l.fusion)},
+                     {"match_to_optimised_s", l.match_to_optimised_s}});
+  }
+  nlohmann::json gba = nlohmann::json::array();
+  for (const backend::GbaRecord& g : b.gba) {
+    gba.push_back({{"map", g.map},
+                   {"final", g.final},
+                   {"cancelled", g.summary.cancelled},
+                   {"keyframes", g.summary.keyframes},
+                   {"points", g.summary.points},
+                   {"reprojection_factors", g.summary.reprojection_factors},
+                   {"imu_factors", g.summary.imu_factors},
+                   {"iterations", g.summary.structure_iterations + g.summary.full_iterations},
+                   {"initial_cost", g.summary.initial_cost},
+                   {"final_cost", g.summary.final_cost},
+                   {"solve_s", g.summary.structure_s + g.summary.full_s},
+                   {"snapshot_ms", g.snapshot_ms},
+                   {"apply_ms", g.apply_ms},
+                   {"keyframes_propagated", g.keyframes_propagated}});
+  }
+  j["merges"] = std::move(merges);
+  j["loops"] = std::move(loops);
+  j["gba"] = std::move(gba);
+  j["gba_cancelled"] = b.gba_cancelled;
+  j["stale_matches"] = b.stale_matches;
+  j["loops_in_cooldown"] = b.loops_in_cooldown;
+  j["redundancy_checked"] = b.redundancy_checked;
+  j["redundant_keyframes_removed"] = b.redundant_removed;
+  j["points_removed"] = b.points_removed;
+  j["dropped_events"] = b.dropped_events;
+  std::ofstream out(path);
+  out << j.dump(1) << "\n";
+  if (!out) return Error{ErrorCode::kIoError, "cannot write " + path.string()};
+  return Status::Ok();
+}
+
 }  // namespace
 
 Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
   std::error_code ec;
   std::filesystem::create_directories(dir, ec);
   if (ec) return Error{ErrorCode::kIoError, "cannot create " + dir.string() + ": " + ec.message()};
+  drainWorkers(options_.final_gba);
 
   for (const auto& mission : missions_.missions()) {
     const std::filesystem::path mission_dir = dir / mission->name();
@@ -324,8 +458,14 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
   }
   std::ofstream(dir / "stats.json") << json;
 
+  if (backend_) {
+    for (const std::string& name : backend_->missions()) {
+      const auto mission_dir = dir / name;
+      std::filesystem::create_directories(mission_dir, ec);
+      if (Status s = writeBackend(mission_dir / "backend.json", backend_->stats(name)); !s.ok()) return s;
+    }
+  }
   if (recognition_) {
-    recognition_->drain();  // the last keyframes of every agent get their turn
     for (const std::string& name : recognition_->missions()) {
       const auto mission_dir = dir / name;
       std::filesystem::create_directories(mission_dir, ec);
@@ -338,10 +478,10 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
   }
 
   std::ofstream timeline(dir / "timeline.csv");
-  timeline << "t_s,mission,agent,connected,keyframes,points,up_bytes,down_bytes\n";
+  timeline << "t_s,mission,agent,connected,keyframes,server_keyframes,points,up_bytes,down_bytes\n";
   for (const TimelineSample& s : *timeline_.read()) {
     timeline << s.t_s << ',' << s.mission << ',' << s.agent << ',' << (s.connected ? 1 : 0) << ',' << s.keyframes << ','
-             << s.points << ',' << s.up_bytes << ',' << s.down_bytes << '\n';
+             << s.server_keyframes << ',' << s.points << ',' << s.up_bytes << ',' << s.down_bytes << '\n';
   }
   if (!timeline) return Error{ErrorCode::kIoError, "cannot write " + (dir / "timeline.csv").string()};
   return Status::Ok();

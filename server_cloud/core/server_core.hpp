@@ -12,6 +12,7 @@
 
 #include "common/core/result.hpp"
 #include "common/core/synchronized.hpp"
+#include "server_cloud/backend/backend_worker.hpp"
 #include "server_cloud/ingest/agent_session.hpp"
 #include "server_cloud/recognition/recognition_worker.hpp"
 #include "server_cloud/stack/map_stack.hpp"
@@ -34,8 +35,11 @@ struct ServerOptions {
   int keepalive_timeout_ms = 5000;
   double timeline_interval_s = 1.0;  // keyframes and traffic per agent, sampled for timeline.csv
   SessionOptions session;
-  // Started by startRecognition(); the vocabulary defaults to the one the project ships.
+  // Started by startWorkers(); the vocabulary defaults to the one the project ships.
   recognition::RecognitionWorkerOptions recognition = defaultRecognitionOptions();
+  // Map fusion, loop closure, global BA and redundancy removal (started with place recognition, which feeds it).
+  backend::BackendOptions backend;
+  bool final_gba = true;  // writeOutputs() runs a last GBA on every map first (the end of a mission)
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line
@@ -50,7 +54,8 @@ struct TimelineSample {
   std::string mission;
   AgentId agent = 0;
   bool connected = false;
-  std::uint64_t keyframes = 0;
+  std::uint64_t keyframes = 0;         // the agent's keyframes the server received (less those the agent removed)
+  std::uint64_t server_keyframes = 0;  // of those, the ones the server holds (less those it found redundant)
   std::uint64_t points = 0;
   std::uint64_t up_bytes = 0;
   std::uint64_t down_bytes = 0;
@@ -66,10 +71,12 @@ class ServerCore {
   ~ServerCore();
 
   // Loads the vocabulary and starts place recognition for every keyframe stored from now on (when
-  // options.recognition.enabled; otherwise does nothing). The error names the vocabulary file and the problem.
-  Status startRecognition();
-  // The worker, or nullptr when recognition is not running.
+  // options.recognition.enabled), and the back-end that acts on its matches and removes redundant keyframes (when
+  // options.backend.enabled). The error names the vocabulary file and the problem.
+  Status startWorkers();
+  // The workers, or nullptr when they are not running.
   [[nodiscard]] recognition::RecognitionWorker* recognition() const { return recognition_.get(); }
+  [[nodiscard]] backend::BackendWorker* backend() const { return backend_.get(); }
 
   [[nodiscard]] const ServerOptions& options() const { return options_; }
   [[nodiscard]] MissionRegistry& missions() { return missions_; }
@@ -89,11 +96,15 @@ class ServerCore {
   Status correctKeyframe(const std::string& mission, const KeyframeId& id, const geometry::SE3d& T_m_s,
                          const Eigen::Vector3d& v_m, const imu::ImuBias& bias);
 
-  // Writes, under `dir`: stats.json, timeline.csv and, per mission, <mission>/recognition.json (when recognition
-  // runs: its counters and every verified loop and map match, after the worker caught up),
+  // Lets the workers catch up (recognition queries every waiting keyframe, the back-end acts on every match and,
+  // with options.final_gba, runs a last GBA on every map), then writes, under `dir`: stats.json, timeline.csv and,
+  // per mission, <mission>/recognition.json (when recognition runs: its counters and every verified loop and map
+  // match), <mission>/backend.json (when the back-end runs: merges, loops, GBA runs, removals),
   // <mission>/keyframes_agent<N>.txt (TUM, the agent's keyframes in its server map's frame, all maps) and, for an agent
   // with several maps, <mission>/keyframes_agent<N>_map<M>.txt per map.
   Status writeOutputs(const std::filesystem::path& dir) const;
+  // The catching-up part of writeOutputs().
+  void drainWorkers(bool final_gba) const;
 
  private:
   ServerOptions options_;
@@ -101,6 +112,7 @@ class ServerCore {
   MissionRegistry missions_;
   Synchronized<std::vector<TimelineSample>> timeline_;
   std::unique_ptr<recognition::RecognitionWorker> recognition_;
+  std::unique_ptr<backend::BackendWorker> backend_;  // after recognition_: it goes first
 };
 
 }  // namespace cvislam::server

@@ -101,7 +101,13 @@ int main(int argc, char** argv) {
   app.add_flag("--quiet", quiet, "Print neither the options nor status lines");
   app.add_option("--vocabulary", vocabulary,
                  "Place recognition's vocabulary file [the shipped deploy/vocabulary/orb_k10_l5.cvvoc]");
-  app.add_flag("--no-recognition", no_recognition, "Run without place recognition");
+  app.add_flag("--no-recognition", no_recognition, "Run without place recognition (and so without merges and loops)");
+  bool no_backend = false;
+  bool no_redundancy = false;
+  bool no_final_gba = false;
+  app.add_flag("--no-backend", no_backend, "Run without the back-end: no map fusion, loop closure, GBA or removal");
+  app.add_flag("--no-redundancy", no_redundancy, "Keep every keyframe (no redundancy removal)");
+  app.add_flag("--no-final-gba", no_final_gba, "Skip the last global BA of every map at shutdown");
   CLI11_PARSE(app, argc, argv);
 
   ServerOptions options;
@@ -115,6 +121,9 @@ int main(int argc, char** argv) {
   if (!output.empty()) options.output = output;
   if (!vocabulary.empty()) options.recognition.vocabulary = vocabulary;
   if (no_recognition) options.recognition.enabled = false;
+  if (no_backend) options.backend.enabled = false;
+  if (no_redundancy) options.backend.redundancy.enabled = false;
+  if (no_final_gba) options.final_gba = false;
   if (auto s = options.validate(); !s.ok()) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 2;
@@ -135,7 +144,7 @@ int main(int argc, char** argv) {
 
   if (!quiet) std::fprintf(stderr, "[server] options:\n%s", options.describe().c_str());
   cvislam::server::ServerCore core(options);
-  if (auto s = core.startRecognition(); !s.ok()) {
+  if (auto s = core.startWorkers(); !s.ok()) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 1;
   }
