@@ -22,8 +22,8 @@ inline constexpr int kPointSize = 3;
 class WorldPointReprojectionFactor final : public ceres::SizedCostFunction<2, kPoseSize, kPointSize> {
  public:
   // `T_c_s`: the observing camera from the body.
-  WorldPointReprojectionFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics,
-                               double sigma_px, const geometry::SE3d& T_c_s);
+  WorldPointReprojectionFactor(const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& intrinsics, double sigma_px,
+                               const geometry::SE3d& T_c_s);
 
   bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override;
 
