@@ -32,8 +32,9 @@ Status LocalBundleAdjustmentOptions::validate() const {
   if (use_second_camera && (!(second_intrinsics.fx > 0.0) || !(second_intrinsics.fy > 0.0))) {
     return bad("second camera intrinsics fx, fy must be > 0");
   }
-  if (use_second_camera && !(max_second_camera_error_sigma > 0.0))
+  if (use_second_camera && !(max_second_camera_error_sigma > 0.0)) {
     return bad("max_second_camera_error_sigma must be > 0");
+  }
   return noise.validate();
 }
 
