@@ -5,11 +5,13 @@
 #include <memory>
 #include <string>
 #include <unordered_map>
+#include <unordered_set>
 #include <vector>
 
 #include <ceres/ceres.h>
 
 #include "common/factors/imu_factor.hpp"
+#include "common/factors/inverse_depth_point_factor.hpp"
 #include "common/factors/manifolds.hpp"
 #include "common/factors/state_layout.hpp"
 
@@ -30,7 +32,9 @@ Status LocalBundleAdjustmentOptions::validate() const {
   if (use_second_camera && (!(second_intrinsics.fx > 0.0) || !(second_intrinsics.fy > 0.0))) {
     return bad("second camera intrinsics fx, fy must be > 0");
   }
-  if (use_second_camera && !(max_second_camera_error_sigma > 0.0)) return bad("max_second_camera_error_sigma must be > 0");
+  if (use_second_camera && !(max_second_camera_error_sigma > 0.0)) {
+    return bad("max_second_camera_error_sigma must be > 0");
+  }
   return noise.validate();
 }
 
@@ -48,11 +52,15 @@ struct KeyframeState {
   bool in_window = false;
 };
 
+// A point as one Ceres block, (a, b, rho) in its reference camera (inverse_depth_point_factor.hpp), so that
+// SPARSE_SCHUR can eliminate it; the map keeps its bearing and inverse distance, converted at both ends.
 struct PointState {
   PoolHandle handle;
-  Vector3d bearing;
-  double inverse_depth = 1.0;
+  Vector3d point;
 };
+
+// Lower bound of rho = 1/z: in front of the reference camera, and finite.
+constexpr double kMinInverseDepth = 1e-8;
 
 }  // namespace
 
@@ -91,8 +99,12 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   for (std::size_t i = first; i < by_sequence.size(); ++i) add_keyframe(by_sequence[i].second, true);
   summary.window_keyframes = static_cast<int>(keyframes.size());
 
-  // The points the window observes, and how many of them every other keyframe shares.
+  // The points the window observes, and how many of them every other keyframe shares. A point without an
+  // inverse-depth point (a bearing nearly in its reference image plane, a non-finite or negative inverse
+  // distance: corrupt, no pinhole image saw it) or without its reference keyframe is left out, as are its
+  // observations, rather than failing the whole BA; it stays in the map as it was.
   std::unordered_map<std::uint64_t, std::size_t> point_index;
+  std::unordered_set<std::uint64_t> left_out;
   std::vector<PointState> points;
   for (std::size_t i = 0; i < keyframes.size(); ++i) {
     const KeyframeData& kf = *map.keyframes().get(keyframes[i].handle);
@@ -100,11 +112,20 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
       if (!kf.has_map_point[k]) continue;
       const MapPointData* mp = map.mapPoints().get(kf.map_point[k]);
       if (mp == nullptr) continue;
-      if (point_index.emplace(handleKey(kf.map_point[k]), points.size()).second) {
-        points.push_back({kf.map_point[k], mp->bearing_c, mp->inverse_depth});
+      const std::uint64_t key = handleKey(kf.map_point[k]);
+      if (point_index.count(key) != 0 || left_out.count(key) != 0) continue;
+      Vector3d point;
+      if (!map.keyframes().valid(mp->reference) || !(mp->inverse_depth >= 0.0) ||
+          !factors::inverseDepthPointFromBearing(mp->bearing_c, mp->inverse_depth, point)) {
+        left_out.insert(key);
+        continue;
       }
+      point.z() = std::max(point.z(), kMinInverseDepth);  // Ceres needs a feasible start
+      point_index.emplace(key, points.size());
+      points.push_back({kf.map_point[k], point});
     }
   }
+  summary.map_points_left_out = static_cast<int>(left_out.size());
   std::unordered_map<std::uint64_t, int> shared;
   map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
     if (keyframe_index.count(handleKey(h)) != 0) return;
@@ -118,15 +139,13 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
     if (kf.anchor || (it != shared.end() && it->second >= options.min_covisible)) add_keyframe(h, false);
   });
   for (const PointState& p : points) {  // reference keyframes are needed as fixed poses at least
-    const PoolHandle ref = map.mapPoints().get(p.handle)->reference;
-    if (map.keyframes().valid(ref)) add_keyframe(ref, false);
+    add_keyframe(map.mapPoints().get(p.handle)->reference, false);
   }
   summary.fixed_keyframes = static_cast<int>(keyframes.size()) - summary.window_keyframes;
   summary.map_points = static_cast<int>(points.size());
 
   ceres::Problem problem;
   auto* pose_manifold = new factors::PoseManifold();  // owned by the problem, as are the cost functions
-  ceres::Manifold* bearing_manifold = points.empty() ? nullptr : new factors::UnitBearingManifold();
   factors::PoseBlock extrinsics = factors::poseToBlock(map.extrinsics());
   problem.AddParameterBlock(extrinsics.data(), factors::kPoseSize, pose_manifold);
   problem.SetParameterBlockConstant(extrinsics.data());
@@ -135,9 +154,8 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
     if (!s.in_window) problem.SetParameterBlockConstant(s.pose.data());
   }
   for (PointState& p : points) {
-    problem.AddParameterBlock(p.bearing.data(), 3, bearing_manifold);
-    problem.AddParameterBlock(&p.inverse_depth, 1);
-    problem.SetParameterLowerBound(&p.inverse_depth, 0, 1e-8);  // in front of the reference camera, finite
+    problem.AddParameterBlock(p.point.data(), factors::kInverseDepthPointSize);
+    problem.SetParameterLowerBound(p.point.data(), 2, kMinInverseDepth);
   }
 
   // Reprojection factors: every observation of a window point from a keyframe in the problem.
@@ -152,12 +170,13 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
       const double sigma = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.keypoints[k].octave);
       auto* loss = new ceres::CauchyLoss(options.cauchy_scale);
       if (ref == s.handle) {
-        problem.AddResidualBlock(new factors::ReprojectionHostFactor(kf.undistorted_px[k], options.intrinsics, sigma),
-                                 loss, p.bearing.data());
+        problem.AddResidualBlock(
+            new factors::InverseDepthPointHostFactor(kf.undistorted_px[k], options.intrinsics, sigma), loss,
+            p.point.data());
       } else {
         KeyframeState& r = keyframes[keyframe_index.at(handleKey(ref))];
-        problem.AddResidualBlock(new factors::ReprojectionFactor(kf.undistorted_px[k], options.intrinsics, sigma), loss,
-                                 s.pose.data(), r.pose.data(), extrinsics.data(), p.bearing.data(), &p.inverse_depth);
+        problem.AddResidualBlock(new factors::InverseDepthPointFactor(kf.undistorted_px[k], options.intrinsics, sigma),
+                                 loss, s.pose.data(), r.pose.data(), extrinsics.data(), p.point.data());
       }
       ++summary.reprojection_factors;
       if (options.use_second_camera && kf.has_right[k]) {
@@ -165,14 +184,14 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
         std::unique_ptr<ceres::CostFunction> cost;
         std::vector<double*> blocks;
         if (ref == s.handle) {
-          cost = std::make_unique<factors::SecondCameraHostFactor>(kf.right_undistorted_px[k],
-                                                                   options.second_intrinsics, sigma1, options.T_c1_c0);
-          blocks = {p.bearing.data(), &p.inverse_depth};
+          cost = std::make_unique<factors::InverseDepthPointSecondCameraHostFactor>(
+              kf.right_undistorted_px[k], options.second_intrinsics, sigma1, options.T_c1_c0);
+          blocks = {p.point.data()};
         } else {
           KeyframeState& r = keyframes[keyframe_index.at(handleKey(ref))];
-          cost = std::make_unique<factors::ReprojectionFactor>(kf.right_undistorted_px[k], options.second_intrinsics,
-                                                               sigma1, options.T_c1_c0);
-          blocks = {s.pose.data(), r.pose.data(), extrinsics.data(), p.bearing.data(), &p.inverse_depth};
+          cost = std::make_unique<factors::InverseDepthPointFactor>(kf.right_undistorted_px[k],
+                                                                    options.second_intrinsics, sigma1, options.T_c1_c0);
+          blocks = {s.pose.data(), r.pose.data(), extrinsics.data(), p.point.data()};
         }
         Eigen::Vector2d residual;
         const bool evaluable = cost->Evaluate(blocks.data(), residual.data(), nullptr);
@@ -212,8 +231,22 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
     }
   }
 
+  // Points first, everything else after: each point is one block, seen only with keyframe states, so the
+  // Schur complement eliminates all of them and the reduced system holds the keyframes alone. Ceres wants
+  // every block of the problem in the ordering, constant ones too.
+  // Without points (all left out) Ceres picks the elimination itself, as group 0 would be empty.
   ceres::Solver::Options solver_options;
   solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
+  if (!points.empty()) {
+    auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
+    for (PointState& p : points) ordering->AddElementToGroup(p.point.data(), 0);
+    std::vector<double*> blocks_in_problem;
+    problem.GetParameterBlocks(&blocks_in_problem);
+    for (double* block : blocks_in_problem) {
+      if (!ordering->IsMember(block)) ordering->AddElementToGroup(block, 1);
+    }
+    solver_options.linear_solver_ordering = ordering;
+  }
   solver_options.max_num_iterations = options.max_iterations;
   solver_options.num_threads = 1;
   ceres::Solver::Summary ceres_summary;
@@ -236,8 +269,7 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   }
   for (const PointState& p : points) {
     MapPointData& mp = *map.mapPoints().get(p.handle);
-    mp.bearing_c = p.bearing.normalized();
-    mp.inverse_depth = p.inverse_depth;
+    factors::bearingFromInverseDepthPoint(p.point, mp.bearing_c, mp.inverse_depth);
   }
   return summary;
 }

@@ -5,15 +5,21 @@
 // factors between consecutive window keyframes. With a stereo rig, a keypoint's match in cam1 adds a second
 // reprojection factor: in the point's reference keyframe it fixes the point's depth, elsewhere it ties the
 // keyframe's pose to metric depth. A cam1 observation already further than `max_second_camera_error_sigma`
-// from the point's projection is a stereo mismatch and is left out. When nothing is held fixed, the oldest window keyframe's pose
-// is, for the gauge.
+// from the point's projection is a stereo mismatch and is left out. When nothing is held fixed, the oldest window
+// keyframe's pose is, for the gauge.
+//
+// Each point is one parameter block, its inverse-depth point (a, b, rho) in its reference camera
+// (common/factors/inverse_depth_point_factor.hpp), converted from and back to the map's bearing and inverse
+// distance; points are eliminated first (SPARSE_SCHUR with an explicit ordering), so the linear system that
+// remains is over the keyframes only. A point with no inverse-depth point (corrupt: its bearing nearly in the
+// reference image plane) is left out, unchanged.
 //
 // Runs in the mapping thread and allocates (Ceres does); tracking never waits for it.
 #pragma once
 
 #include "agent_rt/map/local_map.hpp"
 #include "common/core/result.hpp"
-#include "common/factors/reprojection_factor.hpp"
+#include "common/factors/reprojection_factor.hpp"  // PinholeIntrinsics
 #include "common/imu/preintegration.hpp"
 
 namespace cvislam::agent {
@@ -40,7 +46,8 @@ struct LocalBundleAdjustmentOptions {
 struct LocalBundleAdjustmentSummary {
   int window_keyframes = 0;
   int fixed_keyframes = 0;
-  int map_points = 0;
+  int map_points = 0;           // optimised
+  int map_points_left_out = 0;  // observed by the window but with no inverse-depth point: not optimised
   int reprojection_factors = 0;
   int second_camera_factors = 0;   // included in reprojection_factors
   int second_camera_rejected = 0;  // stereo mismatches left out

@@ -293,16 +293,17 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     stats.lost_messages += report->lost_messages;
     if (report->ba_ran) local_ba.add(report->ba_ns);
     if (options.trace_mapping) {
-      std::fprintf(stderr,
-                   "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
-                   "triangulated %d, culled %d; BA %d keyframes + %d fixed, %d points, %d factors (%d cam1, %d "
-                   "mismatches left out), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
-                   t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged,
-                   report->stereo_matches, report->stereo_points, report->triangulated, report->culled,
-                   report->ba.window_keyframes, report->ba.fixed_keyframes, report->ba.map_points,
-                   report->ba.reprojection_factors, report->ba.second_camera_factors, report->ba.second_camera_rejected,
-                   report->ba.initial_cost, report->ba.final_cost, report->ba.iterations,
-                   static_cast<double>(report->ba_ns) * 1e-6);
+      std::fprintf(
+          stderr,
+          "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
+          "triangulated %d, culled %d; BA %d keyframes + %d fixed, %d points (%d left out), %d factors (%d cam1, "
+          "%d mismatches left out), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
+          t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged, report->stereo_matches,
+          report->stereo_points, report->triangulated, report->culled, report->ba.window_keyframes,
+          report->ba.fixed_keyframes, report->ba.map_points, report->ba.map_points_left_out,
+          report->ba.reprojection_factors, report->ba.second_camera_factors, report->ba.second_camera_rejected,
+          report->ba.initial_cost, report->ba.final_cost, report->ba.iterations,
+          static_cast<double>(report->ba_ns) * 1e-6);
     }
     if (report->new_map) ++stats.new_maps;
     if (report->imu_initialised_now && stats.imu_initialised_at_s < 0) stats.imu_initialised_at_s = t_s;

@@ -1,7 +1,10 @@
 #include "common/factors/reprojection_factor.hpp"
 
+#include "common/factors/pinhole_projection.hpp"
+
 namespace cvislam::factors {
 
+using detail::projectWhitened;
 using Eigen::Matrix3d;
 using Eigen::Vector3d;
 using geometry::hatSO3;
@@ -11,21 +14,6 @@ namespace {
 
 Matrix3d rotationAt(const double* pose) {
   return Eigen::Quaterniond(pose[6], pose[3], pose[4], pose[5]).normalized().toRotationMatrix();
-}
-
-// Projects h, writes the whitened residual, and returns d(residual)/dh; false when h is not in front.
-bool projectWhitened(const Vector3d& h, const Eigen::Vector2d& keypoint_px, const PinholeIntrinsics& K,
-                     double inv_sigma, double* residuals, Eigen::Matrix<double, 2, 3>& d_r_d_h) {
-  if (!(h.z() > kMinProjectionDepth * h.norm())) return false;
-  const double inv_z = 1.0 / h.z();
-  const double u = K.fx * h.x() * inv_z + K.cx;
-  const double v = K.fy * h.y() * inv_z + K.cy;
-  residuals[0] = inv_sigma * (u - keypoint_px.x());
-  residuals[1] = inv_sigma * (v - keypoint_px.y());
-  d_r_d_h << K.fx * inv_z, 0.0, -K.fx * h.x() * inv_z * inv_z,  //
-      0.0, K.fy * inv_z, -K.fy * h.y() * inv_z * inv_z;
-  d_r_d_h *= inv_sigma;
-  return true;
 }
 
 }  // namespace

@@ -6,6 +6,8 @@
 //   bias      double[6]  [b_g, b_a]                               Euclidean
 //   bearing   double[3]  unit vector in the reference camera      manifold UnitBearingManifold (tangent 2)
 //   inv_depth double[1]  rho = 1 / depth along the bearing [1/m]  Euclidean
+//   point     double[3]  [a, b, rho]: X_c = (a, b, 1) / rho         Euclidean; one block per point, in its
+//                        reference camera (inverse_depth_point_factor.hpp), what the agent's local BA uses
 //
 // Rotation perturbations are on the right (R Exp(dphi)), positions additive in the world frame, as the
 // convention in common/geometry/lie.hpp says. Factors give Ceres ambient Jacobians built so that, multiplied

@@ -8,6 +8,7 @@
 #include "common/dataset/euroc_calibration.hpp"
 
 #include "common/factors/imu_factor.hpp"
+#include "common/factors/inverse_depth_point_factor.hpp"
 #include "common/factors/manifolds.hpp"
 
 namespace cvislam::test {
@@ -49,6 +50,17 @@ Vector3d accelerationAt(double t) {
 
 std::int64_t toNs(double t_s) {
   return std::llround(t_s * 1e9);
+}
+
+// IMU and bias random-walk factors between consecutive keyframes.
+void addImuFactors(const ViScenario& scenario, ViBaState& state, ceres::Problem& problem) {
+  for (std::size_t i = 0; i + 1 < state.poses.size(); ++i) {
+    const imu::Preintegration& pre = scenario.preintegrations[i];
+    problem.AddResidualBlock(new factors::ImuFactor(pre), nullptr, state.poses[i].data(), state.velocities[i].data(),
+                             state.biases[i].data(), state.poses[i + 1].data(), state.velocities[i + 1].data());
+    problem.AddResidualBlock(new factors::BiasRandomWalkFactor(scenario.noise, pre.dt()), nullptr,
+                             state.biases[i].data(), state.biases[i + 1].data());
+  }
 }
 
 }  // namespace
@@ -196,13 +208,53 @@ void addViBaFactors(const ViScenario& scenario, ViBaState& state, ceres::Problem
                                state.bearings[j].data(), &state.inverse_depths[j]);
     }
   }
-  for (std::size_t i = 0; i + 1 < state.poses.size(); ++i) {
-    const imu::Preintegration& pre = scenario.preintegrations[i];
-    problem.AddResidualBlock(new factors::ImuFactor(pre), nullptr, state.poses[i].data(), state.velocities[i].data(),
-                             state.biases[i].data(), state.poses[i + 1].data(), state.velocities[i + 1].data());
-    problem.AddResidualBlock(new factors::BiasRandomWalkFactor(scenario.noise, pre.dt()), nullptr,
-                             state.biases[i].data(), state.biases[i + 1].data());
+  addImuFactors(scenario, state, problem);
+}
+
+std::vector<Vector3d> inverseDepthPoints(const ViBaState& state) {
+  std::vector<Vector3d> points(state.bearings.size());
+  for (std::size_t j = 0; j < points.size(); ++j) {
+    // The scene's points are in front of their reference cameras, well inside the image: always converts.
+    const bool converted = factors::inverseDepthPointFromBearing(state.bearings[j], state.inverse_depths[j], points[j]);
+    (void)converted;
   }
+  return points;
+}
+
+std::shared_ptr<ceres::ParameterBlockOrdering> addViBaFactorsWithPointBlocks(const ViScenario& scenario,
+                                                                             ViBaState& state,
+                                                                             std::vector<Vector3d>& points,
+                                                                             ceres::Problem& problem) {
+  auto* pose_manifold = new factors::PoseManifold();
+  for (auto& pose : state.poses) problem.AddParameterBlock(pose.data(), factors::kPoseSize, pose_manifold);
+  problem.AddParameterBlock(state.extrinsics.data(), factors::kPoseSize, pose_manifold);
+  problem.SetParameterBlockConstant(state.extrinsics.data());
+  for (auto& point : points) problem.AddParameterBlock(point.data(), factors::kInverseDepthPointSize);
+
+  for (const ViObservation& o : scenario.observations) {
+    const auto j = static_cast<std::size_t>(o.point);
+    const int ref = scenario.points[j].reference_keyframe;
+    auto* loss = new ceres::CauchyLoss(1.0);
+    if (o.keyframe == ref) {
+      problem.AddResidualBlock(new factors::InverseDepthPointHostFactor(o.keypoint_px, scenario.intrinsics, 1.0), loss,
+                               points[j].data());
+    } else {
+      problem.AddResidualBlock(new factors::InverseDepthPointFactor(o.keypoint_px, scenario.intrinsics, 1.0), loss,
+                               state.poses[static_cast<std::size_t>(o.keyframe)].data(),
+                               state.poses[static_cast<std::size_t>(ref)].data(), state.extrinsics.data(),
+                               points[j].data());
+    }
+  }
+  addImuFactors(scenario, state, problem);
+
+  auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
+  for (auto& point : points) ordering->AddElementToGroup(point.data(), 0);
+  std::vector<double*> blocks;
+  problem.GetParameterBlocks(&blocks);
+  for (double* block : blocks) {
+    if (!ordering->IsMember(block)) ordering->AddElementToGroup(block, 1);
+  }
+  return ordering;
 }
 
 }  // namespace cvislam::test

@@ -4,8 +4,10 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <vector>
 
+#include <ceres/ordered_groups.h>
 #include <ceres/problem.h>
 #include <Eigen/Core>
 
@@ -74,6 +76,19 @@ void perturbViBaState(ViBaState& state, double position_m, double rotation_rad, 
 // and bias random walk between consecutive keyframes, manifolds on poses and bearings. The extrinsics are
 // held constant. Nothing else is fixed: the caller chooses the gauge.
 void addViBaFactors(const ViScenario& scenario, ViBaState& state, ceres::Problem& problem);
+
+// `state`'s points as one block each, the inverse-depth point (a, b, rho) of
+// common/factors/inverse_depth_point_factor.hpp, converted from its bearings and inverse distances.
+std::vector<Eigen::Vector3d> inverseDepthPoints(const ViBaState& state);
+
+// As addViBaFactors, but each point is one block of `points` (InverseDepthPointFactor and
+// InverseDepthPointHostFactor, same losses and sigmas); `state`'s bearings and inverse depths are not used.
+// Returns the Schur ordering that eliminates the points first (group 0) and keeps everything else in group 1,
+// for Solver::Options::linear_solver_ordering.
+std::shared_ptr<ceres::ParameterBlockOrdering> addViBaFactorsWithPointBlocks(const ViScenario& scenario,
+                                                                             ViBaState& state,
+                                                                             std::vector<Eigen::Vector3d>& points,
+                                                                             ceres::Problem& problem);
 
 // The true state at time t (seconds from the start).
 imu::NavState trueViState(double t_s);

@@ -114,6 +114,50 @@ TEST(LocalBundleAdjustment, TheWholeWindowConvergesToTheTruth) {
   }
 }
 
+// Local BA holds each point as one (a, b, rho) block, converted from the map's bearing and inverse distance
+// and back. With the map at the truth the BA has nothing to move, so every point must come back where it was.
+TEST(LocalBundleAdjustment, PointsComeBackAsTheSamePointsWhenNothingMoves) {
+  Fixture f = makeMap(false);
+  std::vector<Vector3d> before;
+  for (PoolHandle h : f.points) before.push_back(*f.map->pointInWorld(h));
+  auto summary = runLocalBundleAdjustment(*f.map, baOptions(f.scenario, 8));
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  EXPECT_EQ(summary->map_points, static_cast<int>(f.points.size()));
+  EXPECT_EQ(summary->map_points_left_out, 0);
+  for (std::size_t j = 0; j < f.points.size(); ++j) {
+    const MapPointData& mp = *f.map->mapPoints().get(f.points[j]);
+    EXPECT_NEAR(mp.bearing_c.norm(), 1.0, 1e-12) << "point " << j;
+    EXPECT_LT((*f.map->pointInWorld(f.points[j]) - before[j]).norm(), 1e-4) << "point " << j;
+  }
+}
+
+// A point whose stored bearing lies almost in its reference camera's image plane (corrupt: no pinhole image saw
+// it) has no inverse-depth point. It is left out of the BA, unchanged, with its observations; the rest converges.
+TEST(LocalBundleAdjustment, APointWithNoInverseDepthPointIsLeftOutAndTheRestConverges) {
+  Fixture f = makeMap(true);
+  MapPointData& corrupt = *f.map->mapPoints().get(f.points[7]);
+  corrupt.bearing_c = Vector3d(1.0, 0.0, 0.05).normalized();
+  const Vector3d corrupt_bearing = corrupt.bearing_c;
+  const double corrupt_inverse_depth = corrupt.inverse_depth;
+  auto summary = runLocalBundleAdjustment(*f.map, baOptions(f.scenario, 8));
+  ASSERT_TRUE(summary.ok()) << summary.error().toString();
+  EXPECT_EQ(summary->map_points_left_out, 1);
+  EXPECT_EQ(summary->map_points, static_cast<int>(f.points.size()) - 1);
+  const MapPointData& after = *f.map->mapPoints().get(f.points[7]);
+  EXPECT_EQ(after.bearing_c, corrupt_bearing);
+  EXPECT_EQ(after.inverse_depth, corrupt_inverse_depth);
+  for (std::size_t k = 0; k < f.keyframes.size(); ++k) {
+    const KeyframeData& kf = *f.map->keyframes().get(f.keyframes[k]);
+    const SE3d& truth = f.scenario.keyframe_states[k].T_w_s;
+    EXPECT_LT((kf.T_w_s.translation() - truth.translation()).norm(), 1e-3) << "keyframe " << k;
+    EXPECT_LT((truth.so3().inverse() * kf.T_w_s.so3()).log().norm(), 1e-4) << "keyframe " << k;
+  }
+  for (std::size_t j = 0; j < f.points.size(); ++j) {
+    if (j == 7) continue;
+    EXPECT_LT((*f.map->pointInWorld(f.points[j]) - f.scenario.points[j].p_w).norm(), 5e-3) << "point " << j;
+  }
+}
+
 TEST(LocalBundleAdjustment, CovisibleKeyframesOutsideTheWindowAreHeldFixed) {
   Fixture f = makeMap(false);
   // Shift the five older keyframes (and with them the points they hold) by 10 cm, and perturb the newest

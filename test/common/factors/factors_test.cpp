@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "common/factors/imu_factor.hpp"
+#include "common/factors/inverse_depth_point_factor.hpp"
 #include "common/factors/manifolds.hpp"
 #include "common/factors/prior_factor.hpp"
 #include "common/factors/reprojection_factor.hpp"
@@ -312,7 +313,9 @@ TEST_F(ReprojectionFactorTest, HostObservationJacobianMatchesNumeric) {
 }
 
 // cam1 of a stereo rig: EuRoC's 11 cm baseline with a small relative rotation, and cam1's own intrinsics.
-SE3d stereoOffsetT_c1_c0() { return SE3d(SO3d::exp(Vector3d(0.003, -0.01, 0.002)), Vector3d(-0.110, 0.0004, -0.0009)); }
+SE3d stereoOffsetT_c1_c0() {
+  return SE3d(SO3d::exp(Vector3d(0.003, -0.01, 0.002)), Vector3d(-0.110, 0.0004, -0.0009));
+}
 
 TEST_F(ReprojectionFactorTest, SecondCameraJacobiansMatchNumericAtRandomStatesAndNearInfinity) {
   const PinholeIntrinsics cam1{457.587, 456.134, 379.999, 255.238};
@@ -347,8 +350,8 @@ TEST_F(ReprojectionFactorTest, SecondCameraHostObservationFixesDepthAndItsJacobi
   for (int trial = 0; trial < 10; ++trial) {
     const Vector3d bearing = (Vector3d(0, 0, 1) + random_.vector3(0.4)).normalized();
     const SecondCameraHostFactor sut(Eigen::Vector2d(350.0, 260.0), cam1, 1.0, T_c1_c0);
-    expectJacobiansMatchNumeric(sut, {{VectorXd(bearing), &bearing_manifold_},
-                                      vectorBlock(VectorXd::Constant(1, random_.uniform(0.05, 2.0)))});
+    expectJacobiansMatchNumeric(
+        sut, {{VectorXd(bearing), &bearing_manifold_}, vectorBlock(VectorXd::Constant(1, random_.uniform(0.05, 2.0)))});
   }
   // The residual is zero at the true depth and grows with a wrong one: the baseline makes depth observable.
   const Vector3d bearing = Vector3d(0.1, -0.05, 1.0).normalized();
@@ -360,6 +363,212 @@ TEST_F(ReprojectionFactorTest, SecondCameraHostObservationFixesDepthAndItsJacobi
   EXPECT_LT(evaluate(sut, {b, vectorBlock(VectorXd::Constant(1, 1.0 / depth))}).norm(), 1e-9);
   // 10 % off in depth at 4 m moves the cam1 projection by f * B * (1/3.6 - 1/4) ~ 1.4 px.
   EXPECT_GT(evaluate(sut, {b, vectorBlock(VectorXd::Constant(1, 1.0 / (0.9 * depth)))}).norm(), 1.2);
+}
+
+// ------------------------------------------------------------------- one-block inverse-depth points
+// The same random geometry as ReprojectionFactorTest, with the point as (a, b, rho): the observing pose, the
+// reference pose, the extrinsics and the point block, plus the bearing form of the same point for comparisons.
+class InverseDepthPointFactorTest : public ReprojectionFactorTest {
+ protected:
+  // blocks[3] (bearing) and blocks[4] (inverse distance) of a bearing case as one (a, b, rho) block.
+  static std::vector<Block> asPointBlocks(const std::vector<Block>& bearing_blocks) {
+    Vector3d point;
+    EXPECT_TRUE(inverseDepthPointFromBearing(bearing_blocks[3].value, bearing_blocks[4].value(0), point));
+    return {bearing_blocks[0], bearing_blocks[1], bearing_blocks[2], vectorBlock(point)};
+  }
+  std::vector<Block> randomPointCase(double inverse_distance, double rotation_scale) {
+    return asPointBlocks(randomCase(inverse_distance, rotation_scale));
+  }
+  const PinholeIntrinsics cam1_{457.587, 456.134, 379.999, 255.238};
+};
+
+TEST_F(InverseDepthPointFactorTest, ConversionRoundTripsAndKeepsThePoint) {
+  for (int trial = 0; trial < 200; ++trial) {
+    // Bearings up to ~80 degrees off the optical axis, distances from 5 cm to a billion metres, and infinity.
+    const Vector3d bearing = (Vector3d(0, 0, 1) + random_.vector3(2.5)).normalized();
+    if (bearing.z() < 0.2) continue;
+    const double inverse_distance = trial % 10 == 0 ? 0.0 : std::pow(10.0, random_.uniform(-9.0, 1.3));
+    Vector3d point;
+    ASSERT_TRUE(inverseDepthPointFromBearing(bearing, inverse_distance, point));
+    EXPECT_GE(point.z(), 0.0);
+    Vector3d bearing_back;
+    double inverse_distance_back = -1.0;
+    bearingFromInverseDepthPoint(point, bearing_back, inverse_distance_back);
+    EXPECT_LT((bearing_back - bearing).norm(), 1e-14);
+    EXPECT_NEAR(inverse_distance_back, inverse_distance, 1e-14 * std::max(1.0, inverse_distance));
+    if (inverse_distance > 0.0) {  // the same 3D point: X = bearing / r = (a, b, 1) / rho
+      const Vector3d X = bearing / inverse_distance;
+      EXPECT_LT((inverseDepthPointInCamera(point) - X).norm(), 1e-12 * X.norm());
+    }
+    Vector3d point_again;  // and from the point side: (a, b, rho) -> bearing -> (a, b, rho)
+    ASSERT_TRUE(inverseDepthPointFromBearing(bearing_back, inverse_distance_back, point_again));
+    EXPECT_LT((point_again - point).norm(), 1e-12 * std::max(1.0, point.norm()));
+  }
+  // A hand-made case: the point (1, 2, 2) m, 3 m away; a = 0.5, b = 1, rho = 0.5.
+  Vector3d point;
+  ASSERT_TRUE(inverseDepthPointFromBearing(Vector3d(1, 2, 2) / 3.0, 1.0 / 3.0, point));
+  EXPECT_LT((point - Vector3d(0.5, 1.0, 0.5)).norm(), 1e-15);
+}
+
+TEST_F(InverseDepthPointFactorTest, ABearingNearOrBehindTheReferenceImagePlaneHasNoPoint) {
+  const Vector3d untouched(7.0, 8.0, 9.0);
+  for (const Vector3d& bearing : {Vector3d(1, 0, 0), Vector3d(0.999, 0.0, 0.05).normalized(),
+                                  Vector3d(0.3, 0.2, -0.9).normalized(), Vector3d(0, 0, -1)}) {
+    Vector3d point = untouched;
+    EXPECT_FALSE(inverseDepthPointFromBearing(bearing, 0.5, point)) << bearing.transpose();
+    EXPECT_EQ(point, untouched);
+  }
+  Vector3d point = untouched;
+  EXPECT_FALSE(inverseDepthPointFromBearing(Vector3d(0, 0, 1), std::nan(""), point));
+  EXPECT_FALSE(inverseDepthPointFromBearing(Vector3d(std::nan(""), 0, 1), 0.5, point));
+  EXPECT_FALSE(inverseDepthPointFromBearing(Vector3d::Zero(), 0.5, point));
+  EXPECT_EQ(point, untouched);
+  // Just inside the limit it converts.
+  const double z = kMinInverseDepthPointBearingZ + 1e-6;
+  EXPECT_TRUE(inverseDepthPointFromBearing(Vector3d(std::sqrt(1.0 - z * z), 0.0, z), 0.5, point));
+}
+
+TEST_F(InverseDepthPointFactorTest, JacobiansMatchNumericAtRandomStates) {
+  for (int trial = 0; trial < 20; ++trial) {
+    const InverseDepthPointFactor sut(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5);
+    expectJacobiansMatchNumeric(sut, randomPointCase(random_.uniform(0.1, 1.0), M_PI / std::sqrt(3.0)));
+  }
+}
+
+TEST_F(InverseDepthPointFactorTest, JacobiansMatchNumericWithTinyRotationsAndRotationsNearPi) {
+  const InverseDepthPointFactor sut(Eigen::Vector2d(400.0, 250.0), intrinsics_, 1.0);
+  expectJacobiansMatchNumeric(sut, randomPointCase(0.25, 1e-9));
+  std::vector<Block> blocks = randomPointCase(0.25, 0.0);
+  const SO3d turn = SO3d::exp(Vector3d(0.2, 0.9, -0.3).normalized() * (M_PI - 1e-4));
+  for (int k : {0, 1}) {
+    const SE3d T = poseFromBlock(blocks[static_cast<std::size_t>(k)].value.data());
+    blocks[static_cast<std::size_t>(k)].value = poseToBlock(SE3d(turn, Vector3d::Zero()) * T);
+  }
+  expectJacobiansMatchNumeric(sut, blocks);
+}
+
+TEST_F(InverseDepthPointFactorTest, APointNearInfinityStillConstrainsRotationAndIsFiniteAtRhoZero) {
+  for (const double rho : {1e-6, 1e-9}) {  // a million and a billion metres away
+    const InverseDepthPointFactor sut(Eigen::Vector2d(380.0, 240.0), intrinsics_, 1.0);
+    const std::vector<Block> blocks = randomPointCase(rho, 0.5);
+    expectJacobiansMatchNumeric(sut, blocks, 1e-6, 1e-7);
+    // The rotation Jacobian of the observing pose does not vanish with rho.
+    std::vector<double> J(2 * kPoseSize);
+    std::vector<double*> jacobians = {J.data(), nullptr, nullptr, nullptr};
+    std::vector<const double*> parameters;
+    for (const Block& b : blocks) parameters.push_back(b.value.data());
+    Eigen::Vector2d r;
+    ASSERT_TRUE(sut.Evaluate(parameters.data(), r.data(), jacobians.data()));
+    using PoseJacobian = Eigen::Matrix<double, 2, kPoseSize, Eigen::RowMajor>;
+    EXPECT_GT(Eigen::Map<PoseJacobian>(J.data()).rightCols<4>().norm(), 100.0);
+
+    std::vector<Block> at_infinity = blocks;
+    at_infinity[3].value(2) = 0.0;
+    bool ok = false;
+    const VectorXd r_inf = evaluate(sut, at_infinity, &ok);
+    ASSERT_TRUE(ok);
+    EXPECT_TRUE(r_inf.allFinite());
+    EXPECT_LT((r_inf - evaluate(sut, blocks)).norm(), 1e-3 * rho / 1e-6);
+    expectJacobiansMatchNumeric(sut, at_infinity, 1e-6, 1e-7);
+  }
+}
+
+TEST_F(InverseDepthPointFactorTest, ResidualIsTheOldFactorsOnTheSamePointAndBehindTheCameraIsNotEvaluable) {
+  for (int trial = 0; trial < 10; ++trial) {
+    const std::vector<Block> bearing_blocks = randomCase(random_.uniform(0.05, 1.0), 0.5);
+    const std::vector<Block> point_blocks = asPointBlocks(bearing_blocks);
+    // By hand with the SE3 types, independently of either factor's algebra.
+    const SE3d T_w_si = poseFromBlock(point_blocks[0].value.data());
+    const SE3d T_w_sr = poseFromBlock(point_blocks[1].value.data());
+    const Vector3d p_cr = inverseDepthPointInCamera(point_blocks[3].value);
+    const Vector3d p_ci = (T_w_si * T_s_c_).inverse() * (T_w_sr * T_s_c_ * p_cr);
+    const Eigen::Vector2d px(intrinsics_.fx * p_ci.x() / p_ci.z() + intrinsics_.cx,
+                             intrinsics_.fy * p_ci.y() / p_ci.z() + intrinsics_.cy);
+    const InverseDepthPointFactor sut(px + Eigen::Vector2d(3.0, -4.0), intrinsics_, 2.0);
+    EXPECT_LT((evaluate(sut, point_blocks) - Eigen::Vector2d(-1.5, 2.0)).norm(), 1e-8);
+    const ReprojectionFactor old(px + Eigen::Vector2d(3.0, -4.0), intrinsics_, 2.0);
+    EXPECT_LT((evaluate(sut, point_blocks) - evaluate(old, bearing_blocks)).norm(), 1e-9);
+    // cam1 too.
+    const InverseDepthPointFactor sut1(Eigen::Vector2d(320.0, 210.0), cam1_, 1.2, stereoOffsetT_c1_c0());
+    const ReprojectionFactor old1(Eigen::Vector2d(320.0, 210.0), cam1_, 1.2, stereoOffsetT_c1_c0());
+    EXPECT_LT((evaluate(sut1, point_blocks) - evaluate(old1, bearing_blocks)).norm(), 1e-9);
+  }
+  // The observing camera turned around: the point is behind it.
+  std::vector<Block> behind = randomPointCase(0.2, 0.3);
+  const SE3d T_w_si = poseFromBlock(behind[0].value.data());
+  const SE3d T_w_ci = T_w_si * T_s_c_;
+  const SE3d T_w_ci_turned = T_w_ci * SE3d(SO3d::exp(Vector3d(0.0, M_PI, 0.0)), Vector3d::Zero());
+  behind[0].value = poseToBlock(T_w_ci_turned * T_s_c_.inverse());
+  const InverseDepthPointFactor sut(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.0);
+  bool ok = true;
+  evaluate(sut, behind, &ok);
+  EXPECT_FALSE(ok);
+}
+
+TEST_F(InverseDepthPointFactorTest, SecondCameraJacobiansMatchNumericAtRandomStatesAndNearInfinity) {
+  for (int trial = 0; trial < 20; ++trial) {
+    const InverseDepthPointFactor sut(Eigen::Vector2d(320.0, 210.0), cam1_, 1.2, stereoOffsetT_c1_c0());
+    expectJacobiansMatchNumeric(sut, randomPointCase(random_.uniform(0.1, 1.0), M_PI / std::sqrt(3.0)));
+  }
+  const InverseDepthPointFactor far(Eigen::Vector2d(320.0, 210.0), cam1_, 1.0, stereoOffsetT_c1_c0());
+  expectJacobiansMatchNumeric(far, randomPointCase(1e-9, 0.5), 1e-6, 1e-7);
+  // With the identity offset and cam0's intrinsics it is exactly the cam0 factor.
+  const std::vector<Block> blocks = randomPointCase(0.3, 0.4);
+  const InverseDepthPointFactor as_cam0(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5, SE3d());
+  const InverseDepthPointFactor cam0(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5);
+  EXPECT_LT((evaluate(as_cam0, blocks) - evaluate(cam0, blocks)).norm(), 1e-12);
+}
+
+TEST_F(InverseDepthPointFactorTest, HostObservationIsLinearInABAndIgnoresRho) {
+  for (int trial = 0; trial < 10; ++trial) {
+    const Vector3d bearing = (Vector3d(0, 0, 1) + random_.vector3(0.4)).normalized();
+    const double inverse_distance = random_.uniform(0.0, 2.0);
+    Vector3d point;
+    ASSERT_TRUE(inverseDepthPointFromBearing(bearing, inverse_distance, point));
+    const InverseDepthPointHostFactor sut(Eigen::Vector2d(350.0, 260.0), intrinsics_, 1.3);
+    expectJacobiansMatchNumeric(sut, {vectorBlock(point)});
+    const ReprojectionHostFactor old(Eigen::Vector2d(350.0, 260.0), intrinsics_, 1.3);
+    EXPECT_LT((evaluate(sut, {vectorBlock(point)}) - evaluate(old, {{VectorXd(bearing), &bearing_manifold_}})).norm(),
+              1e-9);
+    Vector3d moved_in_depth = point;
+    moved_in_depth.z() *= 3.0;
+    EXPECT_EQ(evaluate(sut, {vectorBlock(point)}), evaluate(sut, {vectorBlock(moved_in_depth)}));
+  }
+}
+
+TEST_F(InverseDepthPointFactorTest, SecondCameraHostObservationFixesDepthAndItsJacobianMatchesNumeric) {
+  const SE3d T_c1_c0 = stereoOffsetT_c1_c0();
+  for (int trial = 0; trial < 10; ++trial) {
+    const Vector3d bearing = (Vector3d(0, 0, 1) + random_.vector3(0.4)).normalized();
+    const double inverse_distance = random_.uniform(0.05, 2.0);
+    Vector3d point;
+    ASSERT_TRUE(inverseDepthPointFromBearing(bearing, inverse_distance, point));
+    const InverseDepthPointSecondCameraHostFactor sut(Eigen::Vector2d(350.0, 260.0), cam1_, 1.0, T_c1_c0);
+    expectJacobiansMatchNumeric(sut, {vectorBlock(point)});
+    const SecondCameraHostFactor old(Eigen::Vector2d(350.0, 260.0), cam1_, 1.0, T_c1_c0);
+    EXPECT_LT(
+        (evaluate(sut, {vectorBlock(point)}) -
+         evaluate(old, {{VectorXd(bearing), &bearing_manifold_}, vectorBlock(VectorXd::Constant(1, inverse_distance))}))
+            .norm(),
+        1e-9);
+  }
+  // Near infinity: finite, and the Jacobian still right.
+  Vector3d far;
+  ASSERT_TRUE(inverseDepthPointFromBearing(Vector3d(0.1, -0.05, 1.0).normalized(), 1e-9, far));
+  const InverseDepthPointSecondCameraHostFactor far_sut(Eigen::Vector2d(350.0, 260.0), cam1_, 1.0, T_c1_c0);
+  expectJacobiansMatchNumeric(far_sut, {vectorBlock(far)}, 1e-6, 1e-7);
+  // Zero residual at the true depth, and a wrong depth shows: the baseline makes depth observable.
+  const Vector3d bearing = Vector3d(0.1, -0.05, 1.0).normalized();
+  const double depth = 4.0;
+  const Vector3d p_c1 = T_c1_c0 * (bearing * depth);
+  const Eigen::Vector2d px(cam1_.fx * p_c1.x() / p_c1.z() + cam1_.cx, cam1_.fy * p_c1.y() / p_c1.z() + cam1_.cy);
+  const InverseDepthPointSecondCameraHostFactor sut(px, cam1_, 1.0, T_c1_c0);
+  Vector3d truth;
+  Vector3d wrong;
+  ASSERT_TRUE(inverseDepthPointFromBearing(bearing, 1.0 / depth, truth));
+  ASSERT_TRUE(inverseDepthPointFromBearing(bearing, 1.0 / (0.9 * depth), wrong));
+  EXPECT_LT(evaluate(sut, {vectorBlock(truth)}).norm(), 1e-9);
+  EXPECT_GT(evaluate(sut, {vectorBlock(wrong)}).norm(), 1.2);
 }
 
 // ------------------------------------------------------------------------------------------- priors

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include "common/factors/imu_factor.hpp"
+#include "common/factors/inverse_depth_point_factor.hpp"
 #include "common/factors/prior_factor.hpp"
 #include "common/factors/reprojection_factor.hpp"
 #include "test/support/allocation_counter.hpp"
@@ -60,6 +61,19 @@ TEST(NoAllocation, FactorsEvaluateWithoutHeapAllocation) {
             0);
   const ReprojectionHostFactor host(o->keypoint_px, s.intrinsics, 1.0);
   EXPECT_EQ(allocationsDuringEvaluate(host, {x.bearings[j].data()}, 1000), 0);
+  std::vector<Eigen::Vector3d> points = test::inverseDepthPoints(x);
+  const InverseDepthPointFactor point_factor(o->keypoint_px, s.intrinsics, 1.0);
+  EXPECT_EQ(allocationsDuringEvaluate(point_factor,
+                                      {x.poses[static_cast<std::size_t>(o->keyframe)].data(),
+                                       x.poses[static_cast<std::size_t>(s.points[j].reference_keyframe)].data(),
+                                       x.extrinsics.data(), points[j].data()},
+                                      1000),
+            0);
+  const InverseDepthPointHostFactor point_host(o->keypoint_px, s.intrinsics, 1.0);
+  EXPECT_EQ(allocationsDuringEvaluate(point_host, {points[j].data()}, 1000), 0);
+  const InverseDepthPointSecondCameraHostFactor point_host1(
+      o->keypoint_px, s.intrinsics, 1.0, geometry::SE3d(geometry::SO3d(), Eigen::Vector3d(-0.11, 0, 0)));
+  EXPECT_EQ(allocationsDuringEvaluate(point_host1, {points[j].data()}, 1000), 0);
   const PosePriorFactor pose_prior(poseFromBlock(x.poses[0].data()), Eigen::Matrix<double, 6, 6>::Identity());
   EXPECT_EQ(allocationsDuringEvaluate(pose_prior, {x.poses[1].data()}, 1000), 0);
   const BearingPriorFactor bearing_prior(x.bearings[0], Eigen::Matrix2d::Identity());

@@ -10,6 +10,7 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/SparseCore>
 
+#include "common/factors/inverse_depth_point_factor.hpp"
 #include "common/factors/state_layout.hpp"
 #include "test/support/vi_scenario.hpp"
 
@@ -95,6 +96,61 @@ TEST(VisualInertialBundleAdjustment, WithPixelNoiseStaysWithinMillimetresOfTheTr
               worst_rotation_deg);
   EXPECT_LT(worst_position_m, 5e-3);
   EXPECT_LT(worst_rotation_deg, 0.05);
+}
+
+// The same problem with each point as one (a, b, rho) block (inverse_depth_point_factor.hpp) and the points
+// eliminated first: both parameterisations describe the same points, so they must reach the same optimum; and
+// only the one-block form lets the Schur complement eliminate every point.
+TEST(VisualInertialBundleAdjustment, OneBlockPointsReachTheSameOptimumAndAreAllEliminated) {
+  test::ViScenarioOptions options = scenarioOptions(8, 300);
+  options.pixel_sigma = 0.5;
+  const test::ViScenario scenario = test::makeViScenario(options);
+  test::ViBaState start = test::trueViBaState(scenario);
+  test::perturbViBaState(start, 0.1, 2.0 * M_PI / 180.0, 5);
+  ceres::Solver::Options solver_options;
+  solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
+  solver_options.max_num_iterations = 100;
+  solver_options.function_tolerance = 1e-14;
+  solver_options.gradient_tolerance = 1e-16;
+  solver_options.parameter_tolerance = 1e-14;
+
+  test::ViBaState two = start;
+  ceres::Problem two_problem;
+  test::addViBaFactors(scenario, two, two_problem);
+  two_problem.SetParameterBlockConstant(two.poses[0].data());
+  ceres::Solver::Summary two_summary;
+  ceres::Solve(solver_options, &two_problem, &two_summary);
+  ASSERT_TRUE(two_summary.IsSolutionUsable()) << two_summary.FullReport();
+
+  test::ViBaState one = start;
+  std::vector<Vector3d> points = test::inverseDepthPoints(one);
+  ceres::Problem one_problem;
+  solver_options.linear_solver_ordering = test::addViBaFactorsWithPointBlocks(scenario, one, points, one_problem);
+  one_problem.SetParameterBlockConstant(one.poses[0].data());
+  ceres::Solver::Summary one_summary;
+  ceres::Solve(solver_options, &one_problem, &one_summary);
+  ASSERT_TRUE(one_summary.IsSolutionUsable()) << one_summary.FullReport();
+  std::printf(
+      "two blocks per point: cost %.6e in %d iterations, eliminated %d of %zu point blocks; one block: "
+      "cost %.6e in %d iterations, eliminated %d of %zu\n",
+      two_summary.final_cost, static_cast<int>(two_summary.iterations.size()) - 1,
+      two_summary.linear_solver_ordering_used.front(), 2 * points.size(), one_summary.final_cost,
+      static_cast<int>(one_summary.iterations.size()) - 1, one_summary.linear_solver_ordering_used.front(),
+      points.size());
+
+  EXPECT_EQ(one_summary.linear_solver_ordering_used.front(), static_cast<int>(points.size()));
+  EXPECT_LT(two_summary.linear_solver_ordering_used.front(), 2 * static_cast<int>(points.size()));
+  EXPECT_NEAR(one_summary.final_cost, two_summary.final_cost, 1e-8 * two_summary.final_cost);
+  for (std::size_t i = 0; i < one.poses.size(); ++i) {
+    const SE3d T_one = poseFromBlock(one.poses[i].data());
+    const SE3d T_two = poseFromBlock(two.poses[i].data());
+    EXPECT_LT((T_one.translation() - T_two.translation()).norm(), 1e-6) << "keyframe " << i;
+    EXPECT_LT((T_two.so3().inverse() * T_one.so3()).log().norm(), 1e-7) << "keyframe " << i;
+  }
+  for (std::size_t j = 0; j < points.size(); ++j) {
+    const Vector3d X_two = two.bearings[j].normalized() / two.inverse_depths[j];
+    EXPECT_LT((inverseDepthPointInCamera(points[j]) - X_two).norm(), 1e-6 * X_two.norm()) << "point " << j;
+  }
 }
 
 // J^T J at the truth, with nothing fixed but the calibrated extrinsics: its null space must be the four
