@@ -1,5 +1,7 @@
 #include "common/factors/world_point_factor.hpp"
 
+#include "common/factors/pinhole_projection.hpp"
+
 namespace cvislam::factors {
 
 WorldPointReprojectionFactor::WorldPointReprojectionFactor(const Eigen::Vector2d& keypoint_px,
@@ -20,16 +22,9 @@ bool WorldPointReprojectionFactor::Evaluate(double const* const* parameters, dou
 
   const Eigen::Vector3d X_s = R_w_s.transpose() * (p_w - p_w_s);
   const Eigen::Vector3d X_c = R_c_s_ * X_s + t_c_s_;
-  if (!(X_c.z() > kMinProjectionDepth * X_c.norm())) return false;
-  const double inv_z = 1.0 / X_c.z();
-  residuals[0] = inv_sigma_ * (intrinsics_.fx * X_c.x() * inv_z + intrinsics_.cx - keypoint_px_.x());
-  residuals[1] = inv_sigma_ * (intrinsics_.fy * X_c.y() * inv_z + intrinsics_.cy - keypoint_px_.y());
-  if (jacobians == nullptr) return true;
-
   Eigen::Matrix<double, 2, 3> d_r_d_Xc;
-  d_r_d_Xc << intrinsics_.fx * inv_z, 0.0, -intrinsics_.fx * X_c.x() * inv_z * inv_z,  //
-      0.0, intrinsics_.fy * inv_z, -intrinsics_.fy * X_c.y() * inv_z * inv_z;
-  d_r_d_Xc *= inv_sigma_;
+  if (!detail::projectWhitened(X_c, keypoint_px_, intrinsics_, inv_sigma_, residuals, d_r_d_Xc)) return false;
+  if (jacobians == nullptr) return true;
   const Eigen::Matrix<double, 2, 3> d_r_d_Xs = d_r_d_Xc * R_c_s_;
   if (jacobians[0] != nullptr) {
     // p_w_s + dp moves X_s by -R^T dp; R Exp(dphi) turns it by Exp(-dphi): dX_s = [X_s]x dphi.

@@ -58,11 +58,22 @@ AgentSensorsMap sensorsOf(const Mission& mission) {
   return out;
 }
 
-std::map<AgentId, recognition::AgentCamera> camerasOf(const AgentSensorsMap& sensors) {
-  std::map<AgentId, recognition::AgentCamera> out;
-  for (const auto& [agent, s] : sensors) out.emplace(agent, recognition::AgentCamera{s.cam0, s.T_s_c0});
-  return out;
-}
+// Every agent's cam0, in the form point fusion looks cameras up in.
+class CameraTable {
+ public:
+  explicit CameraTable(const AgentSensorsMap& sensors) {
+    for (const auto& [agent, s] : sensors) cameras_.emplace(agent, recognition::AgentCamera{s.cam0, s.T_s_c0});
+  }
+  [[nodiscard]] recognition::CameraLookup lookup() const {
+    return [this](AgentId agent) -> const recognition::AgentCamera* {
+      const auto it = cameras_.find(agent);
+      return it == cameras_.end() ? nullptr : &it->second;
+    };
+  }
+
+ private:
+  std::map<AgentId, recognition::AgentCamera> cameras_;
+};
 
 // Brings the records up to date after `applied` changed the map: each agent map's T_m_w follows its newest
 // keyframe, and every changed keyframe is queued for the downlink.
@@ -85,7 +96,6 @@ struct BackendWorker::MissionState {
   std::map<MapId, std::vector<LoopEdge>> loops;  // every loop closed per map, for later pose graphs
   std::map<AgentId, std::uint32_t> last_loop_query;
   std::map<MapId, int> keyframes_since_redundancy;
-  std::set<MapId> changed_since_gba;
   std::mt19937_64 rng;
   BackendStats stats;  // under the worker's mutex
 };
@@ -182,18 +192,10 @@ void BackendWorker::drain(bool final_gba) {
   if (!final_gba) return;
   std::vector<std::pair<std::string, MapId>> todo;
   for (const auto& mission : missions_.missions()) {
-    std::set<MapId> changed;
-    {
-      const std::lock_guard lock(mutex_);
-      MissionState& s = state(mission->name());
-      changed = s.changed_since_gba;
-    }
+    // Every map with at least two keyframes: ingest changes every map, so each needs its last GBA.
     for (const auto& map : mission->stack().maps()) {
-      // Every map with keyframes gets its final GBA unless nothing changed since its last one.
-      const bool has_keyframes = map->read()->keyframes().size() >= 2;
-      if (has_keyframes) todo.emplace_back(mission->name(), map->id());
+      if (map->read()->keyframes().size() >= 2) todo.emplace_back(mission->name(), map->id());
     }
-    (void)changed;
   }
   for (const auto& [mission, map] : todo) requestGba(mission, map, true, std::nullopt, Clock::now());
   wait_idle();
@@ -282,11 +284,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   cancelGba(mission.name(), from->id());
   cancelGba(mission.name(), into->id());
   const AgentSensorsMap sensors = sensorsOf(mission);
-  const std::map<AgentId, recognition::AgentCamera> cameras = camerasOf(sensors);
-  const recognition::CameraLookup camera_lookup = [&](AgentId agent) -> const recognition::AgentCamera* {
-    const auto it = cameras.find(agent);
-    return it == cameras.end() ? nullptr : &it->second;
-  };
+  const CameraTable cameras(sensors);
 
   MergeRecord record;
   {
@@ -312,7 +310,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
         if (map == from->id()) map = into->id();
       }
     }
-    record.fusion = fuseMatch(c, match, camera_lookup, options_.fusion);
+    record.fusion = fuseMatch(c, match, cameras.lookup(), options_.fusion);
     record.from = from->id();
     record.into = into->id();
     record.query = match.query;
@@ -333,8 +331,6 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     auto& moved = state.loops[from->id()];
     loops.insert(loops.end(), moved.begin(), moved.end());
     state.loops.erase(from->id());
-    state.changed_since_gba.insert(into->id());
-    state.changed_since_gba.erase(from->id());
     state.stats.merges.push_back(record);
     index = state.stats.merges.size() - 1;
   }
@@ -400,22 +396,17 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     record.correction_m = delta.translation().norm();
     record.correction_deg = delta.so3().log().norm() * 180.0 / M_PI;
   }
-  const std::map<AgentId, recognition::AgentCamera> cameras = camerasOf(sensors);
-  const recognition::CameraLookup camera_lookup = [&](AgentId agent) -> const recognition::AgentCamera* {
-    const auto it = cameras.find(agent);
-    return it == cameras.end() ? nullptr : &it->second;
-  };
+  const CameraTable cameras(sensors);
   {
     StackLocks locks(mission, {map});
     MapContent& content = locks.map(map->id());
     const AppliedCorrections applied = applyCorrections(content, *corrections, {});
     updateRecords(locks.records(), applied);
-    record.fusion = fuseMatch(content, match, camera_lookup, options_.fusion);
+    record.fusion = fuseMatch(content, match, cameras.lookup(), options_.fusion);
   }
   std::size_t index = 0;
   {
     const std::lock_guard lock(mutex_);
-    state.changed_since_gba.insert(map->id());
     state.stats.loops.push_back(record);
     index = state.stats.loops.size() - 1;
   }
@@ -447,7 +438,6 @@ void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId
   state.stats.redundancy_checked += static_cast<std::uint64_t>(report.checked);
   state.stats.redundant_removed += report.removed_keyframes.size();
   state.stats.points_removed += report.removed_points.size();
-  if (!report.removed_keyframes.empty()) state.changed_since_gba.insert(map_id);
 }
 
 void BackendWorker::requestGba(const std::string& mission, MapId map, bool final,
@@ -534,7 +524,6 @@ void BackendWorker::gba(const GbaRequest& request) {
   MissionState& s = state(request.mission);
   s.stats.gba.push_back(record);
   if (record.summary.cancelled) return;
-  s.changed_since_gba.erase(request.map);
   const double since = secondsSince(request.since);
   for (const auto& [is_merge, index] : request.waiting) {
     if (is_merge && index < s.stats.merges.size()) s.stats.merges[index].match_to_optimised_s = since;

@@ -123,7 +123,7 @@ class BackendWorker {
   bool onKeyframesAdded(const std::string& mission, const std::vector<MapId>& maps);
 
   // Waits until every queued event is handled and no GBA runs; with `final_gba`, then runs GBA on every map of
-  // every mission that changed since its last one (the end of a mission).
+  // every mission with at least two keyframes (the end of a mission).
   void drain(bool final_gba);
 
   [[nodiscard]] BackendStats stats(const std::string& mission) const;

@@ -341,7 +341,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     by_time[{kf->id.agent, kf->agent_map}].emplace(kf->t_ns, delta);
     kf->T_w_s = delta * kf->T_w_s;
     if (c.velocity_bias_after) {
-      // The solve's velocity, plus whatever the agent changed meanwhile (rotated with the keyframe).
+      // The solve estimated velocity and biases: they replace the held ones (an agent update meanwhile is lost).
       kf->v_w = c.velocity_bias_after->first;
       kf->bias = c.velocity_bias_after->second;
     } else {

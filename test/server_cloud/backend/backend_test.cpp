@@ -232,6 +232,18 @@ TEST(GlobalBa, ACancelledSolveSaysSoAndChangesNothing) {
 }
 
 // -------------------------------------------------------------------------------- the worker: a mission
+// A verified match as place recognition would hand it on (the caller sets the transforms).
+recognition::MatchRecord matchRecord(recognition::QueryKind kind, const KeyframeId& query, MapId query_map,
+                                     const KeyframeId& candidate, MapId candidate_map) {
+  recognition::MatchRecord record;
+  record.kind = kind;
+  record.match.query = query;
+  record.match.candidate = candidate;
+  record.match.query_map = query_map;
+  record.match.candidate_map = candidate_map;
+  return record;
+}
+
 class BackendWorkerTest : public ::testing::Test {
  protected:
   void SetUp() override { mission_ = registry_.getOrCreate("m"); }
@@ -263,12 +275,8 @@ TEST_F(BackendWorkerTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesIt
   BackendWorker worker(options, registry_, nullptr);
   // What place recognition would report: agent 2's keyframe 9 seen from agent 1's keyframe 6, with the
   // match's rotation off by 0.3 deg of roll (the merge keeps 4 DoF and drops it).
-  recognition::MatchRecord record;
-  record.kind = recognition::QueryKind::kMapMatch;
-  record.match.query = KeyframeId{2, 9};
-  record.match.candidate = KeyframeId{1, 6};
-  record.match.query_map = map2->id();
-  record.match.candidate_map = map1->id();
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 9}, map2->id(), KeyframeId{1, 6}, map1->id());
   record.match.T_qmap_cmap = SE3d(SO3d::exp(Vector3d(0.005, 0.0, 0.0)), Vector3d::Zero()) * T_2_truth;
   ASSERT_TRUE(worker.onMatch("m", record));
   worker.drain(false);
@@ -317,12 +325,8 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   BackendOptions options;
   options.redundancy.enabled = false;
   BackendWorker worker(options, registry_, nullptr);
-  recognition::MatchRecord record;
-  record.kind = recognition::QueryKind::kLoop;
-  record.match.query = KeyframeId{1, 22};
-  record.match.candidate = KeyframeId{1, 3};
-  record.match.query_map = map->id();
-  record.match.candidate_map = map->id();
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
   record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;  // the query camera, from the old points
   ASSERT_TRUE(worker.onMatch("m", record));
   worker.drain(false);
