@@ -1,5 +1,6 @@
 #include "agent_rt/map/local_map.hpp"
 
+#include <algorithm>
 #include <limits>
 #include <string>
 
@@ -114,6 +115,7 @@ Result<PoolHandle> LocalMap::createMapPoint(PoolHandle reference, std::uint16_t 
   point.octave = kf->keypoints[keypoint].octave;
   point.created_at_sequence = next_sequence_ == 0 ? 0 : next_sequence_ - 1;
   point.observation_count = 1;
+  point.most_observations = 1;
   auto handle = map_points_->insert(point);
   if (!handle) {
     return Error{ErrorCode::kCapacityExceeded,
@@ -147,6 +149,7 @@ Status LocalMap::addObservation(PoolHandle keyframe, std::uint16_t keypoint, Poo
   kf->map_point[keypoint] = map_point;
   kf->has_map_point[keypoint] = true;
   ++mp->observation_count;
+  mp->most_observations = std::max(mp->most_observations, mp->observation_count);
   MapEvent added;
   added.type = MapEventType::kObservationAdded;
   added.keypoint = keypoint;
@@ -188,6 +191,7 @@ Result<int> LocalMap::mergeMapPoints(PoolHandle keep, PoolHandle drop) {
       kf.map_point[k] = keep;
       kf.has_map_point[k] = true;
       ++kept->observation_count;
+      kept->most_observations = std::max(kept->most_observations, kept->observation_count);
       ++moved;
     }
   });
@@ -223,7 +227,10 @@ int LocalMap::cullMapPoints(const CullOptions& options) {
     const bool unconfirmed = newest >= mp.created_at_sequence + options.keyframes_to_prove &&
                              mp.observation_count < options.min_observations;
     if (rarely_found || unconfirmed) {
-      if (removeMapPoint(handle, MapEventReason::kCulled).ok()) ++removed;
+      // A point that was confirmed once and fell under the threshold because its observers left the bounded map
+      // is still a good point: it leaves the local map, but whoever mirrors the map (the server) keeps it.
+      const bool outlived = !rarely_found && mp.most_observations >= options.min_observations;
+      if (removeMapPoint(handle, outlived ? MapEventReason::kEvicted : MapEventReason::kCulled).ok()) ++removed;
     }
   });
   return removed;

@@ -66,6 +66,7 @@ struct MapPointData {
   std::uint32_t visible = 0;              // frames in whose view the point projected
   std::uint32_t found = 0;                // frames in which it was matched
   std::uint16_t observation_count = 0;    // keyframes observing it
+  std::uint16_t most_observations = 0;    // the most keyframes that observed it at one time (eviction lowers the count)
 };
 
 struct CullOptions {

@@ -111,6 +111,39 @@ TEST_F(LocalMapTest, CullingRemovesRarelyFoundAndUnconfirmedPointsOnly) {
   EXPECT_FALSE(sut_->keyframes().get(kf1)->has_map_point[2]);  // the observation went with the point
 }
 
+// A point whose observers leave the bounded map falls under the observation threshold, but it was confirmed: the
+// local map lets it go as evicted, so the server (which mirrors the map through these events) keeps it. Only
+// points that were never confirmed, or are rarely found, are culled (forgotten everywhere).
+TEST_F(LocalMapTest, APointThatOutlivedItsObserversIsEvictedNotCulled) {
+  struct Recorder final : MapEventSink {
+    void record(const MapEvent& e) override {
+      if (e.type == MapEventType::kPointRemoved) reasons.push_back({e.point.counter, e.reason});
+    }
+    std::vector<std::pair<std::uint32_t, MapEventReason>> reasons;
+  } recorder;
+  sut_->setEventSink(&recorder);
+  const PoolHandle kf0 = addKeyframe(0.0);
+  const PoolHandle kf1 = addKeyframe(0.5);
+  auto confirmed = sut_->createMapPoint(kf1, 1, Vector3d(0.1, 0.0, 1.0), 5.0, point_ids_.next());
+  auto unconfirmed = sut_->createMapPoint(kf1, 2, Vector3d(0.0, 0.1, 1.0), 5.0, point_ids_.next());
+  ASSERT_TRUE(confirmed.ok() && unconfirmed.ok());
+  ASSERT_TRUE(sut_->addObservation(kf0, 1, *confirmed).ok());
+  addKeyframe(1.0);
+  addKeyframe(1.5);
+  ASSERT_TRUE(sut_->evictOldestKeyframe().ok());  // kf0: the confirmed point keeps one observer
+  ASSERT_EQ(sut_->mapPoints().get(*confirmed)->observation_count, 1);
+  EXPECT_EQ(sut_->mapPoints().get(*confirmed)->most_observations, 2);
+
+  EXPECT_EQ(sut_->cullMapPoints({}), 2);
+  EXPECT_FALSE(sut_->mapPoints().valid(*confirmed));
+  EXPECT_FALSE(sut_->mapPoints().valid(*unconfirmed));
+  ASSERT_EQ(recorder.reasons.size(), 2U);
+  for (const auto& [counter, reason] : recorder.reasons) {
+    EXPECT_EQ(reason, counter == 0 ? MapEventReason::kEvicted : MapEventReason::kCulled) << "point " << counter;
+  }
+  sut_->setEventSink(nullptr);
+}
+
 TEST_F(LocalMapTest, MergingADuplicateMovesItsObservationsAndCountsAndRemovesIt) {
   const PoolHandle a = addKeyframe(0.0);
   const PoolHandle b = addKeyframe(0.5);
