@@ -5,7 +5,7 @@
 # tables; then one agent on the real EuRoC V1_01 excerpt through the same server.
 #
 #   deploy/run_mission.sh [--preset NAME] [--seed N] [--duration SEC] [--mode stereo|mono] [--pace realtime|sync]
-#                         [--out DIR] [--build-dir DIR] [--no-real]
+#                         [--out DIR] [--build-dir DIR] [--no-real] [--server-arg ARG ...]
 #
 #   --preset    a cvislam_sim preset: overlap2 (default; 2 agents), loop, hall4, hall8, aggressive, or euroc-mh
 #               (the five real EuRoC Machine Hall flights, replayed by the simulator in one world frame)
@@ -17,6 +17,7 @@
 #               2-core machine several realtime agents compete for the cores, see issue 17)
 #   --out       results [out/mission]: summary.json, report/index.html, server/, agents/, eval/
 #   --no-real   skip the agent on the real EuRoC excerpt
+#   --server-arg one more cvislam_server argument, repeatable (e.g. --server-arg --no-gba)
 #
 # Environment: CVISLAM_DATA_DIR (default ../shared/data beside the repository) for the real data and the
 # euroc-mh flights; CVISLAM_SIM_CACHE (default out/sim-cache) for rendered missions.
@@ -31,6 +32,7 @@ pace=sync
 out="$repo/out/mission"
 build="$repo/build/default"
 real=1
+server_args=()
 while [ $# -gt 0 ]; do
   case "$1" in
     --preset) preset=$2; shift 2 ;;
@@ -41,7 +43,8 @@ while [ $# -gt 0 ]; do
     --out) out=$2; shift 2 ;;
     --build-dir) build=$2; shift 2 ;;
     --no-real) real=0; shift ;;
-    -h|--help) sed -n '2,21p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --server-arg) server_args+=("$2"); shift 2 ;;
+    -h|--help) sed -n '2,22p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -119,7 +122,7 @@ for _ in $(seq 100); do grep -q "RouDi is ready" "$out/roudi.log" && break; slee
 grep -q "RouDi is ready" "$out/roudi.log" || { echo "run_mission: iox-roudi did not start:" >&2; cat "$out/roudi.log" >&2; exit 1; }
 
 "$bin/cvislam_server" --listen 127.0.0.1:0 --port-file "$out/server.port" --output "$out/server" \
-  --status-interval 10 >"$out/server.log" 2>&1 &
+  --status-interval 10 "${server_args[@]}" >"$out/server.log" 2>&1 &
 server_pid=$!
 for _ in $(seq 100); do [ -s "$out/server.port" ] && break; sleep 0.1; done
 [ -s "$out/server.port" ] || { echo "run_mission: cvislam_server did not start:" >&2; cat "$out/server.log" >&2; exit 1; }

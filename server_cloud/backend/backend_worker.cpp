@@ -507,7 +507,8 @@ void BackendWorker::gba(const GbaRequest& request) {
   Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options_.gba, &gba_cancel_);
   if (!summary) return;
   record.summary = *summary;
-  if (!summary->cancelled && !gba_cancel_) {
+  if (gba_cancel_) record.summary.cancelled = true;  // cut short after its last iteration: not applied
+  if (!record.summary.cancelled) {
     StackLocks locks(*mission, {map});
     if (gba_cancel_) {
       record.summary.cancelled = true;

@@ -47,9 +47,7 @@ struct BackendOptions {
   bool enabled = true;
   bool merge_maps = true;
   bool close_loops = true;
-  // After every merge and loop. Off by default until the regression on the mission is found: on overlap2 GBA
-  // took the server keyframe ATE from 3.7 to 50 cm although its unit tests converge to the truth.
-  bool gba_after_change = false;
+  bool gba_after_change = true;  // after every merge and loop
   // A loop whose query keyframe is within this many keyframes of its agent's previous loop is left out (the
   // pose graph and GBA of the previous one already hold it).
   int loop_cooldown_keyframes = 20;

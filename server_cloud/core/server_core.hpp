@@ -39,7 +39,7 @@ struct ServerOptions {
   recognition::RecognitionWorkerOptions recognition = defaultRecognitionOptions();
   // Map fusion, loop closure, global BA and redundancy removal (started with place recognition, which feeds it).
   backend::BackendOptions backend;
-  bool final_gba = false;  // (off by default: see BackendOptions::gba_after_change) writeOutputs() runs a last GBA on every map first (the end of a mission)
+  bool final_gba = true;  // writeOutputs() runs a last GBA on every map first (the end of a mission)
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line

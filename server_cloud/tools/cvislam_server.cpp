@@ -104,12 +104,12 @@ int main(int argc, char** argv) {
   app.add_flag("--no-recognition", no_recognition, "Run without place recognition (and so without merges and loops)");
   bool no_backend = false;
   bool no_redundancy = false;
-  bool gba = false;
+  bool no_gba = false;
   app.add_flag("--no-backend", no_backend, "Run without the back-end: no map fusion, loop closure, GBA or removal");
   app.add_flag("--no-redundancy", no_redundancy, "Keep every keyframe (no redundancy removal)");
-  app.add_flag("--gba", gba,
-               "Run global BA after every merge and loop and on every map at shutdown (off by default: it makes the "
-               "main job's server trajectories worse until a regression is found)");
+  app.add_flag("--no-gba", no_gba,
+               "No global BA (neither after merges and loops nor on every map at shutdown): the server's keyframes "
+               "keep the agents' estimates, moved only by merges and pose graphs");
   CLI11_PARSE(app, argc, argv);
 
   ServerOptions options;
@@ -125,9 +125,9 @@ int main(int argc, char** argv) {
   if (no_recognition) options.recognition.enabled = false;
   if (no_backend) options.backend.enabled = false;
   if (no_redundancy) options.backend.redundancy.enabled = false;
-  if (gba) {
-    options.backend.gba_after_change = true;
-    options.final_gba = true;
+  if (no_gba) {
+    options.backend.gba_after_change = false;
+    options.final_gba = false;
   }
   if (auto s = options.validate(); !s.ok()) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";

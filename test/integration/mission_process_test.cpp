@@ -71,7 +71,9 @@ class MissionProcesses : public ::testing::Test {
     const std::filesystem::path port_file = dir_ / ("server_port_" + std::to_string(servers_++));
     auto server = std::make_unique<ChildProcess>(
         std::vector<std::string>{CVISLAM_SERVER_BINARY, "--listen", "127.0.0.1:" + std::to_string(port), "--output",
-                                 output.string(), "--port-file", port_file.string(), "--quiet"},
+                                 output.string(), "--port-file", port_file.string(), "--quiet",
+                                 // These tests check what the link delivers: the back-end would move the states.
+                                 "--no-backend"},
         dir_ / ("server_" + std::to_string(servers_) + ".log"));
     const bool up =
         test::waitFor([&] { return std::filesystem::exists(port_file) || !server->running(); }, milliseconds(10000));

@@ -272,7 +272,6 @@ TEST_F(BackendWorkerTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesIt
 
   BackendOptions options;
   options.redundancy.enabled = false;
-  options.gba_after_change = true;  // off by default for now; this test checks the GBA after the merge
   BackendWorker worker(options, registry_, nullptr);
   // What place recognition would report: agent 2's keyframe 9 seen from agent 1's keyframe 6, with the
   // match's rotation off by 0.3 deg of roll (the merge keeps 4 DoF and drops it).
@@ -325,7 +324,6 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
 
   BackendOptions options;
   options.redundancy.enabled = false;
-  options.gba_after_change = true;  // off by default for now; the loop is finished by GBA
   BackendWorker worker(options, registry_, nullptr);
   recognition::MatchRecord record =
       matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
