@@ -82,6 +82,43 @@ def pose_mul(A, B):
     return (quat_mul(A[0], B[0]), pose_apply(A, B[1]))
 
 
+def report_backend(out, mission, server_agents, summary):
+    """The server's back-end (backend.json) and how long the server took to store each batch meanwhile."""
+    name = mission["mission"]
+    backend = load_json(os.path.join(out, "server", name, "backend.json"))
+    print()
+    print("== server back-end: merges, loops, global BA, redundancy removal (backend.json), and ingest while it ran")
+    section = {}
+    if backend is not None:
+        gba = [g for g in backend.get("gba", []) if not g.get("cancelled")]
+        solve = sorted(g["solve_s"] for g in gba)
+        biggest = max((g["keyframes"] for g in gba), default=0)
+        section = {"merges": len(backend.get("merges", [])), "loops": len(backend.get("loops", [])),
+                   "gba_runs": len(gba), "gba_cancelled": backend.get("gba_cancelled", 0),
+                   "gba_solve_s_max": solve[-1] if solve else None, "gba_largest_keyframes": biggest,
+                   "redundant_keyframes_removed": backend.get("redundant_keyframes_removed", 0),
+                   "redundancy_checked": backend.get("redundancy_checked", 0)}
+        print(f"merges {section['merges']}, loops closed {section['loops']}; GBA {len(gba)} runs (largest "
+              f"{biggest} KFs, solve max {section['gba_solve_s_max'] or 0:.2f} s), {section['gba_cancelled']} cut short "
+              f"by a newer change; redundant KFs removed {section['redundant_keyframes_removed']} of "
+              f"{section['redundancy_checked']} checked")
+    else:
+        print("no backend.json (the server ran with --no-backend)")
+    print(f"{'agent':8} {'batches':>8} {'ingest p50[ms]':>15} {'p99[ms]':>9} {'max[ms]':>9}   (arrival to stored, "
+          "map-lock waits included)")
+    ingest = {}
+    for (m, agent), a in sorted(server_agents.items()):
+        if m != name or "ingest_ms" not in a:
+            continue
+        i = a["ingest_ms"]
+        ingest[f"agent{agent}"] = {"batches": int(i.get("samples", 0)), "p50_ms": i.get("p50", 0.0),
+                                   "p99_ms": i.get("p99", 0.0), "max_ms": i.get("max", 0.0)}
+        r = ingest[f"agent{agent}"]
+        print(f"{'agent' + str(agent):8} {r['batches']:8d} {r['p50_ms']:15.2f} {r['p99_ms']:9.2f} {r['max_ms']:9.2f}")
+    section["ingest"] = ingest
+    summary["backend"] = section
+
+
 def report_recognition(out, mission, map_to_truth, summary):
     """The server's place recognition: counters, and each accepted map match against the ground truth (each agent's
     single server map aligned to the ground truth in SE3 gives the true transform between two maps)."""
@@ -310,6 +347,7 @@ def main():
         print(f"{a:8} " + " ".join(f"{c:>15}" for c in cells))
 
     report_recognition(out, mission, map_to_truth, summary)
+    report_backend(out, mission, server_agents, summary)
 
     # Real images: the V1_01 excerpt through the same server.
     real_out = os.path.join(out, "agents", "real_v101")

@@ -203,6 +203,7 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
 Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_bytes) {
   const v1::MapBatch& batch = message.batch();
   const std::uint64_t sequence = batch.sequence();
+  const auto arrived = Clock::now();  // before the lock: waits for the back-end count
   auto record = record_->write();
   if (record->connections != stream_) {
     return Error{ErrorCode::kAlreadyExists, "a newer stream of this agent took over"};
@@ -232,6 +233,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   record->stored_sequence = sequence;
   record->duplicate_objects += static_cast<std::uint64_t>(report->duplicate_objects);
   record->imu_links_missing += static_cast<std::uint64_t>(report->imu_links_missing);
+  record->ingest_ms.add(std::chrono::duration<double, std::milli>(Clock::now() - arrived).count());
 
   // Traffic by kind: the serialized size of each part.
   for (const wire::BatchPart& part : wire::batchParts(batch)) record->up[part.kind].add(part.count, part.bytes);

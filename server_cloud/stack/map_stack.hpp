@@ -9,6 +9,8 @@
 // recognition, global BA; later issues) copies what it needs under a map's read lock and works on the copy.
 #pragma once
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -71,6 +73,33 @@ struct AgentSensors {
   double imu_rate_hz = 200.0;
 };
 
+// The newest `kCapacity` durations of something, for percentiles (a ring: memory stays bounded).
+class LatencySamples {
+ public:
+  static constexpr std::size_t kCapacity = 4096;
+  void add(double ms) {
+    if (ms_.size() < kCapacity) {
+      ms_.push_back(ms);
+    } else {
+      ms_[next_] = ms;
+    }
+    next_ = (next_ + 1) % kCapacity;
+  }
+  [[nodiscard]] std::size_t size() const { return ms_.size(); }
+  // The p-quantile (p in [0, 1]) by nearest rank; 0 without samples.
+  [[nodiscard]] double percentile(double p) const {
+    if (ms_.empty()) return 0.0;
+    std::vector<double> sorted = ms_;
+    std::sort(sorted.begin(), sorted.end());
+    const auto rank = static_cast<std::size_t>(std::ceil(p * static_cast<double>(sorted.size())));
+    return sorted[std::min(sorted.size() - 1, rank == 0 ? 0 : rank - 1)];
+  }
+
+ private:
+  std::vector<double> ms_;
+  std::size_t next_ = 0;
+};
+
 // Bytes and messages of one kind.
 struct TrafficCount {
   std::uint64_t messages = 0;
@@ -122,6 +151,7 @@ struct AgentRecord {
   std::uint64_t imu_links_missing = 0;  // keyframes whose IMU predecessor the server does not hold
   std::uint64_t refused_messages = 0;
   std::string last_error;
+  LatencySamples ingest_ms;  // arrival to stored, per batch
 };
 
 using SharedAgentRecord = std::shared_ptr<Synchronized<AgentRecord>>;

@@ -2,6 +2,7 @@
 // a recount from scratch after each operation (adds, observations, merges, removals, and a long seeded random
 // sequence of them).
 #include "server_cloud/stack/map_content.hpp"
+#include "server_cloud/stack/map_stack.hpp"
 
 #include <algorithm>
 #include <cstdint>
@@ -495,6 +496,19 @@ TEST_F(MapContentTest, RandomSequenceOfOperationsKeepsTheMapConsistent) {
        {"addKeyframe", "addPoint", "addObservation", "mergePoints", "removePoint", "removeKeyframe"}) {
     EXPECT_GE(applied[name], 20) << name;
   }
+}
+
+TEST(LatencySamples, GivesNearestRankPercentilesOverTheNewestSamplesOnly) {
+  LatencySamples sut;
+  EXPECT_EQ(sut.percentile(0.5), 0.0);  // no samples
+  for (int i = 1; i <= 100; ++i) sut.add(static_cast<double>(i));
+  EXPECT_EQ(sut.percentile(0.5), 50.0);
+  EXPECT_EQ(sut.percentile(0.99), 99.0);
+  EXPECT_EQ(sut.percentile(1.0), 100.0);
+  // A full ring forgets the oldest: after kCapacity samples of 1000, the 100 small ones are gone.
+  for (std::size_t i = 0; i < LatencySamples::kCapacity; ++i) sut.add(1000.0);
+  EXPECT_EQ(sut.size(), LatencySamples::kCapacity);
+  EXPECT_EQ(sut.percentile(0.0), 1000.0);
 }
 
 }  // namespace
