@@ -91,11 +91,10 @@ def report_backend(out, mission, server_agents, summary):
     section = {}
     if backend is not None:
         gba = [g for g in backend.get("gba", []) if not g.get("cancelled")]
-        solve = sorted(g["solve_s"] for g in gba)
         biggest = max((g["keyframes"] for g in gba), default=0)
         section = {"merges": len(backend.get("merges", [])), "loops": len(backend.get("loops", [])),
                    "gba_runs": len(gba), "gba_cancelled": backend.get("gba_cancelled", 0),
-                   "gba_solve_s_max": solve[-1] if solve else None, "gba_largest_keyframes": biggest,
+                   "gba_solve_s_max": max((g["solve_s"] for g in gba), default=None), "gba_largest_keyframes": biggest,
                    "redundant_keyframes_removed": backend.get("redundant_keyframes_removed", 0),
                    "redundancy_checked": backend.get("redundancy_checked", 0)}
         print(f"merges {section['merges']}, loops closed {section['loops']}; GBA {len(gba)} runs (largest "

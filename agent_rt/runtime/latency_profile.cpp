@@ -7,15 +7,9 @@
 
 #include <nlohmann/json.hpp>
 
-namespace cvislam::agent {
+#include "common/core/percentile.hpp"
 
-namespace {
-double percentile(const std::vector<double>& sorted, double p) {
-  if (sorted.empty()) return 0.0;
-  const auto rank = static_cast<std::size_t>(std::ceil(p / 100.0 * static_cast<double>(sorted.size())));
-  return sorted[std::min(sorted.size() - 1, rank == 0 ? 0 : rank - 1)];
-}
-}  // namespace
+namespace cvislam::agent {
 
 StageSummary summarise(const LatencyRecorder& recorder) {
   StageSummary s;
@@ -24,9 +18,9 @@ StageSummary summarise(const LatencyRecorder& recorder) {
   std::sort(sorted.begin(), sorted.end());
   s.count = sorted.size();
   if (sorted.empty()) return s;
-  s.p50_ms = percentile(sorted, 50.0);
-  s.p90_ms = percentile(sorted, 90.0);
-  s.p99_ms = percentile(sorted, 99.0);
+  s.p50_ms = nearestRankPercentile(sorted, 0.50);
+  s.p90_ms = nearestRankPercentile(sorted, 0.90);
+  s.p99_ms = nearestRankPercentile(sorted, 0.99);
   s.max_ms = sorted.back();
   s.mean_ms = std::accumulate(sorted.begin(), sorted.end(), 0.0) / static_cast<double>(sorted.size());
   return s;

@@ -10,7 +10,6 @@
 #pragma once
 
 #include <algorithm>
-#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -23,6 +22,7 @@
 
 #include "common/camera/camera_model.hpp"
 #include "common/core/ids.hpp"
+#include "common/core/percentile.hpp"
 #include "common/core/synchronized.hpp"
 #include "common/geometry/lie.hpp"
 #include "common/imu/preintegration.hpp"
@@ -86,13 +86,11 @@ class LatencySamples {
     next_ = (next_ + 1) % kCapacity;
   }
   [[nodiscard]] std::size_t size() const { return ms_.size(); }
-  // The p-quantile (p in [0, 1]) by nearest rank; 0 without samples.
-  [[nodiscard]] double percentile(double p) const {
-    if (ms_.empty()) return 0.0;
+  // The fraction-quantile (in [0, 1]) by nearest rank; 0 without samples.
+  [[nodiscard]] double percentile(double fraction) const {
     std::vector<double> sorted = ms_;
     std::sort(sorted.begin(), sorted.end());
-    const auto rank = static_cast<std::size_t>(std::ceil(p * static_cast<double>(sorted.size())));
-    return sorted[std::min(sorted.size() - 1, rank == 0 ? 0 : rank - 1)];
+    return nearestRankPercentile(sorted, fraction);
   }
 
  private:
