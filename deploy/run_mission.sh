@@ -18,6 +18,8 @@
 #   --out       results [out/mission]: summary.json, report/index.html, server/, agents/, eval/
 #   --no-real   skip the agent on the real EuRoC excerpt
 #   --server-arg one more cvislam_server argument, repeatable (e.g. --server-arg --no-gba)
+#   --agents    fly only these of the preset's agents, by number, comma-separated (e.g. --agents 0,1 for
+#               euroc-mh's MH_01 and MH_02); they keep their numbers and trajectories [all]
 #
 # Environment: CVISLAM_DATA_DIR (default ../shared/data beside the repository) for the real data and the
 # euroc-mh flights; CVISLAM_SIM_CACHE (default out/sim-cache) for rendered missions.
@@ -33,6 +35,7 @@ out="$repo/out/mission"
 build="$repo/build/default"
 real=1
 server_args=()
+only_agents=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --preset) preset=$2; shift 2 ;;
@@ -44,12 +47,15 @@ while [ $# -gt 0 ]; do
     --build-dir) build=$2; shift 2 ;;
     --no-real) real=0; shift ;;
     --server-arg) server_args+=("$2"); shift 2 ;;
-    -h|--help) sed -n '2,22p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --agents) only_agents=$2; shift 2 ;;
+    -h|--help) sed -n '2,24p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
 done
 case "$mode" in stereo|mono) ;; *) echo "run_mission: --mode must be stereo or mono, not '$mode'" >&2; exit 2 ;; esac
 case "$pace" in realtime|sync) ;; *) echo "run_mission: --pace must be realtime or sync, not '$pace'" >&2; exit 2 ;; esac
+[[ -z "$only_agents" || "$only_agents" =~ ^[0-9]+(,[0-9]+)*$ ]] ||
+  { echo "run_mission: --agents must be agent numbers separated by commas (e.g. 0,1), not '$only_agents'" >&2; exit 2; }
 [[ "$seed" =~ ^[0-9]+$ ]] || { echo "run_mission: --seed must be a whole number, not '$seed'" >&2; exit 2; }
 if [ -z "$duration" ]; then
   if [ "$preset" = euroc-mh ]; then duration=90; else duration=60; fi
@@ -93,6 +99,15 @@ t_rendered=$(date +%s)
 agents=()
 for d in "$cache"/agent*; do [ -d "$d/mav0" ] && agents+=("$(basename "$d")"); done
 [ "${#agents[@]}" -gt 0 ] || { echo "run_mission: no agents in $cache" >&2; exit 1; }
+if [ -n "$only_agents" ]; then
+  chosen=()
+  for id in ${only_agents//,/ }; do
+    [ -d "$cache/agent$id/mav0" ] ||
+      { echo "run_mission: --agents names agent$id, but preset $preset has only: ${agents[*]}" >&2; exit 2; }
+    chosen+=("agent$id")
+  done
+  agents=("${chosen[@]}")
+fi
 
 rm -rf "$out"
 mkdir -p "$out/agents" "$out/server" "$out/eval"

@@ -102,6 +102,9 @@ struct BackendWorker::MissionState {
 
 Status BackendOptions::validate() const {
   if (loop_cooldown_keyframes < 0) return Error{ErrorCode::kInvalidArgument, "backend.loop_cooldown_keyframes < 0"};
+  if (!(loop_cancels_gba_m >= 0.0) || !(loop_cancels_gba_deg >= 0.0)) {
+    return Error{ErrorCode::kInvalidArgument, "backend.loop_cancels_gba_m and loop_cancels_gba_deg must be >= 0"};
+  }
   if (redundancy_every_keyframes < 1) {
     return Error{ErrorCode::kInvalidArgument, "backend.redundancy_every_keyframes must be >= 1"};
   }
@@ -116,7 +119,8 @@ std::string BackendOptions::describe() const {
   std::ostringstream out;
   out << "merge maps " << (merge_maps ? "on" : "off") << ", loop closure " << (close_loops ? "on" : "off")
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
-      << gba.full_iterations << " iterations, " << gba.threads << " threads), redundancy removal "
+      << gba.full_iterations << " iterations, " << gba.threads << " threads; a loop cuts it short above "
+      << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg), redundancy removal "
       << (redundancy.enabled ? "on" : "off") << " (" << redundancy.redundant_fraction
       << " of points seen by >= " << redundancy.min_other_observers
       << " others, IMU gap <= " << redundancy.max_imu_gap_s << " s)";
@@ -354,7 +358,6 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
       return;
     }
   }
-  cancelGba(mission.name(), map->id());
   const AgentSensorsMap sensors = sensorsOf(mission);
   const auto sensor = sensors.find(match.query.agent);
   if (sensor == sensors.end()) return;
@@ -395,6 +398,11 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     const SE3d delta = c.T_w_s_before.inverse() * c.T_w_s_after;
     record.correction_m = delta.translation().norm();
     record.correction_deg = delta.so3().log().norm() * 180.0 / M_PI;
+  }
+  // A running GBA of this map goes on unless the loop is a big correction: both results are changes of state
+  // and compose when applied, and the GBA requested below takes the loop in.
+  if (record.correction_m > options_.loop_cancels_gba_m || record.correction_deg > options_.loop_cancels_gba_deg) {
+    record.cancelled_gba = cancelGba(mission.name(), map->id());
   }
   const CameraTable cameras(sensors);
   {
@@ -457,16 +465,18 @@ void BackendWorker::requestGba(const std::string& mission, MapId map, bool final
   gba_wake_.notify_one();
 }
 
-void BackendWorker::cancelGba(const std::string& mission, MapId map) {
+bool BackendWorker::cancelGba(const std::string& mission, MapId map) {
   const std::lock_guard lock(mutex_);
-  if (gba_running_ && gba_running_->mission == mission && gba_running_->map == map) {
+  if (gba_running_ && gba_running_->mission == mission && gba_running_->map == map && !gba_cancel_) {
     gba_cancel_ = true;
     ++state(mission).stats.gba_cancelled;
     // Its waiters move to the GBA that the change will request.
     GbaRequest again = *gba_running_;
     again.final = false;
     gba_queue_.push_front(std::move(again));
+    return true;
   }
+  return false;
 }
 
 void BackendWorker::runGba() {
@@ -504,6 +514,7 @@ void BackendWorker::gba(const GbaRequest& request) {
     record.snapshot_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   }
   if (!snapshot) return;
+  if (options_.on_gba_solve_start) options_.on_gba_solve_start(request.map);
   Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options_.gba, &gba_cancel_);
   if (!summary) return;
   record.summary = *summary;

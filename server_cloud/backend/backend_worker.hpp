@@ -7,8 +7,11 @@
 //                   changes for the milliseconds it takes.
 //   GBA thread      global BA of a map after every merge or loop (and of every map at drain(true), the end of a
 //                   mission), on a snapshot; ingest carries on meanwhile, and the result is applied with the
-//                   corrections of what arrived (applyCorrections). A merge or loop on a map cancels its
-//                   running GBA, which then starts again on the changed map.
+//                   corrections of what arrived (applyCorrections). A merge on a map cancels its running GBA,
+//                   which then starts again on the changed map; a loop does so only when its pose graph moves
+//                   the query keyframe by more than `loop_cancels_gba_m` / `loop_cancels_gba_deg`. A smaller
+//                   loop lets the running GBA finish: its result is a change of state, composed with the
+//                   loop's (applyCorrections), and the GBA the loop asks for follows it.
 //
 // After every change the agent records are brought up to date: which server map holds each agent map, and its
 // T_m_w (the agent's world frame in the map's frame), so that what agents send next lands where the map expects
@@ -51,12 +54,18 @@ struct BackendOptions {
   // A loop whose query keyframe is within this many keyframes of its agent's previous loop is left out (the
   // pose graph and GBA of the previous one already hold it).
   int loop_cooldown_keyframes = 20;
+  // A loop cuts a running GBA of its map short only when its pose graph moves the query keyframe by more than
+  // this (either bound); smaller loops wait for the next GBA, so long solves are not thrown away again and again.
+  double loop_cancels_gba_m = 0.05;
+  double loop_cancels_gba_deg = 0.5;
   int redundancy_every_keyframes = 10;  // per map
   std::size_t queue_capacity = 100'000;
   GlobalBaOptions gba;
   PoseGraphOptions pose_graph;
   FusionOptions fusion;
   RedundancyOptions redundancy;
+  // Test seam: called on the GBA thread with the map's id once its snapshot is taken, before the solve.
+  std::function<void(MapId)> on_gba_solve_start;
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;
@@ -83,6 +92,7 @@ struct LoopRecord {
   PoseGraphSummary graph;
   FusionReport fusion;
   double solve_ms = 0.0;
+  bool cancelled_gba = false;  // it cut a running GBA of its map short (a big correction)
   double match_to_optimised_s = -1.0;
 };
 
@@ -156,7 +166,8 @@ class BackendWorker {
   void removeRedundant(Mission& mission, MissionState& state, MapId map);
   void requestGba(const std::string& mission, MapId map, bool final, std::optional<std::pair<bool, std::size_t>> waiter,
                   std::chrono::steady_clock::time_point since);
-  void cancelGba(const std::string& mission, MapId map);
+  // True when a GBA of `map` was running and is now told to stop.
+  bool cancelGba(const std::string& mission, MapId map);
   void gba(const GbaRequest& request);
   MissionState& state(const std::string& mission);
 

@@ -116,6 +116,8 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("gba_after_change", b.gba_after_change);
   backend.read("final_gba", o.final_gba);
   backend.read("loop_cooldown_keyframes", b.loop_cooldown_keyframes);
+  backend.read("loop_cancels_gba_m", b.loop_cancels_gba_m);
+  backend.read("loop_cancels_gba_deg", b.loop_cancels_gba_deg);
   backend.read("gba_structure_iterations", b.gba.structure_iterations);
   backend.read("gba_full_iterations", b.gba.full_iterations);
   backend.read("gba_threads", b.gba.threads);
@@ -372,6 +374,7 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                      {"candidate", {l.candidate.agent, l.candidate.counter}},
                      {"correction_m", l.correction_m},
                      {"correction_deg", l.correction_deg},
+                     {"cancelled_gba", l.cancelled_gba},
                      {"graph_keyframes", l.graph.keyframes},
                      {"graph_edges", l.graph.tree_edges + l.graph.covisibility_edges + l.graph.loop_edges},
                      {"loop_edges", l.graph.loop_edges},

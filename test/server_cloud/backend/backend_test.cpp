@@ -4,7 +4,11 @@
 // preintegration between consecutive keyframes), then moved, drifted or perturbed; the back-end must recover
 // the truth. Real Ceres solves and the real worker threads; no mocks.
 #include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <cmath>
+#include <condition_variable>
+#include <mutex>
 #include <random>
 #include <thread>
 
@@ -262,6 +266,48 @@ class BackendWorkerTest : public ::testing::Test {
   std::shared_ptr<Mission> mission_;
 };
 
+// Holds the first GBA of one map after its snapshot until released, so that a test can make changes arrive
+// while it runs, deterministically.
+class GbaGate {
+ public:
+  explicit GbaGate(MapId map) : map_(map) {}
+  std::function<void(MapId)> hook() {
+    return [this](MapId map) {
+      if (map != map_ || held_.exchange(true)) return;
+      std::unique_lock lock(mutex_);
+      waiting_ = true;
+      wake_.notify_all();
+      wake_.wait(lock, [this] { return released_; });
+    };
+  }
+  void waitUntilHeld() {
+    std::unique_lock lock(mutex_);
+    EXPECT_TRUE(wake_.wait_for(lock, std::chrono::seconds(60), [this] { return waiting_; })) << "no GBA started";
+  }
+  void release() {
+    const std::lock_guard lock(mutex_);
+    released_ = true;
+    wake_.notify_all();
+  }
+
+ private:
+  MapId map_;
+  std::atomic<bool> held_{false};
+  std::mutex mutex_;
+  std::condition_variable wake_;
+  bool waiting_ = false;
+  bool released_ = false;
+};
+
+// Polls `done` (the worker's stats) until it holds; false after a minute.
+bool eventually(const std::function<bool()>& done) {
+  for (int i = 0; i < 6000; ++i) {
+    if (done()) return true;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return false;
+}
+
 TEST_F(BackendWorkerTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesItsPointsAndOptimises) {
   const test::ViScenario s = scenario(16, 0.5, 0.3);
   // Agent 1's map is the truth frame; agent 2's map frame is turned by 40 deg about gravity and moved.
@@ -426,6 +472,135 @@ TEST_F(BackendWorkerTest, GbaWhileKeyframesStreamInLosesNoneAndCarriesTheNewOnes
   // optimised one (the same change applied).
   EXPECT_LT(maxPositionError(*content, s, 1), 0.05 + (optimised < 40 ? 0.1 : 0.0));
   EXPECT_TRUE(content->checkConsistency().ok());
+}
+
+// A loop closed while the map's GBA runs: the drift of `drift_m` (position, with a yaw of `drift_rad`) is injected
+// from keyframe 12 on, as in ALoopClosureRemovesAnInjectedDrift. Returns the worker's stats and the largest
+// keyframe position error before and after.
+struct LoopDuringGba {
+  BackendStats stats;
+  double before = 0.0;
+  double after = 0.0;
+};
+
+LoopDuringGba closeALoopWhileGbaRuns(MissionRegistry& registry, double drift_m, double drift_rad) {
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+  const Vector3d drift_xi = drift_m * Vector3d(0.3, -0.25, 0.05).normalized();
+  const auto drift_at = [&](int k) {
+    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, drift_rad * f)), f * drift_xi);
+  };
+  std::shared_ptr<ServerMap> map = mission->stack().createMap();
+  {
+    auto record = mission->agent(1)->write();
+    record->sensors = sensorsOf(s);
+    record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+    buildAgentMap(*map->write(), s,
+                  AgentPlan{.agent = 1, .first = 0, .last = 23, .E = drift_at, .generation = [](int k) {
+                              return k >= 12 ? 1 : 0;
+                            }},
+                  &*record);
+  }
+  LoopDuringGba out;
+  out.before = maxPositionError(*map->read(), s, 1);
+
+  GbaGate gate(map->id());
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });  // the GBA that the loop finds running
+  gate.waitUntilHeld();
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
+  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", record));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").loops.empty(); }));
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+  out.stats = worker.stats("m");
+  const auto content = map->read();
+  EXPECT_TRUE(content->checkConsistency().ok());
+  out.after = maxPositionError(*content, s, 1);
+  return out;
+}
+
+TEST(BackendLoopDuringGba, ASmallLoopLetsTheRunningGbaFinishAndTheGbaAfterItTakesTheLoopIn) {
+  MissionRegistry registry;
+  // About 3 cm and 0.2 deg at the query keyframe: below the 5 cm / 0.5 deg bound.
+  const LoopDuringGba r = closeALoopWhileGbaRuns(registry, 0.035, 0.004);
+  ASSERT_EQ(r.stats.loops.size(), 1U);
+  EXPECT_LT(r.stats.loops[0].correction_m, BackendOptions{}.loop_cancels_gba_m);
+  EXPECT_GT(r.stats.loops[0].correction_m, 0.01);
+  EXPECT_FALSE(r.stats.loops[0].cancelled_gba);
+  EXPECT_EQ(r.stats.gba_cancelled, 0U);
+  ASSERT_GE(r.stats.gba.size(), 2U) << "the running GBA, then the loop's";
+  EXPECT_FALSE(r.stats.gba[0].summary.cancelled) << "the running GBA was applied";
+  EXPECT_FALSE(r.stats.gba.back().summary.cancelled);
+  EXPECT_GE(r.stats.loops[0].match_to_optimised_s, 0.0);
+  ASSERT_GT(r.before, 0.025);
+  EXPECT_LT(r.after, 0.01) << "before " << r.before;
+}
+
+TEST(BackendLoopDuringGba, ABigLoopCutsTheRunningGbaShortAndTheNextOneRemovesTheDrift) {
+  MissionRegistry registry;
+  const LoopDuringGba r = closeALoopWhileGbaRuns(registry, 0.4, 0.05);
+  ASSERT_EQ(r.stats.loops.size(), 1U);
+  EXPECT_GT(r.stats.loops[0].correction_m, BackendOptions{}.loop_cancels_gba_m);
+  EXPECT_TRUE(r.stats.loops[0].cancelled_gba);
+  EXPECT_EQ(r.stats.gba_cancelled, 1U);
+  ASSERT_GE(r.stats.gba.size(), 2U);
+  EXPECT_TRUE(r.stats.gba[0].summary.cancelled) << "cut short, not applied";
+  EXPECT_FALSE(r.stats.gba.back().summary.cancelled);
+  ASSERT_GT(r.before, 0.25);
+  EXPECT_LT(r.after, 0.02) << "before " << r.before;
+}
+
+TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
+  // 0.1 s between keyframes: many of agent 1's are redundant. Agent 2 flies the second half, in its own frame.
+  const test::ViScenario s = scenario(40, 0.1, 0.3);
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, -0.5)), Vector3d(-1.0, 2.0, 0.3));
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 29});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 20, .last = 39, .E = [&](int) { return T_2_truth; }});
+
+  GbaGate gate(map1->id());
+  BackendOptions options;
+  options.redundancy_every_keyframes = 1;
+  options.redundancy.checks_per_round = 1000;
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry_, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });
+  gate.waitUntilHeld();  // (a failure here leaves the gate open: the GBA runs on)
+  // While map 1's GBA runs: a keyframe arrives (a redundancy round), then agent 2's map matches.
+  EXPECT_TRUE(worker.onKeyframesAdded("m", {map1->id()}));
+  EXPECT_TRUE(eventually([&] { return worker.stats("m").redundancy_checked > 0; }));
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 25}, map2->id(), KeyframeId{1, 24}, map1->id());
+  record.match.T_qmap_cmap = T_2_truth;
+  EXPECT_TRUE(worker.onMatch("m", record));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").merges.empty(); }));
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  const std::uint64_t removed = stats.redundant_removed;
+  EXPECT_GT(removed, 5U);
+  EXPECT_EQ(stats.gba_cancelled, 1U) << "the merge cut the running GBA short";
+  ASSERT_GE(stats.gba.size(), 2U);
+  EXPECT_TRUE(stats.gba.front().summary.cancelled);
+  EXPECT_FALSE(stats.gba.back().summary.cancelled);
+  EXPECT_GE(stats.merges[0].match_to_optimised_s, 0.0);
+  EXPECT_EQ(mission_->stack().find(map2->id()), nullptr);
+  const auto merged = map1->read();
+  EXPECT_TRUE(merged->checkConsistency().ok());
+  EXPECT_EQ(merged->keyframes().size(), 30U - removed + 20U) << "the removal held through the merge and the GBAs";
+  EXPECT_EQ(stats.gba.back().summary.keyframes, static_cast<int>(merged->keyframes().size()));
+  EXPECT_LT(maxPositionError(*merged, s, 1), 0.02);
+  EXPECT_LT(maxPositionError(*merged, s, 2), 0.02);
+  EXPECT_EQ(mission_->findAgent(2)->read()->agent_maps.at(0).map, map1->id());
 }
 
 }  // namespace
