@@ -502,6 +502,14 @@ void BackendWorker::gba(const GbaRequest& request) {
   if (!mission) return;
   const std::shared_ptr<ServerMap> map = mission->stack().find(request.map);
   if (!map) return;  // merged into another meanwhile: that one has its own request
+  // From the snapshot to the applied result, ingest times its batches as "during GBA".
+  struct RunningGba {
+    Mission& mission;
+    explicit RunningGba(Mission& m) : mission(m) { mission.gbaStarted(); }
+    ~RunningGba() { mission.gbaEnded(); }
+    RunningGba(const RunningGba&) = delete;
+    RunningGba& operator=(const RunningGba&) = delete;
+  } running(*mission);
   const AgentSensorsMap sensors = sensorsOf(*mission);
   GbaRecord record;
   record.map = request.map;

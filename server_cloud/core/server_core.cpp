@@ -218,11 +218,14 @@ void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& o
       a.set_duplicate_objects(record->duplicate_objects);
       a.set_refused_messages(record->refused_messages);
       a.set_last_error(record->last_error);
-      v1::Latency& ingest = *a.mutable_ingest_ms();
-      ingest.set_samples(record->ingest_ms.size());
-      ingest.set_p50(record->ingest_ms.percentile(0.5));
-      ingest.set_p99(record->ingest_ms.percentile(0.99));
-      ingest.set_max(record->ingest_ms.percentile(1.0));
+      const auto latency = [](const LatencySamples& samples, v1::Latency& into) {
+        into.set_samples(samples.size());
+        into.set_p50(samples.percentile(0.5));
+        into.set_p99(samples.percentile(0.99));
+        into.set_max(samples.percentile(1.0));
+      };
+      latency(record->ingest_ms, *a.mutable_ingest_ms());
+      latency(record->ingest_during_gba_ms, *a.mutable_ingest_during_gba_ms());
       for (const auto& [kind, count] : record->up) {
         v1::TrafficCounter& c = (*a.mutable_up())[kind];
         c.set_messages(count.messages);

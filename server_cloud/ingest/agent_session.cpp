@@ -204,6 +204,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   const v1::MapBatch& batch = message.batch();
   const std::uint64_t sequence = batch.sequence();
   const auto arrived = Clock::now();  // before the lock: waits for the back-end count
+  const bool gba_at_arrival = mission_->gbaRunning();
   auto record = record_->write();
   if (record->connections != stream_) {
     return Error{ErrorCode::kAlreadyExists, "a newer stream of this agent took over"};
@@ -233,7 +234,9 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   record->stored_sequence = sequence;
   record->duplicate_objects += static_cast<std::uint64_t>(report->duplicate_objects);
   record->imu_links_missing += static_cast<std::uint64_t>(report->imu_links_missing);
-  record->ingest_ms.add(std::chrono::duration<double, std::milli>(Clock::now() - arrived).count());
+  const double ingest_ms = std::chrono::duration<double, std::milli>(Clock::now() - arrived).count();
+  record->ingest_ms.add(ingest_ms);
+  if (gba_at_arrival || mission_->gbaRunning()) record->ingest_during_gba_ms.add(ingest_ms);
 
   // Traffic by kind: the serialized size of each part.
   for (const wire::BatchPart& part : wire::batchParts(batch)) record->up[part.kind].add(part.count, part.bytes);

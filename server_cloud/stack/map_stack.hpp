@@ -10,6 +10,7 @@
 #pragma once
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -149,7 +150,8 @@ struct AgentRecord {
   std::uint64_t imu_links_missing = 0;  // keyframes whose IMU predecessor the server does not hold
   std::uint64_t refused_messages = 0;
   std::string last_error;
-  LatencySamples ingest_ms;  // arrival to stored, per batch
+  LatencySamples ingest_ms;             // arrival to stored, per batch
+  LatencySamples ingest_during_gba_ms;  // those of them with a GBA of the mission running at either end
 };
 
 using SharedAgentRecord = std::shared_ptr<Synchronized<AgentRecord>>;
@@ -163,6 +165,12 @@ class Mission {
 
   // The agent's record, made on first use.
   SharedAgentRecord agent(AgentId id);
+
+  // Global BA runs of this mission's maps under way (the back-end counts them; ingest reads it to time batches
+  // that met one).
+  void gbaStarted() { gba_running_.fetch_add(1, std::memory_order_relaxed); }
+  void gbaEnded() { gba_running_.fetch_sub(1, std::memory_order_relaxed); }
+  [[nodiscard]] bool gbaRunning() const { return gba_running_.load(std::memory_order_relaxed) > 0; }
   // The agent's record, or nullptr when the agent never connected.
   [[nodiscard]] SharedAgentRecord findAgent(AgentId id) const;
   [[nodiscard]] std::vector<SharedAgentRecord> agents() const;  // by id
@@ -171,6 +179,7 @@ class Mission {
   std::string name_;
   MapStack stack_;
   Synchronized<std::map<AgentId, SharedAgentRecord>> agents_;
+  std::atomic<int> gba_running_{0};
 };
 
 // Every mission this server holds, by name.

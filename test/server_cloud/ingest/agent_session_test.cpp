@@ -222,6 +222,22 @@ TEST_F(AgentSessionTest, BatchesInOrderAreStoredAndAcknowledgedByTheNextDownlink
   EXPECT_EQ(keyframesInMaps(), 4U);
 }
 
+TEST_F(AgentSessionTest, EveryStoredBatchIsTimedAndThoseThatMetAGlobalBaAlsoApart) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  core_.missions().find(kMission)->gbaStarted();  // as the back-end does from its snapshot to its result
+  sendBatch(*sut, 2, 2, 2);
+  sendBatch(*sut, 3, 4, 2);
+  core_.missions().find(kMission)->gbaEnded();
+  sendBatch(*sut, 4, 6, 2);
+
+  const auto r = record()->read();
+  EXPECT_EQ(r->ingest_ms.size(), 4U);
+  EXPECT_EQ(r->ingest_during_gba_ms.size(), 2U);
+  EXPECT_GT(r->ingest_during_gba_ms.percentile(1.0), 0.0);
+  EXPECT_FALSE(core_.missions().find(kMission)->gbaRunning());
+}
+
 TEST_F(AgentSessionTest, DownlinkIsSentAtMostAtTheDownlinkRate) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 1);
