@@ -81,9 +81,12 @@ if [ "$preset" = euroc-mh ] && [ ! -d "$data/euroc-groundtruth" ]; then
 fi
 export CVISLAM_DATA_DIR="$data"
 
-# 1. The simulated mission, rendered once per preset, seed and duration (stereo: mono runs use cam0 only).
+# 1. The simulated mission, rendered once per preset, seed, duration and plan (stereo: mono runs use cam0 only).
+#    The plan's fingerprint (hall, obstacles, paths) is in the folder's name, so a changed preset renders anew.
 cache_root=${CVISLAM_SIM_CACHE:-"$repo/out/sim-cache"}
-cache="$cache_root/$preset-seed$seed-${duration}s"
+fingerprint=$("$bin/cvislam_sim" --preset "$preset" --seed "$seed" --duration "$duration" --fingerprint) ||
+  { echo "run_mission: cvislam_sim could not plan preset $preset (see above)" >&2; exit 1; }
+cache="$cache_root/$preset-seed$seed-${duration}s-$fingerprint"
 if [ ! -f "$cache/.complete" ]; then
   echo "== render $preset (seed $seed, $duration s per agent) into $cache (once; later runs reuse it)"
   rm -rf "$cache" "$cache.partial"

@@ -48,6 +48,10 @@ struct RingMotion {
   double tilt_amp_rad = 0.06;  // roll and pitch oscillation
   double wiggle_hz = 0.12;     // base frequency of the oscillations
   double init_s = 4.0;         // motion-rich start (IMU initialisation) before leaving along the ring
+  // Laps only: at this time [s] (negative: never) the vehicle slows down, turns round through a sideways look
+  // within `turn_s`, and flies on the other way, so that it sees the ring's places from both directions.
+  double turn_at_s = -1.0;
+  double turn_s = 5.0;
 };
 
 double smoothstep(double x) {
@@ -65,11 +69,17 @@ std::vector<PathSample> sampleRingPath(const RingMotion& m, double duration_s, s
   std::vector<PathSample> out;
   out.reserve(n);
   double progress_s = 0.0;  // time spent moving along the ring, ramped in after the start manoeuvre
+  double turned_progress_s = 0.0;  // the same, signed by the direction of travel (a vehicle that turns round)
   const double perimeter = 2.0 * kPi * std::sqrt(0.5 * (kRingA * kRingA + kRingB * kRingB));
   const double angular_rate = 2.0 * kPi * m.speed_mps / perimeter;
   for (std::size_t k = 0; k < n; ++k) {
     const double t = static_cast<double>(k) / kRateHz;
-    if (k > 0) progress_s += smoothstep((t - 1.0) / (m.init_s - 1.0)) / kRateHz;
+    const double turn = m.turn_at_s < 0.0 ? 0.0 : smoothstep((t - m.turn_at_s) / m.turn_s);  // 0 before, 1 after
+    if (k > 0) {
+      const double step = smoothstep((t - 1.0) / (m.init_s - 1.0)) / kRateHz;
+      progress_s += step;
+      turned_progress_s += std::cos(kPi * turn) * step;  // slows to rest halfway through the turn, then back
+    }
     double theta = 0.0;
     double heading_offset = 0.0;
     if (m.sweep) {
@@ -80,6 +90,9 @@ std::vector<PathSample> sampleRingPath(const RingMotion& m, double duration_s, s
       // Moving along direction * (+theta) while cos(s) > 0: face that way, and turn through a sideways look
       // to face back when the sweep reverses.
       heading_offset = (m.direction > 0.0 ? 0.0 : kPi) + 0.5 * kPi * (1.0 - std::cos(s)) * m.direction;
+    } else if (m.turn_at_s >= 0.0) {
+      theta = m.start_angle + m.direction * angular_rate * turned_progress_s;
+      heading_offset = (m.direction > 0.0 ? 0.0 : kPi) + kPi * turn;
     } else {
       theta = m.start_angle + m.direction * angular_rate * progress_s;
       heading_offset = m.direction > 0.0 ? 0.0 : kPi;
@@ -132,6 +145,9 @@ std::vector<RingMotion> presetMotions(const std::string& preset, std::uint64_t s
       motions.push_back(m);
     }
   } else if (preset == "hall4" || preset == "hall8") {
+    // Half the agents start counter-clockwise, half clockwise; each turns round once (agent i after
+    // 24 + 2 i s), so that every place is seen from both directions by several agents. Cameras look ahead:
+    // without the turn the two groups would never see a place from a similar direction, and could not merge.
     const int n = preset == "hall4" ? 4 : 8;
     for (int i = 0; i < n; ++i) {
       RingMotion m;
@@ -140,6 +156,7 @@ std::vector<RingMotion> presetMotions(const std::string& preset, std::uint64_t s
       m.lane_offset_m = (i % 4 < 2 ? 0.4 : -0.4);
       m.z_mean_m = 1.3 + 0.25 * (i % 4);
       m.speed_mps = rng.uniform(0.8, 1.2);
+      m.turn_at_s = 24.0 + 2.0 * i;
       motions.push_back(m);
     }
   } else if (preset == "aggressive") {

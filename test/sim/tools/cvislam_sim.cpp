@@ -3,9 +3,13 @@
 //   cvislam_sim --preset loop --out DIR [--seed S] [--duration SECONDS] [--stereo] [--no-imu-noise]
 //               [--pixel-noise SIGMA] [--exposure AMPLITUDE] [--overwrite]
 //   cvislam_sim --replay GT_FILE[,GT_FILE...] --out DIR ...
+//   cvislam_sim --preset NAME [--seed S] [--duration SECONDS] --fingerprint   (prints the plan's hash; no files)
 //
 // Exit status: 0 written, 1 the mission could not be planned or written (the message says why), 2 bad command line.
 #include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
 #include <filesystem>
 #include <iostream>
 #include <string>
@@ -28,6 +32,38 @@ std::string joined(const std::vector<std::string>& names) {
   return out;
 }
 
+// FNV-1a over the mission plan: the hall, every obstacle, and every agent's pose at 10 Hz (micrometres). A
+// cache of rendered missions keys on it, so that a changed preset is rendered again rather than reused.
+std::string planFingerprint(const cvislam::sim::MissionPlan& plan) {
+  std::uint64_t h = 0xcbf29ce484222325ULL;
+  const auto mix = [&h](double value) {
+    const auto v = static_cast<std::int64_t>(std::llround(value * 1e6));
+    for (int b = 0; b < 8; ++b) {
+      h ^= static_cast<std::uint64_t>(v >> (8 * b)) & 0xFFU;
+      h *= 0x100000001b3ULL;
+    }
+  };
+  const auto box = [&mix](const cvislam::sim::Box& b) {
+    for (int i = 0; i < 3; ++i) {
+      mix(b.min_w[i]);
+      mix(b.max_w[i]);
+    }
+  };
+  box(plan.layout.hall);
+  for (const cvislam::sim::Box& b : plan.layout.obstacles) box(b);
+  for (const cvislam::sim::AgentPlan& agent : plan.agents) {
+    for (double t = 0.0; t <= plan.duration_s; t += 0.1) {
+      const auto T_w_b = agent.trajectory.state(t).T_w_b;
+      for (int i = 0; i < 3; ++i) mix(T_w_b.translation()[i]);
+      const Eigen::Vector3d r = T_w_b.so3().log();
+      for (int i = 0; i < 3; ++i) mix(r[i]);
+    }
+  }
+  char text[17];
+  std::snprintf(text, sizeof(text), "%016llx", static_cast<unsigned long long>(h));
+  return text;
+}
+
 }  // namespace
 
 static int run(int argc, char** argv) {
@@ -36,7 +72,7 @@ static int run(int argc, char** argv) {
       "(OUT/agent0, OUT/agent1, ...): cam0 (and cam1) PNG at 20 Hz, imu0 at 200 Hz, and "
       "state_groundtruth_estimate0 with the true biases. Same preset and seed give byte-identical files.\n"
       "Presets: loop (1 agent, a loop back to its start), overlap2 (2 agents whose paths share about a third), "
-      "hall4 / hall8 (4 / 8 agents covering the hall), aggressive (1 agent, fast motion), euroc-mh (5 agents "
+      "hall4 / hall8 (4 / 8 agents flying laps of the hall, half each way, each turning round once), aggressive (1 agent, fast motion), euroc-mh (5 agents "
       "replaying EuRoC MH_01..MH_05 from $CVISLAM_DATA_DIR/euroc-groundtruth).",
       "cvislam_sim"};
   std::string preset;
@@ -59,7 +95,11 @@ static int run(int argc, char** argv) {
                                     "(t x y z qx qy qz qw), comma-separated, one agent each")
                          ->delimiter(',');
   preset_opt->excludes(replay_opt);
-  app.add_option("--out", out_dir, "Output folder; agents are written to OUT/agentN")->required();
+  app.add_option("--out", out_dir, "Output folder; agents are written to OUT/agentN (required unless --fingerprint)");
+  bool fingerprint = false;
+  app.add_flag("--fingerprint", fingerprint,
+               "Print a hash of the mission's plan (hall, obstacles, paths) and write nothing; caches of rendered "
+               "missions key on it");
   app.add_option("--seed", seed, "Seed of the world textures, obstacle layout, paths and noise (default 0)");
   app.add_option("--duration", duration_s, "Seconds per agent (default 60)")->check(CLI::Range(0.1, 3600.0));
   app.add_flag("--stereo", stereo, "Also render cam1 at the EuRoC stereo baseline");
@@ -87,6 +127,10 @@ static int run(int argc, char** argv) {
   }
   if (preset.empty() && replay.empty()) {
     std::cerr << "cvislam_sim: give --preset NAME or --replay GT_FILE[,...] (see --help)\n";
+    return 2;
+  }
+  if (out_dir.empty() && !fingerprint) {
+    std::cerr << "cvislam_sim: give --out DIR (the folder the agents' datasets are written to; see --help)\n";
     return 2;
   }
 
@@ -134,6 +178,10 @@ static int run(int argc, char** argv) {
   if (!plan) {
     std::cerr << "cvislam_sim: " << plan.error().toString() << '\n';
     return 1;
+  }
+  if (fingerprint) {
+    std::cout << planFingerprint(*plan) << '\n';
+    return 0;
   }
   if (!quiet) {
     std::cout << "cvislam_sim: " << plan->preset << ", seed " << seed << ", " << plan->agents.size() << " agent(s), "
