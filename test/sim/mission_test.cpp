@@ -86,6 +86,23 @@ TEST(CvislamSim, SamePresetAndSeedGiveByteIdenticalFilesAndAnotherSeedDoesNot) {
   EXPECT_NE(a.at(image), c.at(image));
 }
 
+TEST(CvislamSim, TheFingerprintFollowsThePlanAndWritesNothing) {
+  const auto fingerprint = [](const std::string& arguments) {
+    const CommandResult r = runSim(arguments + " --fingerprint");
+    EXPECT_EQ(r.exit_code, 0) << r.output;
+    EXPECT_EQ(r.output.size(), 17U) << "16 hex digits and a newline: " << r.output;
+    return r.output;
+  };
+  const std::string hall = fingerprint("--preset hall4 --seed 1 --duration 30");
+  EXPECT_EQ(fingerprint("--preset hall4 --seed 1 --duration 30"), hall);
+  EXPECT_NE(fingerprint("--preset hall4 --seed 2 --duration 30"), hall) << "another seed, another layout";
+  EXPECT_NE(fingerprint("--preset hall4 --seed 1 --duration 20"), hall);
+  EXPECT_NE(fingerprint("--preset hall8 --seed 1 --duration 30"), hall);
+  const CommandResult no_out = runSim("--preset loop --duration 1");
+  EXPECT_EQ(no_out.exit_code, 2);
+  EXPECT_NE(no_out.output.find("--out"), std::string::npos) << no_out.output;
+}
+
 TEST(CvislamSim, RenderingAgentsOnSeveralThreadsWritesTheSameFilesAsOne) {
   const test::TempDir dir;
   const std::string common = " --preset overlap2 --duration 0.3 --seed 3 --pixel-noise 2 -q --out ";
@@ -273,6 +290,27 @@ TEST(MissionPlans, EveryPresetFliesLikeAUavInsideTheHallAndClearOfObstacles) {
     EXPECT_EQ(plan->agents.size(), preset == "hall8" ? 8U : preset == "hall4" ? 4U : preset == "overlap2" ? 2U : 1U);
     expectUavLikePaths(*plan, preset == "aggressive" ? 2.8 : 2.0);
     EXPECT_GT(plan->layout.obstacles.size(), 30U) << preset;
+  }
+}
+
+TEST(MissionPlans, HallAgentsFlyBothWaysRoundTheRingSoThatEveryPlaceIsSeenInBothDirections) {
+  MissionPlanOptions options;
+  options.preset = "hall8";
+  options.seed = 1;
+  auto plan = planMission(options);
+  ASSERT_TRUE(plan.ok()) << plan.error().toString();
+  // The sense of travel round the hall's centre (+1 counter-clockwise) from the angular momentum about z.
+  const auto sense = [](const AgentPlan& agent, double t) {
+    const KinematicState s = agent.trajectory.state(t);
+    const Eigen::Vector3d p = s.T_w_b.translation();
+    return p.x() * s.v_w.y() - p.y() * s.v_w.x() > 0.0 ? 1 : -1;
+  };
+  for (std::size_t i = 0; i < plan->agents.size(); ++i) {
+    const AgentPlan& agent = plan->agents[i];
+    const double turn_s = 24.0 + 2.0 * static_cast<double>(i);
+    const int before = sense(agent, turn_s - 4.0), after = sense(agent, turn_s + 9.0);
+    EXPECT_EQ(before, i % 2 == 0 ? 1 : -1) << agent.name;
+    EXPECT_EQ(after, -before) << agent.name << " turns round after " << turn_s << " s";
   }
 }
 
