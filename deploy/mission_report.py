@@ -238,7 +238,7 @@ def main():
         row = {"agent": a, "frames": onboard["poses"] if onboard else 0,
                "onboard_ate_se3_m": ate(onboard), "onboard_ate_sim3_m": ate(onboard, "sim3"),
                "onboard_scale_error_percent": onboard["scale_error_percent"] if onboard else None,
-               "server_keyframes": int(s.get("keyframes", 0)),
+               "server_keyframes": int(s.get("server_keyframes", s.get("keyframes", 0))),
                "server_ate_se3_m": ate(server), "server_ate_sim3_m": ate(server, "sim3"),
                "server_scale_error_percent": server.get("scale_error_percent") if server else None,
                "server_maps": int(s.get("maps", 0))}

@@ -211,6 +211,8 @@ void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& o
       a.set_finished(record->finished);
       a.set_connections(record->connections);
       a.set_keyframes(record->keyframes.size());
+      a.set_server_keyframes(record->keyframes.size() -
+                             std::min(record->keyframes.size(), record->server_removed_keyframes.size()));
       a.set_points(record->points.size());
       a.set_maps(static_cast<std::uint32_t>(record->agent_maps.size()));
       a.set_stored_sequence(record->stored_sequence);

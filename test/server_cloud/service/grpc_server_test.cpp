@@ -254,6 +254,7 @@ TEST_F(GrpcServerTest, BatchesAreStoredAndAcknowledged) {
   ASSERT_TRUE(stats.has_value());
   EXPECT_EQ(stats->stored_sequence(), 2U);
   EXPECT_EQ(stats->keyframes(), 5U);
+  EXPECT_EQ(stats->server_keyframes(), 5U);  // no back-end here: nothing removed as redundant
   EXPECT_EQ(stats->ingest_ms().samples(), 2U);  // one ingest time per stored batch
   EXPECT_GT(stats->ingest_ms().max(), 0.0);
   EXPECT_LE(stats->ingest_ms().p50(), stats->ingest_ms().max());
