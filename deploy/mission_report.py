@@ -137,7 +137,10 @@ def report_recognition(out, mission, map_to_truth, summary):
         for m in rec.get("matches", []):
             if m["kind"] != "map_match":
                 continue
-            qa, ca = (name, m["query"][0]), (name, m["candidate"][0])
+            # The maps' frames are those of the agents they were opened for (a merged map keeps its frame);
+            # outputs older than the origins fall back to the matched keyframes' agents.
+            qa = (name, m["query_map_origin"][0] if "query_map_origin" in m else m["query"][0])
+            ca = (name, m["candidate_map_origin"][0] if "candidate_map_origin" in m else m["candidate"][0])
             if qa not in map_to_truth or ca not in map_to_truth:
                 continue
             to_pose = lambda t: (tuple(t["quaternion_wxyz"]), tuple(t["translation"]))  # noqa: E731

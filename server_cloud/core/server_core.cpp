@@ -305,8 +305,10 @@ Status ServerCore::correctKeyframe(const std::string& mission_name, const Keyfra
 
 namespace {
 
+// `stack`, when given, names each match's map frames: the agent map each map was opened for (a scorer needs it
+// once merges have made a map hold several agents).
 Status writeRecognition(const std::filesystem::path& path, const recognition::RecognitionCounters& c,
-                        const std::vector<recognition::MatchRecord>& matches) {
+                        const std::vector<recognition::MatchRecord>& matches, const MapStack* stack) {
   nlohmann::json j;
   j["keyframes"] = c.keyframes;
   j["queries"] = c.queries;
@@ -328,6 +330,11 @@ Status writeRecognition(const std::filesystem::path& path, const recognition::Re
     e["candidate"] = {m.candidate.agent, m.candidate.counter};
     e["query_map"] = m.query_map;
     e["candidate_map"] = m.candidate_map;
+    if (stack != nullptr) {
+      for (const auto& [key, id] : {std::pair{"query_map_origin", m.query_map}, {"candidate_map_origin", m.candidate_map}}) {
+        if (const std::optional<MapOrigin> o = stack->origin(id)) e[key] = {o->agent, o->agent_map};
+      }
+    }
     e["T_qmap_cmap"] = {t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()};  // x y z qx qy qz qw
     const Eigen::Vector3d& p_cq = m.T_cmap_cq.translation();
     e["p_cmap_query"] = {p_cq.x(), p_cq.y(), p_cq.z()};  // the query camera in the candidate map
@@ -482,8 +489,9 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
     for (const std::string& name : recognition_->missions()) {
       const auto mission_dir = dir / name;
       std::filesystem::create_directories(mission_dir, ec);
+      const std::shared_ptr<Mission> mission = missions_.find(name);
       if (Status s = writeRecognition(mission_dir / "recognition.json", recognition_->counters(name),
-                                      recognition_->matches(name));
+                                      recognition_->matches(name), mission ? &mission->stack() : nullptr);
           !s.ok()) {
         return s;
       }

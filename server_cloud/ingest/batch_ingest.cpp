@@ -415,7 +415,7 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
 
   // Everything is checked: from here on nothing fails. New agent maps get new server maps.
   for (std::uint32_t agent_map : plan.new_agent_maps) {
-    agent.agent_maps[agent_map] = AgentRecord::AgentMap{stack.createMap()->id(), SE3d()};
+    agent.agent_maps[agent_map] = AgentRecord::AgentMap{stack.createMap(MapOrigin{agent.id, agent_map})->id(), SE3d()};
     ++report.maps_opened;
   }
   const auto resolve = [&](const MapKey& key) -> MapId {

@@ -2,11 +2,19 @@
 
 namespace cvislam::server {
 
-std::shared_ptr<ServerMap> MapStack::createMap() {
+std::shared_ptr<ServerMap> MapStack::createMap(MapOrigin origin) {
   auto maps = maps_.write();
   auto map = std::make_shared<ServerMap>(maps->next_id++);
   maps->by_id.emplace(map->id(), map);
+  maps->origins.emplace(map->id(), origin);
   return map;
+}
+
+std::optional<MapOrigin> MapStack::origin(MapId id) const {
+  auto maps = maps_.read();
+  const auto it = maps->origins.find(id);
+  if (it == maps->origins.end()) return std::nullopt;
+  return it->second;
 }
 
 std::shared_ptr<ServerMap> MapStack::find(MapId id) const {

@@ -43,10 +43,19 @@ class ServerMap {
   Synchronized<MapContent> content_;
 };
 
+// Whose world frame a server map's frame is: the agent map it was opened for. Merges move other maps into it and
+// leave its frame as it is, so this never changes.
+struct MapOrigin {
+  AgentId agent = 0;
+  std::uint32_t agent_map = 0;
+};
+
 class MapStack {
  public:
-  // A new, empty map with the next id of this stack (ids are per mission, from 0).
-  std::shared_ptr<ServerMap> createMap();
+  // A new, empty map with the next id of this stack (ids are per mission, from 0), opened for `origin`.
+  std::shared_ptr<ServerMap> createMap(MapOrigin origin = {});
+  // The origin of any map this stack ever made, merged away or not; nullopt for an id it never gave.
+  [[nodiscard]] std::optional<MapOrigin> origin(MapId id) const;
   [[nodiscard]] std::shared_ptr<ServerMap> find(MapId id) const;
   // Drops a map from the stack (map fusion moved its content into another); holders of it keep it alive.
   void remove(MapId id);
@@ -56,6 +65,7 @@ class MapStack {
   struct Maps {
     MapId next_id = 0;
     std::map<MapId, std::shared_ptr<ServerMap>> by_id;
+    std::map<MapId, MapOrigin> origins;
   };
   Synchronized<Maps> maps_;
 };

@@ -238,6 +238,20 @@ TEST_F(AgentSessionTest, EveryStoredBatchIsTimedAndThoseThatMetAGlobalBaAlsoApar
   EXPECT_FALSE(core_.missions().find(kMission)->gbaRunning());
 }
 
+TEST_F(AgentSessionTest, TheServerMapOpenedForAnAgentMapRemembersItsOriginAfterItIsGone) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  auto mission = core_.missions().find(kMission);
+  const MapId map = record()->read()->agent_maps.at(0).map;
+  mission->stack().remove(map);  // as a merge does
+
+  const std::optional<MapOrigin> origin = mission->stack().origin(map);
+  ASSERT_TRUE(origin.has_value());
+  EXPECT_EQ(origin->agent, kAgent);
+  EXPECT_EQ(origin->agent_map, 0U);
+  EXPECT_FALSE(mission->stack().origin(map + 100).has_value());
+}
+
 TEST_F(AgentSessionTest, DownlinkIsSentAtMostAtTheDownlinkRate) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 1);
