@@ -231,11 +231,20 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
   for (std::size_t i = 1; i < n; ++i) {
     if (snapshot.keyframes[i].t_ns < snapshot.keyframes[oldest].t_ns) oldest = i;
   }
-  Eigen::Matrix<double, 6, 1> gauge_sqrt_information;
-  gauge_sqrt_information << Eigen::Vector3d::Constant(1.0 / options.gauge_sigma_m),
-      Eigen::Vector3d::Constant(1.0 / options.gauge_sigma_rad);
-  problem.AddResidualBlock(new factors::PosePriorFactor(snapshot.keyframes[oldest].T_w_s,
-                                                        gauge_sqrt_information.asDiagonal().toDenseMatrix()),
+  Eigen::Matrix<double, 6, 6> gauge_sqrt_information = Eigen::Matrix<double, 6, 6>::Zero();
+  gauge_sqrt_information.topLeftCorner<3, 3>() = Eigen::Matrix3d::Identity() / options.gauge_sigma_m;
+  const bool all_imu = std::all_of(snapshot.agents.begin(), snapshot.agents.end(),
+                                   [](const auto& entry) { return entry.second.uses_imu; });
+  if (options.gauge_position_yaw_only && all_imu) {
+    // The rotation residual is Log(R0^T R), in the keyframe's frame; its yaw about the world's z is
+    // z^T R0 times it. Roll and pitch rows stay zero.
+    gauge_sqrt_information.block<1, 3>(3, 3) =
+        (snapshot.keyframes[oldest].T_w_s.so3().matrix().transpose() * Eigen::Vector3d::UnitZ()).transpose() /
+        options.gauge_sigma_rad;
+  } else {
+    gauge_sqrt_information.bottomRightCorner<3, 3>() = Eigen::Matrix3d::Identity() / options.gauge_sigma_rad;
+  }
+  problem.AddResidualBlock(new factors::PosePriorFactor(snapshot.keyframes[oldest].T_w_s, gauge_sqrt_information),
                            nullptr, poses[oldest].data());
 
   CancelCallback callback(cancel);

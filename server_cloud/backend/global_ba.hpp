@@ -43,6 +43,9 @@ struct GlobalBaOptions {
   double max_solver_time_s = 120.0;  // per step
   double gauge_sigma_m = 1e-4;       // the prior on the oldest keyframe's pose
   double gauge_sigma_rad = 1e-5;
+  // With IMU on every agent, hold only the oldest keyframe's position and yaw (the visual-inertial gauge) and
+  // leave its roll and pitch to gravity. Off: all six (the paper's prior on one keyframe's pose).
+  bool gauge_position_yaw_only = false;
 
   [[nodiscard]] Status validate() const;
 };

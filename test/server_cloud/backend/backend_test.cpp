@@ -222,6 +222,44 @@ TEST(GlobalBa, ConvergesToTheTruthFromAPerturbedStartWithImuFactorsOnlyInsideEac
   EXPECT_LT(worst_pose, 0.001);
 }
 
+// A map whose gravity is off by 1 deg of roll (every estimate turned about the oldest keyframe): vision cannot
+// see it, the IMU can. A gauge on the whole oldest pose keeps the tilt; the position-and-yaw gauge lets GBA
+// take it out and leaves the oldest keyframe's position and heading where they were.
+TEST(GlobalBa, ThePositionAndYawGaugeLetsGravityLevelATiltedMap) {
+  const test::ViScenario s = scenario(16, 0.5, 0.5);
+  const Vector3d p0 = s.keyframe_states[0].T_w_s.translation();
+  const SO3d tilt = SO3d::exp(Vector3d(1.0 * M_PI / 180.0, 0.0, 0.0));
+  const SE3d E(tilt, p0 - (tilt * p0));
+  const auto tiltErrorDeg = [&](const GbaSnapshot& snapshot) {  // the oldest keyframe's gravity direction
+    const Vector3d up_est = snapshot.keyframes[0].T_w_s.so3().inverse() * Vector3d::UnitZ();
+    const Vector3d up_true = s.keyframe_states[0].T_w_s.so3().inverse() * Vector3d::UnitZ();
+    return std::acos(std::clamp(up_est.dot(up_true), -1.0, 1.0)) * 180.0 / M_PI;
+  };
+  for (const bool yaw_only : {false, true}) {
+    MapContent map(0);
+    buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 15, .E = [&](int) { return E; }}, nullptr);
+    Result<GbaSnapshot> snapshot = makeGbaSnapshot(map, {{1, sensorsOf(s)}});
+    ASSERT_TRUE(snapshot.ok());
+    ASSERT_EQ(snapshot->keyframes[0].id, (KeyframeId{1, 0}));
+    const SE3d oldest_before = snapshot->keyframes[0].T_w_s;
+    ASSERT_NEAR(tiltErrorDeg(*snapshot), 1.0, 1e-6);
+    GlobalBaOptions options;
+    options.full_iterations = 30;
+    options.gauge_position_yaw_only = yaw_only;
+    ASSERT_TRUE(runGlobalBa(*snapshot, options).ok());
+    const SE3d& oldest_after = snapshot->keyframes[0].T_w_s;
+    EXPECT_LT((oldest_after.translation() - oldest_before.translation()).norm(), 1e-3) << "yaw only " << yaw_only;
+    // The change of orientation in the world frame; its z component is the change of heading.
+    const double yaw_change = (oldest_after.so3() * oldest_before.so3().inverse()).log().z();
+    EXPECT_LT(std::abs(yaw_change), 1e-3) << "yaw only " << yaw_only;
+    if (yaw_only) {
+      EXPECT_LT(tiltErrorDeg(*snapshot), 0.1);
+    } else {
+      EXPECT_GT(tiltErrorDeg(*snapshot), 0.9) << "the whole pose is held";
+    }
+  }
+}
+
 TEST(GlobalBa, ACancelledSolveSaysSoAndChangesNothing) {
   const test::ViScenario s = scenario(8, 0.5, 0.5);
   MapContent map(0);
