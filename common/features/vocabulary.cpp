@@ -48,6 +48,8 @@
 #include <thread>
 #include <utility>
 
+#include "common/core/hash.hpp"
+
 namespace cvislam::features {
 
 namespace {
@@ -281,15 +283,6 @@ std::uint64_t getU64(const std::string& in, std::size_t at) {
   std::uint64_t v = 0;
   for (std::size_t i = 0; i < 8; ++i) v |= std::uint64_t{static_cast<std::uint8_t>(in[at + i])} << (8 * i);
   return v;
-}
-
-std::uint64_t fnv1a64(std::string_view bytes) {
-  std::uint64_t hash = 0xCBF29CE484222325ULL;
-  for (char c : bytes) {
-    hash ^= static_cast<std::uint8_t>(c);
-    hash *= 0x100000001B3ULL;
-  }
-  return hash;
 }
 
 }  // namespace

@@ -212,8 +212,7 @@ void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& o
       a.set_finished(record->finished);
       a.set_connections(record->connections);
       a.set_keyframes(record->keyframes.size());
-      a.set_server_keyframes(record->keyframes.size() -
-                             std::min(record->keyframes.size(), record->server_removed_keyframes.size()));
+      a.set_server_keyframes(record->serverKeyframes());
       a.set_points(record->points.size());
       a.set_maps(static_cast<std::uint32_t>(record->agent_maps.size()));
       a.set_stored_sequence(record->stored_sequence);
@@ -265,7 +264,7 @@ void ServerCore::sampleTimeline() {
       s.agent = record->id;
       s.connected = record->connected;
       s.keyframes = record->keyframes.size();
-      s.server_keyframes = s.keyframes - std::min<std::uint64_t>(s.keyframes, record->server_removed_keyframes.size());
+      s.server_keyframes = record->serverKeyframes();
       s.points = record->points.size();
       if (auto it = record->up.find("message"); it != record->up.end()) s.up_bytes = it->second.bytes;
       if (auto it = record->down.find("message"); it != record->down.end()) s.down_bytes = it->second.bytes;

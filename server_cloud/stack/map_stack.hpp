@@ -152,6 +152,10 @@ struct AgentRecord {
   // Keyframes the server removed as redundant. They stay in `keyframes`, so that what the agent still sends
   // about them (an update, a removal) is accepted and dropped rather than refused.
   std::unordered_set<std::uint32_t> server_removed_keyframes;
+  // What the server's maps hold of this agent: its keyframes less those removed as redundant.
+  [[nodiscard]] std::size_t serverKeyframes() const {
+    return keyframes.size() - std::min(keyframes.size(), server_removed_keyframes.size());
+  }
   // Statistics.
   std::map<std::string, TrafficCount> up;
   std::map<std::string, TrafficCount> down;

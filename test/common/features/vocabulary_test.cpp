@@ -16,6 +16,7 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include "common/core/hash.hpp"
 #include "common/dataset/euroc.hpp"
 #include "test/support/temp_dir.hpp"
 #include "test/support/test_data.hpp"
@@ -73,11 +74,7 @@ void writeBytes(const std::filesystem::path& path, const std::string& bytes) {
 
 // The file's checksum (FNV-1a 64 of everything before it), recomputed after a test edits the file on purpose.
 void resealChecksum(std::string& bytes) {
-  std::uint64_t hash = 0xCBF29CE484222325ULL;
-  for (std::size_t i = 0; i + 8 < bytes.size(); ++i) {
-    hash ^= static_cast<std::uint8_t>(bytes[i]);
-    hash *= 0x100000001B3ULL;
-  }
+  const std::uint64_t hash = fnv1a64(std::string_view(bytes).substr(0, bytes.size() - 8));
   for (std::size_t i = 0; i < 8; ++i) bytes[bytes.size() - 8 + i] = static_cast<char>((hash >> (8 * i)) & 0xFFU);
 }
 

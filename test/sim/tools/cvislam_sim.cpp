@@ -13,12 +13,14 @@
 #include <filesystem>
 #include <iostream>
 #include <string>
+#include <string_view>
 #include <thread>
 #include <vector>
 
 #include <CLI/CLI.hpp>
 
 #include "common/camera/camera_model.hpp"
+#include "common/core/hash.hpp"
 #include "common/dataset/calibration.hpp"
 #include "common/dataset/euroc_calibration.hpp"
 #include "test/sim/mission_writer.hpp"
@@ -35,13 +37,12 @@ std::string joined(const std::vector<std::string>& names) {
 // FNV-1a over the mission plan: the hall, every obstacle, and every agent's pose at 10 Hz (micrometres). A
 // cache of rendered missions keys on it, so that a changed preset is rendered again rather than reused.
 std::string planFingerprint(const cvislam::sim::MissionPlan& plan) {
-  std::uint64_t h = 0xcbf29ce484222325ULL;
-  const auto mix = [&h](double value) {
+  cvislam::Fnv1a64 hash;
+  const auto mix = [&hash](double value) {  // micrometres, as 8 little-endian bytes
     const auto v = static_cast<std::int64_t>(std::llround(value * 1e6));
-    for (int b = 0; b < 8; ++b) {
-      h ^= static_cast<std::uint64_t>(v >> (8 * b)) & 0xFFU;
-      h *= 0x100000001b3ULL;
-    }
+    char bytes[8];
+    for (int b = 0; b < 8; ++b) bytes[b] = static_cast<char>((v >> (8 * b)) & 0xFF);
+    hash.add(std::string_view(bytes, sizeof(bytes)));
   };
   const auto box = [&mix](const cvislam::sim::Box& b) {
     for (int i = 0; i < 3; ++i) {
@@ -60,7 +61,7 @@ std::string planFingerprint(const cvislam::sim::MissionPlan& plan) {
     }
   }
   char text[17];
-  std::snprintf(text, sizeof(text), "%016llx", static_cast<unsigned long long>(h));
+  std::snprintf(text, sizeof(text), "%016llx", static_cast<unsigned long long>(hash.value()));
   return text;
 }
 
