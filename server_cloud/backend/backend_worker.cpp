@@ -120,7 +120,10 @@ std::string BackendOptions::describe() const {
   out << "merge maps " << (merge_maps ? "on" : "off") << ", loop closure " << (close_loops ? "on" : "off")
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
       << gba.full_iterations << " iterations, " << gba.threads << " threads; a loop cuts it short above "
-      << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg), redundancy removal "
+      << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg), new keyframes fused "
+      << (fuse_new_keyframes ? "on" : "off") << " (" << fusion.neighbours << " covisible + " << fusion.nearby_keyframes
+      << " within " << fusion.nearby_radius_m << " m and " << fusion.nearby_max_angle_deg
+      << " deg), redundancy removal "
       << (redundancy.enabled ? "on" : "off") << " (" << redundancy.redundant_fraction
       << " of points seen by >= " << redundancy.min_other_observers
       << " others, IMU gap <= " << redundancy.max_imu_gap_s << " s)";
@@ -177,11 +180,12 @@ bool BackendWorker::onMatch(const std::string& mission, const recognition::Match
   return push(std::move(e));
 }
 
-bool BackendWorker::onKeyframesAdded(const std::string& mission, const std::vector<MapId>& maps) {
+bool BackendWorker::onKeyframesAdded(const std::string& mission,
+                                     const std::vector<std::pair<MapId, KeyframeId>>& keyframes) {
   Event e;
   e.kind = Event::Kind::kKeyframes;
   e.mission = mission;
-  e.maps = maps;
+  e.keyframes = keyframes;
   return push(std::move(e));
 }
 
@@ -229,35 +233,70 @@ void BackendWorker::runControl() {
     lock.unlock();
     if (event.kind == Event::Kind::kMatch) {
       handleMatch(event);
-    } else if (event.kind == Event::Kind::kKeyframes && options_.redundancy.enabled) {
-      const std::shared_ptr<Mission> mission = missions_.find(event.mission);
-      if (mission) {
-        std::vector<MapId> due;
-        {
-          const std::lock_guard guard(mutex_);
-          MissionState& s = state(event.mission);
-          for (MapId map : event.maps) {
-            if (++s.keyframes_since_redundancy[map] >= options_.redundancy_every_keyframes) {
-              s.keyframes_since_redundancy[map] = 0;
-              due.push_back(map);
-            }
-          }
-        }
-        for (MapId map : due) {
-          MissionState* s = nullptr;
-          {
-            const std::lock_guard guard(mutex_);
-            s = &state(event.mission);
-          }
-          removeRedundant(*mission, *s, map);
-        }
-      }
+    } else if (event.kind == Event::Kind::kKeyframes) {
+      handleKeyframes(event);
     }
     lock.lock();
     control_busy_ = false;
     if (queue_.empty()) idle_.notify_all();
   }
   idle_.notify_all();
+}
+
+void BackendWorker::handleKeyframes(const Event& event) {
+  const std::shared_ptr<Mission> mission = missions_.find(event.mission);
+  if (!mission) return;
+  MissionState* s = nullptr;
+  {
+    const std::lock_guard guard(mutex_);
+    s = &state(event.mission);
+  }
+  if (options_.fuse_new_keyframes) {
+    for (const auto& [map, keyframe] : event.keyframes) fuseNewKeyframe(*mission, *s, keyframe);
+  }
+  if (!options_.redundancy.enabled) return;
+  std::vector<MapId> due;
+  {
+    const std::lock_guard guard(mutex_);
+    for (const auto& [map, keyframe] : event.keyframes) {
+      if (++s->keyframes_since_redundancy[map] >= options_.redundancy_every_keyframes) {
+        s->keyframes_since_redundancy[map] = 0;
+        due.push_back(map);
+      }
+    }
+  }
+  for (MapId map : due) removeRedundant(*mission, *s, map);
+}
+
+void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const KeyframeId& keyframe) {
+  // The map that holds the keyframe now (a merge may have moved it since ingest).
+  std::shared_ptr<ServerMap> map;
+  if (SharedAgentRecord record = mission.findAgent(keyframe.agent)) {
+    const auto r = record->read();
+    const auto held = r->keyframes.find(keyframe.counter);
+    if (held != r->keyframes.end()) map = mission.stack().find(held->second.map);
+  }
+  if (!map) return;
+  const auto start = Clock::now();
+  const CameraTable cameras(sensorsOf(mission));
+  std::vector<ProjectionMatch> matches;
+  {
+    const auto content = map->read();
+    if (content->keyframe(keyframe) == nullptr) return;  // removed meanwhile
+    matches = searchNewKeyframe(*content, keyframe, cameras.lookup(), options_.fusion);
+  }
+  FusionReport report;
+  if (!matches.empty()) {
+    auto content = map->write();
+    applyProjectionMatches(*content, matches, report);
+  }
+  const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+  const std::lock_guard lock(mutex_);
+  ++state.stats.new_keyframes_fused;
+  state.stats.new_keyframe_links += static_cast<std::uint64_t>(report.projection_linked);
+  state.stats.new_keyframe_point_merges += static_cast<std::uint64_t>(report.projection_fused);
+  state.stats.new_keyframe_fuse_ms_max = std::max(state.stats.new_keyframe_fuse_ms_max, ms);
+  state.stats.new_keyframe_fuse_ms_total += ms;
 }
 
 void BackendWorker::handleMatch(const Event& event) {
@@ -329,6 +368,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   }
   record.match_to_merged_s = secondsSince(arrived);
   std::size_t index = 0;
+  std::optional<GbaRequest> orphan;  // a queued GBA of the map that went: its waiters wait for the merged map's
   {
     const std::lock_guard lock(mutex_);
     auto& loops = state.loops[into->id()];
@@ -337,6 +377,17 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     state.loops.erase(from->id());
     state.stats.merges.push_back(record);
     index = state.stats.merges.size() - 1;
+    const auto queued = std::find_if(gba_queue_.begin(), gba_queue_.end(), [&](const GbaRequest& r) {
+      return r.mission == mission.name() && r.map == from->id();
+    });
+    if (queued != gba_queue_.end()) {
+      orphan = std::move(*queued);
+      gba_queue_.erase(queued);
+    }
+  }
+  if (orphan) {
+    for (const auto& waiter : orphan->waiting) requestGba(mission.name(), into->id(), orphan->final, waiter, orphan->since);
+    if (orphan->waiting.empty()) requestGba(mission.name(), into->id(), orphan->final, std::nullopt, orphan->since);
   }
   if (options_.gba_after_change) requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived);
 }

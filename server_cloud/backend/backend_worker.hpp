@@ -2,7 +2,8 @@
 // threads of their own while agents keep streaming.
 //
 //   control thread  verified matches from place recognition (a map match merges the query's map into the
-//                   candidate's; a loop runs the pose graph), and redundancy removal every
+//                   candidate's; a loop runs the pose graph), the fusion of every new keyframe with the points
+//                   of its covisible and nearby keyframes (map_fusion.hpp), and redundancy removal every
 //                   `redundancy_every_keyframes` new keyframes of a map. Each holds the locks of the maps it
 //                   changes for the milliseconds it takes.
 //   GBA thread      global BA of a map after every merge or loop (and of every map at drain(true), the end of a
@@ -51,6 +52,9 @@ struct BackendOptions {
   bool merge_maps = true;
   bool close_loops = true;
   bool gba_after_change = true;  // after every merge and loop
+  // Fuse every new keyframe with its covisible and nearby keyframes' points (searched under the map's read lock,
+  // applied under its write lock).
+  bool fuse_new_keyframes = true;
   // A loop whose query keyframe is within this many keyframes of its agent's previous loop is left out (the
   // pose graph and GBA of the previous one already hold it).
   int loop_cooldown_keyframes = 20;
@@ -112,6 +116,11 @@ struct BackendStats {
   std::uint64_t gba_cancelled = 0;
   std::uint64_t stale_matches = 0;  // maps merged or keyframes gone before their turn
   std::uint64_t loops_in_cooldown = 0;
+  std::uint64_t new_keyframes_fused = 0;  // new keyframes searched against their partners
+  std::uint64_t new_keyframe_links = 0;   // keypoints that now observe a point they did not
+  std::uint64_t new_keyframe_point_merges = 0;
+  double new_keyframe_fuse_ms_max = 0.0;  // search and apply of one keyframe
+  double new_keyframe_fuse_ms_total = 0.0;
   std::uint64_t redundancy_checked = 0;
   std::uint64_t redundant_removed = 0;
   std::uint64_t points_removed = 0;
@@ -128,7 +137,8 @@ class BackendWorker {
 
   // Never block: false when the queue is full (the event is dropped and counted).
   bool onMatch(const std::string& mission, const recognition::MatchRecord& match);
-  bool onKeyframesAdded(const std::string& mission, const std::vector<MapId>& maps);
+  // The keyframes ingest added, with the maps it put them in.
+  bool onKeyframesAdded(const std::string& mission, const std::vector<std::pair<MapId, KeyframeId>>& keyframes);
 
   // Waits until every queued event is handled and no GBA runs; with `final_gba`, then runs GBA on every map of
   // every mission with at least two keyframes (the end of a mission).
@@ -142,7 +152,7 @@ class BackendWorker {
     enum class Kind { kMatch, kKeyframes, kFlush } kind = Kind::kMatch;
     std::string mission;
     std::optional<recognition::MatchRecord> match;
-    std::vector<MapId> maps;
+    std::vector<std::pair<MapId, KeyframeId>> keyframes;
     std::chrono::steady_clock::time_point arrived;
   };
   struct MissionState;
@@ -163,6 +173,8 @@ class BackendWorker {
              std::chrono::steady_clock::time_point arrived);
   void closeLoop(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
                  std::chrono::steady_clock::time_point arrived);
+  void handleKeyframes(const Event& event);
+  void fuseNewKeyframe(Mission& mission, MissionState& state, const KeyframeId& keyframe);
   void removeRedundant(Mission& mission, MissionState& state, MapId map);
   void requestGba(const std::string& mission, MapId map, bool final, std::optional<std::pair<bool, std::size_t>> waiter,
                   std::chrono::steady_clock::time_point since);

@@ -20,6 +20,11 @@ Status FusionOptions::validate() const {
   if (!(pyramid_scale_factor >= 1.0)) {
     return Error{ErrorCode::kInvalidArgument, "fusion.pyramid_scale_factor must be >= 1"};
   }
+  if (nearby_keyframes < 0) return Error{ErrorCode::kInvalidArgument, "fusion.nearby_keyframes must be >= 0"};
+  if (!(nearby_radius_m >= 0.0)) return Error{ErrorCode::kInvalidArgument, "fusion.nearby_radius_m must be >= 0"};
+  if (!(nearby_max_angle_deg >= 0.0 && nearby_max_angle_deg <= 180.0)) {
+    return Error{ErrorCode::kInvalidArgument, "fusion.nearby_max_angle_deg must be in [0, 180]"};
+  }
   return Status::Ok();
 }
 
@@ -87,8 +92,52 @@ void linkOrFuse(MapContent& map, const KeyframeId& keyframe, std::uint16_t keypo
 
 }  // namespace
 
-void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes, const std::vector<MapPointId>& points,
-                      const recognition::CameraLookup& cameras, const FusionOptions& options, FusionReport& report) {
+namespace {
+
+// A keyframe's keypoints bucketed by pixel, so that a projection looks at its neighbourhood only.
+class KeypointGrid {
+ public:
+  KeypointGrid(const ServerKeyframe& kf, double width, double height)
+      : columns_(std::max(1, static_cast<int>(std::ceil(width / kCell)))),
+        rows_(std::max(1, static_cast<int>(std::ceil(height / kCell)))),
+        cells_(static_cast<std::size_t>(columns_ * rows_)) {
+    for (std::size_t k = 0; k < kf.keypoints.size(); ++k) {
+      const Eigen::Vector2f& px = kf.keypoints[k].px;
+      cells_[cellOf(column(px.x()), row(px.y()))].push_back(static_cast<std::uint16_t>(k));
+    }
+  }
+  // Calls `visit(keypoint)` for every keypoint in the cells that a circle of `radius` around `px` touches.
+  template <typename Visit>
+  void forEachNear(const Eigen::Vector2d& px, double radius, Visit&& visit) const {
+    const int c0 = column(px.x() - radius);
+    const int c1 = column(px.x() + radius);
+    const int r0 = row(px.y() - radius);
+    const int r1 = row(px.y() + radius);
+    for (int r = r0; r <= r1; ++r) {
+      for (int c = c0; c <= c1; ++c) {
+        for (std::uint16_t k : cells_[cellOf(c, r)]) visit(k);
+      }
+    }
+  }
+
+ private:
+  static constexpr double kCell = 16.0;
+  [[nodiscard]] int column(double x) const { return std::clamp(static_cast<int>(std::floor(x / kCell)), 0, columns_ - 1); }
+  [[nodiscard]] int row(double y) const { return std::clamp(static_cast<int>(std::floor(y / kCell)), 0, rows_ - 1); }
+  [[nodiscard]] std::size_t cellOf(int c, int r) const { return static_cast<std::size_t>(r * columns_ + c); }
+
+  int columns_;
+  int rows_;
+  std::vector<std::vector<std::uint16_t>> cells_;
+};
+
+}  // namespace
+
+std::vector<ProjectionMatch> searchByProjection(const MapContent& map, const std::vector<KeyframeId>& keyframes,
+                                                const std::vector<MapPointId>& points,
+                                                const recognition::CameraLookup& cameras,
+                                                const FusionOptions& options) {
+  std::vector<ProjectionMatch> out;
   for (const KeyframeId& id : keyframes) {
     const ServerKeyframe* kf = map.keyframe(id);
     if (kf == nullptr) continue;
@@ -97,8 +146,8 @@ void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes,
     const SE3d T_c_w = (kf->T_w_s * camera->T_s_c).inverse();
     const double width = camera->camera.width();
     const double height = camera->camera.height();
+    const KeypointGrid grid(*kf, width, height);
     for (const MapPointId& pid : points) {
-      kf = map.keyframe(id);  // a fusion may have changed the keyframe's links, never its storage
       const ServerMapPoint* p = map.point(map.resolvePoint(pid));
       if (p == nullptr) continue;
       if (std::any_of(p->observations.begin(), p->observations.end(),
@@ -111,21 +160,77 @@ void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes,
       const double radius = options.search_radius_px * std::pow(options.pyramid_scale_factor, p->octave);
       int best = std::numeric_limits<int>::max();
       int best_keypoint = -1;
-      for (std::size_t k = 0; k < kf->keypoints.size(); ++k) {
+      grid.forEachNear(*px, radius, [&](std::uint16_t k) {
         const features::Keypoint& key = kf->keypoints[k];
-        if ((key.px.cast<double>() - *px).squaredNorm() > radius * radius) continue;
-        if (std::abs(static_cast<int>(key.octave) - static_cast<int>(p->octave)) > 1) continue;
+        if ((key.px.cast<double>() - *px).squaredNorm() > radius * radius) return;
+        if (std::abs(static_cast<int>(key.octave) - static_cast<int>(p->octave)) > 1) return;
         const int distance = features::hammingDistance(kf->descriptors[k], p->descriptor);
-        if (distance < best) {
+        if (distance < best || (distance == best && static_cast<int>(k) < best_keypoint)) {
           best = distance;
           best_keypoint = static_cast<int>(k);
         }
-      }
+      });
       if (best_keypoint < 0 || best > options.max_descriptor_distance) continue;
-      linkOrFuse(map, id, static_cast<std::uint16_t>(best_keypoint), p->id, report.projection_linked,
-                 report.projection_fused);
+      out.push_back(ProjectionMatch{id, static_cast<std::uint16_t>(best_keypoint), p->id});
     }
   }
+  return out;
+}
+
+void applyProjectionMatches(MapContent& map, const std::vector<ProjectionMatch>& matches, FusionReport& report) {
+  for (const ProjectionMatch& m : matches) {
+    const ServerKeyframe* kf = map.keyframe(m.keyframe);
+    if (kf == nullptr || m.keypoint >= kf->keypoints.size()) continue;
+    linkOrFuse(map, m.keyframe, m.keypoint, m.point, report.projection_linked, report.projection_fused);
+  }
+}
+
+void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes, const std::vector<MapPointId>& points,
+                      const recognition::CameraLookup& cameras, const FusionOptions& options, FusionReport& report) {
+  applyProjectionMatches(map, searchByProjection(map, keyframes, points, cameras, options), report);
+}
+
+std::vector<KeyframeId> nearbyKeyframes(const MapContent& map, const KeyframeId& keyframe,
+                                        const recognition::CameraLookup& cameras, const FusionOptions& options) {
+  std::vector<KeyframeId> out;
+  const ServerKeyframe* kf = map.keyframe(keyframe);
+  const recognition::AgentCamera* camera = cameras(keyframe.agent);
+  if (kf == nullptr || camera == nullptr || options.nearby_keyframes <= 0) return out;
+  const SE3d T_w_c = kf->T_w_s * camera->T_s_c;
+  const double cos_max = std::cos(options.nearby_max_angle_deg * M_PI / 180.0);
+  std::vector<std::pair<double, KeyframeId>> near;
+  for (const auto& [id, other] : map.keyframes()) {
+    if (id == keyframe) continue;
+    const recognition::AgentCamera* other_camera = cameras(id.agent);
+    if (other_camera == nullptr) continue;
+    const SE3d T_w_o = other.T_w_s * other_camera->T_s_c;
+    const double distance = (T_w_o.translation() - T_w_c.translation()).norm();
+    if (distance > options.nearby_radius_m) continue;
+    const double cos_angle = T_w_o.so3().matrix().col(2).dot(T_w_c.so3().matrix().col(2));
+    if (cos_angle < cos_max) continue;
+    near.emplace_back(distance, id);
+  }
+  std::sort(near.begin(), near.end(),
+            [](const auto& a, const auto& b) { return a.first != b.first ? a.first < b.first : a.second < b.second; });
+  for (std::size_t i = 0; i < near.size() && static_cast<int>(i) < options.nearby_keyframes; ++i) {
+    out.push_back(near[i].second);
+  }
+  return out;
+}
+
+std::vector<ProjectionMatch> searchNewKeyframe(const MapContent& map, const KeyframeId& keyframe,
+                                               const recognition::CameraLookup& cameras,
+                                               const FusionOptions& options) {
+  std::vector<KeyframeId> partners = neighbourhood(map, keyframe, options.neighbours);
+  if (!partners.empty()) partners.erase(partners.begin());  // itself
+  for (const KeyframeId& id : nearbyKeyframes(map, keyframe, cameras, options)) {
+    if (std::find(partners.begin(), partners.end(), id) == partners.end()) partners.push_back(id);
+  }
+  if (partners.empty()) return {};
+  std::vector<ProjectionMatch> out = searchByProjection(map, {keyframe}, pointsOf(map, partners), cameras, options);
+  std::vector<ProjectionMatch> back = searchByProjection(map, partners, pointsOf(map, {keyframe}), cameras, options);
+  out.insert(out.end(), back.begin(), back.end());
+  return out;
 }
 
 FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,

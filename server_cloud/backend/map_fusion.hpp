@@ -9,6 +9,11 @@
 // then a projection search: the points of the candidate's covisible neighbourhood are projected into the
 // query's neighbourhood keyframes, and a keypoint close to the projection with a close descriptor observes the
 // point; when the keypoint already observes another point, the two become one (the point seen more keeps).
+//
+// Every new keyframe is fused the same way (ORB-SLAM's SearchAndFuse, run on the server): with its covisible
+// keyframes and with the map's nearby keyframes that look the same way. The nearby ones find what another
+// agent, or an earlier pass of the same agent, made of the same place: without a downlink an agent cannot
+// know those points, so it makes them again, and only the server can join them.
 #pragma once
 
 #include <vector>
@@ -26,6 +31,12 @@ struct FusionOptions {
   double search_radius_px = 5.0;  // at octave 0; grows with the pyramid scale of the point's octave
   int max_descriptor_distance = 50;
   double pyramid_scale_factor = 1.2;
+  // A new keyframe's fusion partners: its `neighbours` most covisible keyframes and up to `nearby_keyframes`
+  // nearest keyframes of the map within `nearby_radius_m` whose optical axes are within `nearby_max_angle_deg`
+  // of its own.
+  int nearby_keyframes = 10;
+  double nearby_radius_m = 3.0;
+  double nearby_max_angle_deg = 45.0;
 
   [[nodiscard]] Status validate() const;
 };
@@ -35,6 +46,13 @@ struct FusionReport {
   int keypoints_linked = 0;   // the match's keypoint inliers that now observe the candidate's point
   int projection_fused = 0;   // duplicates found by projection
   int projection_linked = 0;  // keypoints without a point that now observe one
+};
+
+// One keypoint found for a point by projection: `keypoint` of `keyframe` should observe `point`.
+struct ProjectionMatch {
+  KeyframeId keyframe;
+  std::uint16_t keypoint = 0;
+  MapPointId point;
 };
 
 // The 4-DoF transform (yaw about z, translation) closest to T_to_from that maps `p_from_anchor` exactly to
@@ -50,7 +68,20 @@ std::vector<KeyframeId> neighbourhood(const MapContent& map, const KeyframeId& k
 // The points the keyframes observe (each once).
 std::vector<MapPointId> pointsOf(const MapContent& map, const std::vector<KeyframeId>& keyframes);
 
-// Projects `points` into `keyframes` and links or fuses (see the header comment). Adds to `report`.
+// The keyframes of the map nearest to `keyframe`, within the radius and viewing angle of `options`, nearest first.
+std::vector<KeyframeId> nearbyKeyframes(const MapContent& map, const KeyframeId& keyframe,
+                                        const recognition::CameraLookup& cameras, const FusionOptions& options);
+
+// Projects `points` into `keyframes` and finds, for each, the keypoint close to the projection with the closest
+// descriptor (within the options' bounds). Reads only, so it can run under a read lock.
+std::vector<ProjectionMatch> searchByProjection(const MapContent& map, const std::vector<KeyframeId>& keyframes,
+                                                const std::vector<MapPointId>& points,
+                                                const recognition::CameraLookup& cameras, const FusionOptions& options);
+
+// Links or fuses each match (see the header comment), checking each against the map as it is now. Adds to `report`.
+void applyProjectionMatches(MapContent& map, const std::vector<ProjectionMatch>& matches, FusionReport& report);
+
+// Projects `points` into `keyframes` and links or fuses: searchByProjection, then applyProjectionMatches.
 void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes, const std::vector<MapPointId>& points,
                       const recognition::CameraLookup& cameras, const FusionOptions& options, FusionReport& report);
 
@@ -58,5 +89,10 @@ void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes,
 // then the projection search between the two neighbourhoods.
 FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,
                        const recognition::CameraLookup& cameras, const FusionOptions& options);
+
+// The matches that fuse a new keyframe with its partners, both ways: its partners' points projected into it, and
+// its points projected into its partners. Reads only.
+std::vector<ProjectionMatch> searchNewKeyframe(const MapContent& map, const KeyframeId& keyframe,
+                                               const recognition::CameraLookup& cameras, const FusionOptions& options);
 
 }  // namespace cvislam::server::backend

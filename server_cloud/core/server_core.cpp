@@ -126,6 +126,10 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("pose_graph_strong_covisibility", b.pose_graph.strong_covisibility);
   backend.read("fusion_search_radius_px", b.fusion.search_radius_px);
   backend.read("fusion_max_descriptor_distance", b.fusion.max_descriptor_distance);
+  backend.read("fuse_new_keyframes", b.fuse_new_keyframes);
+  backend.read("fusion_nearby_keyframes", b.fusion.nearby_keyframes);
+  backend.read("fusion_nearby_radius_m", b.fusion.nearby_radius_m);
+  backend.read("fusion_nearby_max_angle_deg", b.fusion.nearby_max_angle_deg);
   backend.read("redundancy_removal", b.redundancy.enabled);
   backend.read("redundancy_every_keyframes", b.redundancy_every_keyframes);
   backend.read("redundant_fraction", b.redundancy.redundant_fraction);
@@ -189,9 +193,7 @@ std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> canc
         }
       }
       if (back_end != nullptr && !report.added_keyframes.empty()) {
-        std::vector<MapId> maps;
-        for (const auto& [map, id] : report.added_keyframes) maps.push_back(map);
-        back_end->onKeyframesAdded(mission, maps);
+        back_end->onKeyframesAdded(mission, report.added_keyframes);
       }
     };
   }
@@ -417,6 +419,12 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
   j["gba_cancelled"] = b.gba_cancelled;
   j["stale_matches"] = b.stale_matches;
   j["loops_in_cooldown"] = b.loops_in_cooldown;
+  j["new_keyframes_fused"] = b.new_keyframes_fused;
+  j["new_keyframe_links"] = b.new_keyframe_links;
+  j["new_keyframe_point_merges"] = b.new_keyframe_point_merges;
+  j["new_keyframe_fuse_ms_max"] = b.new_keyframe_fuse_ms_max;
+  j["new_keyframe_fuse_ms_mean"] =
+      b.new_keyframes_fused == 0 ? 0.0 : b.new_keyframe_fuse_ms_total / static_cast<double>(b.new_keyframes_fused);
   j["redundancy_checked"] = b.redundancy_checked;
   j["redundant_keyframes_removed"] = b.redundant_removed;
   j["points_removed"] = b.points_removed;

@@ -300,6 +300,17 @@ class BackendWorkerTest : public ::testing::Test {
     return map;
   }
 
+  // One map that two agents share, as after a merge: agent 1 flew keyframes 0-11 and agent 2 keyframes 8-19,
+  // with points of its own (nothing links them to agent 1's yet).
+  std::shared_ptr<ServerMap> twoAgentsInOneMap(const test::ViScenario& s) {
+    const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 11});
+    auto record = mission_->agent(2)->write();
+    record->sensors = sensorsOf(s);
+    record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+    buildAgentMap(*map->write(), s, AgentPlan{.agent = 2, .first = 8, .last = 19}, &*record);
+    return map;
+  }
+
   MissionRegistry registry_;
   std::shared_ptr<Mission> mission_;
 };
@@ -428,6 +439,119 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   EXPECT_TRUE(content->checkConsistency().ok());
   const double after = maxPositionError(*content, s, 1);
   EXPECT_LT(after, 0.02) << "before " << before;
+}
+
+// ------------------------------------------------------------------------------------ new keyframe fusion
+// Two agents in one map frame (as after a merge), over the same points but with points of their own: agent 1
+// flies keyframes 0-11, agent 2 keyframes 8-19. Nothing links agent 2's keyframes to agent 1's.
+struct TwoAgentsOnePlace {
+  test::ViScenario s = scenario(20, 0.5, 0.3);
+  MapContent map{0};
+  AgentSensorsMap sensors;
+  std::map<AgentId, recognition::AgentCamera> cameras;
+  TwoAgentsOnePlace() {
+    buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 11}, nullptr);
+    buildAgentMap(map, s, AgentPlan{.agent = 2, .first = 8, .last = 19}, nullptr);
+    for (AgentId a : {1U, 2U}) cameras.emplace(a, recognition::AgentCamera{pinholeCamera(s), s.T_s_c});
+  }
+  [[nodiscard]] recognition::CameraLookup lookup() const {
+    return [this](AgentId a) -> const recognition::AgentCamera* {
+      const auto it = cameras.find(a);
+      return it == cameras.end() ? nullptr : &it->second;
+    };
+  }
+  [[nodiscard]] int covisibilityWithAgent1(const KeyframeId& id) const {
+    int shared = 0;
+    for (const auto& [other, count] : map.covisible(id)) shared += other.agent == 1 ? count : 0;
+    return shared;
+  }
+};
+
+TEST(NewKeyframeFusion, FindsTheSamePointsInANearbyKeyframeOfAnotherAgentAndMakesThemOne) {
+  TwoAgentsOnePlace place;
+  const KeyframeId newest{2, 8};
+  ASSERT_EQ(place.covisibilityWithAgent1(newest), 0);
+  const std::size_t points_before = place.map.points().size();
+
+  FusionOptions options;
+  const std::vector<KeyframeId> nearby = nearbyKeyframes(place.map, newest, place.lookup(), options);
+  EXPECT_EQ(nearby.size(), 10U);
+  EXPECT_TRUE(std::any_of(nearby.begin(), nearby.end(), [](const KeyframeId& id) { return id.agent == 1; }));
+  const std::vector<ProjectionMatch> matches = searchNewKeyframe(place.map, newest, place.lookup(), options);
+  FusionReport report;
+  applyProjectionMatches(place.map, matches, report);
+
+  EXPECT_GT(report.projection_fused, 50);
+  EXPECT_LT(place.map.points().size(), points_before - 50);
+  EXPECT_GT(place.covisibilityWithAgent1(newest), 50) << "the agents' keyframes are joined";
+  EXPECT_TRUE(place.map.checkConsistency().ok());
+  // Every fused point is one physical point: its observations are all of one scenario point (same descriptor).
+  for (const auto& [id, p] : place.map.points()) {
+    for (const auto& o : p.observations) {
+      const ServerKeyframe* kf = place.map.keyframe(o.keyframe);
+      ASSERT_EQ(kf->descriptors[o.keypoint], p.descriptor) << id.toString() << " joined two physical points";
+    }
+  }
+}
+
+TEST(NewKeyframeFusion, WithoutNearbyKeyframesOnlyItsOwnCovisibleOnesAreSearched) {
+  TwoAgentsOnePlace place;
+  FusionOptions options;
+  options.nearby_keyframes = 0;
+  const std::vector<ProjectionMatch> matches = searchNewKeyframe(place.map, KeyframeId{2, 8}, place.lookup(), options);
+  for (const ProjectionMatch& m : matches) {
+    EXPECT_EQ(m.point.agent, 2U);
+    EXPECT_EQ(m.keyframe.agent, 2U);
+  }
+}
+
+TEST(NewKeyframeFusion, KeyframesThatLookTheOtherWayAreNotNearby) {
+  TwoAgentsOnePlace place;
+  FusionOptions options;
+  // Turn agent 1's keyframes round (their points stay): none looks the way agent 2's keyframe 8 does.
+  for (std::uint32_t k = 0; k <= 11; ++k) {
+    ServerKeyframe* kf = place.map.keyframe(KeyframeId{1, k});
+    kf->T_w_s = SE3d(kf->T_w_s.so3() * SO3d::exp(Vector3d(0.0, M_PI, 0.0)), kf->T_w_s.translation());
+  }
+  for (const KeyframeId& id : nearbyKeyframes(place.map, KeyframeId{2, 8}, place.lookup(), options)) {
+    EXPECT_EQ(id.agent, 2U) << id.toString();
+  }
+  options.nearby_radius_m = 0.0;
+  EXPECT_TRUE(nearbyKeyframes(place.map, KeyframeId{2, 8}, place.lookup(), options).empty());
+}
+
+TEST_F(BackendWorkerTest, EveryNewKeyframeIsFusedWithTheMapOnTheControlThread) {
+  const test::ViScenario s = scenario(20, 0.5, 0.3);
+  const auto map = twoAgentsInOneMap(s);
+  const std::size_t points_before = map->read()->points().size();
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  BackendWorker worker(options, registry_, nullptr);
+  std::vector<std::pair<MapId, KeyframeId>> added;
+  for (std::uint32_t k = 8; k <= 19; ++k) added.emplace_back(map->id(), KeyframeId{2, k});
+  ASSERT_TRUE(worker.onKeyframesAdded("m", added));
+  worker.drain(false);
+  const BackendStats stats = worker.stats("m");
+  EXPECT_EQ(stats.new_keyframes_fused, 12U);
+  EXPECT_GT(stats.new_keyframe_point_merges, 100U);
+  EXPECT_GT(stats.new_keyframe_fuse_ms_max, 0.0);
+  const auto content = map->read();
+  EXPECT_LT(content->points().size(), points_before - 100);
+  EXPECT_TRUE(content->checkConsistency().ok());
+}
+
+TEST_F(BackendWorkerTest, NewKeyframeFusionCanBeTurnedOff) {
+  const test::ViScenario s = scenario(20, 0.5, 0.3);
+  const auto map = twoAgentsInOneMap(s);
+  const std::size_t points_before = map->read()->points().size();
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.fuse_new_keyframes = false;
+  BackendWorker worker(options, registry_, nullptr);
+  ASSERT_TRUE(worker.onKeyframesAdded("m", {{map->id(), KeyframeId{2, 8}}}));
+  worker.drain(false);
+  EXPECT_EQ(worker.stats("m").new_keyframes_fused, 0U);
+  EXPECT_EQ(map->read()->points().size(), points_before);
 }
 
 TEST_F(BackendWorkerTest, RedundancyRemovalNeverLeavesAnImuGapOver2sAndKeepsTheMapAccurate) {
@@ -612,7 +736,7 @@ TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
   std::thread mission_end([&] { worker.drain(true); });
   gate.waitUntilHeld();  // (a failure here leaves the gate open: the GBA runs on)
   // While map 1's GBA runs: a keyframe arrives (a redundancy round), then agent 2's map matches.
-  EXPECT_TRUE(worker.onKeyframesAdded("m", {map1->id()}));
+  EXPECT_TRUE(worker.onKeyframesAdded("m", {{map1->id(), KeyframeId{1, 29}}}));
   EXPECT_TRUE(eventually([&] { return worker.stats("m").redundancy_checked > 0; }));
   recognition::MatchRecord record =
       matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 25}, map2->id(), KeyframeId{1, 24}, map1->id());
@@ -639,6 +763,51 @@ TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
   EXPECT_LT(maxPositionError(*merged, s, 1), 0.02);
   EXPECT_LT(maxPositionError(*merged, s, 2), 0.02);
   EXPECT_EQ(mission_->findAgent(2)->read()->agent_maps.at(0).map, map1->id());
+}
+
+TEST_F(BackendWorkerTest, ALoopWaitingForTheGbaOfAMapThatIsMergedAwayIsOptimisedWithTheMergedMap) {
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  // Agent 2 drifts from keyframe 12 on (as in ALoopClosureRemovesAnInjectedDrift), in a frame of its own.
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, 0.6)), Vector3d(2.0, 1.0, -0.2));
+  const auto drift_at = [](int k) {
+    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * Vector3d(0.3, -0.25, 0.05));
+  };
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 11});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 0, .last = 23,
+                                          .E = [&](int k) { return T_2_truth * drift_at(k); },
+                                          .generation = [](int k) { return k >= 12 ? 1 : 0; }});
+  GbaGate gate(map1->id());
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry_, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });
+  gate.waitUntilHeld();
+  // While map 1's GBA runs: a loop in map 2 (its GBA is queued behind), then map 2 merges into map 1.
+  recognition::MatchRecord loop =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{2, 22}, map2->id(), KeyframeId{2, 3}, map2->id());
+  loop.match.T_cmap_cq = T_2_truth * s.keyframe_states[22].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", loop));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").loops.empty(); }));
+  recognition::MatchRecord merge =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 5}, map2->id(), KeyframeId{1, 5}, map1->id());
+  merge.match.T_qmap_cmap = T_2_truth;
+  EXPECT_TRUE(worker.onMatch("m", merge));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").merges.empty(); }));
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.loops.size(), 1U);
+  ASSERT_EQ(stats.merges.size(), 1U);
+  EXPECT_GE(stats.loops[0].match_to_optimised_s, 0.0) << "the loop's waiter went with its map";
+  EXPECT_GE(stats.merges[0].match_to_optimised_s, 0.0);
+  EXPECT_EQ(mission_->stack().find(map2->id()), nullptr);
+  const auto merged = map1->read();
+  EXPECT_TRUE(merged->checkConsistency().ok());
+  EXPECT_LT(maxPositionError(*merged, s, 2), 0.03);
 }
 
 }  // namespace
