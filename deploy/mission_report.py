@@ -97,6 +97,7 @@ def report_backend(out, mission, server_agents, summary):
                    "gba_solve_s_max": max((g["solve_s"] for g in gba), default=None), "gba_largest_keyframes": biggest,
                    "redundant_keyframes_removed": backend.get("redundant_keyframes_removed", 0),
                    "redundancy_checked": backend.get("redundancy_checked", 0),
+                   "redundant_removed_by_final_pass": backend.get("redundant_removed_by_final_pass", 0),
                    "new_keyframes_fused": backend.get("new_keyframes_fused", 0),
                    "new_keyframe_links": backend.get("new_keyframe_links", 0),
                    "new_keyframe_point_merges": backend.get("new_keyframe_point_merges", 0),
@@ -105,7 +106,7 @@ def report_backend(out, mission, server_agents, summary):
         print(f"merges {section['merges']}, loops closed {section['loops']}; GBA {len(gba)} runs (largest "
               f"{biggest} KFs, solve max {section['gba_solve_s_max'] or 0:.2f} s), {section['gba_cancelled']} cut short "
               f"by a newer change; redundant KFs removed {section['redundant_keyframes_removed']} of "
-              f"{section['redundancy_checked']} checked")
+              f"{section['redundancy_checked']} checked ({section['redundant_removed_by_final_pass']} by the final pass)")
         print(f"new keyframes fused with their covisible and nearby keyframes: {section['new_keyframes_fused']} "
               f"({section['new_keyframe_links']} keypoints linked, {section['new_keyframe_point_merges']} points "
               f"merged; {section['new_keyframe_fuse_ms_mean']:.1f} ms mean, "

@@ -126,7 +126,8 @@ std::string BackendOptions::describe() const {
       << " deg), redundancy removal "
       << (redundancy.enabled ? "on" : "off") << " (" << redundancy.redundant_fraction
       << " of points seen by >= " << redundancy.min_other_observers
-      << " others, IMU gap <= " << redundancy.max_imu_gap_s << " s)";
+      << " others, IMU gap <= " << redundancy.max_imu_gap_s << " s; a final pass at the end "
+      << (final_redundancy_pass ? "on" : "off") << ")";
   return out.str();
 }
 
@@ -198,6 +199,12 @@ void BackendWorker::drain(bool final_gba) {
   };
   wait_idle();
   if (!final_gba) return;
+  if (options_.redundancy.enabled && options_.final_redundancy_pass) {
+    for (const auto& mission : missions_.missions()) {
+      push(Event{Event::Kind::kFinalRedundancyPass, mission->name(), std::nullopt, {}, {}});
+    }
+    wait_idle();
+  }
   std::vector<std::pair<std::string, MapId>> todo;
   for (const auto& mission : missions_.missions()) {
     // Every map with at least two keyframes: ingest changes every map, so each needs its last GBA.
@@ -235,6 +242,8 @@ void BackendWorker::runControl() {
       handleMatch(event);
     } else if (event.kind == Event::Kind::kKeyframes) {
       handleKeyframes(event);
+    } else if (event.kind == Event::Kind::kFinalRedundancyPass) {
+      finalRedundancyPass(event.mission);
     }
     lock.lock();
     control_busy_ = false;
@@ -266,6 +275,24 @@ void BackendWorker::handleKeyframes(const Event& event) {
     }
   }
   for (MapId map : due) removeRedundant(*mission, *s, map);
+}
+
+void BackendWorker::finalRedundancyPass(const std::string& name) {
+  const std::shared_ptr<Mission> mission = missions_.find(name);
+  if (!mission) return;
+  MissionState* s = nullptr;
+  std::uint64_t before = 0;
+  {
+    const std::lock_guard guard(mutex_);
+    s = &state(name);
+    before = s->stats.redundant_removed;
+  }
+  for (const auto& map : mission->stack().maps()) {
+    const int keyframes = static_cast<int>(map->read()->keyframes().size());
+    if (keyframes > 0) removeRedundant(*mission, *s, map->id(), keyframes);
+  }
+  const std::lock_guard guard(mutex_);
+  s->stats.final_pass_removed += s->stats.redundant_removed - before;
 }
 
 void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const KeyframeId& keyframe) {
@@ -472,14 +499,16 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
   if (options_.gba_after_change) requestGba(mission.name(), map->id(), false, std::make_pair(false, index), arrived);
 }
 
-void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId map_id) {
+void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId map_id, int checks) {
   const std::shared_ptr<ServerMap> map = mission.stack().find(map_id);
   if (!map) return;
   const AgentSensorsMap sensors = sensorsOf(mission);
+  RedundancyOptions options = options_.redundancy;
+  if (checks > 0) options.checks_per_round = checks;
   RedundancyReport report;
   {
     StackLocks locks(mission, {map});
-    report = removeRedundantKeyframes(locks.map(map_id), sensors, options_.redundancy, state.rng);
+    report = removeRedundantKeyframes(locks.map(map_id), sensors, options, state.rng);
     for (const KeyframeId& id : report.removed_keyframes) {
       const auto it = locks.records().find(id.agent);
       if (it == locks.records().end()) continue;

@@ -63,6 +63,9 @@ struct BackendOptions {
   double loop_cancels_gba_m = 0.05;
   double loop_cancels_gba_deg = 0.5;
   int redundancy_every_keyframes = 10;  // per map
+  // At the end of a mission (drain(true)), before the last GBA: every eligible keyframe of every map is checked
+  // once more. During the mission a keyframe is checked at random and often before later flights covered it.
+  bool final_redundancy_pass = true;
   std::size_t queue_capacity = 100'000;
   GlobalBaOptions gba;
   PoseGraphOptions pose_graph;
@@ -122,6 +125,7 @@ struct BackendStats {
   double new_keyframe_fuse_ms_max = 0.0;  // search and apply of one keyframe
   double new_keyframe_fuse_ms_total = 0.0;
   std::uint64_t redundancy_checked = 0;
+  std::uint64_t final_pass_removed = 0;  // of redundant_removed, by the final pass
   std::uint64_t redundant_removed = 0;
   std::uint64_t points_removed = 0;
   std::uint64_t dropped_events = 0;
@@ -140,8 +144,9 @@ class BackendWorker {
   // The keyframes ingest added, with the maps it put them in.
   bool onKeyframesAdded(const std::string& mission, const std::vector<std::pair<MapId, KeyframeId>>& keyframes);
 
-  // Waits until every queued event is handled and no GBA runs; with `final_gba`, then runs GBA on every map of
-  // every mission with at least two keyframes (the end of a mission).
+  // Waits until every queued event is handled and no GBA runs; with `final_gba` (the end of a mission), then
+  // makes the final redundancy pass (when enabled) and runs GBA on every map of every mission with at least two
+  // keyframes.
   void drain(bool final_gba);
 
   [[nodiscard]] BackendStats stats(const std::string& mission) const;
@@ -149,7 +154,7 @@ class BackendWorker {
 
  private:
   struct Event {
-    enum class Kind { kMatch, kKeyframes, kFlush } kind = Kind::kMatch;
+    enum class Kind { kMatch, kKeyframes, kFinalRedundancyPass, kFlush } kind = Kind::kMatch;
     std::string mission;
     std::optional<recognition::MatchRecord> match;
     std::vector<std::pair<MapId, KeyframeId>> keyframes;
@@ -174,8 +179,10 @@ class BackendWorker {
   void closeLoop(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
                  std::chrono::steady_clock::time_point arrived);
   void handleKeyframes(const Event& event);
+  void finalRedundancyPass(const std::string& mission);
   void fuseNewKeyframe(Mission& mission, MissionState& state, const KeyframeId& keyframe);
-  void removeRedundant(Mission& mission, MissionState& state, MapId map);
+  // Checks `checks` random keyframes of the map (options_.redundancy.checks_per_round when 0).
+  void removeRedundant(Mission& mission, MissionState& state, MapId map, int checks = 0);
   void requestGba(const std::string& mission, MapId map, bool final, std::optional<std::pair<bool, std::size_t>> waiter,
                   std::chrono::steady_clock::time_point since);
   // True when a GBA of `map` was running and is now told to stop.

@@ -119,7 +119,9 @@ Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap
       ++point_keyframes[it->second];
       GbaObservation o;
       o.point = it->second;
-      o.px_undistorted = s.cam0.undistortPixel(kf.keypoints[k].px.cast<double>());
+      o.px_undistorted = kf.keypoints_undistorted.size() == kf.keypoints.size()
+                             ? kf.keypoints_undistorted[k].cast<double>()
+                             : s.cam0.undistortPixel(kf.keypoints[k].px.cast<double>());
       o.octave = kf.keypoints[k].octave;
       out.observations.push_back(o);
       if (right_of[k] >= 0 && s.cam1) {

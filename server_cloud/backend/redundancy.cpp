@@ -17,9 +17,9 @@ Status RedundancyOptions::validate() const {
   return Status::Ok();
 }
 
-bool isRedundant(const MapContent& map, const KeyframeId& id, const RedundancyOptions& options) {
+double coveredFraction(const MapContent& map, const KeyframeId& id, const RedundancyOptions& options) {
   const ServerKeyframe* kf = map.keyframe(id);
-  if (kf == nullptr) return false;
+  if (kf == nullptr) return 0.0;
   int points = 0;
   int covered = 0;
   for (std::size_t k = 0; k < kf->has_point.size(); ++k) {
@@ -29,7 +29,12 @@ bool isRedundant(const MapContent& map, const KeyframeId& id, const RedundancyOp
     ++points;
     if (static_cast<int>(p->observations.size()) - 1 >= options.min_other_observers) ++covered;
   }
-  return points > 0 && static_cast<double>(covered) >= options.redundant_fraction * static_cast<double>(points);
+  return points == 0 ? 0.0 : static_cast<double>(covered) / static_cast<double>(points);
+}
+
+bool isRedundant(const MapContent& map, const KeyframeId& id, const RedundancyOptions& options) {
+  // A keyframe without points has fraction 0, below any valid redundant_fraction.
+  return coveredFraction(map, id, options) >= options.redundant_fraction;
 }
 
 RedundancyReport removeRedundantKeyframes(MapContent& map, const AgentSensorsMap& sensors,

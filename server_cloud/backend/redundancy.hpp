@@ -46,6 +46,9 @@ struct RedundancyReport {
 RedundancyReport removeRedundantKeyframes(MapContent& map, const AgentSensorsMap& sensors,
                                           const RedundancyOptions& options, std::mt19937_64& rng);
 
+// The fraction of the keyframe's points that at least min_other_observers other keyframes observe (0 without points).
+double coveredFraction(const MapContent& map, const KeyframeId& id, const RedundancyOptions& options);
+
 // Whether `id` is redundant by the point rule alone (for tests and statistics).
 bool isRedundant(const MapContent& map, const KeyframeId& id, const RedundancyOptions& options);
 

@@ -132,6 +132,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("fusion_nearby_max_angle_deg", b.fusion.nearby_max_angle_deg);
   backend.read("redundancy_removal", b.redundancy.enabled);
   backend.read("redundancy_every_keyframes", b.redundancy_every_keyframes);
+  backend.read("redundancy_final_pass", b.final_redundancy_pass);
   backend.read("redundant_fraction", b.redundancy.redundant_fraction);
   backend.read("redundancy_min_other_observers", b.redundancy.min_other_observers);
   backend.read("redundancy_max_imu_gap_s", b.redundancy.max_imu_gap_s);
@@ -367,7 +368,24 @@ nlohmann::json toJson(const backend::FusionReport& f) {
           {"projection_linked", f.projection_linked}};
 }
 
-Status writeBackend(const std::filesystem::path& path, const backend::BackendStats& b) {
+// How well covered the mission's keyframes are at the end, by the redundancy rule: a histogram of the fraction of
+// each keyframe's points that enough other keyframes observe, in tenths (for tuning redundancy removal).
+nlohmann::json keyframeCoverage(const Mission& mission, const backend::RedundancyOptions& options) {
+  std::vector<int> tenths(10, 0);
+  int redundant = 0;
+  for (const auto& map : mission.stack().maps()) {
+    const auto content = map->read();
+    for (const auto& [id, kf] : content->keyframes()) {
+      const double f = backend::coveredFraction(*content, id, options);
+      ++tenths[static_cast<std::size_t>(std::clamp(static_cast<int>(f * 10.0), 0, 9))];
+      if (f >= options.redundant_fraction) ++redundant;
+    }
+  }
+  return nlohmann::json{{"covered_fraction_tenths", tenths}, {"redundant_by_the_rule", redundant}};
+}
+
+Status writeBackend(const std::filesystem::path& path, const backend::BackendStats& b,
+                    const nlohmann::json& final_coverage) {
   nlohmann::json j;
   nlohmann::json merges = nlohmann::json::array();
   for (const backend::MergeRecord& m : b.merges) {
@@ -427,8 +445,10 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
       b.new_keyframes_fused == 0 ? 0.0 : b.new_keyframe_fuse_ms_total / static_cast<double>(b.new_keyframes_fused);
   j["redundancy_checked"] = b.redundancy_checked;
   j["redundant_keyframes_removed"] = b.redundant_removed;
+  j["redundant_removed_by_final_pass"] = b.final_pass_removed;
   j["points_removed"] = b.points_removed;
   j["dropped_events"] = b.dropped_events;
+  j["final_keyframe_coverage"] = final_coverage;
   std::ofstream out(path);
   out << j.dump(1) << "\n";
   if (!out) return Error{ErrorCode::kIoError, "cannot write " + path.string()};
@@ -490,7 +510,10 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
     for (const std::string& name : backend_->missions()) {
       const auto mission_dir = dir / name;
       std::filesystem::create_directories(mission_dir, ec);
-      if (Status s = writeBackend(mission_dir / "backend.json", backend_->stats(name)); !s.ok()) return s;
+      const std::shared_ptr<Mission> mission = missions_.find(name);
+      const nlohmann::json coverage =
+          mission ? keyframeCoverage(*mission, options_.backend.redundancy) : nlohmann::json::object();
+      if (Status s = writeBackend(mission_dir / "backend.json", backend_->stats(name), coverage); !s.ok()) return s;
     }
   }
   if (recognition_) {

@@ -212,6 +212,10 @@ class Checker {
       out.angle_deg = wire::decodeAngle(static_cast<std::uint8_t>(kp.angle()[static_cast<std::size_t>(i)]));
       wire::unpackDescriptor(kp.descriptors().data() + 4 * i, kf.descriptors[static_cast<std::size_t>(i)].data());
     }
+    kf.keypoints_undistorted.resize(static_cast<std::size_t>(n));
+    for (std::size_t i = 0; i < kf.keypoints.size(); ++i) {
+      kf.keypoints_undistorted[i] = sensors_.cam0.undistortPixel(kf.keypoints[i].px.cast<double>()).cast<float>();
+    }
 
     // Stereo matches.
     const v1::StereoMatches& r = k.right();

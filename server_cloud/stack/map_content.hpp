@@ -42,6 +42,9 @@ struct ServerKeyframe {
   imu::ImuBias bias;
   std::vector<features::Keypoint> keypoints;
   std::vector<features::Descriptor> descriptors;
+  // Per keypoint, its cam0 pinhole pixel (undistorted at ingest, outside the map's lock, so that a GBA snapshot
+  // under the read lock only copies it). Empty when the keyframe was made otherwise (tests): then it is computed.
+  std::vector<Eigen::Vector2f> keypoints_undistorted;
   std::vector<RightObservation> right;
   std::vector<MapPointId> point;                      // per keypoint: the map point it observes, where has_point
   std::vector<std::uint8_t> has_point;                // per keypoint

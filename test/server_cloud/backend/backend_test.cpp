@@ -596,6 +596,34 @@ TEST_F(BackendWorkerTest, RedundancyRemovalNeverLeavesAnImuGapOver2sAndKeepsTheM
   EXPECT_LT(worst, 0.01);
 }
 
+TEST_F(BackendWorkerTest, TheMissionsEndChecksEveryKeyframeOnceMoreBeforeTheLastGba) {
+  // 0.1 s between keyframes that all see the same box, and no keyframe event during the "mission": only the
+  // final pass can find the redundant ones.
+  const test::ViScenario s = scenario(60, 0.1, 0.3);
+  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 59});
+  for (const bool final_pass : {false, true}) {
+    BackendOptions options;
+    options.final_redundancy_pass = final_pass;
+    BackendWorker worker(options, registry_, nullptr);
+    worker.drain(true);
+    const BackendStats stats = worker.stats("m");
+    if (!final_pass) {
+      EXPECT_EQ(stats.redundant_removed, 0U);
+      EXPECT_EQ(map->read()->keyframes().size(), 60U);
+      continue;
+    }
+    EXPECT_GT(stats.final_pass_removed, 20U);
+    EXPECT_EQ(stats.redundant_removed, stats.final_pass_removed);
+    const auto content = map->read();
+    EXPECT_EQ(content->keyframes().size(), 60U - stats.final_pass_removed);
+    EXPECT_TRUE(content->checkConsistency().ok());
+    ASSERT_FALSE(stats.gba.empty());
+    EXPECT_EQ(stats.gba.back().summary.keyframes, static_cast<int>(content->keyframes().size()))
+        << "the last GBA ran on the lean map";
+    EXPECT_LT(maxPositionError(*content, s, 1), 0.01);
+  }
+}
+
 TEST_F(BackendWorkerTest, GbaWhileKeyframesStreamInLosesNoneAndCarriesTheNewOnesAlong) {
   const test::ViScenario s = scenario(40, 0.25, 0.5);
   // The map holds keyframes 0-29 with a perturbation; 30-39 arrive while GBA runs.
@@ -731,6 +759,7 @@ TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
   BackendOptions options;
   options.redundancy_every_keyframes = 1;
   options.redundancy.checks_per_round = 1000;
+  options.final_redundancy_pass = false;  // the removal must arrive while the GBA runs, not before it
   options.on_gba_solve_start = gate.hook();
   BackendWorker worker(options, registry_, nullptr);
   std::thread mission_end([&] { worker.drain(true); });

@@ -165,6 +165,26 @@ TEST_F(BatchIngestTest, KeyframeIsStoredWithTheStateAndKeypointsItWasSentWith) {
   EXPECT_FLOAT_EQ(static_cast<float>(point->p_w.x()), batch.points(1).p_w(0));
 }
 
+TEST_F(BatchIngestTest, EveryKeypointIsStoredUndistortedToo) {
+  dataset::CameraCalibration calibration;
+  calibration.distortion_coefficients = {-0.2834, 0.0740, 0.0002, 0.00002};  // EuRoC cam0's radial-tangential
+  auto cam0 = camera::CameraModel::create(calibration);
+  ASSERT_TRUE(cam0.ok());
+  agent_.sensors->cam0 = *cam0;
+  ingestOk(makeKeyframeBatch(1, 0, 1));
+  auto content = map0()->read();
+  const ServerKeyframe* kf = content->keyframe(kfId(0));
+  ASSERT_NE(kf, nullptr);
+  ASSERT_EQ(kf->keypoints_undistorted.size(), kf->keypoints.size());
+  double moved_px = 0.0;  // the undistorted pixels differ from the keypoints
+  for (std::size_t k = 0; k < kf->keypoints.size(); ++k) {
+    const Eigen::Vector2d expected = agent_.sensors->cam0.undistortPixel(kf->keypoints[k].px.cast<double>());
+    EXPECT_LT((kf->keypoints_undistorted[k].cast<double>() - expected).norm(), 1e-3) << "keypoint " << k;
+    moved_px = std::max(moved_px, (expected - kf->keypoints[k].px.cast<double>()).norm());
+  }
+  EXPECT_GT(moved_px, 0.5);
+}
+
 TEST_F(BatchIngestTest, PreintegrationBetweenConsecutiveKeyframesIsRebuiltFromTheRawSamples) {
   ingestOk(makeKeyframeBatch(1, 0, 2));
 
