@@ -98,19 +98,23 @@ def report_backend(out, mission, server_agents, summary):
                    "redundant_keyframes_removed": backend.get("redundant_keyframes_removed", 0),
                    "redundancy_checked": backend.get("redundancy_checked", 0),
                    "redundant_removed_by_final_pass": backend.get("redundant_removed_by_final_pass", 0),
+                   "redundant_kept_for_imu_gap": backend.get("redundant_kept_for_imu_gap", 0),
                    "new_keyframes_fused": backend.get("new_keyframes_fused", 0),
                    "new_keyframe_links": backend.get("new_keyframe_links", 0),
                    "new_keyframe_point_merges": backend.get("new_keyframe_point_merges", 0),
                    "new_keyframe_fuse_ms_mean": backend.get("new_keyframe_fuse_ms_mean", 0.0),
-                   "new_keyframe_fuse_ms_max": backend.get("new_keyframe_fuse_ms_max", 0.0)}
+                   "new_keyframe_fuse_ms_max": backend.get("new_keyframe_fuse_ms_max", 0.0),
+                   "new_keyframe_fuse_locked_ms_max": backend.get("new_keyframe_fuse_locked_ms_max", 0.0)}
         print(f"merges {section['merges']}, loops closed {section['loops']}; GBA {len(gba)} runs (largest "
               f"{biggest} KFs, solve max {section['gba_solve_s_max'] or 0:.2f} s), {section['gba_cancelled']} cut short "
               f"by a newer change; redundant KFs removed {section['redundant_keyframes_removed']} of "
-              f"{section['redundancy_checked']} checked ({section['redundant_removed_by_final_pass']} by the final pass)")
+              f"{section['redundancy_checked']} checked ({section['redundant_removed_by_final_pass']} by the final pass; "
+              f"{section['redundant_kept_for_imu_gap']} redundant kept for the 2 s IMU gap)")
         print(f"new keyframes fused with their covisible and nearby keyframes: {section['new_keyframes_fused']} "
               f"({section['new_keyframe_links']} keypoints linked, {section['new_keyframe_point_merges']} points "
               f"merged; {section['new_keyframe_fuse_ms_mean']:.1f} ms mean, "
-              f"{section['new_keyframe_fuse_ms_max']:.1f} ms max per keyframe)")
+              f"{section['new_keyframe_fuse_ms_max']:.1f} ms max per keyframe, of which under the map's locks at most "
+              f"{section['new_keyframe_fuse_locked_ms_max']:.1f} ms)")
     else:
         print("no backend.json (the server ran with --no-backend)")
     print("ingest per batch, arrival to stored with map-lock waits included [ms]: all batches, and those that met "

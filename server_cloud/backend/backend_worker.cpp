@@ -306,16 +306,23 @@ void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const
   if (!map) return;
   const auto start = Clock::now();
   const CameraTable cameras(sensorsOf(mission));
-  std::vector<ProjectionMatch> matches;
+  // Copy what the search needs under the read lock, search without a lock, apply under the write lock: ingest
+  // waits for the copy and the apply only.
+  NewKeyframeSearch search;
+  double locked_ms = 0.0;
   {
     const auto content = map->read();
     if (content->keyframe(keyframe) == nullptr) return;  // removed meanwhile
-    matches = searchNewKeyframe(*content, keyframe, cameras.lookup(), options_.fusion);
+    search = gatherNewKeyframeSearch(*content, keyframe, cameras.lookup(), options_.fusion);
   }
+  locked_ms += std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+  const std::vector<ProjectionMatch> matches = searchNewKeyframe(search, options_.fusion);
   FusionReport report;
   if (!matches.empty()) {
+    const auto apply_start = Clock::now();
     auto content = map->write();
     applyProjectionMatches(*content, matches, report);
+    locked_ms += std::chrono::duration<double, std::milli>(Clock::now() - apply_start).count();
   }
   const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   const std::lock_guard lock(mutex_);
@@ -324,6 +331,7 @@ void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const
   state.stats.new_keyframe_point_merges += static_cast<std::uint64_t>(report.projection_fused);
   state.stats.new_keyframe_fuse_ms_max = std::max(state.stats.new_keyframe_fuse_ms_max, ms);
   state.stats.new_keyframe_fuse_ms_total += ms;
+  state.stats.new_keyframe_fuse_locked_ms_max = std::max(state.stats.new_keyframe_fuse_locked_ms_max, locked_ms);
 }
 
 void BackendWorker::handleMatch(const Event& event) {
@@ -525,6 +533,7 @@ void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId
   const std::lock_guard lock(mutex_);
   state.stats.redundancy_checked += static_cast<std::uint64_t>(report.checked);
   state.stats.redundant_removed += report.removed_keyframes.size();
+  state.stats.redundant_kept_for_imu_gap += static_cast<std::uint64_t>(report.kept_for_imu_gap);
   state.stats.points_removed += report.removed_points.size();
 }
 

@@ -52,8 +52,8 @@ struct BackendOptions {
   bool merge_maps = true;
   bool close_loops = true;
   bool gba_after_change = true;  // after every merge and loop
-  // Fuse every new keyframe with its covisible and nearby keyframes' points (searched under the map's read lock,
-  // applied under its write lock).
+  // Fuse every new keyframe with its covisible and nearby keyframes' points (what the search needs is copied
+  // under the map's read lock, the search runs without a lock, the result is applied under the write lock).
   bool fuse_new_keyframes = true;
   // A loop whose query keyframe is within this many keyframes of its agent's previous loop is left out (the
   // pose graph and GBA of the previous one already hold it).
@@ -124,8 +124,10 @@ struct BackendStats {
   std::uint64_t new_keyframe_point_merges = 0;
   double new_keyframe_fuse_ms_max = 0.0;  // search and apply of one keyframe
   double new_keyframe_fuse_ms_total = 0.0;
+  double new_keyframe_fuse_locked_ms_max = 0.0;  // of which under the map's locks (the copy and the apply)
   std::uint64_t redundancy_checked = 0;
   std::uint64_t final_pass_removed = 0;  // of redundant_removed, by the final pass
+  std::uint64_t redundant_kept_for_imu_gap = 0;  // redundant, but removing it would leave too long an IMU link
   std::uint64_t redundant_removed = 0;
   std::uint64_t points_removed = 0;
   std::uint64_t dropped_events = 0;

@@ -97,12 +97,12 @@ namespace {
 // A keyframe's keypoints bucketed by pixel, so that a projection looks at its neighbourhood only.
 class KeypointGrid {
  public:
-  KeypointGrid(const ServerKeyframe& kf, double width, double height)
+  KeypointGrid(const std::vector<features::Keypoint>& keypoints, double width, double height)
       : columns_(std::max(1, static_cast<int>(std::ceil(width / kCell)))),
         rows_(std::max(1, static_cast<int>(std::ceil(height / kCell)))),
         cells_(static_cast<std::size_t>(columns_ * rows_)) {
-    for (std::size_t k = 0; k < kf.keypoints.size(); ++k) {
-      const Eigen::Vector2f& px = kf.keypoints[k].px;
+    for (std::size_t k = 0; k < keypoints.size(); ++k) {
+      const Eigen::Vector2f& px = keypoints[k].px;
       cells_[cellOf(column(px.x()), row(px.y()))].push_back(static_cast<std::uint16_t>(k));
     }
   }
@@ -133,48 +133,70 @@ class KeypointGrid {
 
 }  // namespace
 
-std::vector<ProjectionMatch> searchByProjection(const MapContent& map, const std::vector<KeyframeId>& keyframes,
-                                                const std::vector<MapPointId>& points,
-                                                const recognition::CameraLookup& cameras,
-                                                const FusionOptions& options) {
-  std::vector<ProjectionMatch> out;
+ProjectionSearchInput gatherProjectionSearch(const MapContent& map, const std::vector<KeyframeId>& keyframes,
+                                             const std::vector<MapPointId>& points,
+                                             const recognition::CameraLookup& cameras) {
+  ProjectionSearchInput input;
   for (const KeyframeId& id : keyframes) {
     const ServerKeyframe* kf = map.keyframe(id);
     if (kf == nullptr) continue;
     const recognition::AgentCamera* camera = cameras(id.agent);
     if (camera == nullptr) continue;
-    const SE3d T_c_w = (kf->T_w_s * camera->T_s_c).inverse();
-    const double width = camera->camera.width();
-    const double height = camera->camera.height();
-    const KeypointGrid grid(*kf, width, height);
-    for (const MapPointId& pid : points) {
-      const ServerMapPoint* p = map.point(map.resolvePoint(pid));
-      if (p == nullptr) continue;
-      if (std::any_of(p->observations.begin(), p->observations.end(),
-                      [&](const ServerMapPoint::Observation& o) { return o.keyframe == id; })) {
-        continue;
-      }
-      const Eigen::Vector3d X_c = T_c_w * p->p_w;
-      const std::optional<Eigen::Vector2d> px = camera->camera.project(X_c);
+    ProjectionSearchInput::Target& t = input.targets.emplace_back();
+    t.id = id;
+    t.T_c_w = (kf->T_w_s * camera->T_s_c).inverse();
+    t.camera = camera;
+    t.keypoints = kf->keypoints;
+    t.descriptors = kf->descriptors;
+    for (std::size_t k = 0; k < kf->has_point.size(); ++k) {
+      if (kf->has_point[k] != 0) t.observed.insert(kf->point[k]);
+    }
+  }
+  std::unordered_set<MapPointId> seen;
+  for (const MapPointId& pid : points) {
+    const ServerMapPoint* p = map.point(map.resolvePoint(pid));
+    if (p == nullptr || !seen.insert(p->id).second) continue;
+    input.points.push_back(ProjectionSearchInput::Point{p->id, p->p_w, p->descriptor, p->octave});
+  }
+  return input;
+}
+
+std::vector<ProjectionMatch> searchByProjection(const ProjectionSearchInput& input, const FusionOptions& options) {
+  std::vector<ProjectionMatch> out;
+  for (const ProjectionSearchInput::Target& t : input.targets) {
+    const double width = t.camera->camera.width();
+    const double height = t.camera->camera.height();
+    const KeypointGrid grid(t.keypoints, width, height);
+    for (const ProjectionSearchInput::Point& p : input.points) {
+      if (t.observed.count(p.id) != 0) continue;
+      const Eigen::Vector3d X_c = t.T_c_w * p.p_w;
+      const std::optional<Eigen::Vector2d> px = t.camera->camera.project(X_c);
       if (!px || px->x() < 0.0 || px->y() < 0.0 || px->x() >= width || px->y() >= height) continue;
-      const double radius = options.search_radius_px * std::pow(options.pyramid_scale_factor, p->octave);
+      const double radius = options.search_radius_px * std::pow(options.pyramid_scale_factor, p.octave);
       int best = std::numeric_limits<int>::max();
       int best_keypoint = -1;
       grid.forEachNear(*px, radius, [&](std::uint16_t k) {
-        const features::Keypoint& key = kf->keypoints[k];
+        const features::Keypoint& key = t.keypoints[k];
         if ((key.px.cast<double>() - *px).squaredNorm() > radius * radius) return;
-        if (std::abs(static_cast<int>(key.octave) - static_cast<int>(p->octave)) > 1) return;
-        const int distance = features::hammingDistance(kf->descriptors[k], p->descriptor);
+        if (std::abs(static_cast<int>(key.octave) - static_cast<int>(p.octave)) > 1) return;
+        const int distance = features::hammingDistance(t.descriptors[k], p.descriptor);
         if (distance < best || (distance == best && static_cast<int>(k) < best_keypoint)) {
           best = distance;
           best_keypoint = static_cast<int>(k);
         }
       });
       if (best_keypoint < 0 || best > options.max_descriptor_distance) continue;
-      out.push_back(ProjectionMatch{id, static_cast<std::uint16_t>(best_keypoint), p->id});
+      out.push_back(ProjectionMatch{t.id, static_cast<std::uint16_t>(best_keypoint), p.id});
     }
   }
   return out;
+}
+
+std::vector<ProjectionMatch> searchByProjection(const MapContent& map, const std::vector<KeyframeId>& keyframes,
+                                                const std::vector<MapPointId>& points,
+                                                const recognition::CameraLookup& cameras,
+                                                const FusionOptions& options) {
+  return searchByProjection(gatherProjectionSearch(map, keyframes, points, cameras), options);
 }
 
 void applyProjectionMatches(MapContent& map, const std::vector<ProjectionMatch>& matches, FusionReport& report) {
@@ -218,19 +240,31 @@ std::vector<KeyframeId> nearbyKeyframes(const MapContent& map, const KeyframeId&
   return out;
 }
 
-std::vector<ProjectionMatch> searchNewKeyframe(const MapContent& map, const KeyframeId& keyframe,
-                                               const recognition::CameraLookup& cameras,
-                                               const FusionOptions& options) {
+NewKeyframeSearch gatherNewKeyframeSearch(const MapContent& map, const KeyframeId& keyframe,
+                                          const recognition::CameraLookup& cameras, const FusionOptions& options) {
   std::vector<KeyframeId> partners = neighbourhood(map, keyframe, options.neighbours);
   if (!partners.empty()) partners.erase(partners.begin());  // itself
   for (const KeyframeId& id : nearbyKeyframes(map, keyframe, cameras, options)) {
     if (std::find(partners.begin(), partners.end(), id) == partners.end()) partners.push_back(id);
   }
-  if (partners.empty()) return {};
-  std::vector<ProjectionMatch> out = searchByProjection(map, {keyframe}, pointsOf(map, partners), cameras, options);
-  std::vector<ProjectionMatch> back = searchByProjection(map, partners, pointsOf(map, {keyframe}), cameras, options);
+  NewKeyframeSearch search;
+  if (partners.empty()) return search;
+  search.into_keyframe = gatherProjectionSearch(map, {keyframe}, pointsOf(map, partners), cameras);
+  search.into_partners = gatherProjectionSearch(map, partners, pointsOf(map, {keyframe}), cameras);
+  return search;
+}
+
+std::vector<ProjectionMatch> searchNewKeyframe(const NewKeyframeSearch& search, const FusionOptions& options) {
+  std::vector<ProjectionMatch> out = searchByProjection(search.into_keyframe, options);
+  std::vector<ProjectionMatch> back = searchByProjection(search.into_partners, options);
   out.insert(out.end(), back.begin(), back.end());
   return out;
+}
+
+std::vector<ProjectionMatch> searchNewKeyframe(const MapContent& map, const KeyframeId& keyframe,
+                                               const recognition::CameraLookup& cameras,
+                                               const FusionOptions& options) {
+  return searchNewKeyframe(gatherNewKeyframeSearch(map, keyframe, cameras, options), options);
 }
 
 FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,

@@ -16,10 +16,12 @@
 // know those points, so it makes them again, and only the server can join them.
 #pragma once
 
+#include <unordered_set>
 #include <vector>
 
 #include "common/core/ids.hpp"
 #include "common/core/result.hpp"
+#include "common/features/orb.hpp"
 #include "common/geometry/lie.hpp"
 #include "server_cloud/recognition/place_recognition.hpp"
 #include "server_cloud/stack/map_content.hpp"
@@ -72,8 +74,36 @@ std::vector<MapPointId> pointsOf(const MapContent& map, const std::vector<Keyfra
 std::vector<KeyframeId> nearbyKeyframes(const MapContent& map, const KeyframeId& keyframe,
                                         const recognition::CameraLookup& cameras, const FusionOptions& options);
 
-// Projects `points` into `keyframes` and finds, for each, the keypoint close to the projection with the closest
-// descriptor (within the options' bounds). Reads only, so it can run under a read lock.
+// What a projection search needs from the map, copied under the map's read lock so that the search itself runs
+// without any lock. The cameras point into the lookup's table, which must outlive the input.
+struct ProjectionSearchInput {
+  struct Target {
+    KeyframeId id;
+    geometry::SE3d T_c_w;
+    const recognition::AgentCamera* camera = nullptr;
+    std::vector<features::Keypoint> keypoints;
+    std::vector<features::Descriptor> descriptors;
+    std::unordered_set<MapPointId> observed;  // points it observes already
+  };
+  struct Point {
+    MapPointId id;
+    Eigen::Vector3d p_w = Eigen::Vector3d::Zero();
+    features::Descriptor descriptor{};
+    std::uint8_t octave = 0;
+  };
+  std::vector<Target> targets;
+  std::vector<Point> points;
+};
+
+ProjectionSearchInput gatherProjectionSearch(const MapContent& map, const std::vector<KeyframeId>& keyframes,
+                                             const std::vector<MapPointId>& points,
+                                             const recognition::CameraLookup& cameras);
+
+// Projects the points into the targets and finds, for each, the keypoint close to the projection with the closest
+// descriptor (within the options' bounds). Touches no map.
+std::vector<ProjectionMatch> searchByProjection(const ProjectionSearchInput& input, const FusionOptions& options);
+
+// gatherProjectionSearch, then searchByProjection.
 std::vector<ProjectionMatch> searchByProjection(const MapContent& map, const std::vector<KeyframeId>& keyframes,
                                                 const std::vector<MapPointId>& points,
                                                 const recognition::CameraLookup& cameras, const FusionOptions& options);
@@ -90,8 +120,16 @@ void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes,
 FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,
                        const recognition::CameraLookup& cameras, const FusionOptions& options);
 
-// The matches that fuse a new keyframe with its partners, both ways: its partners' points projected into it, and
-// its points projected into its partners. Reads only.
+// A new keyframe's fusion with its partners, both ways: its partners' points projected into it, and its points
+// projected into its partners.
+struct NewKeyframeSearch {
+  ProjectionSearchInput into_keyframe;
+  ProjectionSearchInput into_partners;
+};
+NewKeyframeSearch gatherNewKeyframeSearch(const MapContent& map, const KeyframeId& keyframe,
+                                          const recognition::CameraLookup& cameras, const FusionOptions& options);
+std::vector<ProjectionMatch> searchNewKeyframe(const NewKeyframeSearch& search, const FusionOptions& options);
+// Both, on the map (which must stay unchanged meanwhile).
 std::vector<ProjectionMatch> searchNewKeyframe(const MapContent& map, const KeyframeId& keyframe,
                                                const recognition::CameraLookup& cameras, const FusionOptions& options);
 

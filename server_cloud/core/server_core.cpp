@@ -441,11 +441,13 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
   j["new_keyframe_links"] = b.new_keyframe_links;
   j["new_keyframe_point_merges"] = b.new_keyframe_point_merges;
   j["new_keyframe_fuse_ms_max"] = b.new_keyframe_fuse_ms_max;
+  j["new_keyframe_fuse_locked_ms_max"] = b.new_keyframe_fuse_locked_ms_max;
   j["new_keyframe_fuse_ms_mean"] =
       b.new_keyframes_fused == 0 ? 0.0 : b.new_keyframe_fuse_ms_total / static_cast<double>(b.new_keyframes_fused);
   j["redundancy_checked"] = b.redundancy_checked;
   j["redundant_keyframes_removed"] = b.redundant_removed;
   j["redundant_removed_by_final_pass"] = b.final_pass_removed;
+  j["redundant_kept_for_imu_gap"] = b.redundant_kept_for_imu_gap;
   j["points_removed"] = b.points_removed;
   j["dropped_events"] = b.dropped_events;
   j["final_keyframe_coverage"] = final_coverage;
