@@ -10,6 +10,7 @@
 #include <vector>
 
 #include <google/protobuf/arena.h>
+#include <google/protobuf/io/coded_stream.h>
 #include <nlohmann/json.hpp>
 
 #include "agent_rt/link/link_client.hpp"
@@ -222,6 +223,15 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
           for (const auto& c : s.downlink.corrected_keyframes()) correction_bytes += c.ByteSizeLong();
           s.count(s.down_by_kind, "correction", static_cast<std::uint64_t>(s.downlink.corrected_keyframes_size()),
                   correction_bytes);
+        }
+        if (s.downlink.removed_keyframes_size() > 0) {
+          // Counted only: the agent's local map keeps its own keyframes (using the server's map is issue 14's).
+          std::uint64_t removal_bytes = 0;
+          for (std::uint32_t c : s.downlink.removed_keyframes()) {
+            removal_bytes += google::protobuf::io::CodedOutputStream::VarintSize32(c);
+          }
+          s.count(s.down_by_kind, "removal", static_cast<std::uint64_t>(s.downlink.removed_keyframes_size()),
+                  removal_bytes);
         }
       }
       if (!s.client.connected()) {

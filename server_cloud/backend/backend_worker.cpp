@@ -58,23 +58,6 @@ AgentSensorsMap sensorsOf(const Mission& mission) {
   return out;
 }
 
-// Every agent's cam0, in the form point fusion looks cameras up in.
-class CameraTable {
- public:
-  explicit CameraTable(const AgentSensorsMap& sensors) {
-    for (const auto& [agent, s] : sensors) cameras_.emplace(agent, recognition::AgentCamera{s.cam0, s.T_s_c0});
-  }
-  [[nodiscard]] recognition::CameraLookup lookup() const {
-    return [this](AgentId agent) -> const recognition::AgentCamera* {
-      const auto it = cameras_.find(agent);
-      return it == cameras_.end() ? nullptr : &it->second;
-    };
-  }
-
- private:
-  std::map<AgentId, recognition::AgentCamera> cameras_;
-};
-
 // Brings the records up to date after `applied` changed the map: each agent map's T_m_w follows its newest
 // keyframe, and every changed keyframe is queued for the downlink.
 void updateRecords(std::map<AgentId, AgentRecord*>& records, const AppliedCorrections& applied) {
@@ -92,10 +75,28 @@ void updateRecords(std::map<AgentId, AgentRecord*>& records, const AppliedCorrec
 
 }  // namespace
 
+// Every agent's cam0, in the form point fusion looks cameras up in.
+class BackendWorker::CameraTable {
+ public:
+  explicit CameraTable(const AgentSensorsMap& sensors) {
+    for (const auto& [agent, s] : sensors) cameras_.emplace(agent, recognition::AgentCamera{s.cam0, s.T_s_c0});
+  }
+  [[nodiscard]] recognition::CameraLookup lookup() const {
+    return [this](AgentId agent) -> const recognition::AgentCamera* {
+      const auto it = cameras_.find(agent);
+      return it == cameras_.end() ? nullptr : &it->second;
+    };
+  }
+
+ private:
+  std::map<AgentId, recognition::AgentCamera> cameras_;
+};
+
 struct BackendWorker::MissionState {
   std::map<MapId, std::vector<LoopEdge>> loops;  // every loop closed per map, for later pose graphs
   std::map<AgentId, std::uint32_t> last_loop_query;
   std::map<MapId, int> keyframes_since_redundancy;
+  std::map<MapId, MapId> merged_into;  // maps that went, and the map each went into
   std::mt19937_64 rng;
   BackendStats stats;  // under the worker's mutex
 };
@@ -261,7 +262,8 @@ void BackendWorker::handleKeyframes(const Event& event) {
     s = &state(event.mission);
   }
   if (options_.fuse_new_keyframes) {
-    for (const auto& [map, keyframe] : event.keyframes) fuseNewKeyframe(*mission, *s, keyframe);
+    const CameraTable cameras(sensorsOf(*mission));
+    for (const auto& [map, keyframe] : event.keyframes) fuseNewKeyframe(*mission, *s, cameras, keyframe);
   }
   if (!options_.redundancy.enabled) return;
   std::vector<MapId> due;
@@ -295,7 +297,8 @@ void BackendWorker::finalRedundancyPass(const std::string& name) {
   s->stats.final_pass_removed += s->stats.redundant_removed - before;
 }
 
-void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const KeyframeId& keyframe) {
+void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const CameraTable& cameras,
+                                    const KeyframeId& keyframe) {
   // The map that holds the keyframe now (a merge may have moved it since ingest).
   std::shared_ptr<ServerMap> map;
   if (SharedAgentRecord record = mission.findAgent(keyframe.agent)) {
@@ -305,7 +308,6 @@ void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const
   }
   if (!map) return;
   const auto start = Clock::now();
-  const CameraTable cameras(sensorsOf(mission));
   // Copy what the search needs under the read lock, search without a lock, apply under the write lock: ingest
   // waits for the copy and the apply only.
   NewKeyframeSearch search;
@@ -403,7 +405,6 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   }
   record.match_to_merged_s = secondsSince(arrived);
   std::size_t index = 0;
-  std::optional<GbaRequest> orphan;  // a queued GBA of the map that went: its waiters wait for the merged map's
   {
     const std::lock_guard lock(mutex_);
     auto& loops = state.loops[into->id()];
@@ -412,17 +413,8 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     state.loops.erase(from->id());
     state.stats.merges.push_back(record);
     index = state.stats.merges.size() - 1;
-    const auto queued = std::find_if(gba_queue_.begin(), gba_queue_.end(), [&](const GbaRequest& r) {
-      return r.mission == mission.name() && r.map == from->id();
-    });
-    if (queued != gba_queue_.end()) {
-      orphan = std::move(*queued);
-      gba_queue_.erase(queued);
-    }
-  }
-  if (orphan) {
-    for (const auto& waiter : orphan->waiting) requestGba(mission.name(), into->id(), orphan->final, waiter, orphan->since);
-    if (orphan->waiting.empty()) requestGba(mission.name(), into->id(), orphan->final, std::nullopt, orphan->since);
+    // A GBA of the map that went, queued or about to start, hands its waiters on to this one (see gba()).
+    state.merged_into[from->id()] = into->id();
   }
   if (options_.gba_after_change) requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived);
 }
@@ -521,6 +513,7 @@ void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId
       const auto it = locks.records().find(id.agent);
       if (it == locks.records().end()) continue;
       it->second->server_removed_keyframes.insert(id.counter);
+      it->second->removals_to_send.insert(id.counter);
       it->second->corrections.erase(id.counter);
     }
   }
@@ -589,8 +582,22 @@ void BackendWorker::runGba() {
 void BackendWorker::gba(const GbaRequest& request) {
   const std::shared_ptr<Mission> mission = missions_.find(request.mission);
   if (!mission) return;
+  // A map merged into another before its GBA could run: its waiters (and the final flag) wait for that map's GBA.
+  const auto forward = [&] {
+    MapId target = request.map;
+    {
+      const std::lock_guard lock(mutex_);
+      const MissionState& s = state(request.mission);
+      for (auto it = s.merged_into.find(target); it != s.merged_into.end(); it = s.merged_into.find(target)) {
+        target = it->second;
+      }
+    }
+    if (target == request.map) return;
+    if (request.waiting.empty() && request.final) requestGba(request.mission, target, true, std::nullopt, request.since);
+    for (const auto& waiter : request.waiting) requestGba(request.mission, target, request.final, waiter, request.since);
+  };
   const std::shared_ptr<ServerMap> map = mission->stack().find(request.map);
-  if (!map) return;  // merged into another meanwhile: that one has its own request
+  if (!map) return forward();
   // From the snapshot to the applied result, ingest times its batches as "during GBA".
   struct RunningGba {
     Mission& mission;
@@ -604,12 +611,15 @@ void BackendWorker::gba(const GbaRequest& request) {
   record.map = request.map;
   record.final = request.final;
   Result<GbaSnapshot> snapshot = Error{ErrorCode::kInternal, "no snapshot"};
+  bool emptied = false;  // by a merge while this waited for the lock
   {
     const auto start = Clock::now();
     const auto content = map->read();
-    snapshot = makeGbaSnapshot(*content, sensors);
+    emptied = content->keyframes().empty();
+    if (content->keyframes().size() >= 2) snapshot = makeGbaSnapshot(*content, sensors);
     record.snapshot_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   }
+  if (emptied) return forward();
   if (!snapshot) return;
   if (options_.on_gba_solve_start) options_.on_gba_solve_start(request.map);
   Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options_.gba, &gba_cancel_);

@@ -163,6 +163,7 @@ class BackendWorker {
     std::chrono::steady_clock::time_point arrived;
   };
   struct MissionState;
+  class CameraTable;
   struct GbaRequest {
     std::string mission;
     MapId map = 0;
@@ -182,7 +183,7 @@ class BackendWorker {
                  std::chrono::steady_clock::time_point arrived);
   void handleKeyframes(const Event& event);
   void finalRedundancyPass(const std::string& mission);
-  void fuseNewKeyframe(Mission& mission, MissionState& state, const KeyframeId& keyframe);
+  void fuseNewKeyframe(Mission& mission, MissionState& state, const CameraTable& cameras, const KeyframeId& keyframe);
   // Checks `checks` random keyframes of the map (options_.redundancy.checks_per_round when 0).
   void removeRedundant(Mission& mission, MissionState& state, MapId map, int checks = 0);
   void requestGba(const std::string& mission, MapId map, bool final, std::optional<std::pair<bool, std::size_t>> waiter,

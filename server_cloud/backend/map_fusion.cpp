@@ -172,7 +172,8 @@ std::vector<ProjectionMatch> searchByProjection(const ProjectionSearchInput& inp
       const Eigen::Vector3d X_c = t.T_c_w * p.p_w;
       const std::optional<Eigen::Vector2d> px = t.camera->camera.project(X_c);
       if (!px || px->x() < 0.0 || px->y() < 0.0 || px->x() >= width || px->y() >= height) continue;
-      const double radius = options.search_radius_px * std::pow(options.pyramid_scale_factor, p.octave);
+      // The octave comes from an agent: bounded by an 8-level pyramid, so that no point searches a whole image.
+      const double radius = options.search_radius_px * std::pow(options.pyramid_scale_factor, std::min<int>(p.octave, 7));
       int best = std::numeric_limits<int>::max();
       int best_keypoint = -1;
       grid.forEachNear(*px, radius, [&](std::uint16_t k) {

@@ -264,7 +264,7 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
     auto record = record_->write();
     if (record->connections != stream_) return false;
     const bool new_ack = record->stored_sequence > acked_sent_;
-    if (!new_ack && record->corrections.empty()) return false;
+    if (!new_ack && record->corrections.empty() && record->removals_to_send.empty()) return false;
     out.set_acked_sequence(record->stored_sequence);
     // The server's states of corrected keyframes, in the agent's world frame (T_m_w inverted).
     while (!record->corrections.empty() && corrections < options_.max_corrections_per_message) {
@@ -283,6 +283,17 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
       wire::KeyframeStateValues state{T_w_m * kf->T_w_s, T_w_m.so3() * kf->v_w, kf->bias};
       wire::toProto(counter, state, out.add_corrected_keyframes());
       ++corrections;
+    }
+    // Keyframes removed as redundant, oldest first, within the same per-message bound.
+    int removals = 0;
+    const std::size_t bytes_before = out.ByteSizeLong();
+    while (!record->removals_to_send.empty() && removals < options_.max_corrections_per_message) {
+      out.add_removed_keyframes(*record->removals_to_send.begin());
+      record->removals_to_send.erase(record->removals_to_send.begin());
+      ++removals;
+    }
+    if (removals > 0) {
+      record->down["removal"].add(static_cast<std::uint64_t>(removals), out.ByteSizeLong() - bytes_before);
     }
     out.set_sequence(++down_sequence_);
     acked_sent_ = record->stored_sequence;

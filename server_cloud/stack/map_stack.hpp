@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <functional>
 #include <map>
+#include <set>
 #include <memory>
 #include <optional>
 #include <string>
@@ -152,6 +153,8 @@ struct AgentRecord {
   // Keyframes the server removed as redundant. They stay in `keyframes`, so that what the agent still sends
   // about them (an update, a removal) is accepted and dropped rather than refused.
   std::unordered_set<std::uint32_t> server_removed_keyframes;
+  // Of those, the ones not yet sent down.
+  std::set<std::uint32_t> removals_to_send;
   // What the server's maps hold of this agent: its keyframes less those removed as redundant.
   [[nodiscard]] std::size_t serverKeyframes() const {
     return keyframes.size() - std::min(keyframes.size(), server_removed_keyframes.size());

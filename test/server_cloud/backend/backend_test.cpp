@@ -260,6 +260,33 @@ TEST(GlobalBa, ThePositionAndYawGaugeLetsGravityLevelATiltedMap) {
   }
 }
 
+TEST(GlobalBa, TheSnapshotTakesTheKeypointsIngestUndistorted) {
+  const test::ViScenario s = scenario(6, 0.5, 0.3);
+  MapContent map(0);
+  buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 5}, nullptr);
+  // Keyframe 3 carries undistorted pixels that differ from its keypoints (as a distorting camera's would); the
+  // camera here has no distortion, so only the stored ones can give these values.
+  const Eigen::Vector2f offset(7.0F, -3.0F);
+  ServerKeyframe* kf3 = map.keyframe(KeyframeId{1, 3});
+  for (const features::Keypoint& key : kf3->keypoints) kf3->keypoints_undistorted.push_back(key.px + offset);
+  Result<GbaSnapshot> snapshot = makeGbaSnapshot(map, {{1, sensorsOf(s)}});
+  ASSERT_TRUE(snapshot.ok());
+  int checked = 0;
+  for (const GbaKeyframe& kf : snapshot->keyframes) {
+    const ServerKeyframe& held = *map.keyframe(kf.id);
+    Eigen::Vector2d shift = Eigen::Vector2d::Zero();
+    if (kf.id.counter == 3) shift = offset.cast<double>();
+    for (const GbaObservation& o : kf.observations) {
+      const bool from_a_keypoint = std::any_of(held.keypoints.begin(), held.keypoints.end(), [&](const auto& key) {
+        return (key.px.template cast<double>() + shift - o.px_undistorted).norm() < 1e-4;
+      });
+      EXPECT_TRUE(from_a_keypoint) << kf.id.toString();
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 100);
+}
+
 TEST(GlobalBa, ACancelledSolveSaysSoAndChangesNothing) {
   const test::ViScenario s = scenario(8, 0.5, 0.5);
   MapContent map(0);
@@ -497,12 +524,13 @@ TEST(NewKeyframeFusion, FindsTheSamePointsInANearbyKeyframeOfAnotherAgentAndMake
 TEST(NewKeyframeFusion, WithoutNearbyKeyframesOnlyItsOwnCovisibleOnesAreSearched) {
   TwoAgentsOnePlace place;
   FusionOptions options;
+  const auto touchesAgent1 = [](const std::vector<ProjectionMatch>& matches) {
+    return std::any_of(matches.begin(), matches.end(),
+                       [](const ProjectionMatch& m) { return m.point.agent == 1U || m.keyframe.agent == 1U; });
+  };
+  EXPECT_TRUE(touchesAgent1(searchNewKeyframe(place.map, KeyframeId{2, 8}, place.lookup(), options)));
   options.nearby_keyframes = 0;
-  const std::vector<ProjectionMatch> matches = searchNewKeyframe(place.map, KeyframeId{2, 8}, place.lookup(), options);
-  for (const ProjectionMatch& m : matches) {
-    EXPECT_EQ(m.point.agent, 2U);
-    EXPECT_EQ(m.keyframe.agent, 2U);
-  }
+  EXPECT_FALSE(touchesAgent1(searchNewKeyframe(place.map, KeyframeId{2, 8}, place.lookup(), options)));
 }
 
 TEST(NewKeyframeFusion, KeyframesThatLookTheOtherWayAreNotNearby) {
@@ -779,6 +807,12 @@ TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
   const BackendStats stats = worker.stats("m");
   const std::uint64_t removed = stats.redundant_removed;
   EXPECT_GT(removed, 5U);
+  {
+    // Every removal is queued for agent 1's downlink, once.
+    const auto agent1 = mission_->findAgent(1)->read();
+    EXPECT_EQ(agent1->removals_to_send.size(), removed);
+    EXPECT_EQ(agent1->server_removed_keyframes.size(), removed);
+  }
   EXPECT_EQ(stats.gba_cancelled, 1U) << "the merge cut the running GBA short";
   ASSERT_GE(stats.gba.size(), 2U);
   EXPECT_TRUE(stats.gba.front().summary.cancelled);
@@ -794,7 +828,18 @@ TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
   EXPECT_EQ(mission_->findAgent(2)->read()->agent_maps.at(0).map, map1->id());
 }
 
-TEST_F(BackendWorkerTest, ALoopWaitingForTheGbaOfAMapThatIsMergedAwayIsOptimisedWithTheMergedMap) {
+// A loop in map 2 waits for map 2's GBA, and map 2 is merged into map 1 before that GBA can run: the loop's time to
+// optimised must come from map 1's GBA. `hold` says whose GBA is held while the loop and the merge arrive.
+void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the_merged_away_map) {
+  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+  const auto addAgent = [&](const test::ViScenario& s, const AgentPlan& plan) {
+    std::shared_ptr<ServerMap> map = mission->stack().createMap();
+    auto record = mission->agent(plan.agent)->write();
+    record->sensors = sensorsOf(s);
+    record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+    buildAgentMap(*map->write(), s, plan, &*record);
+    return map;
+  };
   const test::ViScenario s = scenario(24, 0.5, 0.3);
   // Agent 2 drifts from keyframe 12 on (as in ALoopClosureRemovesAnInjectedDrift), in a frame of its own.
   const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, 0.6)), Vector3d(2.0, 1.0, -0.2));
@@ -806,11 +851,11 @@ TEST_F(BackendWorkerTest, ALoopWaitingForTheGbaOfAMapThatIsMergedAwayIsOptimised
   const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 0, .last = 23,
                                           .E = [&](int k) { return T_2_truth * drift_at(k); },
                                           .generation = [](int k) { return k >= 12 ? 1 : 0; }});
-  GbaGate gate(map1->id());
+  GbaGate gate(hold_the_merged_away_map ? map2->id() : map1->id());
   BackendOptions options;
   options.redundancy.enabled = false;
   options.on_gba_solve_start = gate.hook();
-  BackendWorker worker(options, registry_, nullptr);
+  BackendWorker worker(options, registry, nullptr);
   std::thread mission_end([&] { worker.drain(true); });
   gate.waitUntilHeld();
   // While map 1's GBA runs: a loop in map 2 (its GBA is queued behind), then map 2 merges into map 1.
@@ -833,10 +878,20 @@ TEST_F(BackendWorkerTest, ALoopWaitingForTheGbaOfAMapThatIsMergedAwayIsOptimised
   ASSERT_EQ(stats.merges.size(), 1U);
   EXPECT_GE(stats.loops[0].match_to_optimised_s, 0.0) << "the loop's waiter went with its map";
   EXPECT_GE(stats.merges[0].match_to_optimised_s, 0.0);
-  EXPECT_EQ(mission_->stack().find(map2->id()), nullptr);
+  EXPECT_EQ(mission->stack().find(map2->id()), nullptr);
   const auto merged = map1->read();
   EXPECT_TRUE(merged->checkConsistency().ok());
   EXPECT_LT(maxPositionError(*merged, s, 2), 0.03);
+}
+
+TEST(BackendMergeDuringGba, ALoopWaitingBehindAnotherMapsGbaIsOptimisedWithTheMapItsMapWentInto) {
+  MissionRegistry registry;
+  loopWaitingForAMapThatIsMergedAway(registry, false);
+}
+
+TEST(BackendMergeDuringGba, ALoopWaitingWhileItsOwnMapsGbaRunsIsOptimisedWithTheMapItsMapWentInto) {
+  MissionRegistry registry;
+  loopWaitingForAMapThatIsMergedAway(registry, true);
 }
 
 }  // namespace

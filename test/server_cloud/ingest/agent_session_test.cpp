@@ -547,6 +547,33 @@ TEST_F(AgentSessionTest, CorrectedKeyframeIsSentDownOnceUntilCorrectedAgain) {
   EXPECT_EQ(record()->read()->down.at("correction").messages, 2U);
 }
 
+TEST_F(AgentSessionTest, AKeyframeRemovedAsRedundantIsSentDownOnce) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 3);
+  v1::ServerDownlink ack;
+  ASSERT_TRUE(sut->nextDownlink(later(1), ack));
+  ASSERT_EQ(ack.removed_keyframes_size(), 0);
+  {
+    // What the back-end's redundancy removal leaves in the record (BackendWorker::removeRedundant).
+    auto r = record()->write();
+    r->server_removed_keyframes.insert(2);
+    r->removals_to_send.insert(2);
+  }
+  v1::ServerDownlink down;
+  v1::ServerDownlink after;
+  const bool sent = sut->nextDownlink(later(2), down);
+  const bool sent_again = sut->nextDownlink(later(4), after);
+
+  ASSERT_TRUE(sent);
+  ASSERT_EQ(down.removed_keyframes_size(), 1);
+  EXPECT_EQ(down.removed_keyframes(0), 2U);
+  EXPECT_FALSE(sent_again);  // sent once
+  const auto r = record()->read();
+  EXPECT_EQ(r->down.at("removal").messages, 1U);
+  EXPECT_GT(r->down.at("removal").bytes, 0U);
+  EXPECT_EQ(r->serverKeyframes(), 2U);
+}
+
 TEST_F(AgentSessionTest, CorrectingAKeyframeTheServerDoesNotHoldIsNotFound) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 1);
