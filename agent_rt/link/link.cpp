@@ -10,7 +10,6 @@
 #include <vector>
 
 #include <google/protobuf/arena.h>
-#include <google/protobuf/io/coded_stream.h>
 #include <nlohmann/json.hpp>
 
 #include "agent_rt/link/link_client.hpp"
@@ -227,11 +226,15 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
         if (s.downlink.removed_keyframes_size() > 0) {
           // Counted only: the agent's local map keeps its own keyframes (using the server's map is issue 14's).
           std::uint64_t removal_bytes = 0;
-          for (std::uint32_t c : s.downlink.removed_keyframes()) {
-            removal_bytes += google::protobuf::io::CodedOutputStream::VarintSize32(c);
-          }
+          for (std::uint32_t c : s.downlink.removed_keyframes()) removal_bytes += wire::varintBytes(c);
           s.count(s.down_by_kind, "removal", static_cast<std::uint64_t>(s.downlink.removed_keyframes_size()),
                   removal_bytes);
+        }
+        if (s.downlink.has_covisible()) {
+          // Counted only, for now: the mapping thread does not take anchors yet.
+          for (const wire::BatchPart& part : wire::covisibleParts(s.downlink.covisible())) {
+            if (part.count > 0) s.count(s.down_by_kind, part.kind, part.count, part.bytes);
+          }
         }
       }
       if (!s.client.connected()) {

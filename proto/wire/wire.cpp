@@ -218,6 +218,22 @@ std::array<BatchPart, 7> batchParts(const v1::MapBatch& b) {
            {"removal", count(b.removed_points_size() + b.removed_keyframes_size()), removal_bytes}}};
 }
 
+std::array<BatchPart, 3> covisibleParts(const v1::CovisibleMap& m) {
+  const auto sum = [](const auto& messages) {
+    std::uint64_t bytes = 0;
+    for (const auto& x : messages) bytes += x.ByteSizeLong();
+    return bytes;
+  };
+  std::uint64_t point_update_bytes = 4ULL * static_cast<std::uint64_t>(m.point_update_p_w_size());
+  for (std::uint32_t a : m.point_update_agent()) point_update_bytes += varintBytes(a);
+  for (std::uint32_t c : m.point_update_counter()) point_update_bytes += varintBytes(c);
+  const auto count = [](int n) { return static_cast<std::uint64_t>(n); };
+  return {{{"covisible_keyframe", count(m.keyframes_size()), sum(m.keyframes())},
+           {"covisible_point", count(m.points_size()), sum(m.points())},
+           {"covisible_update", count(m.keyframe_updates_size() + m.point_update_counter_size()),
+            sum(m.keyframe_updates()) + point_update_bytes}}};
+}
+
 std::uint8_t encodeAngle(float angle_deg) {
   float a = std::fmod(angle_deg, 360.0F);
   if (a < 0) a += 360.0F;

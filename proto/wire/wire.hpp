@@ -16,6 +16,7 @@
 
 namespace cvislam::v1 {
 class MapBatch;
+class CovisibleMap;
 class Pose;
 class KeyframeState;
 class CameraCalibration;
@@ -67,6 +68,9 @@ struct BatchPart {
   std::uint64_t bytes;
 };
 std::array<BatchPart, 7> batchParts(const v1::MapBatch& batch);
+// The same for the downlink's covisible map: covisible_keyframe, covisible_point, covisible_update (keyframe
+// poses and point positions the server changed).
+std::array<BatchPart, 3> covisibleParts(const v1::CovisibleMap& map);
 
 // Bytes of an unsigned varint: what an id costs in a packed repeated field.
 std::uint64_t varintBytes(std::uint64_t value);

@@ -49,6 +49,8 @@ std::string ServerOptions::describe() const {
       << "  timeline_interval_s:          " << timeline_interval_s << "\n"
       << "  downlink_rate_hz:             " << session.downlink_rate_hz << "\n"
       << "  max_corrections_per_message:  " << session.max_corrections_per_message << "\n"
+      << "  covisible_map:                " << (session.covisible.enabled ? "true" : "false") << " (K "
+      << session.covisible.keyframes << ", budget " << session.covisible.budget_bytes << " B per message)\n"
       << "  max_keypoints_per_keyframe:   " << session.ingest.max_keypoints_per_keyframe << "\n"
       << "  max_imu_samples_per_keyframe: " << session.ingest.max_imu_samples_per_keyframe << "\n"
       << "  max_maps_per_agent:           " << session.ingest.max_maps_per_agent << "\n"
@@ -79,6 +81,11 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   config::YamlSection link(root["link"], "link");
   link.read("downlink_rate_hz", o.session.downlink_rate_hz);
   link.read("max_corrections_per_message", o.session.max_corrections_per_message);
+  link.read("covisible_map", o.session.covisible.enabled);
+  link.read("covisible_keyframes", o.session.covisible.keyframes);
+  link.read("covisible_seed_keyframes", o.session.covisible.seed_keyframes);
+  link.read("covisible_own_recent_excluded", o.session.covisible.own_recent_excluded);
+  link.read("downlink_budget_bytes", o.session.covisible.budget_bytes);
   link.read("keepalive_time_ms", o.keepalive_time_ms);
   link.read("keepalive_timeout_ms", o.keepalive_timeout_ms);
   if (Status s = link.finish(); !s.ok()) return in_file(s);

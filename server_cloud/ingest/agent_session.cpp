@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
+#include <functional>
+#include <vector>
 
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
@@ -70,6 +72,32 @@ Result<AgentSensors> sensorsFromHello(const v1::Hello& hello) {
   return sensors;
 }
 
+// The agent's newest keyframes that the server holds, newest first and at most `n`, all from the agent map of
+// the newest; with that map's server map and the agent's world frame in it (T_w_m).
+std::vector<KeyframeId> newestKeyframes(const AgentRecord& record, int n, MapId& map, std::uint32_t& agent_map,
+                                        geometry::SE3d& T_w_m) {
+  std::vector<std::uint32_t> counters;
+  counters.reserve(record.keyframes.size());
+  for (const auto& [counter, held] : record.keyframes) {
+    if (record.server_removed_keyframes.count(counter) == 0) counters.push_back(counter);
+  }
+  std::vector<KeyframeId> out;
+  if (counters.empty()) return out;
+  std::sort(counters.begin(), counters.end(), std::greater<>());
+  const AgentRecord::HeldKeyframe& newest = record.keyframes.at(counters.front());
+  const auto frame = record.agent_maps.find(newest.agent_map);
+  if (frame == record.agent_maps.end()) return out;
+  map = newest.map;
+  agent_map = newest.agent_map;
+  T_w_m = frame->second.T_m_w.inverse();
+  for (std::uint32_t counter : counters) {
+    if (static_cast<int>(out.size()) >= n) break;
+    const AgentRecord::HeldKeyframe& held = record.keyframes.at(counter);
+    if (held.agent_map == agent_map && held.map == map) out.push_back(KeyframeId{record.id, counter});
+  }
+  return out;
+}
+
 }  // namespace
 
 Status SessionOptions::validate() const {
@@ -84,7 +112,7 @@ Status SessionOptions::validate() const {
   if (ingest.max_keypoints_per_keyframe > 65535) {
     return invalid("max_keypoints_per_keyframe must be at most 65535 (keypoint indices are 16-bit)");
   }
-  return Status::Ok();
+  return covisible.validate();
 }
 
 AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& options,
@@ -92,7 +120,8 @@ AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& opti
     : missions_(missions),
       options_(options),
       cancel_stream_(std::move(cancel_stream)),
-      on_stored_(std::move(on_stored)) {}
+      on_stored_(std::move(on_stored)),
+      covisible_(options.covisible) {}
 
 AgentSession::~AgentSession() {
   close(Status::Ok());
@@ -252,6 +281,11 @@ void AgentSession::countDown(AgentRecord& record, const v1::ServerDownlink& mess
     for (const auto& c : message.corrected_keyframes()) correction_bytes += c.ByteSizeLong();
     record.down["correction"].add(static_cast<std::uint64_t>(corrections), correction_bytes);
   }
+  if (message.has_covisible()) {
+    for (const wire::BatchPart& part : wire::covisibleParts(message.covisible())) {
+      if (part.count > 0) record.down[part.kind].add(part.count, part.bytes);
+    }
+  }
 }
 
 bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) {
@@ -260,12 +294,18 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
   if (now - last_down_ < period) return false;
   out.Clear();
   int corrections = 0;
+  int removals = 0;
+  std::size_t removal_bytes = 0;
+  bool new_ack = false;
+  // The agent's newest keyframes, their server map and the agent's world frame in it, for the covisible map.
+  std::vector<KeyframeId> seeds;
+  MapId seed_map = 0;
+  std::uint32_t agent_map = 0;
+  geometry::SE3d T_w_m;
   {
     auto record = record_->write();
     if (record->connections != stream_) return false;
-    const bool new_ack = record->stored_sequence > acked_sent_;
-    if (!new_ack && record->corrections.empty() && record->removals_to_send.empty()) return false;
-    out.set_acked_sequence(record->stored_sequence);
+    new_ack = record->stored_sequence > acked_sent_;
     // The server's states of corrected keyframes, in the agent's world frame (T_m_w inverted).
     while (!record->corrections.empty() && corrections < options_.max_corrections_per_message) {
       const std::uint32_t counter = *record->corrections.begin();
@@ -274,29 +314,44 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
       if (held == record->keyframes.end()) continue;
       auto map = mission_->stack().find(held->second.map);
       if (!map) continue;
-      const geometry::SE3d T_w_m = record->agent_maps.count(held->second.agent_map) != 0
-                                       ? record->agent_maps.at(held->second.agent_map).T_m_w.inverse()
-                                       : geometry::SE3d();
+      const geometry::SE3d T_w_m_held = record->agent_maps.count(held->second.agent_map) != 0
+                                            ? record->agent_maps.at(held->second.agent_map).T_m_w.inverse()
+                                            : geometry::SE3d();
       auto content = map->read();
       const ServerKeyframe* kf = content->keyframe(KeyframeId{record->id, counter});
       if (kf == nullptr) continue;
-      wire::KeyframeStateValues state{T_w_m * kf->T_w_s, T_w_m.so3() * kf->v_w, kf->bias};
+      wire::KeyframeStateValues state{T_w_m_held * kf->T_w_s, T_w_m_held.so3() * kf->v_w, kf->bias};
       wire::toProto(counter, state, out.add_corrected_keyframes());
       ++corrections;
     }
     // Keyframes removed as redundant, oldest first, within the same per-message bound.
-    int removals = 0;
     const std::size_t bytes_before = out.ByteSizeLong();
     while (!record->removals_to_send.empty() && removals < options_.max_corrections_per_message) {
       out.add_removed_keyframes(*record->removals_to_send.begin());
       record->removals_to_send.erase(record->removals_to_send.begin());
       ++removals;
     }
-    if (removals > 0) {
-      record->down["removal"].add(static_cast<std::uint64_t>(removals), out.ByteSizeLong() - bytes_before);
+    removal_bytes = out.ByteSizeLong() - bytes_before;
+    if (options_.covisible.enabled) {
+      seeds = newestKeyframes(*record, options_.covisible.seed_keyframes, seed_map, agent_map, T_w_m);
     }
+  }
+  // The covisible map, built under the map's read lock alone (records are never locked after a map).
+  if (!seeds.empty()) {
+    const CovisibleCameras cameras = covisibleCameras(*mission_);
+    if (const std::shared_ptr<ServerMap> map = mission_->stack().find(seed_map)) {
+      const auto content = map->read();
+      covisible_.fill(*content, seeds, agent_map, T_w_m, cameras, *out.mutable_covisible());
+    }
+    if (out.covisible().ByteSizeLong() == 0) out.clear_covisible();  // nothing new to say
+  }
+  if (!new_ack && corrections == 0 && removals == 0 && !out.has_covisible()) return false;
+  {
+    auto record = record_->write();
+    out.set_acked_sequence(record->stored_sequence);
     out.set_sequence(++down_sequence_);
     acked_sent_ = record->stored_sequence;
+    if (removals > 0) record->down["removal"].add(static_cast<std::uint64_t>(removals), removal_bytes);
     countDown(*record, out, corrections);
     if (new_ack) record->down["ack"].add(1, 0);
   }

@@ -6,7 +6,8 @@
 //   MapBatch -> stored when its sequence is stored + 1; dropped (and acknowledged) when the server has it
 //               already; refused when it goes back within the stream or skips ahead.
 //   Goodbye  -> the agent has finished.
-//   every 1/downlink_rate_hz at most: an acknowledgement and the keyframes the server corrected.
+//   every 1/downlink_rate_hz at most: an acknowledgement, the keyframes the server corrected or removed, and
+//               the covisible map (covisible_downlink.hpp).
 #pragma once
 
 #include <chrono>
@@ -18,6 +19,7 @@
 
 #include "common/core/result.hpp"
 #include "server_cloud/ingest/batch_ingest.hpp"
+#include "server_cloud/ingest/covisible_downlink.hpp"
 #include "server_cloud/stack/map_stack.hpp"
 
 namespace cvislam::v1 {
@@ -33,6 +35,7 @@ struct SessionOptions {
   double downlink_rate_hz = 2.0;           // paper: at most 2 messages per second to an agent
   int max_corrections_per_message = 1000;  // the rest follow in the next messages
   IngestLimits ingest;
+  CovisibleOptions covisible;  // the map data of the downlink
   std::string server_name = "cvislam_server";
 
   [[nodiscard]] Status validate() const;
@@ -89,6 +92,7 @@ class AgentSession {
   std::uint64_t last_sequence_ = 0;  // the newest batch sequence seen on this stream
   std::uint64_t acked_sent_ = 0;     // the newest acknowledgement sent on this stream
   std::uint64_t down_sequence_ = 0;
+  CovisibleSender covisible_;  // what this stream has sent of the covisible map
   Clock::time_point last_down_{};
   bool closed_ = false;
 };

@@ -6,10 +6,12 @@
 #include <chrono>
 #include <cstdint>
 #include <memory>
+#include <set>
 #include <string>
 #include <vector>
 
 #include <gmock/gmock.h>
+
 #include <gtest/gtest.h>
 
 #include "cvislam/v1/agent_link.pb.h"
@@ -572,6 +574,38 @@ TEST_F(AgentSessionTest, AKeyframeRemovedAsRedundantIsSentDownOnce) {
   EXPECT_EQ(r->down.at("removal").messages, 1U);
   EXPECT_GT(r->down.at("removal").bytes, 0U);
   EXPECT_EQ(r->serverKeyframes(), 2U);
+}
+
+TEST_F(AgentSessionTest, AnAgentBackWhereItStartedIsSentItsOldKeyframesWithTheirPointsOnce) {
+  greet(*sut);
+  for (std::uint32_t b = 0; b < 6; ++b) sendBatch(*sut, b + 1, 10 * b, 10);  // keyframes 0..59
+  v1::ServerDownlink before;
+  ASSERT_TRUE(sut->nextDownlink(later(1), before));
+  EXPECT_FALSE(before.has_covisible()) << "nothing beyond the agent's own local map shares a point yet";
+  // Keyframes 60 and 61 see the points of keyframes 2 to 5 again (the agent is back at its start).
+  v1::MapBatch back = makeKeyframeBatch(7, 60, 2);
+  test::addObservations(back, 61, {10, 11, 12, 13}, {2, 3, 4, 5});
+  sendOk(*sut, batchMessage(back));
+
+  v1::ServerDownlink down;
+  v1::ServerDownlink again;
+  ASSERT_TRUE(sut->nextDownlink(later(2), down));
+  const bool sent_again = sut->nextDownlink(later(3), again);
+
+  ASSERT_TRUE(down.has_covisible());
+  const v1::CovisibleMap& covisible = down.covisible();
+  std::set<std::uint32_t> sent;
+  for (const auto& kf : covisible.keyframes()) {
+    EXPECT_EQ(kf.agent(), kAgent);
+    sent.insert(kf.counter());
+  }
+  // Keyframes 1..5 observe points 2..5 (each point is seen by its keyframe and the one before).
+  EXPECT_EQ(sent, (std::set<std::uint32_t>{1, 2, 3, 4, 5}));
+  EXPECT_EQ(covisible.points_size(), 6) << "points 1..6: keyframe c sees points c and c + 1";
+  EXPECT_FALSE(sent_again) << "sent once; nothing changed since";
+  const auto r = record()->read();
+  EXPECT_EQ(r->down.at("covisible_keyframe").messages, 5U);
+  EXPECT_EQ(r->down.at("covisible_point").messages, 6U);
 }
 
 TEST_F(AgentSessionTest, CorrectingAKeyframeTheServerDoesNotHoldIsNotFound) {

@@ -1,0 +1,276 @@
+// The covisible map of the downlink (server_cloud/ingest/covisible_downlink.hpp) on a hand-built server map with
+// exact geometry: agent 1 flies out along x and back, so its newest keyframes see what its first ones saw; agent
+// 2 flies over the same start. Every keypoint is the exact projection of its point.
+#include "server_cloud/ingest/covisible_downlink.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <set>
+
+#include <gtest/gtest.h>
+
+#include "cvislam/v1/agent_link.pb.h"
+
+namespace cvislam::server {
+namespace {
+
+using geometry::SE3d;
+using geometry::SO3d;
+using Eigen::Vector3d;
+
+constexpr double kFx = 400.0;
+constexpr double kFy = 410.0;
+constexpr double kCx = 320.0;
+constexpr double kCy = 240.0;
+
+// The camera looks along the map's +z; the IMU frame is turned against it, so that T_s_c matters.
+SE3d cameraExtrinsics(AgentId agent) {
+  return SE3d(SO3d::exp(Vector3d(0.0, 0.0, agent == 1 ? 0.3 : -0.2)), Vector3d(0.02 * agent, -0.01, 0.03));
+}
+
+struct Scene {
+  MapContent map{0};
+  CovisibleCameras cameras;
+  std::vector<KeyframeId> agent1;  // by counter
+
+  Scene() {
+    for (AgentId agent : {AgentId{1}, AgentId{2}}) {
+      cameras[agent] = CovisibleCamera{kFx, kFy, kCx, kCy, cameraExtrinsics(agent)};
+    }
+    // Points on a wall 5 m ahead, from x = -2 to 8 m.
+    std::mt19937 rng(7);
+    std::uniform_real_distribution<double> y(-1.5, 1.5);
+    for (std::uint32_t i = 0; i < 400; ++i) wall.push_back(Vector3d(-2.0 + 0.025 * i, y(rng), 5.0));
+    // Agent 1: 30 keyframes out (x = 0 .. 2.9 m), 30 back (x = 2.9 .. 0).
+    for (std::uint32_t c = 0; c < 60; ++c) {
+      const double x = c < 30 ? 0.1 * c : 0.1 * (59 - c);
+      addKeyframe(KeyframeId{1, c}, Vector3d(x, 0.0, 0.0));
+      agent1.push_back(KeyframeId{1, c});
+    }
+    // Agent 2: over the start, 0.3 m to the side.
+    for (std::uint32_t c = 0; c < 10; ++c) addKeyframe(KeyframeId{2, c}, Vector3d(0.05 * c, 0.3, 0.0));
+  }
+
+  // A keyframe at camera position p_c (looking along +z), observing every wall point within 1 m in x.
+  void addKeyframe(const KeyframeId& id, const Vector3d& p_c) {
+    const SE3d T_m_c(SO3d(), p_c);
+    ServerKeyframe kf;
+    kf.id = id;
+    kf.t_ns = 1'000'000'000 + static_cast<std::int64_t>(id.counter) * 100'000'000;
+    kf.T_w_s = T_m_c * cameraExtrinsics(id.agent).inverse();
+    std::vector<std::size_t> seen;
+    for (std::size_t i = 0; i < wall.size(); ++i) {
+      if (std::abs(wall[i].x() - p_c.x()) > 1.0) continue;
+      const Vector3d X_c = T_m_c.inverse() * wall[i];
+      features::Keypoint key;
+      key.px = Eigen::Vector2f(static_cast<float>(kFx * X_c.x() / X_c.z() + kCx),
+                               static_cast<float>(kFy * X_c.y() / X_c.z() + kCy));
+      key.octave = static_cast<std::uint8_t>(i % 3);
+      kf.keypoints.push_back(key);
+      kf.keypoints_undistorted.push_back(key.px);
+      features::Descriptor d{};
+      d[0] = static_cast<std::uint8_t>(i);
+      kf.descriptors.push_back(d);
+      seen.push_back(i);
+    }
+    ASSERT_TRUE(map.addKeyframe(std::move(kf)).ok());
+    for (std::size_t k = 0; k < seen.size(); ++k) {
+      const MapPointId pid{1, static_cast<std::uint32_t>(seen[k])};  // one point per wall point
+      if (map.point(pid) == nullptr) {
+        ServerMapPoint point;
+        point.id = pid;
+        point.reference = id;
+        point.p_w = wall[seen[k]];
+        point.octave = static_cast<std::uint8_t>(seen[k] % 3);
+        ASSERT_TRUE(map.addPoint(std::move(point)).ok());
+      }
+      ASSERT_TRUE(map.addObservation(id, static_cast<std::uint16_t>(k), pid).ok());
+    }
+  }
+
+  // Agent 1's newest keyframes, newest first.
+  [[nodiscard]] std::vector<KeyframeId> seeds() const { return {agent1[59], agent1[58], agent1[57]}; }
+
+  std::vector<Vector3d> wall;
+};
+
+std::vector<KeyframeId> idsOf(const std::vector<std::pair<KeyframeId, int>>& ranked) {
+  std::vector<KeyframeId> out;
+  for (const auto& [id, w] : ranked) out.push_back(id);
+  return out;
+}
+
+TEST(CovisibleDownlink, SelectsTheKMostCovisibleKeyframesOfOtherAgentsAndTheAgentsOwnPast) {
+  const Scene scene;
+  const CovisibleOptions options;  // K = 10, the newest 50 own keyframes left out
+  const auto ranked = selectCovisible(scene.map, scene.seeds(), options);
+
+  ASSERT_EQ(ranked.size(), 10U);
+  bool other_agent = false;
+  bool own_past = false;
+  for (const auto& [id, weight] : ranked) {
+    EXPECT_TRUE(id.agent == 2 || id.counter <= 9) << id.toString() << " is in the agent's local map already";
+    other_agent |= id.agent == 2;
+    own_past |= id.agent == 1;
+  }
+  EXPECT_TRUE(other_agent);
+  EXPECT_TRUE(own_past);
+  // Best first, and nothing left out that beats the weakest selected one.
+  for (std::size_t i = 1; i < ranked.size(); ++i) EXPECT_GE(ranked[i - 1].second, ranked[i].second);
+  const std::vector<KeyframeId> selected = idsOf(ranked);
+  for (const auto& [id, kf] : scene.map.keyframes()) {
+    if (std::find(selected.begin(), selected.end(), id) != selected.end()) continue;
+    if (id.agent == 1 && id.counter > 9) continue;
+    int weight = 0;
+    for (const KeyframeId& seed : scene.seeds()) weight += scene.map.covisibility(seed, id);
+    EXPECT_LE(weight, ranked.back().second) << id.toString();
+  }
+}
+
+TEST(CovisibleDownlink, EverythingIsInTheAgentsWorldFrameAndEveryObservationProjects) {
+  const Scene scene;
+  // The agent's world frame is not the server map's (a merge moved the agent's map).
+  const SE3d T_w_m(SO3d::exp(Vector3d(0.02, -0.01, 0.7)), Vector3d(3.0, -1.0, 0.5));
+  CovisibleSender sut{CovisibleOptions{}};
+  v1::CovisibleMap out;
+  const CovisibleReport report = sut.fill(scene.map, scene.seeds(), 4, T_w_m, scene.cameras, out);
+
+  ASSERT_EQ(report.keyframes, 10);
+  EXPECT_EQ(out.agent_map(), 4U);
+  EXPECT_EQ(out.selected_counter_size(), 10);
+  std::map<MapPointId, Vector3d> points;
+  for (const v1::CovisiblePoint& p : out.points()) {
+    const MapPointId id{static_cast<AgentId>(p.agent()), p.counter()};
+    ASSERT_EQ(p.p_w_size(), 3);
+    const Vector3d p_w(p.p_w(0), p.p_w(1), p.p_w(2));
+    EXPECT_LT((p_w - T_w_m * scene.map.point(id)->p_w).norm(), 1e-5);
+    EXPECT_TRUE(points.emplace(id, p_w).second) << "point " << id.toString() << " sent twice";
+  }
+  int observations = 0;
+  for (const v1::CovisibleKeyframe& kf : out.keyframes()) {
+    const SE3d T_w_c(SO3d(Eigen::Quaterniond(kf.t_w_c().qw(), kf.t_w_c().qx(), kf.t_w_c().qy(), kf.t_w_c().qz())),
+                     Vector3d(kf.t_w_c().px(), kf.t_w_c().py(), kf.t_w_c().pz()));
+    const int n = kf.point_counter_size();
+    ASSERT_EQ(kf.xy_size(), 2 * n);
+    ASSERT_EQ(kf.point_agent_size(), n);
+    ASSERT_EQ(static_cast<int>(kf.octave().size()), n);
+    for (int i = 0; i < n; ++i) {
+      const MapPointId id{static_cast<AgentId>(kf.point_agent(i)), kf.point_counter(i)};
+      ASSERT_EQ(points.count(id), 1U) << "an observation of a point the message does not carry";
+      const Vector3d X_c = T_w_c.inverse() * points.at(id);
+      EXPECT_NEAR(X_c.x() / X_c.z(), kf.xy(2 * i), 1e-5);
+      EXPECT_NEAR(X_c.y() / X_c.z(), kf.xy(2 * i + 1), 1e-5);
+      ++observations;
+    }
+  }
+  EXPECT_GT(observations, 500);
+}
+
+TEST(CovisibleDownlink, AKeyframeGoesInFullOnceAndAfterwardsOnlyWhenTheServerMovesIt) {
+  Scene scene;
+  CovisibleSender sut{CovisibleOptions{}};
+  v1::CovisibleMap first;
+  v1::CovisibleMap second;
+  sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, first);
+  const CovisibleReport again = sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, second);
+
+  ASSERT_EQ(first.keyframes_size(), 10);
+  std::set<MapPointId> observed;  // every point the selected keyframes observe
+  for (const auto& kf : first.keyframes()) {
+    for (const MapPointId& p : scene.map.keyframe(KeyframeId{static_cast<AgentId>(kf.agent()), kf.counter()})->point) {
+      observed.insert(p);
+    }
+  }
+  EXPECT_EQ(static_cast<std::size_t>(first.points_size()), observed.size());
+  EXPECT_FALSE(again.carriesData());
+  EXPECT_EQ(second.ByteSizeLong(), 0U) << "nothing changed, nothing to say";
+
+  // The server moves one selected keyframe by 1 cm and one of its points by 1 cm (a GBA).
+  const KeyframeId moved{static_cast<AgentId>(first.keyframes(0).agent()), first.keyframes(0).counter()};
+  const MapPointId point{static_cast<AgentId>(first.keyframes(0).point_agent(0)), first.keyframes(0).point_counter(0)};
+  scene.map.keyframe(moved)->T_w_s.translation() += Vector3d(0.01, 0.0, 0.0);
+  scene.map.point(point)->p_w += Vector3d(0.0, 0.01, 0.0);
+  v1::CovisibleMap third;
+  const CovisibleReport update = sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, third);
+
+  EXPECT_EQ(third.keyframes_size(), 0);
+  EXPECT_EQ(third.points_size(), 0);
+  ASSERT_EQ(update.keyframe_updates, 1);
+  EXPECT_EQ(third.keyframe_updates(0).counter(), moved.counter);
+  EXPECT_NEAR(third.keyframe_updates(0).t_w_c().px(),
+              (scene.map.keyframe(moved)->T_w_s * cameraExtrinsics(moved.agent)).translation().x(), 1e-9);
+  ASSERT_EQ(update.point_updates, 1);
+  EXPECT_EQ(third.point_update_counter(0), point.counter);
+  EXPECT_NEAR(third.point_update_p_w(1), scene.map.point(point)->p_w.y(), 1e-6);
+}
+
+TEST(CovisibleDownlink, TheBudgetSendsTheBestRankedFirstAndTheRestInTheNextMessages) {
+  const Scene scene;
+  CovisibleOptions options;
+  options.budget_bytes = 6000;  // room for a keyframe or two with their points
+  CovisibleSender sut{options};
+  const std::vector<KeyframeId> ranked = idsOf(selectCovisible(scene.map, scene.seeds(), options));
+  std::vector<KeyframeId> order;
+  std::size_t total_bytes = 0;
+  int messages = 0;
+  while (order.size() < ranked.size() && messages < 50) {
+    v1::CovisibleMap out;
+    const CovisibleReport report = sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, out);
+    ++messages;
+    total_bytes += out.ByteSizeLong();
+    EXPECT_LE(out.ByteSizeLong(), options.budget_bytes);
+    ASSERT_GT(report.keyframes, 0) << "message " << messages << " made no progress";
+    if (order.size() + static_cast<std::size_t>(report.keyframes) < ranked.size()) {
+      EXPECT_GT(report.deferred, 0);
+    }
+    for (const auto& kf : out.keyframes()) order.push_back(KeyframeId{static_cast<AgentId>(kf.agent()), kf.counter()});
+  }
+  EXPECT_EQ(order, ranked) << "sent best first, each once";
+  EXPECT_GT(total_bytes, options.budget_bytes) << "the budget had to split the selection";
+}
+
+TEST(CovisibleDownlink, AKeyframeLargerThanTheBudgetGoesAloneSoThatEveryMessageMakesProgress) {
+  const Scene scene;
+  CovisibleOptions options;
+  options.budget_bytes = 1024;  // less than any keyframe with its points
+  CovisibleSender sut{options};
+  for (int message = 1; message <= 10; ++message) {
+    v1::CovisibleMap out;
+    const CovisibleReport report = sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, out);
+    EXPECT_EQ(report.keyframes, 1) << "message " << message;
+    EXPECT_EQ(report.deferred, 10 - message);
+  }
+}
+
+TEST(CovisibleDownlink, ANewAgentMapStartsAfreshAndNoSeedsSendNothing) {
+  const Scene scene;
+  CovisibleSender sut{CovisibleOptions{}};
+  v1::CovisibleMap out;
+  sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, out);
+  const CovisibleReport same_map = sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, out);
+  const CovisibleReport new_map = sut.fill(scene.map, scene.seeds(), 1, SE3d(), scene.cameras, out);
+  const CovisibleReport no_seeds = sut.fill(scene.map, {}, 1, SE3d(), scene.cameras, out);
+
+  EXPECT_EQ(same_map.keyframes, 0);
+  EXPECT_EQ(new_map.keyframes, 10) << "a new world frame: everything again";
+  EXPECT_EQ(no_seeds.selected, 0);
+  EXPECT_FALSE(no_seeds.carriesData());
+}
+
+TEST(CovisibleDownlink, OptionsOutOfRangeAreRefusedByName) {
+  CovisibleOptions options;
+  options.keyframes = 0;
+  const Status s = options.validate();
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.error().message().find("keyframes"), std::string::npos);
+  options = CovisibleOptions{};
+  options.budget_bytes = 10;
+  EXPECT_FALSE(options.validate().ok());
+  options = CovisibleOptions{};
+  options.update_translation_m = std::nan("");
+  EXPECT_FALSE(options.validate().ok());
+}
+
+}  // namespace
+}  // namespace cvislam::server
