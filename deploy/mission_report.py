@@ -314,7 +314,9 @@ def main():
                "down_bytes": down_bytes,
                "up_mb_per_s": up_bytes / 1e6 / duration, "down_mb_per_s": down_bytes / 1e6 / duration,
                "batches": batches, "reconnects": max(0, int(link["connections"]) - 1),
-               "keyframes_unacknowledged": int(link["keyframes_unacknowledged"])}
+               "keyframes_unacknowledged": int(link["keyframes_unacknowledged"]),
+               "covisible_maps_accepted": int(link.get("covisible_maps_accepted", 0)),
+               "covisible_maps_refused": int(link.get("covisible_maps_refused", 0))}
         summary["traffic"].append(row)
         print(f"{a:8} {duration:9.1f} {up_bytes / 1e6:8.2f} {row['up_mb_per_s']:9.3f} {down_bytes / 1e6:9.4f} "
               f"{row['down_mb_per_s']:10.4f} {batches:8d} {row['reconnects']:10d} {row['keyframes_unacknowledged']:11d}")
@@ -324,6 +326,10 @@ def main():
                 k[0] += int(c["messages"])
                 k[1] += int(c["bytes"])
 
+    if summary["traffic"]:
+        accepted = ", ".join(f"{r['agent']} {r['covisible_maps_accepted']}" for r in summary["traffic"])
+        refused = sum(r["covisible_maps_refused"] for r in summary["traffic"])
+        print(f"covisible maps from the server, checked and accepted: {accepted}; refused: {refused}")
     print()
     print("== messages by kind, all agents (up: what the server counted as received; sizes are serialized bytes)")
     print(f"{'direction':9} {'kind':16} {'count':>9} {'bytes':>12} {'bytes each':>11}")

@@ -12,6 +12,7 @@
 #include <google/protobuf/arena.h>
 #include <nlohmann/json.hpp>
 
+#include "agent_rt/link/anchor_decoder.hpp"
 #include "agent_rt/link/link_client.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
@@ -63,6 +64,11 @@ struct Link::Impl {
   std::vector<char> arena_block;
   google::protobuf::Arena arena;
   v1::AgentUplink* uplink = nullptr;  // on `arena`
+  // The newest covisible map, decoded (hundreds of kB: allocated once, here).
+  std::unique_ptr<AnchorMessage> anchors = std::make_unique<AnchorMessage>();
+  std::uint64_t covisible_accepted = 0;
+  std::uint64_t covisible_refused = 0;
+  std::string covisible_last_refusal;
 
   void resetArena() {
     uplink = nullptr;
@@ -117,6 +123,9 @@ struct Link::Impl {
     status.flushed = flushed;
     status.up_bytes = up;
     status.down_bytes = down;
+    status.covisible_accepted = covisible_accepted;
+    status.covisible_refused = covisible_refused;
+    status.covisible_last_refusal = covisible_last_refusal;
   }
 };
 
@@ -231,9 +240,16 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
                   removal_bytes);
         }
         if (s.downlink.has_covisible()) {
-          // Counted only, for now: the mapping thread does not take anchors yet.
           for (const wire::BatchPart& part : wire::covisibleParts(s.downlink.covisible())) {
             if (part.count > 0) s.count(s.down_by_kind, part.kind, part.count, part.bytes);
+          }
+          // Checked and decoded; the mapping thread does not take anchors yet (the next step of issue 14).
+          const Status decoded = decodeCovisibleMap(s.downlink.covisible(), s.downlink.sequence(), *s.anchors);
+          if (decoded.ok()) {
+            ++s.covisible_accepted;
+          } else {
+            ++s.covisible_refused;
+            s.covisible_last_refusal = decoded.error().message();
           }
         }
       }
@@ -339,6 +355,9 @@ Status Link::writeReport(const std::filesystem::path& dir) const {
                       {"deltas_lost", st.store.deltas_lost},
                       {"delta_events_lost", st.store.delta_events_lost},
                       {"corrections_received", st.store.corrections_received},
+                      {"covisible_maps_accepted", st.covisible_accepted},
+                      {"covisible_maps_refused", st.covisible_refused},
+                      {"covisible_last_refusal", st.covisible_last_refusal},
                       {"up", up},
                       {"down", down},
                       {"up_mb_per_s", duration_s > 0 ? static_cast<double>(st.up_bytes) * 1e-6 / duration_s : 0.0},

@@ -1,7 +1,8 @@
 // The agent's link to the server (CVI-SLAM IV-D): a thread beside tracking and mapping.
 //
 //   mapping --MapDeltaMessage (iceoryx)--> link --MapBatch (gRPC, at most 5/s)--> server
-//                                          link <--acknowledgements, corrected keyframe states (<= 2/s)-- server
+//                                          link <--acknowledgements, corrected keyframe states, the covisible
+//                                                   map (<= 2/s)-- server
 //
 // It learns what changed in the local map from mapping's delta after each keyframe (a topic of its own: one
 // message carries the keyframe in full, the points made, every structural change in order, and the states and
@@ -81,6 +82,10 @@ struct LinkStatus {
   std::uint64_t up_bytes = 0;
   std::uint64_t down_bytes = 0;
   bool flushed = false;  // at the end: everything acknowledged
+  // Covisible maps from the server: checked and decoded, or refused (malformed; the link keeps going).
+  std::uint64_t covisible_accepted = 0;
+  std::uint64_t covisible_refused = 0;
+  std::string covisible_last_refusal;
 };
 
 class Link {

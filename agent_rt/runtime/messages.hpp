@@ -12,6 +12,8 @@
 //   mapping  --MapDeltaMessage-->   link     what changed in the local map with this keyframe: the keyframe in
 //                                             full, the points made, every structural change in order (map
 //                                             events), and the states and positions of everything in the map
+//   link     --AnchorMessage-->     mapping  the server's covisible map, decoded and checked (the link checks
+//                                             it today; mapping taking the anchors in is the next step)
 //
 // Tracking never waits on mapping: it takes the newest snapshot when one is there and keeps using the one it
 // holds otherwise.
@@ -187,7 +189,66 @@ struct MapDeltaMessage {
   std::array<DeltaPointMsg, kMaxMapPoints> points{};
 };
 
+// ---- The server's covisible map (the downlink), as the link decoded and checked it ----
+// Capacities of one message; a server message beyond them is refused whole (the server's K is 10, and its byte
+// budget keeps a message to a few thousand points).
+inline constexpr std::size_t kMaxAnchorKeyframesPerMessage = 32;
+inline constexpr std::size_t kMaxAnchorPointsPerMessage = 8192;
+
+// A keypoint of an anchor keyframe observing an anchor point: normalised image coordinates (x/z, y/z) of an
+// ideal pinhole, so that the keyframe's own camera does not matter.
+struct AnchorObservationMsg {
+  float x = 0.0F;
+  float y = 0.0F;
+  MapPointId point;
+  std::uint8_t octave = 0;
+};
+
+struct AnchorKeyframeMsg {
+  KeyframeId id;
+  std::int64_t t_ns = 0;
+  PoseMsg T_w_c;  // its camera's pose in this agent's world frame
+  std::uint16_t observation_count = 0;
+  std::array<AnchorObservationMsg, kMaxKeypointsPerKeyframe> observations{};
+};
+
+struct AnchorPointMsg {
+  MapPointId id;
+  std::array<double, 3> p_w{};
+  std::array<std::uint8_t, 32> descriptor{};
+  std::uint8_t octave = 0;
+};
+
+struct AnchorPoseUpdateMsg {
+  KeyframeId id;
+  PoseMsg T_w_c;
+};
+
+struct AnchorPointUpdateMsg {
+  MapPointId id;
+  std::array<double, 3> p_w{};
+};
+
+// Link -> mapping: one downlink message's covisible map. Keyframes and points come in full once per stream;
+// afterwards only updates of what moved. `selected` is the server's current choice, best first.
+struct AnchorMessage {
+  std::uint64_t sequence = 0;  // the downlink message's sequence on its stream
+  std::int64_t publish_steady_ns = 0;
+  std::uint32_t agent_map = 0;  // the agent map whose world frame all of this is in
+  std::uint16_t selected_count = 0;
+  std::array<KeyframeId, kMaxAnchorKeyframesPerMessage> selected{};
+  std::uint16_t keyframe_count = 0;
+  std::array<AnchorKeyframeMsg, kMaxAnchorKeyframesPerMessage> keyframes{};
+  std::uint32_t point_count = 0;
+  std::array<AnchorPointMsg, kMaxAnchorPointsPerMessage> points{};
+  std::uint16_t keyframe_update_count = 0;
+  std::array<AnchorPoseUpdateMsg, kMaxAnchorKeyframesPerMessage> keyframe_updates{};
+  std::uint32_t point_update_count = 0;
+  std::array<AnchorPointUpdateMsg, kMaxAnchorPointsPerMessage> point_updates{};
+};
+
 static_assert(std::is_trivially_copyable_v<KeyframeMessage>);
+static_assert(std::is_trivially_copyable_v<AnchorMessage>);
 static_assert(std::is_trivially_copyable_v<MapSnapshotMessage>);
 static_assert(std::is_trivially_copyable_v<MapDeltaMessage>);
 

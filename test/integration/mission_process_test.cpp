@@ -166,6 +166,7 @@ TEST_F(MissionProcesses, TwoAgentProcessesSendTheServerEveryKeyframeWithItsFinal
     EXPECT_TRUE(link["flushed"].get<bool>());
     EXPECT_EQ(link["keyframes_unacknowledged"].get<int>(), 0);
     EXPECT_EQ(link["deltas_lost"].get<int>(), 0);
+    EXPECT_EQ(link["covisible_maps_refused"].get<int>(), 0) << link["covisible_last_refusal"];
   }
   for (const auto& a : stats["agents"]) {
     EXPECT_EQ(std::stoi(a["refused_messages"].get<std::string>()), 0) << a.dump();
