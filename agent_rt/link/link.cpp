@@ -143,6 +143,7 @@ Result<std::unique_ptr<Link>> Link::create(const LinkOptions& options, AgentId a
   hello.set_session((static_cast<std::uint64_t>(::getpid()) << 40U) ^ now_ns);
   hello.set_mode(sensors.stereo ? v1::SENSOR_MODE_STEREO : v1::SENSOR_MODE_MONO);
   hello.set_uses_imu(sensors.uses_imu);
+  hello.set_local_map_keyframes(options.local_map_keyframes);
   wire::toProto(sensors.cam0, sensors.T_s_c0, hello.mutable_cam0());
   if (sensors.stereo && sensors.cam1) wire::toProto(*sensors.cam1, sensors.T_s_c1, hello.mutable_cam1());
   if (sensors.uses_imu) wire::toProto(sensors.imu_noise, sensors.imu_rate_hz, hello.mutable_imu());

@@ -43,6 +43,9 @@ struct LinkOptions {
   double connect_timeout_s = 1.0;
   double flush_timeout_s = 15.0;  // at the end: how long to wait for the server to acknowledge everything
   int keepalive_ms = 1000;
+  // The own keyframes the local map keeps (the mapper's N), told to the server in the Hello so that its
+  // covisible map leaves them out; 0: the server's default.
+  std::uint32_t local_map_keyframes = 0;
   LinkStoreOptions store;
 
   [[nodiscard]] Status validate() const;

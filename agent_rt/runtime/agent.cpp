@@ -463,7 +463,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   std::atomic<bool> link_done{false};
   std::thread link_thread;
   if (!options.link.server.empty()) {
-    auto created = Link::create(options.link, options.agent, linkSensors(seq, *setup, stereo, options.use_imu));
+    LinkOptions link_options = options.link;
+    link_options.local_map_keyframes = static_cast<std::uint32_t>(options.mapping.max_keyframes);
+    auto created = Link::create(link_options, options.agent, linkSensors(seq, *setup, stereo, options.use_imu));
     if (!created) return created.error();
     link = std::move(created.value());
     if (!options.quiet) {

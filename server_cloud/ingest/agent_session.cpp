@@ -204,6 +204,7 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
     stream_ = record->connections;
     record->finished = false;
     record->software = hello.software();
+    record->local_map_keyframes = hello.local_map_keyframes();
     record->sensors = std::move(sensors).value();
     record->up["message"].add(1, wire_bytes);
     record->up["hello"].add(1, wire_bytes);
@@ -302,6 +303,7 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
   MapId seed_map = 0;
   std::uint32_t agent_map = 0;
   geometry::SE3d T_w_m;
+  std::uint32_t local_map_keyframes = 0;
   {
     auto record = record_->write();
     if (record->connections != stream_) return false;
@@ -334,6 +336,7 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
     removal_bytes = out.ByteSizeLong() - bytes_before;
     if (options_.covisible.enabled) {
       seeds = newestKeyframes(*record, options_.covisible.seed_keyframes, seed_map, agent_map, T_w_m);
+      local_map_keyframes = record->local_map_keyframes;
     }
   }
   // The covisible map, built under the map's read lock alone (records are never locked after a map).
@@ -341,7 +344,7 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
     const CovisibleCameras cameras = covisibleCameras(*mission_);
     if (const std::shared_ptr<ServerMap> map = mission_->stack().find(seed_map)) {
       const auto content = map->read();
-      covisible_.fill(*content, seeds, agent_map, T_w_m, cameras, *out.mutable_covisible());
+      covisible_.fill(*content, seeds, agent_map, T_w_m, cameras, *out.mutable_covisible(), local_map_keyframes);
     }
     if (out.covisible().ByteSizeLong() == 0) out.clear_covisible();  // nothing new to say
   }

@@ -81,7 +81,8 @@ std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& conten
 
 CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vector<KeyframeId>& seeds,
                                       std::uint32_t agent_map, const geometry::SE3d& T_w_m,
-                                      const CovisibleCameras& cameras, v1::CovisibleMap& out) {
+                                      const CovisibleCameras& cameras, v1::CovisibleMap& out,
+                                      std::uint32_t local_map_keyframes) {
   CovisibleReport report;
   out.Clear();
   if (!options_.enabled) return report;
@@ -93,7 +94,9 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
     agent_map_ = agent_map;
     started_ = true;
   }
-  const std::vector<std::pair<KeyframeId, int>> ranked = selectCovisible(content, seeds, options_);
+  CovisibleOptions options = options_;
+  if (local_map_keyframes > 0) options.own_recent_excluded = static_cast<int>(std::min<std::uint32_t>(local_map_keyframes, 100000));
+  const std::vector<std::pair<KeyframeId, int>> ranked = selectCovisible(content, seeds, options);
   std::vector<KeyframeId> selection;
   selection.reserve(ranked.size());
   for (const auto& [id, weight] : ranked) selection.push_back(id);

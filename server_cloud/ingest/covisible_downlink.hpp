@@ -36,8 +36,9 @@ struct CovisibleOptions {
   int keyframes = 10;  // K (paper: 10)
   // The agent's newest keyframes whose covisible keyframes compete (their covisibility weights add up).
   int seed_keyframes = 3;
-  // The agent's own newest keyframes are in its local map already, and are never sent down.
-  int own_recent_excluded = 50;
+  // The agent's own newest keyframes are in its local map already, and are never sent down: as many as its Hello
+  // says its local map keeps, else this many (the agent's default N).
+  int own_recent_excluded = 20;
   // Per message; 2 messages per second at 150 kB is the downlink goal of 0.30 MB/s.
   std::size_t budget_bytes = 150000;
   // A keyframe or point sent before is sent again when the server moved it by more than this.
@@ -84,9 +85,11 @@ class CovisibleSender {
 
   // Fills `out` for the agent whose newest keyframes are `seeds` (newest first, all in `content`), in its agent
   // map `agent_map`, whose world frame is T_w_m from the content's frame. `out` is left empty when the
-  // selection is empty and unchanged and nothing moved.
+  // selection is empty and unchanged and nothing moved. `local_map_keyframes` > 0 overrides
+  // options.own_recent_excluded (what the agent's Hello said).
   CovisibleReport fill(const MapContent& content, const std::vector<KeyframeId>& seeds, std::uint32_t agent_map,
-                       const geometry::SE3d& T_w_m, const CovisibleCameras& cameras, v1::CovisibleMap& out);
+                       const geometry::SE3d& T_w_m, const CovisibleCameras& cameras, v1::CovisibleMap& out,
+                       std::uint32_t local_map_keyframes = 0);
 
   [[nodiscard]] std::size_t keyframesSent() const { return keyframes_sent_.size(); }
   [[nodiscard]] std::size_t pointsSent() const { return points_sent_.size(); }

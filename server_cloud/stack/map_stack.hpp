@@ -131,6 +131,7 @@ struct AgentRecord {
   bool finished = false;
   std::string software;
   std::optional<AgentSensors> sensors;
+  std::uint32_t local_map_keyframes = 0;  // the own keyframes its local map keeps (Hello; 0: not said)
   // The newest batch stored; the next must be stored_sequence + 1.
   std::uint64_t stored_sequence = 0;
   // Which server map holds each agent map, keyframe and point of the agent (by counter).

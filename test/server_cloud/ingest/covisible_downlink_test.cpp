@@ -103,7 +103,8 @@ std::vector<KeyframeId> idsOf(const std::vector<std::pair<KeyframeId, int>>& ran
 
 TEST(CovisibleDownlink, SelectsTheKMostCovisibleKeyframesOfOtherAgentsAndTheAgentsOwnPast) {
   const Scene scene;
-  const CovisibleOptions options;  // K = 10, the newest 50 own keyframes left out
+  CovisibleOptions options;  // K = 10
+  options.own_recent_excluded = 50;
   const auto ranked = selectCovisible(scene.map, scene.seeds(), options);
 
   ASSERT_EQ(ranked.size(), 10U);
@@ -126,6 +127,26 @@ TEST(CovisibleDownlink, SelectsTheKMostCovisibleKeyframesOfOtherAgentsAndTheAgen
     for (const KeyframeId& seed : scene.seeds()) weight += scene.map.covisibility(seed, id);
     EXPECT_LE(weight, ranked.back().second) << id.toString();
   }
+}
+
+TEST(CovisibleDownlink, TheLocalMapSizeTheAgentsHelloGaveDecidesWhichOfItsOwnKeyframesAreLeftOut) {
+  const Scene scene;
+  const auto ownAbove = [](const v1::CovisibleMap& m, std::uint32_t counter) {
+    for (int i = 0; i < m.selected_counter_size(); ++i) {
+      if (m.selected_agent(i) == 1 && m.selected_counter(i) > counter) return true;
+    }
+    return false;
+  };
+  CovisibleOptions options;
+  options.keyframes = 20;  // room for the way back too
+  v1::CovisibleMap keeps_50;
+  v1::CovisibleMap keeps_5;
+  CovisibleSender{options}.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, keeps_50, 50);
+  CovisibleSender{options}.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, keeps_5, 5);
+
+  EXPECT_FALSE(ownAbove(keeps_50, 9)) << "an agent keeping 50 holds keyframes 10..59 itself";
+  EXPECT_TRUE(ownAbove(keeps_5, 40)) << "an agent keeping 5 gets its keyframes from 54 down, near its start";
+  EXPECT_FALSE(ownAbove(keeps_5, 54));
 }
 
 TEST(CovisibleDownlink, EverythingIsInTheAgentsWorldFrameAndEveryObservationProjects) {
