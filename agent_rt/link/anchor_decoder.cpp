@@ -11,7 +11,9 @@
 namespace cvislam::agent {
 namespace {
 
-constexpr std::uint32_t kPyramidLevels = 8;
+constexpr std::uint32_t kPyramidLevels = wire::kMaxOctave + 1;
+static_assert(kMaxAnchorKeyframesPerMessage == wire::kMaxCovisibleKeyframesPerMessage);
+static_assert(kMaxAnchorPointsPerMessage == wire::kMaxCovisiblePointsPerMessage);
 
 Status refused(const std::string& what) {
   return Error{ErrorCode::kInvalidArgument, "downlink covisible map: " + what};
@@ -89,8 +91,9 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
     for (int i = 0; i < n; ++i) {
       const float x = k.xy(2 * i);
       const float y = k.xy(2 * i + 1);
-      // Normalised coordinates: a point in front of the camera within 80 degrees of its axis.
-      if (!std::isfinite(x) || !std::isfinite(y) || std::abs(x) > 6.0F || std::abs(y) > 6.0F) {
+      // Normalised coordinates: a point in front of the camera, within 89.4 degrees of its axis (fisheye lenses
+      // see beyond 80).
+      if (!std::isfinite(x) || !std::isfinite(y) || std::abs(x) > 100.0F || std::abs(y) > 100.0F) {
         return refused(what + ": observation " + std::to_string(i) + " is not a finite normalised coordinate");
       }
       const auto octave = static_cast<std::uint8_t>(k.octave()[static_cast<std::size_t>(i)]);

@@ -33,6 +33,11 @@ namespace cvislam::wire {
 // The protocol this build speaks; a Hello with another version is refused.
 inline constexpr std::uint32_t kProtocolVersion = 1;
 
+// What one covisible map (downlink) may carry at most: the server never sends more, the agent refuses more.
+inline constexpr int kMaxCovisibleKeyframesPerMessage = 32;  // selected, in full, and pose updates, each
+inline constexpr int kMaxCovisiblePointsPerMessage = 8192;   // in full, and position updates, each
+inline constexpr std::uint32_t kMaxOctave = 31;              // pyramid levels, as ingest accepts them
+
 void toProto(const geometry::SE3d& T, v1::Pose* out);
 // `what` names the field in errors ("keyframe 3:12 T_w_s").
 Result<geometry::SE3d> fromProto(const v1::Pose& pose, const std::string& what);

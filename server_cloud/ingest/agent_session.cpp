@@ -339,12 +339,19 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
       local_map_keyframes = record->local_map_keyframes;
     }
   }
-  // The covisible map, built under the map's read lock alone (records are never locked after a map).
+  // The covisible map. The cameras first (every agent's record, one at a time); then this agent's record and
+  // the map together (records before maps), so that a correction cannot land between reading T_w_m and the
+  // map it belongs to.
   if (!seeds.empty()) {
     const CovisibleCameras cameras = covisibleCameras(*mission_);
+    const auto record = record_->read();
     if (const std::shared_ptr<ServerMap> map = mission_->stack().find(seed_map)) {
+      const auto frame = record->agent_maps.find(agent_map);
       const auto content = map->read();
-      covisible_.fill(*content, seeds, agent_map, T_w_m, cameras, *out.mutable_covisible(), local_map_keyframes);
+      if (frame != record->agent_maps.end() && frame->second.map == seed_map) {
+        covisible_.fill(*content, seeds, agent_map, frame->second.T_m_w.inverse(), cameras, *out.mutable_covisible(),
+                        local_map_keyframes);
+      }
     }
     if (out.covisible().ByteSizeLong() == 0) out.clear_covisible();  // nothing new to say
   }

@@ -30,7 +30,10 @@ void setPoint(const MapPointId& id, const Eigen::Vector3d& p_w, const ServerMapP
 }  // namespace
 
 Status CovisibleOptions::validate() const {
-  if (keyframes < 1 || keyframes > 1000) return invalid("keyframes must be in [1, 1000]");
+  if (keyframes < 1 || keyframes > wire::kMaxCovisibleKeyframesPerMessage) {
+    return invalid("keyframes must be in [1, " + std::to_string(wire::kMaxCovisibleKeyframesPerMessage) +
+                   "] (what an agent takes per message)");
+  }
   if (seed_keyframes < 1) return invalid("seed_keyframes must be >= 1");
   if (own_recent_excluded < 0) return invalid("own_recent_excluded must be >= 0");
   if (budget_bytes < 1024) return invalid("budget_bytes must be >= 1024");
@@ -130,6 +133,7 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
       sent->second = T_w_c;
     }
     for (std::size_t k = 0; k < kf->point.size(); ++k) {
+      if (report.point_updates >= wire::kMaxCovisiblePointsPerMessage) break;  // the rest in the next message
       if (k >= kf->has_point.size() || kf->has_point[k] == 0) continue;
       const auto point_sent = points_sent_.find(kf->point[k]);
       if (point_sent == points_sent_.end()) continue;
@@ -193,7 +197,8 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
     const std::size_t keyframe_bytes = keyframe.ByteSizeLong() + 4;
     // Over the budget, this keyframe and all ranked below it wait; but a message always makes progress, so a
     // keyframe that alone is larger than the budget goes alone.
-    if (bytes + keyframe_bytes + point_bytes > options_.budget_bytes && report.keyframes > 0) {
+    const bool over_capacity = report.points + static_cast<int>(points.size()) > wire::kMaxCovisiblePointsPerMessage;
+    if ((bytes + keyframe_bytes + point_bytes > options_.budget_bytes && report.keyframes > 0) || over_capacity) {
       // Ranked below this one, the rest waits too: the next message starts with the best keyframe not yet sent.
       for (std::size_t r = rank; r < selection.size(); ++r) report.deferred += keyframes_sent_.count(selection[r]) == 0;
       break;

@@ -116,7 +116,7 @@ TEST(AnchorDecoder, EachMalformedOrHostileMessageIsRefusedWholeNamingTheProblem)
       {"columns of different lengths",
        [](v1::CovisibleMap& m) { m.mutable_keyframes(0)->add_point_counter(9); }, "differ in length"},
       {"observation octave beyond the pyramid",
-       [](v1::CovisibleMap& m) { m.mutable_keyframes(0)->set_octave(std::string("\x01\x09", 2)); }, "octave"},
+       [](v1::CovisibleMap& m) { m.mutable_keyframes(0)->set_octave(std::string("\x01\x28", 2)); }, "octave"},
       {"selection columns of different lengths", [](v1::CovisibleMap& m) { m.add_selected_agent(1); },
        "selected_agent"},
       {"over the keyframe capacity",

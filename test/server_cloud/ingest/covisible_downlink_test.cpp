@@ -19,10 +19,11 @@ using geometry::SE3d;
 using geometry::SO3d;
 using Eigen::Vector3d;
 
-constexpr double kFx = 400.0;
-constexpr double kFy = 410.0;
-constexpr double kCx = 320.0;
-constexpr double kCy = 240.0;
+// The two agents' cameras differ, so that using the wrong agent's intrinsics shows.
+CovisibleCamera cameraOf(AgentId agent) {
+  if (agent == 1) return CovisibleCamera{400.0, 410.0, 320.0, 240.0, {}};
+  return CovisibleCamera{350.0, 360.0, 300.0, 230.0, {}};
+}
 
 // The camera looks along the map's +z; the IMU frame is turned against it, so that T_s_c matters.
 SE3d cameraExtrinsics(AgentId agent) {
@@ -36,7 +37,8 @@ struct Scene {
 
   Scene() {
     for (AgentId agent : {AgentId{1}, AgentId{2}}) {
-      cameras[agent] = CovisibleCamera{kFx, kFy, kCx, kCy, cameraExtrinsics(agent)};
+      cameras[agent] = cameraOf(agent);
+      cameras[agent].T_s_c = cameraExtrinsics(agent);
     }
     // Points on a wall 5 m ahead, from x = -2 to 8 m.
     std::mt19937 rng(7);
@@ -63,12 +65,14 @@ struct Scene {
     for (std::size_t i = 0; i < wall.size(); ++i) {
       if (std::abs(wall[i].x() - p_c.x()) > 1.0) continue;
       const Vector3d X_c = T_m_c.inverse() * wall[i];
+      const CovisibleCamera c = cameraOf(id.agent);
+      const Eigen::Vector2f pinhole(static_cast<float>(c.fx * X_c.x() / X_c.z() + c.cx),
+                                    static_cast<float>(c.fy * X_c.y() / X_c.z() + c.cy));
       features::Keypoint key;
-      key.px = Eigen::Vector2f(static_cast<float>(kFx * X_c.x() / X_c.z() + kCx),
-                               static_cast<float>(kFy * X_c.y() / X_c.z() + kCy));
+      key.px = pinhole + Eigen::Vector2f(3.0F, -2.0F);  // as a lens would distort it: only the pinhole one is exact
       key.octave = static_cast<std::uint8_t>(i % 3);
       kf.keypoints.push_back(key);
-      kf.keypoints_undistorted.push_back(key.px);
+      kf.keypoints_undistorted.push_back(pinhole);
       features::Descriptor d{};
       d[0] = static_cast<std::uint8_t>(i);
       kf.descriptors.push_back(d);
@@ -277,6 +281,9 @@ TEST(CovisibleDownlink, ANewAgentMapStartsAfreshAndNoSeedsSendNothing) {
   EXPECT_EQ(new_map.keyframes, 10) << "a new world frame: everything again";
   EXPECT_EQ(no_seeds.selected, 0);
   EXPECT_FALSE(no_seeds.carriesData());
+  EXPECT_EQ(out.selected_counter_size(), 0) << "the selection is now empty, and the message says so";
+  EXPECT_EQ(out.keyframes_size() + out.points_size() + out.keyframe_updates_size(), 0);
+  EXPECT_EQ(out.agent_map(), 1U);
 }
 
 TEST(CovisibleDownlink, OptionsOutOfRangeAreRefusedByName) {
