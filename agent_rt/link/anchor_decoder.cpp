@@ -27,6 +27,12 @@ Result<PoseMsg> pose(const v1::Pose& in, const std::string& what) {
 
 bool agentId(std::uint32_t value) { return value <= std::numeric_limits<AgentId>::max(); }
 
+// More than `capacity` of `what` in one message is refused.
+Status checkCapacity(int count, std::size_t capacity, const std::string& what) {
+  if (static_cast<std::size_t>(count) <= capacity) return Status::Ok();
+  return refused(std::to_string(count) + " " + what + ", over the capacity of " + std::to_string(capacity));
+}
+
 Status checkPosition(const google::protobuf::RepeatedField<float>& values, int first, const std::string& what) {
   for (int i = first; i < first + 3; ++i) {
     if (!std::isfinite(values.Get(i))) return refused(what + " is not finite");
@@ -38,19 +44,16 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
   out.agent_map = in.agent_map();
   // The server's selection, best first.
   if (in.selected_agent_size() != in.selected_counter_size()) return refused("selected_agent and selected_counter differ in length");
-  if (static_cast<std::size_t>(in.selected_counter_size()) > kMaxAnchorKeyframesPerMessage) {
-    return refused(std::to_string(in.selected_counter_size()) + " selected keyframes, over the capacity of " +
-                   std::to_string(kMaxAnchorKeyframesPerMessage));
+  if (Status s = checkCapacity(in.selected_counter_size(), kMaxAnchorKeyframesPerMessage, "selected keyframes");
+      !s.ok()) {
+    return s;
   }
   for (int i = 0; i < in.selected_counter_size(); ++i) {
     if (!agentId(in.selected_agent(i))) return refused("selected keyframe " + std::to_string(i) + ": agent id over 16 bits");
     out.selected[out.selected_count++] = KeyframeId{static_cast<AgentId>(in.selected_agent(i)), in.selected_counter(i)};
   }
   // Points in full.
-  if (static_cast<std::size_t>(in.points_size()) > kMaxAnchorPointsPerMessage) {
-    return refused(std::to_string(in.points_size()) + " points, over the capacity of " +
-                   std::to_string(kMaxAnchorPointsPerMessage));
-  }
+  if (Status s = checkCapacity(in.points_size(), kMaxAnchorPointsPerMessage, "points"); !s.ok()) return s;
   for (const v1::CovisiblePoint& p : in.points()) {
     const std::string what = "point " + std::to_string(p.agent()) + ":" + std::to_string(p.counter());
     if (!agentId(p.agent())) return refused(what + ": agent id over 16 bits");
@@ -65,10 +68,7 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
     point.octave = static_cast<std::uint8_t>(p.octave());
   }
   // Keyframes in full.
-  if (static_cast<std::size_t>(in.keyframes_size()) > kMaxAnchorKeyframesPerMessage) {
-    return refused(std::to_string(in.keyframes_size()) + " keyframes, over the capacity of " +
-                   std::to_string(kMaxAnchorKeyframesPerMessage));
-  }
+  if (Status s = checkCapacity(in.keyframes_size(), kMaxAnchorKeyframesPerMessage, "keyframes"); !s.ok()) return s;
   for (const v1::CovisibleKeyframe& k : in.keyframes()) {
     const std::string what = "keyframe " + std::to_string(k.agent()) + ":" + std::to_string(k.counter());
     if (!agentId(k.agent())) return refused(what + ": agent id over 16 bits");
@@ -79,10 +79,7 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
     if (k.point_agent_size() != n || k.xy_size() != 2 * n || static_cast<int>(k.octave().size()) != n) {
       return refused(what + ": xy, point_agent, point_counter and octave differ in length");
     }
-    if (static_cast<std::size_t>(n) > kMaxKeypointsPerKeyframe) {
-      return refused(what + ": " + std::to_string(n) + " observations, over the capacity of " +
-                     std::to_string(kMaxKeypointsPerKeyframe));
-    }
+    if (Status s = checkCapacity(n, kMaxKeypointsPerKeyframe, what + " observations"); !s.ok()) return s;
     AnchorKeyframeMsg& keyframe = out.keyframes[out.keyframe_count++];
     keyframe.id = KeyframeId{static_cast<AgentId>(k.agent()), k.counter()};
     keyframe.t_ns = k.t_ns();
@@ -104,9 +101,9 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
     }
   }
   // Updates.
-  if (static_cast<std::size_t>(in.keyframe_updates_size()) > kMaxAnchorKeyframesPerMessage) {
-    return refused(std::to_string(in.keyframe_updates_size()) + " keyframe updates, over the capacity of " +
-                   std::to_string(kMaxAnchorKeyframesPerMessage));
+  if (Status s = checkCapacity(in.keyframe_updates_size(), kMaxAnchorKeyframesPerMessage, "keyframe updates");
+      !s.ok()) {
+    return s;
   }
   for (const v1::CovisiblePose& u : in.keyframe_updates()) {
     const std::string what = "keyframe update " + std::to_string(u.agent()) + ":" + std::to_string(u.counter());
@@ -121,10 +118,7 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
   if (in.point_update_agent_size() != updates || in.point_update_p_w_size() != 3 * updates) {
     return refused("point_update_agent, point_update_counter and point_update_p_w differ in length");
   }
-  if (static_cast<std::size_t>(updates) > kMaxAnchorPointsPerMessage) {
-    return refused(std::to_string(updates) + " point updates, over the capacity of " +
-                   std::to_string(kMaxAnchorPointsPerMessage));
-  }
+  if (Status s = checkCapacity(updates, kMaxAnchorPointsPerMessage, "point updates"); !s.ok()) return s;
   for (int i = 0; i < updates; ++i) {
     const std::string what = "point update " + std::to_string(i);
     if (!agentId(in.point_update_agent(i))) return refused(what + ": agent id over 16 bits");

@@ -73,9 +73,8 @@ Result<AgentSensors> sensorsFromHello(const v1::Hello& hello) {
 }
 
 // The agent's newest keyframes that the server holds, newest first and at most `n`, all from the agent map of
-// the newest; with that map's server map and the agent's world frame in it (T_w_m).
-std::vector<KeyframeId> newestKeyframes(const AgentRecord& record, int n, MapId& map, std::uint32_t& agent_map,
-                                        geometry::SE3d& T_w_m) {
+// the newest; with that agent map and its server map.
+std::vector<KeyframeId> newestKeyframes(const AgentRecord& record, int n, MapId& map, std::uint32_t& agent_map) {
   std::vector<std::uint32_t> counters;
   counters.reserve(record.keyframes.size());
   for (const auto& [counter, held] : record.keyframes) {
@@ -85,11 +84,8 @@ std::vector<KeyframeId> newestKeyframes(const AgentRecord& record, int n, MapId&
   if (counters.empty()) return out;
   std::sort(counters.begin(), counters.end(), std::greater<>());
   const AgentRecord::HeldKeyframe& newest = record.keyframes.at(counters.front());
-  const auto frame = record.agent_maps.find(newest.agent_map);
-  if (frame == record.agent_maps.end()) return out;
   map = newest.map;
   agent_map = newest.agent_map;
-  T_w_m = frame->second.T_m_w.inverse();
   for (std::uint32_t counter : counters) {
     if (static_cast<int>(out.size()) >= n) break;
     const AgentRecord::HeldKeyframe& held = record.keyframes.at(counter);
@@ -298,12 +294,6 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
   int removals = 0;
   std::size_t removal_bytes = 0;
   bool new_ack = false;
-  // The agent's newest keyframes, their server map and the agent's world frame in it, for the covisible map.
-  std::vector<KeyframeId> seeds;
-  MapId seed_map = 0;
-  std::uint32_t agent_map = 0;
-  geometry::SE3d T_w_m;
-  std::uint32_t local_map_keyframes = 0;
   {
     auto record = record_->write();
     if (record->connections != stream_) return false;
@@ -334,24 +324,23 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
       ++removals;
     }
     removal_bytes = out.ByteSizeLong() - bytes_before;
-    if (options_.covisible.enabled) {
-      seeds = newestKeyframes(*record, options_.covisible.seed_keyframes, seed_map, agent_map, T_w_m);
-      local_map_keyframes = record->local_map_keyframes;
-    }
   }
   // The covisible map. The cameras first (every agent's record, one at a time); then this agent's record and
-  // the map together (records before maps), so that a correction cannot land between reading T_w_m and the
-  // map it belongs to.
-  if (!seeds.empty()) {
+  // the map together (records before maps), so that a correction cannot land between reading the agent's
+  // newest keyframes and frame and the map they belong to.
+  if (options_.covisible.enabled) {
     const CovisibleCameras cameras = covisibleCameras(*mission_);
     const auto record = record_->read();
-    if (const std::shared_ptr<ServerMap> map = mission_->stack().find(seed_map)) {
-      const auto frame = record->agent_maps.find(agent_map);
+    MapId seed_map = 0;
+    std::uint32_t agent_map = 0;
+    const std::vector<KeyframeId> seeds =
+        newestKeyframes(*record, options_.covisible.seed_keyframes, seed_map, agent_map);
+    const auto frame = record->agent_maps.find(agent_map);
+    const std::shared_ptr<ServerMap> map = seeds.empty() ? nullptr : mission_->stack().find(seed_map);
+    if (map && frame != record->agent_maps.end()) {
       const auto content = map->read();
-      if (frame != record->agent_maps.end() && frame->second.map == seed_map) {
-        covisible_.fill(*content, seeds, agent_map, frame->second.T_m_w.inverse(), cameras, *out.mutable_covisible(),
-                        local_map_keyframes);
-      }
+      covisible_.fill(*content, seeds, agent_map, frame->second.T_m_w.inverse(), cameras, *out.mutable_covisible(),
+                      record->local_map_keyframes);
     }
     if (out.covisible().ByteSizeLong() == 0) out.clear_covisible();  // nothing new to say
   }

@@ -128,7 +128,6 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
       update->set_agent(id.agent);
       update->set_counter(id.counter);
       wire::toProto(T_w_c, update->mutable_t_w_c());
-      report.update_bytes += update->ByteSizeLong();
       ++report.keyframe_updates;
       sent->second = T_w_c;
     }
@@ -144,7 +143,6 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
       out.add_point_update_agent(point->id.agent);
       out.add_point_update_counter(point->id.counter);
       for (int i = 0; i < 3; ++i) out.add_point_update_p_w(static_cast<float>(p_w[i]));
-      report.update_bytes += wire::varintBytes(point->id.agent) + wire::varintBytes(point->id.counter) + 12;
       ++report.point_updates;
       point_sent->second = p_w;
     }
@@ -210,8 +208,6 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
       *out.add_points() = std::move(point);
     }
     report.points += static_cast<int>(points.size());
-    report.point_bytes += point_bytes;
-    report.keyframe_bytes += keyframe_bytes;
     ++report.keyframes;
     *out.add_keyframes() = std::move(keyframe);
     keyframes_sent_[id] = T_w_c;

@@ -65,7 +65,7 @@ CovisibleCameras covisibleCameras(const Mission& mission);
 std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& content, const std::vector<KeyframeId>& seeds,
                                                         const CovisibleOptions& options);
 
-// What one fill() put in the message: objects and their serialized bytes, per kind.
+// What one fill() put in the message (wire::covisibleParts() counts its bytes).
 struct CovisibleReport {
   int selected = 0;
   int keyframes = 0;  // sent in full
@@ -73,9 +73,6 @@ struct CovisibleReport {
   int keyframe_updates = 0;
   int point_updates = 0;
   int deferred = 0;  // selected keyframes left for a later message by the budget
-  std::size_t keyframe_bytes = 0;
-  std::size_t point_bytes = 0;
-  std::size_t update_bytes = 0;
   [[nodiscard]] bool carriesData() const { return keyframes + points + keyframe_updates + point_updates > 0; }
 };
 
