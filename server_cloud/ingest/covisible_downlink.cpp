@@ -4,6 +4,7 @@
 #include <cmath>
 #include <numbers>
 #include <string>
+#include <unordered_set>
 
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
@@ -103,6 +104,32 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
   std::vector<KeyframeId> selection;
   selection.reserve(ranked.size());
   for (const auto& [id, weight] : ranked) selection.push_back(id);
+
+  // The agent holds only the selected keyframes it has received (and lets go of the rest): a keyframe that left
+  // the selection is forgotten here, to be sent in full again if it is selected again, and so are the points
+  // that no keyframe still held observes.
+  bool released = false;
+  for (auto it = keyframes_sent_.begin(); it != keyframes_sent_.end();) {
+    if (std::find(selection.begin(), selection.end(), it->first) == selection.end()) {
+      it = keyframes_sent_.erase(it);
+      released = true;
+    } else {
+      ++it;
+    }
+  }
+  if (released) {
+    std::unordered_set<MapPointId> held;
+    for (const auto& [id, T_w_c] : keyframes_sent_) {
+      const ServerKeyframe* kf = content.keyframe(id);
+      if (kf == nullptr) continue;
+      for (std::size_t k = 0; k < kf->point.size() && k < kf->has_point.size(); ++k) {
+        if (kf->has_point[k] != 0) held.insert(kf->point[k]);
+      }
+    }
+    for (auto it = points_sent_.begin(); it != points_sent_.end();) {
+      it = held.count(it->first) == 0 ? points_sent_.erase(it) : std::next(it);
+    }
+  }
 
   out.set_agent_map(agent_map);
   for (const KeyframeId& id : selection) {

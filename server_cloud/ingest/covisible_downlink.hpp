@@ -2,8 +2,10 @@
 // with its newest keyframes (other agents' keyframes, and its own older ones that its bounded local map has let
 // go), with their map points, expressed in the agent's world frame.
 //
-// Per stream, a CovisibleSender remembers what it has sent: a keyframe or point goes in full once, and after
-// that only when the server moved it (a pose or position update). Each message has a byte budget; new keyframes
+// Per stream, a CovisibleSender remembers what the agent holds: a keyframe or point goes in full once, and after
+// that only when the server moved it (a pose or position update). The agent holds only the selected keyframes,
+// so a keyframe that leaves the selection is forgotten (with the points no held keyframe observes) and goes in
+// full again when it is selected again. Each message has a byte budget; new keyframes
 // go in rank order, each with the points it brings, and the first that does not fit waits for the next message
 // with everything ranked below it. The selection list and the updates always go (they are small), and so does
 // the best new keyframe when it alone is over the budget, so that every message makes progress.

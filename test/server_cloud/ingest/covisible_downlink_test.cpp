@@ -230,6 +230,37 @@ TEST(CovisibleDownlink, AKeyframeGoesInFullOnceAndAfterwardsOnlyWhenTheServerMov
   EXPECT_NEAR(third.point_update_p_w(1), scene.map.point(point)->p_w.y(), 1e-6);
 }
 
+TEST(CovisibleDownlink, AKeyframeThatLeftTheSelectionGoesInFullAgainWhenSelectedAgain) {
+  // The agent holds only the selected keyframes: when the selection moves away, it lets them go, so the server
+  // must send them whole (with their points) when they come back.
+  const Scene scene;
+  CovisibleSender sut{CovisibleOptions{}};
+  v1::CovisibleMap first;
+  sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, first);
+  ASSERT_EQ(first.keyframes_size(), 10);
+  ASSERT_GT(first.points_size(), 0);
+  // Agent 1 at the far end (x = 2.9 m): little of the start is covisible with it, and its own keyframes out
+  // there are too recent to send.
+  v1::CovisibleMap away;
+  sut.fill(scene.map, {scene.agent1[29], scene.agent1[28], scene.agent1[27]}, 0, SE3d(), scene.cameras, away);
+  std::set<KeyframeId> first_ids;
+  for (const auto& kf : first.keyframes()) first_ids.insert(KeyframeId{static_cast<AgentId>(kf.agent()), kf.counter()});
+  std::set<KeyframeId> let_go = first_ids;  // the start's keyframes the far end's selection does not hold
+  for (int i = 0; i < away.selected_counter_size(); ++i) {
+    let_go.erase(KeyframeId{static_cast<AgentId>(away.selected_agent(i)), away.selected_counter(i)});
+  }
+  ASSERT_GE(let_go.size(), 5U) << "the far end sees little of the start";
+  EXPECT_EQ(sut.keyframesSent(), static_cast<std::size_t>(away.selected_counter_size()));
+
+  v1::CovisibleMap back;
+  const CovisibleReport came_back = sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, back);
+  std::set<KeyframeId> resent;
+  for (const auto& kf : back.keyframes()) resent.insert(KeyframeId{static_cast<AgentId>(kf.agent()), kf.counter()});
+  EXPECT_EQ(resent, let_go) << "the keyframes let go go in full again, and only they";
+  EXPECT_GT(back.points_size(), 0) << "with their points";
+  EXPECT_EQ(came_back.selected, 10);
+}
+
 TEST(CovisibleDownlink, TheBudgetSendsTheBestRankedFirstAndTheRestInTheNextMessages) {
   const Scene scene;
   CovisibleOptions options;
