@@ -1,8 +1,11 @@
 #include "agent_rt/link/anchor_decoder.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <functional>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include "agent_rt/runtime/message_conversions.hpp"
 #include "cvislam/v1/agent_link.pb.h"
@@ -146,6 +149,37 @@ Status decodeCovisibleMap(const v1::CovisibleMap& in, std::uint64_t sequence, An
   Status s = decode(in, out);
   if (!s.ok()) clearCounts(out);
   return s;
+}
+
+Status decodeCorrections(const google::protobuf::RepeatedPtrField<v1::KeyframeState>& in, AgentId agent,
+                         AnchorMessage& out) {
+  out.correction_count = 0;
+  // The newest keyframes are the ones mapping still holds: when there are more than the capacity, the
+  // highest counters are kept.
+  std::uint32_t lowest_kept = 0;
+  if (static_cast<std::size_t>(in.size()) > kMaxAnchorCorrectionsPerMessage) {
+    std::vector<std::uint32_t> counters;
+    counters.reserve(static_cast<std::size_t>(in.size()));
+    for (const v1::KeyframeState& c : in) counters.push_back(c.counter());
+    std::nth_element(counters.begin(), counters.begin() + kMaxAnchorCorrectionsPerMessage - 1, counters.end(),
+                     std::greater<>());
+    lowest_kept = counters[kMaxAnchorCorrectionsPerMessage - 1];
+  }
+  for (const v1::KeyframeState& c : in) {
+    if (c.counter() < lowest_kept || out.correction_count >= kMaxAnchorCorrectionsPerMessage) continue;
+    const std::string what = "downlink correction of keyframe " + std::to_string(agent) + ":" + std::to_string(c.counter());
+    auto state = wire::fromProto(c, what);
+    if (!state) {
+      out.correction_count = 0;
+      return Error{ErrorCode::kInvalidArgument, state.error().message()};
+    }
+    KeyframeStateMsg& m = out.corrections[out.correction_count++];
+    m.id = KeyframeId{agent, c.counter()};
+    m.T_w_s = toMsg(state->T_w_s);
+    m.v_w = toArray(state->v_w);
+    m.bias = toMsg(state->bias);
+  }
+  return Status::Ok();
 }
 
 }  // namespace cvislam::agent

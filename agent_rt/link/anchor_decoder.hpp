@@ -9,13 +9,22 @@
 #include "agent_rt/runtime/messages.hpp"
 #include "common/core/result.hpp"
 
+#include <google/protobuf/repeated_ptr_field.h>
+
 namespace cvislam::v1 {
 class CovisibleMap;
+class KeyframeState;
 }
 
 namespace cvislam::agent {
 
 // Fills `out` (its counts and the entries below them) from `in`. On error, `out` is left with zero counts.
 Status decodeCovisibleMap(const v1::CovisibleMap& in, std::uint64_t sequence, AnchorMessage& out);
+
+// Fills out.corrections from the downlink's corrected keyframes of agent `agent`: the newest (highest counters)
+// kMaxAnchorCorrectionsPerMessage when there are more. A correction with a non-finite or malformed state is
+// refused whole, like a covisible map (`out` then has no corrections).
+Status decodeCorrections(const google::protobuf::RepeatedPtrField<v1::KeyframeState>& in, AgentId agent,
+                         AnchorMessage& out);
 
 }  // namespace cvislam::agent

@@ -64,11 +64,63 @@ struct Link::Impl {
   std::vector<char> arena_block;
   google::protobuf::Arena arena;
   v1::AgentUplink* uplink = nullptr;  // on `arena`
-  // The newest covisible map, decoded (hundreds of kB: allocated once, here).
-  std::unique_ptr<AnchorMessage> anchors = std::make_unique<AnchorMessage>();
+  // Where the covisible map is decoded when no sink takes it (a megabyte: allocated once, when first needed).
+  std::unique_ptr<AnchorMessage> scratch_anchors;
   std::uint64_t covisible_accepted = 0;
   std::uint64_t covisible_refused = 0;
   std::string covisible_last_refusal;
+  std::uint64_t corrections_refused = 0;
+  std::uint64_t anchors_published = 0;
+  std::uint64_t anchors_dropped = 0;
+  std::uint32_t streams = 0;
+
+  // The server's covisible map and corrections: checked, and passed on to mapping through `sink`.
+  void passDown(const v1::ServerDownlink& down, AnchorSink* sink) {
+    const bool covisible = down.has_covisible();
+    if (!covisible && down.corrected_keyframes_size() == 0) return;
+    AnchorMessage* out = sink != nullptr ? sink->loan() : nullptr;
+    if (sink != nullptr && out == nullptr) ++anchors_dropped;
+    if (out == nullptr) {
+      if (!scratch_anchors) scratch_anchors = std::make_unique<AnchorMessage>();
+      out = scratch_anchors.get();
+    }
+    out->stream = streams;
+    out->sequence = down.sequence();
+    out->has_covisible = 0;
+    bool any = false;
+    if (covisible) {
+      const Status decoded = decodeCovisibleMap(down.covisible(), down.sequence(), *out);
+      if (decoded.ok()) {
+        ++covisible_accepted;
+        out->has_covisible = 1;
+        any = true;
+      } else {
+        ++covisible_refused;
+        covisible_last_refusal = decoded.error().message();
+      }
+    } else {
+      out->selected_count = 0;
+      out->keyframe_count = 0;
+      out->point_count = 0;
+      out->keyframe_update_count = 0;
+      out->point_update_count = 0;
+    }
+    if (Status c = decodeCorrections(down.corrected_keyframes(), agent, *out); !c.ok()) {
+      ++corrections_refused;
+      covisible_last_refusal = c.error().message();
+    }
+    any = any || out->correction_count > 0;
+    if (sink == nullptr || out == scratch_anchors.get()) return;
+    if (any) {
+      out->publish_steady_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                   std::chrono::steady_clock::now().time_since_epoch())
+                                   .count();
+      sink->publish();
+      ++anchors_published;
+    } else {
+      sink->discard();
+    }
+  }
 
   void resetArena() {
     uplink = nullptr;
@@ -126,6 +178,9 @@ struct Link::Impl {
     status.covisible_accepted = covisible_accepted;
     status.covisible_refused = covisible_refused;
     status.covisible_last_refusal = covisible_last_refusal;
+    status.corrections_refused = corrections_refused;
+    status.anchor_messages_published = anchors_published;
+    status.anchor_messages_dropped = anchors_dropped;
   }
 };
 
@@ -154,7 +209,7 @@ Result<std::unique_ptr<Link>> Link::create(const LinkOptions& options, AgentId a
 Link::Link(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 Link::~Link() = default;
 
-void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
+void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* anchors) {
   Impl& s = *impl_;
   const auto seconds = [](double v) {
     return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(v));
@@ -199,6 +254,7 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
       auto welcome = s.client.connect(s.hello);
       if (welcome) {
         connected = true;
+        ++s.streams;
         const std::uint64_t stored = (*welcome)->welcome().stored_sequence();
         s.store.onWelcome(stored);
         next_sequence = stored + 1;
@@ -244,15 +300,8 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop) {
           for (const wire::BatchPart& part : wire::covisibleParts(s.downlink.covisible())) {
             if (part.count > 0) s.count(s.down_by_kind, part.kind, part.count, part.bytes);
           }
-          // Checked and decoded; the mapping thread does not take anchors yet (the next step of issue 14).
-          const Status decoded = decodeCovisibleMap(s.downlink.covisible(), s.downlink.sequence(), *s.anchors);
-          if (decoded.ok()) {
-            ++s.covisible_accepted;
-          } else {
-            ++s.covisible_refused;
-            s.covisible_last_refusal = decoded.error().message();
-          }
         }
+        s.passDown(s.downlink, anchors);
       }
       if (!s.client.connected()) {
         connected = false;
@@ -359,6 +408,9 @@ Status Link::writeReport(const std::filesystem::path& dir) const {
                       {"covisible_maps_accepted", st.covisible_accepted},
                       {"covisible_maps_refused", st.covisible_refused},
                       {"covisible_last_refusal", st.covisible_last_refusal},
+                      {"corrections_refused", st.corrections_refused},
+                      {"anchor_messages_to_mapping", st.anchor_messages_published},
+                      {"anchor_messages_dropped", st.anchor_messages_dropped},
                       {"up", up},
                       {"down", down},
                       {"up_mb_per_s", duration_s > 0 ? static_cast<double>(st.up_bytes) * 1e-6 / duration_s : 0.0},

@@ -3,6 +3,7 @@
 //   mapping --MapDeltaMessage (iceoryx)--> link --MapBatch (gRPC, at most 5/s)--> server
 //                                          link <--acknowledgements, corrected keyframe states, the covisible
 //                                                   map (<= 2/s)-- server
+//   mapping <--AnchorMessage (iceoryx)--   link   the covisible map and corrections, checked
 //
 // It learns what changed in the local map from mapping's delta after each keyframe (a topic of its own: one
 // message carries the keyframe in full, the points made, every structural change in order, and the states and
@@ -72,6 +73,18 @@ class DeltaSource {
   virtual void release() = 0;
 };
 
+// Where the link writes what the server sent down for mapping (the covisible map and corrections): iceoryx in
+// the agent, a queue in tests. The link loans a message, decodes into it, and publishes it, or discards it
+// when the server's message was refused.
+class AnchorSink {
+ public:
+  virtual ~AnchorSink() = default;
+  // A message to fill, or nullptr when none can be had now (the server's message is then not passed on).
+  virtual AnchorMessage* loan() = 0;
+  virtual void publish() = 0;
+  virtual void discard() = 0;
+};
+
 // Counters for the progress line and link.json; a copy, safe to read from any thread.
 struct LinkStatus {
   bool connected = false;
@@ -89,6 +102,9 @@ struct LinkStatus {
   std::uint64_t covisible_accepted = 0;
   std::uint64_t covisible_refused = 0;
   std::string covisible_last_refusal;
+  std::uint64_t corrections_refused = 0;
+  std::uint64_t anchor_messages_published = 0;  // to mapping
+  std::uint64_t anchor_messages_dropped = 0;    // no message to loan: mapping is behind
 };
 
 class Link {
@@ -99,8 +115,9 @@ class Link {
   Link& operator=(const Link&) = delete;
 
   // Runs on the calling thread until `stop` is set and then everything is acknowledged (or flush_timeout_s has
-  // passed): reads deltas from `source`, keeps the stream up, sends, reads acknowledgements.
-  void run(DeltaSource& source, const std::atomic<bool>& stop);
+  // passed): reads deltas from `source`, keeps the stream up, sends, reads acknowledgements, and passes the
+  // server's covisible maps and corrections on to `anchors` (nullptr: they are checked and counted only).
+  void run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* anchors = nullptr);
 
   // From another thread: ends the current stream at once (a write blocked on a server that stopped reading
   // returns). run() goes on, and reconnects unless it was stopping.

@@ -24,7 +24,8 @@ Result<PoolHandle> LocalMap::insertKeyframe(const KeyframeData& keyframe) {
   }
   KeyframeData& stored = *keyframes_->get(*handle);
   stored.has_map_point.fill(false);
-  stored.sequence = next_sequence_++;
+  // Anchors stand outside the agent's own order (and do not age its young points): sequence 0.
+  stored.sequence = keyframe.anchor ? 0 : next_sequence_++;
   return *handle;
 }
 
@@ -45,7 +46,7 @@ Status LocalMap::removeKeyframe(PoolHandle keyframe, MapEventReason reason) {
   gone.type = MapEventType::kKeyframeRemoved;
   gone.reason = reason;
   gone.keyframe = kf->id;
-  report(gone);
+  if (!kf->anchor) report(gone);
   for (std::uint16_t k = 0; k < kf->keypoint_count; ++k) {
     if (!kf->has_map_point[k]) continue;
     const PoolHandle point = kf->map_point[k];
@@ -128,7 +129,7 @@ Result<PoolHandle> LocalMap::createMapPoint(PoolHandle reference, std::uint16_t 
   created.keypoint = keypoint;
   created.keyframe = kf->id;
   created.point = id;
-  report(created);
+  if (!kf->anchor) report(created);
   return *handle;
 }
 
@@ -155,7 +156,7 @@ Status LocalMap::addObservation(PoolHandle keyframe, std::uint16_t keypoint, Poo
   added.keypoint = keypoint;
   added.keyframe = kf->id;
   added.point = mp->id;
-  report(added);
+  if (!kf->anchor && !mp->from_server) report(added);
   return Status::Ok();
 }
 
@@ -172,7 +173,7 @@ Result<int> LocalMap::mergeMapPoints(PoolHandle keep, PoolHandle drop) {
   merged.type = MapEventType::kPointsMerged;
   merged.point = dropped->id;
   merged.other = kept->id;
-  report(merged);
+  if (!kept->from_server && !dropped->from_server) report(merged);
   MapEventSink* const sink = events_;
   events_ = nullptr;  // the removal of `drop` below is part of the merge
   int moved = 0;
@@ -208,7 +209,7 @@ Status LocalMap::removeMapPoint(PoolHandle map_point, MapEventReason reason) {
   gone.type = MapEventType::kPointRemoved;
   gone.reason = reason;
   gone.point = mp->id;
-  report(gone);
+  if (!mp->from_server) report(gone);
   keyframes_->forEach([&](PoolHandle, KeyframeData& kf) {
     for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
       if (kf.has_map_point[k] && kf.map_point[k] == map_point) kf.has_map_point[k] = false;
@@ -222,6 +223,7 @@ int LocalMap::cullMapPoints(const CullOptions& options) {
   const std::uint64_t newest = next_sequence_ == 0 ? 0 : next_sequence_ - 1;
   int removed = 0;
   map_points_->forEach([&](PoolHandle handle, const MapPointData& mp) {
+    if (mp.from_server) return;  // the server's points leave with the anchors that brought them
     const bool rarely_found = mp.visible >= options.min_visible &&
                               static_cast<double>(mp.found) < options.min_found_ratio * static_cast<double>(mp.visible);
     const bool unconfirmed = newest >= mp.created_at_sequence + options.keyframes_to_prove &&

@@ -6,6 +6,10 @@
 // mapping thread then evicts the oldest keyframe that is not an anchor (evictOldestKeyframe()) and culls map
 // points (cullMapPoints()). Removing a keyframe moves the reference of each of its map points to another
 // observing keyframe, or removes the point when none is left.
+//
+// Anchors (keyframes that came down from the server, KeyframeData::anchor) and the server's points
+// (MapPointData::from_server) are the server's already: the event sink hears nothing about them, neither their
+// arrival nor their removal nor an observation of a server point, so the link never sends them back up.
 #pragma once
 
 #include <array>
@@ -29,7 +33,7 @@ inline constexpr std::uint16_t kNoKeypoint = 0xFFFF;
 
 struct KeyframeData {
   KeyframeId id;
-  std::uint64_t sequence = 0;  // insertion order in this map, set by insertKeyframe()
+  std::uint64_t sequence = 0;  // insertion order of the agent's own keyframes, set by insertKeyframe(); 0 for anchors
   std::int64_t t_ns = 0;
   geometry::SE3d T_w_s;
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
@@ -67,6 +71,9 @@ struct MapPointData {
   std::uint32_t found = 0;                // frames in which it was matched
   std::uint16_t observation_count = 0;    // keyframes observing it
   std::uint16_t most_observations = 0;    // the most keyframes that observed it at one time (eviction lowers the count)
+  // Came down from the server with an anchor keyframe: never culled, and never reported to the event sink
+  // (the server has it already), nor is any observation of it.
+  bool from_server = false;
 };
 
 struct CullOptions {

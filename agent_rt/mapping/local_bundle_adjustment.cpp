@@ -136,7 +136,12 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
     if (keyframe_index.count(handleKey(h)) != 0) return;
     const auto it = shared.find(handleKey(h));
-    if (kf.anchor || (it != shared.end() && it->second >= options.min_covisible)) add_keyframe(h, false);
+    // An anchor (the server's) counts with any shared point: its pose is the server's refined one.
+    const int n = it != shared.end() ? it->second : 0;
+    if ((kf.anchor && n > 0) || n >= options.min_covisible) {
+      add_keyframe(h, false);
+      summary.anchor_keyframes += kf.anchor ? 1 : 0;
+    }
   });
   for (const PointState& p : points) {  // reference keyframes are needed as fixed poses at least
     add_keyframe(map.mapPoints().get(p.handle)->reference, false);
@@ -179,6 +184,7 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
                                  loss, s.pose.data(), r.pose.data(), extrinsics.data(), p.point.data());
       }
       ++summary.reprojection_factors;
+      summary.anchor_factors += kf.anchor ? 1 : 0;
       if (options.use_second_camera && kf.has_right[k]) {
         const double sigma1 = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.right_octave[k]);
         std::unique_ptr<ceres::CostFunction> cost;

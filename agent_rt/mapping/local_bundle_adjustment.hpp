@@ -46,9 +46,11 @@ struct LocalBundleAdjustmentOptions {
 struct LocalBundleAdjustmentSummary {
   int window_keyframes = 0;
   int fixed_keyframes = 0;
+  int anchor_keyframes = 0;  // of the fixed ones: the server's
   int map_points = 0;           // optimised
   int map_points_left_out = 0;  // observed by the window but with no inverse-depth point: not optimised
   int reprojection_factors = 0;
+  int anchor_factors = 0;          // included in reprojection_factors: observations by anchors
   int second_camera_factors = 0;   // included in reprojection_factors
   int second_camera_rejected = 0;  // stereo mismatches left out
   int imu_factors = 0;

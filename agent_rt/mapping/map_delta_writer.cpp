@@ -45,6 +45,7 @@ void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, con
   delta.imu_count = 0;
   delta.keyframe_count = 0;
   map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) {
+    if (kf.anchor) return;  // the server's, not this agent's to send
     KeyframeStateMsg& m = delta.keyframes[delta.keyframe_count++];
     m = toStateMsg(kf);
     if (!(kf.id == msg.state.id)) return;
@@ -63,6 +64,7 @@ void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, con
                            static_cast<float>(kf.right_undistorted_px[k].y())};
       delta.right_octave[k] = kf.right_octave[k];
       const MapPointData* p = kf.has_map_point[k] ? map.mapPoints().get(kf.map_point[k]) : nullptr;
+      if (p != nullptr && p->from_server) p = nullptr;
       delta.has_observation[k] = p != nullptr ? 1 : 0;
       if (p != nullptr) delta.observation[k] = p->id;
     }
@@ -78,6 +80,7 @@ void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, con
   delta.point_count = 0;
   delta.new_point_count = 0;
   map.mapPoints().forEach([&](PoolHandle h, const MapPointData& p) {
+    if (p.from_server) return;
     const auto p_w = map.pointInWorld(h);
     if (!p_w || !p_w->allFinite()) return;
     const std::array<float, 3> position{static_cast<float>(p_w->x()), static_cast<float>(p_w->y()),

@@ -38,6 +38,19 @@ struct StereoOptions {
   bool use_in_ba = true;
 };
 
+// What the server sends down (CVI-SLAM IV-C.2, IV-D): its K keyframes most covisible with the agent's
+// position enter the local map as anchors, held fixed in local BA (Eq. 10), with their points, which tracking
+// matches like any other; the server's refined states of the agent's own keyframes replace the local ones.
+struct DownlinkOptions {
+  bool use_anchors = true;
+  int max_anchor_keyframes = 32;  // anchors held at once (the server's K is 10); the pool holds N own beside them
+  int max_anchor_points = 3000;   // the server's points held at once, so that the agent's own keep room
+  // Corrections are applied to own keyframes outside the local BA window (one in the window takes its
+  // correction when it leaves the window): held fixed there, they pull the window onto the server's map over the
+  // next local BAs, so tracking never sees the step at once.
+  bool apply_corrections = true;
+};
+
 struct MapperOptions {
   AgentId agent = 0;
   int max_keyframes = 20;           // N: the agent's own keyframes kept in the local map
@@ -56,6 +69,7 @@ struct MapperOptions {
   imu::VisualInertialAlignmentOptions alignment;
   int mono_init_min_matches = 80;
   double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
+  DownlinkOptions downlink;
 
   [[nodiscard]] Status validate() const;
 };
@@ -82,6 +96,28 @@ struct MapperReport {
   std::string note;                 // why an initialisation did not succeed, for the log
 };
 
+// What one downlink message did to the local map.
+struct DownlinkReport {
+  bool stale = false;  // a message of an older stream or sequence than one applied already: ignored
+  std::string skipped;  // why the covisible map was not used (another agent map, the map not ready), or empty
+  int anchors_added = 0;
+  int anchors_released = 0;  // left the server's selection
+  int anchors_held = 0;      // after this message
+  int anchor_poses_updated = 0;
+  int anchors_over_capacity = 0;  // selected and sent, but the pool's share for anchors is full
+  int points_added = 0;
+  int points_linked = 0;         // the server's point was one the local map holds already (own, or sent before)
+  int points_updated = 0;
+  int points_over_capacity = 0;  // left out: max_anchor_points reached, or the pool is full
+  int unknown_references = 0;    // observations of points neither in the message nor in the map, updates of
+                                 // keyframes or points no longer held: skipped
+  int corrections_applied = 0;
+  int corrections_deferred = 0;  // in the local BA window: applied when the keyframe leaves it
+  int corrections_skipped = 0;   // no longer in the local map
+  double largest_correction_m = 0.0;
+  double largest_correction_deg = 0.0;
+};
+
 class Mapper {
  public:
   // `right` and T_c0_c1 only for stereo.
@@ -96,6 +132,10 @@ class Mapper {
   // into `delta` (for the link to the server).
   Result<MapperReport> process(const KeyframeMessage& keyframe, MapSnapshotMessage& snapshot,
                                MapDeltaMessage* delta = nullptr);
+
+  // Applies one downlink message (link -> mapping) between keyframes. Messages of a stream apply in sequence;
+  // one older than the newest applied is ignored (stale), one that repeats what the map holds changes nothing.
+  Result<DownlinkReport> applyDownlink(const AnchorMessage& message);
 
   [[nodiscard]] const LocalMap& map() const;
   [[nodiscard]] bool imuInitialised() const;

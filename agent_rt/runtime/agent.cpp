@@ -186,6 +186,72 @@ struct MappingStats {
   std::uint64_t lost_messages = 0;
   double imu_initialised_at_s = -1.0;
   std::size_t new_maps = 0;
+  // What the server sent down, as mapping applied it.
+  std::size_t downlink_messages = 0;
+  std::size_t downlink_stale = 0;
+  std::size_t downlink_refused = 0;
+  std::size_t downlink_skipped = 0;  // the covisible map was in another agent map, or the map was not ready
+  std::string downlink_last_skip;
+  std::size_t anchors_added = 0;
+  std::size_t anchors_released = 0;
+  int most_anchors_held = 0;
+  std::size_t anchor_points_added = 0;
+  std::size_t anchor_points_linked = 0;
+  std::size_t anchor_updates = 0;
+  std::size_t over_capacity = 0;
+  std::size_t unknown_references = 0;
+  std::size_t corrections_applied = 0;
+  std::size_t corrections_deferred = 0;
+  std::size_t corrections_skipped = 0;
+  double largest_correction_m = 0.0;
+  double largest_correction_deg = 0.0;
+  std::size_t ba_with_anchors = 0;  // local BAs in which anchors' observations took part
+
+  void add(const DownlinkReport& r) {
+    ++downlink_messages;
+    downlink_stale += r.stale ? 1 : 0;
+    if (!r.skipped.empty()) {
+      ++downlink_skipped;
+      downlink_last_skip = r.skipped;
+    }
+    anchors_added += static_cast<std::size_t>(r.anchors_added);
+    anchors_released += static_cast<std::size_t>(r.anchors_released);
+    most_anchors_held = std::max(most_anchors_held, r.anchors_held);
+    anchor_points_added += static_cast<std::size_t>(r.points_added);
+    anchor_points_linked += static_cast<std::size_t>(r.points_linked);
+    anchor_updates += static_cast<std::size_t>(r.anchor_poses_updated + r.points_updated);
+    over_capacity += static_cast<std::size_t>(r.anchors_over_capacity + r.points_over_capacity);
+    unknown_references += static_cast<std::size_t>(r.unknown_references);
+    corrections_applied += static_cast<std::size_t>(r.corrections_applied);
+    corrections_deferred += static_cast<std::size_t>(r.corrections_deferred);
+    corrections_skipped += static_cast<std::size_t>(r.corrections_skipped);
+    largest_correction_m = std::max(largest_correction_m, r.largest_correction_m);
+    largest_correction_deg = std::max(largest_correction_deg, r.largest_correction_deg);
+  }
+};
+
+// The link writes what the server sent down into iceoryx chunks for mapping.
+class IceoryxAnchorSink final : public AnchorSink {
+ public:
+  explicit IceoryxAnchorSink(iox::popo::Publisher<AnchorMessage>& publisher) : publisher_(publisher) {}
+  AnchorMessage* loan() override {
+    auto loaned = publisher_.loan();
+    if (loaned.has_error()) return nullptr;
+    sample_.emplace(std::move(loaned.value()));
+    tsanAcquire(sample_->get());
+    return sample_->get();
+  }
+  void publish() override {
+    if (!sample_) return;
+    tsanRelease(sample_->get());
+    sample_->publish();
+    sample_.reset();
+  }
+  void discard() override { sample_.reset(); }
+
+ private:
+  iox::popo::Publisher<AnchorMessage>& publisher_;
+  std::optional<iox::popo::Sample<AnchorMessage>> sample_;
 };
 
 // The link reads mapping's deltas from iceoryx.
@@ -220,6 +286,38 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
   iox::popo::Publisher<MapSnapshotMessage> snapshots(service(options.agent, "map_snapshot"), pub_options);
   std::optional<iox::popo::Publisher<MapDeltaMessage>> deltas;
   if (with_link) deltas.emplace(service(options.agent, "map_delta"), pub_options);
+  // The server's covisible map and corrections, from the link: applied between keyframes, in order.
+  std::optional<iox::popo::Subscriber<AnchorMessage>> anchors;
+  if (with_link) {
+    iox::popo::SubscriberOptions anchor_options;
+    anchor_options.queueCapacity = 8;
+    anchors.emplace(service(options.agent, "anchors"), anchor_options);
+  }
+  const auto apply_anchors = [&] {
+    if (!anchors) return;
+    for (auto taken = anchors->take(); !taken.has_error(); taken = anchors->take()) {
+      const AnchorMessage& m = *taken.value();
+      tsanAcquire(&m);
+      auto applied = mapper.applyDownlink(m);
+      tsanRelease(&m);
+      if (!applied) {
+        ++stats.downlink_refused;
+        std::fprintf(stderr, "[mapping] downlink message refused: %s\n", applied.error().toString().c_str());
+        continue;
+      }
+      stats.add(*applied);
+      if (options.trace_mapping) {
+        std::fprintf(stderr,
+                     "[mapping] downlink %u/%llu: anchors +%d -%d (held %d), points +%d (linked %d, over capacity %d), "
+                     "%d unknown references, corrections %d applied / %d skipped (largest %.3f m)%s%s\n",
+                     m.stream, static_cast<unsigned long long>(m.sequence), applied->anchors_added,
+                     applied->anchors_released, applied->anchors_held, applied->points_added, applied->points_linked,
+                     applied->points_over_capacity, applied->unknown_references, applied->corrections_applied,
+                     applied->corrections_skipped, applied->largest_correction_m, applied->stale ? ", stale" : "",
+                     applied->skipped.empty() ? "" : (", " + applied->skipped).c_str());
+      }
+    }
+  };
   // RouDi connects publishers and subscribers asynchronously: a snapshot published before tracking's
   // subscriber is connected would be lost, and tracking would wait for a map that never comes (likewise the
   // link's deltas).
@@ -234,6 +332,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
   std::uint64_t sequence = 0;
   std::uint64_t delta_sequence = 0;
   while (true) {
+    apply_anchors();
     auto taken = keyframes.take();
     if (taken.has_error()) {
       if (tracking_done.load() || stop.load()) {
@@ -292,17 +391,18 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     ++stats.keyframes;
     stats.lost_messages += report->lost_messages;
     if (report->ba_ran) local_ba.add(report->ba_ns);
+    if (report->ba_ran && report->ba.anchor_factors > 0) ++stats.ba_with_anchors;
     if (options.trace_mapping) {
       std::fprintf(
           stderr,
           "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
-          "triangulated %d, culled %d; BA %d keyframes + %d fixed, %d points (%d left out), %d factors (%d cam1, "
-          "%d mismatches left out), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
+          "triangulated %d, culled %d; BA %d keyframes + %d fixed (%d anchors), %d points (%d left out), %d factors "
+          "(%d cam1, %d mismatches left out, %d by anchors), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
           t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged, report->stereo_matches,
           report->stereo_points, report->triangulated, report->culled, report->ba.window_keyframes,
-          report->ba.fixed_keyframes, report->ba.map_points, report->ba.map_points_left_out,
-          report->ba.reprojection_factors, report->ba.second_camera_factors, report->ba.second_camera_rejected,
-          report->ba.initial_cost, report->ba.final_cost, report->ba.iterations,
+          report->ba.fixed_keyframes, report->ba.anchor_keyframes, report->ba.map_points,
+          report->ba.map_points_left_out, report->ba.reprojection_factors, report->ba.second_camera_factors,
+          report->ba.second_camera_rejected, report->ba.anchor_factors, report->ba.initial_cost, report->ba.final_cost, report->ba.iterations,
           static_cast<double>(report->ba_ns) * 1e-6);
     }
     if (report->new_map) ++stats.new_maps;
@@ -389,7 +489,11 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     std::vector<MemPoolSpec> pools = {{128, 64},
                                       {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), 48},
                                       {static_cast<std::uint32_t>(sizeof(MapSnapshotMessage)), 48}};
-    if (!options.link.server.empty()) pools.push_back({static_cast<std::uint32_t>(sizeof(MapDeltaMessage)), 24});
+    if (!options.link.server.empty()) {
+      pools.push_back({static_cast<std::uint32_t>(sizeof(MapDeltaMessage)), 24});
+      // The downlink to mapping: its queue of 8, one written, one read.
+      pools.push_back({static_cast<std::uint32_t>(sizeof(AnchorMessage)), 10});
+    }
     std::sort(pools.begin(), pools.end(),
               [](const MemPoolSpec& a, const MemPoolSpec& b) { return a.chunk_payload_bytes < b.chunk_payload_bytes; });
     // Sizes must grow by at least a few KiB from pool to pool: near-equal ones share one pool.
@@ -477,7 +581,10 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       delta_options.queueCapacity = 16;
       iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
       IceoryxDeltaSource source(subscriber);
-      link->run(source, link_stop);
+      iox::popo::PublisherOptions anchor_options;
+      iox::popo::Publisher<AnchorMessage> anchor_publisher(service(options.agent, "anchors"), anchor_options);
+      IceoryxAnchorSink anchor_sink(anchor_publisher);
+      link->run(source, link_stop, &anchor_sink);
       link_done.store(true);
     });
   }
@@ -707,6 +814,26 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
         {"deltas_lost", summary.link.store.deltas_lost},
         {"up_bytes", summary.link.up_bytes},
         {"down_bytes", summary.link.down_bytes}};
+    const MappingStats& m = mapping_stats;
+    j["downlink"] = {{"messages_applied", m.downlink_messages},
+                     {"stale", m.downlink_stale},
+                     {"refused", m.downlink_refused},
+                     {"covisible_maps_skipped", m.downlink_skipped},
+                     {"last_skip", m.downlink_last_skip},
+                     {"anchors_added", m.anchors_added},
+                     {"anchors_released", m.anchors_released},
+                     {"most_anchors_held", m.most_anchors_held},
+                     {"anchor_points_added", m.anchor_points_added},
+                     {"anchor_points_linked", m.anchor_points_linked},
+                     {"anchor_updates", m.anchor_updates},
+                     {"over_capacity", m.over_capacity},
+                     {"unknown_references", m.unknown_references},
+                     {"corrections_applied", m.corrections_applied},
+                     {"corrections_deferred", m.corrections_deferred},
+                     {"corrections_skipped", m.corrections_skipped},
+                     {"largest_correction_m", m.largest_correction_m},
+                     {"largest_correction_deg", m.largest_correction_deg},
+                     {"local_ba_with_anchors", m.ba_with_anchors}};
   }
   std::ofstream(options.output / "summary.json") << j.dump(2) << "\n";
   return summary;

@@ -91,6 +91,10 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   link.read("point_update_min_m", o.link.store.point_update_min_m);
   link.read("reconnect_max_s", o.link.reconnect_max_s);
   link.read("flush_timeout_s", o.link.flush_timeout_s);
+  link.read("use_anchors", o.mapping.downlink.use_anchors);
+  link.read("max_anchor_keyframes", o.mapping.downlink.max_anchor_keyframes);
+  link.read("max_anchor_points", o.mapping.downlink.max_anchor_points);
+  link.read("apply_corrections", o.mapping.downlink.apply_corrections);
   if (Status s = link.finish(); !s.ok()) return in_file(s);
   return in_file(o.link.validate());
 }

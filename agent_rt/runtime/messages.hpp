@@ -12,8 +12,9 @@
 //   mapping  --MapDeltaMessage-->   link     what changed in the local map with this keyframe: the keyframe in
 //                                             full, the points made, every structural change in order (map
 //                                             events), and the states and positions of everything in the map
-//   link     --AnchorMessage-->     mapping  the server's covisible map, decoded and checked (the link checks
-//                                             it today; mapping taking the anchors in is the next step)
+//   link     --AnchorMessage-->     mapping  what the server sends down, decoded and checked: its covisible map
+//                                             (keyframes and points that local BA holds fixed and tracking can
+//                                             match) and its refined states of the agent's own keyframes
 //
 // Tracking never waits on mapping: it takes the newest snapshot when one is there and keeps using the one it
 // holds otherwise.
@@ -122,6 +123,8 @@ struct MapSnapshotMessage {
   KeyframeId newest_keyframe;  // the newest keyframe mapping has processed
   std::uint16_t keyframe_count = 0;
   std::array<KeyframeStateMsg, kMaxKeyframes> keyframes{};
+  std::array<std::uint8_t, kMaxKeyframes> keyframe_is_anchor{};  // the server's keyframes (another agent's, or
+                                                                 // this agent's own from long ago)
   std::uint32_t point_count = 0;
   std::array<MapPointMsg, kMaxMapPoints> points{};
   // The agent's newest own keyframes, oldest first, for motion-only BA over the newest n keyframes.
@@ -229,12 +232,20 @@ struct AnchorPointUpdateMsg {
   std::array<double, 3> p_w{};
 };
 
-// Link -> mapping: one downlink message's covisible map. Keyframes and points come in full once per stream;
-// afterwards only updates of what moved. `selected` is the server's current choice, best first.
+// Corrections of the agent's own keyframes one message carries; beyond it the oldest are left out (mapping
+// applies them only to keyframes still in its local map, the newest ones).
+inline constexpr std::size_t kMaxAnchorCorrectionsPerMessage = 1024;
+
+// Link -> mapping: one downlink message's covisible map and corrections. Keyframes and points come in full once
+// while they are selected; afterwards only updates of what moved. `selected` is the server's current choice,
+// best first: the agent holds exactly the selected keyframes it has received, and lets go of the others (the
+// server sends a keyframe again in full when it is selected again).
 struct AnchorMessage {
+  std::uint32_t stream = 0;    // the link's stream (connection) count: sequences restart on a new stream
   std::uint64_t sequence = 0;  // the downlink message's sequence on its stream
   std::int64_t publish_steady_ns = 0;
-  std::uint32_t agent_map = 0;  // the agent map whose world frame all of this is in
+  std::uint8_t has_covisible = 0;  // 0: corrections only (selection, keyframes, points and updates are empty)
+  std::uint32_t agent_map = 0;     // the agent map whose world frame all of this is in
   std::uint16_t selected_count = 0;
   std::array<KeyframeId, kMaxAnchorKeyframesPerMessage> selected{};
   std::uint16_t keyframe_count = 0;
@@ -245,6 +256,10 @@ struct AnchorMessage {
   std::array<AnchorPoseUpdateMsg, kMaxAnchorKeyframesPerMessage> keyframe_updates{};
   std::uint32_t point_update_count = 0;
   std::array<AnchorPointUpdateMsg, kMaxAnchorPointsPerMessage> point_updates{};
+  // The server's states of the agent's own keyframes (after global BA, a loop closure, a merge), in the
+  // agent's world frame.
+  std::uint16_t correction_count = 0;
+  std::array<KeyframeStateMsg, kMaxAnchorCorrectionsPerMessage> corrections{};
 };
 
 static_assert(std::is_trivially_copyable_v<KeyframeMessage>);

@@ -42,6 +42,7 @@ void TrajectoryRecorder::addSnapshot(const MapSnapshotMessage& s) {
   epoch_ = s.map_epoch;
   for (std::uint16_t i = 0; i < s.keyframe_count; ++i) {
     const KeyframeStateMsg& m = s.keyframes[i];
+    if (s.keyframe_is_anchor[i] != 0) continue;  // the server's: not one of this agent's keyframes to record
     if (m.id.counter >= keyframes_.size()) continue;
     Keyframe& kf = keyframes_[m.id.counter];
     kf = {true, m.t_ns, fromMsg(m.T_w_s), s.map_id, s.map_epoch};
