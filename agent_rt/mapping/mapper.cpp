@@ -88,6 +88,18 @@ struct Mapper::State {
   // The server's states of own keyframes that were in the local BA window when they came: applied when the
   // keyframe leaves the window, so that the keyframes held fixed around the window agree with one another.
   std::unordered_map<std::uint64_t, KeyframeStateMsg> pending_corrections;
+  // What the server sends is in the agent's world frame as the server holds it (T_m_w, fixed when the agent
+  // map joined the server's map); that differs from the agent's frame now by whatever the server moved since
+  // (a merge's error, global BA). Re-estimated from the newest own keyframe the server corrected, so that the
+  // present stays where it is and only the server's view of the past (drift) moves: local = T * server.
+  SE3d T_local_server;
+
+  [[nodiscard]] KeyframeStateMsg toLocal(const KeyframeStateMsg& c) const {
+    KeyframeStateMsg out = c;
+    out.T_w_s = toMsg(T_local_server * fromMsg(c.T_w_s));
+    out.v_w = toArray(T_local_server.so3() * toVector3(c.v_w));
+    return out;
+  }
 
   // Takes the server's state; returns the step (translation [m], rotation [deg]).
   std::pair<double, double> correct(KeyframeData& kf, const KeyframeStateMsg& c) {
@@ -149,6 +161,7 @@ struct Mapper::State {
     mono_initialised = false;
     mono_reference.reset();
     pending_corrections.clear();
+    T_local_server = SE3d();
   }
 
   // Own keyframes by sequence, oldest first (anchors are not among them).
@@ -653,8 +666,35 @@ Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
     const std::size_t outside = own.size() > window ? own.size() - window : 0;
     std::unordered_map<std::uint64_t, std::pair<PoolHandle, bool>> by_id;  // -> (handle, outside the window)
     for (std::size_t i = 0; i < own.size(); ++i) by_id.emplace(State::key(s.map.keyframes().get(own[i])->id), std::pair{own[i], i < outside});
+    // The frame: the newest own keyframe the server corrected keeps its local pose.
+    const KeyframeStateMsg* newest = nullptr;
+    std::uint64_t newest_sequence = 0;
     for (std::uint16_t i = 0; i < msg.correction_count; ++i) {
-      const KeyframeStateMsg& c = msg.corrections[i];
+      const auto found = by_id.find(State::key(msg.corrections[i].id));
+      if (found == by_id.end()) continue;
+      const std::uint64_t sequence = s.map.keyframes().get(found->second.first)->sequence;
+      if (newest == nullptr || sequence > newest_sequence) {
+        newest = &msg.corrections[i];
+        newest_sequence = sequence;
+      }
+    }
+    if (newest != nullptr) {
+      const KeyframeData& kf = *s.map.keyframes().get(by_id.at(State::key(newest->id)).first);
+      const SE3d T_new = kf.T_w_s * fromMsg(newest->T_w_s).inverse();
+      const SE3d change = T_new * s.T_local_server.inverse();
+      report.frame_change_m = change.translation().norm();
+      // What came down before moves with the frame (the server's points with the anchors that hold them).
+      s.map.keyframes().forEach([&](PoolHandle, KeyframeData& anchor) {
+        if (anchor.anchor) anchor.T_w_s = change * anchor.T_w_s;
+      });
+      for (auto& [key, pending] : s.pending_corrections) {
+        pending.T_w_s = toMsg(change * fromMsg(pending.T_w_s));
+        pending.v_w = toArray(change.so3() * toVector3(pending.v_w));
+      }
+      s.T_local_server = T_new;
+    }
+    for (std::uint16_t i = 0; i < msg.correction_count; ++i) {
+      const KeyframeStateMsg c = s.toLocal(msg.corrections[i]);
       const auto found = by_id.find(State::key(c.id));
       if (found == by_id.end()) {
         ++report.corrections_skipped;
@@ -717,7 +757,7 @@ Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
       ++report.unknown_references;
       continue;
     }
-    kf->T_w_s = fromMsg(msg.keyframe_updates[i].T_w_c) * s.T_s_c.inverse();
+    kf->T_w_s = s.T_local_server * fromMsg(msg.keyframe_updates[i].T_w_c) * s.T_s_c.inverse();
     ++report.anchor_poses_updated;
   }
   s.rebuildPointIndex();
@@ -738,7 +778,7 @@ Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
       if (p == nullptr) ++report.unknown_references;
       continue;
     }
-    if (set_position(found->second, toVector3(msg.point_updates[i].p_w))) ++report.points_updated;
+    if (set_position(found->second, s.T_local_server * toVector3(msg.point_updates[i].p_w))) ++report.points_updated;
   }
 
   // New keyframes, in the server's rank order, with the points they observe.
@@ -759,7 +799,7 @@ Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
     KeyframeData& kf = s.scratch;
     kf.id = a.id;
     kf.t_ns = a.t_ns;
-    kf.T_w_s = fromMsg(a.T_w_c) * s.T_s_c.inverse();
+    kf.T_w_s = s.T_local_server * fromMsg(a.T_w_c) * s.T_s_c.inverse();
     kf.v_w.setZero();
     kf.bias = imu::ImuBias();
     kf.anchor = true;
@@ -806,7 +846,7 @@ Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
         continue;
       }
       const AnchorPointMsg& m = msg.points[in_message->second];
-      const Vector3d p_c = T_c_w * toVector3(m.p_w);
+      const Vector3d p_c = T_c_w * (s.T_local_server * toVector3(m.p_w));
       if (!(p_c.z() > 0.0)) {
         ++report.unknown_references;
         continue;

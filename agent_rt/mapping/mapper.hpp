@@ -47,8 +47,9 @@ struct DownlinkOptions {
   int max_anchor_points = 3000;   // the server's points held at once, so that the agent's own keep room
   // Corrections are applied to own keyframes outside the local BA window (one in the window takes its
   // correction when it leaves the window): held fixed there, they pull the window onto the server's map over the
-  // next local BAs, so tracking never sees the step at once.
-  bool apply_corrections = true;
+  // next local BAs, so tracking never sees the step at once. Off by default: on the simulated missions they
+  // helped the drifting MH_05 replay but made overlap2 and the live steps worse than anchors alone (README).
+  bool apply_corrections = false;
 };
 
 struct MapperOptions {
@@ -116,6 +117,9 @@ struct DownlinkReport {
   int corrections_skipped = 0;   // no longer in the local map
   double largest_correction_m = 0.0;
   double largest_correction_deg = 0.0;
+  // How far the server's frame, as it expresses the agent's world, moved against the agent's own frame since the
+  // last correction (re-estimated from the newest corrected own keyframe) [m].
+  double frame_change_m = 0.0;
 };
 
 class Mapper {

@@ -3,6 +3,7 @@
 #include "agent_rt/map/local_map.hpp"
 
 #include <memory>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -75,6 +76,40 @@ TEST_F(LocalMapTest, RemovingTheReferenceKeyframeReanchorsItsPointsOrRemovesThem
   EXPECT_LT((*sut_->pointInWorld(*shared) - p_w_before).norm(), 1e-9);
   EXPECT_FALSE(sut_->mapPoints().valid(*lonely));  // nobody else saw it
   EXPECT_FALSE(sut_->keyframes().valid(kf0));
+}
+
+// Records what the local map reports.
+struct RecordedEvents final : MapEventSink {
+  void record(const MapEvent& e) override { events.push_back(e); }
+  std::vector<MapEvent> events;
+};
+
+TEST_F(LocalMapTest, NothingAboutTheServersKeyframesAndPointsIsReported) {
+  RecordedEvents recorded;
+  sut_->setEventSink(&recorded);
+  const PoolHandle anchor = addKeyframe(0.0, /*anchor=*/true);
+  const PoolHandle own = addKeyframe(0.5);
+  auto server = sut_->createMapPoint(anchor, 2, Vector3d(0.1, -0.05, 1.0), 4.0, MapPointId{7, 40});
+  ASSERT_TRUE(server.ok());
+  sut_->mapPoints().get(*server)->from_server = true;
+  ASSERT_TRUE(sut_->addObservation(own, 5, *server).ok());
+  EXPECT_EQ(sut_->cullMapPoints(CullOptions{}), 0) << "the server's points are not culled";
+  EXPECT_TRUE(recorded.events.empty()) << "an anchor's point, and an own keyframe's view of it: not reported";
+
+  // The agent's own point, observed by the anchor too: its creation is reported, the anchor's view of it is not.
+  auto own_point = sut_->createMapPoint(own, 6, Vector3d(-0.1, 0.05, 1.0), 3.0, MapPointId{0, 9});
+  ASSERT_TRUE(own_point.ok());
+  ASSERT_TRUE(sut_->addObservation(anchor, 3, *own_point).ok());
+  ASSERT_EQ(recorded.events.size(), 1U);
+  EXPECT_EQ(recorded.events[0].type, MapEventType::kPointCreated);
+  EXPECT_EQ(recorded.events[0].keyframe, sut_->keyframes().get(own)->id);
+
+  ASSERT_TRUE(sut_->removeKeyframe(anchor).ok());
+  EXPECT_EQ(recorded.events.size(), 1U) << "an anchor leaving is not reported, nor its point going with it";
+  ASSERT_TRUE(sut_->mapPoints().valid(*server)) << "the own keyframe observes it too: it stays, with that reference";
+  EXPECT_EQ(sut_->mapPoints().get(*server)->reference, own);
+  EXPECT_TRUE(sut_->mapPoints().get(*server)->from_server);
+  sut_->setEventSink(nullptr);
 }
 
 TEST_F(LocalMapTest, AnchorsAreNeverEvicted) {

@@ -56,6 +56,7 @@ class MapperTest : public ::testing::Test {
     options.imu_init_keyframes = 4;
     options.imu_init_max_keyframes = 6;
     options.mono_init_min_matches = 50;
+    adjust(options);
     options_ = options;
     auto mapper = Mapper::create(options, *camera_, nullptr, T_s_c_, SE3d());
     ASSERT_TRUE(mapper.ok()) << mapper.error().toString();
@@ -63,6 +64,8 @@ class MapperTest : public ::testing::Test {
     message_ = std::make_unique<KeyframeMessage>();
     snapshot_ = std::make_unique<MapSnapshotMessage>();
   }
+
+  virtual void adjust(MapperOptions& /*options*/) {}
 
   // The camera looks along world z; keyframe k sits at x = 0.25 k, with a small yaw. `scale` scales the
   // camera's position (a monocular map is the scene up to scale about camera 0).
@@ -205,6 +208,7 @@ TEST_F(MapperTest, RefusesAnOversizedMessage) {
 // in the monocular map's scale), observations in normalised coordinates, point ids of agent 7.
 class MapperDownlinkTest : public MapperTest {
  protected:
+  void adjust(MapperOptions& options) override { options.downlink.apply_corrections = true; }
   void SetUp() override {
     MapperTest::SetUp();
     downlink_ = std::make_unique<AnchorMessage>();
@@ -427,16 +431,20 @@ TEST_F(MapperDownlinkTest, CorrectionsMoveOwnKeyframesOutsideTheLocalWindowAndTh
   for (int k = 5; k <= 6; ++k) {
     ASSERT_TRUE(mapper_->process(keyframe(k, KeyframeKind::kTracked, truePose(k, scale_)), *snapshot_).ok());
   }
-  // Own keyframes 0, 2, 3, 4, 5, 6 (6 = N); the window (4) is 3..6, so 0 and 2 are outside it.
+  // Own keyframes 0, 2, 3, 4, 5, 6 (6 = N); the window (4) is 3..6, so 0 and 2 are outside it. The server
+  // removed drift that grows with age (none at the newest), and its frame for this agent is 5 cm off the
+  // agent's (a merge's error): the offset is taken out, the drift is applied.
   AnchorMessage& m = message(1, 1);
   m.has_covisible = 0;
-  const Vector3d shift = Vector3d(0.02, 0.0, -0.01) * scale_;
+  const Vector3d drift = Vector3d(0.02, 0.0, -0.01) * scale_;  // at keyframe 0
+  const Vector3d offset(0.05, -0.03, 0.01);
+  const auto drift_at = [&](std::uint32_t k) { return drift * (6.0 - k) / 6.0; };
   for (std::uint32_t k : {0U, 2U, 3U, 4U, 5U, 6U, 77U}) {
     const KeyframeData* kf = keyframeById(KeyframeId{0, k});
     KeyframeStateMsg& c = m.corrections[m.correction_count++];
     c.id = KeyframeId{0, k};
     SE3d T = kf != nullptr ? kf->T_w_s : SE3d();
-    T.translation() += shift;
+    T.translation() += drift_at(k) + offset;
     c.T_w_s = toMsg(T);
   }
   const SE3d before_3 = keyframeById(KeyframeId{0, 3})->T_w_s;
@@ -446,8 +454,9 @@ TEST_F(MapperDownlinkTest, CorrectionsMoveOwnKeyframesOutsideTheLocalWindowAndTh
   EXPECT_EQ(applied->corrections_applied, 2);
   EXPECT_EQ(applied->corrections_deferred, 4) << "in the window";
   EXPECT_EQ(applied->corrections_skipped, 1) << "no longer in the map";
-  EXPECT_NEAR(applied->largest_correction_m, shift.norm(), 1e-9);
-  EXPECT_NEAR((keyframeById(KeyframeId{0, 0})->T_w_s.translation() - before_0.translation() - shift).norm(), 0.0,
+  EXPECT_NEAR(applied->frame_change_m, offset.norm(), 1e-9) << "the newest corrected keyframe keeps its pose";
+  EXPECT_NEAR(applied->largest_correction_m, drift.norm(), 1e-9);
+  EXPECT_NEAR((keyframeById(KeyframeId{0, 0})->T_w_s.translation() - before_0.translation() - drift).norm(), 0.0,
               1e-12);
   EXPECT_EQ((keyframeById(KeyframeId{0, 3})->T_w_s.translation() - before_3.translation()).norm(), 0.0)
       << "the window keeps its own states while it is the window";
@@ -460,8 +469,9 @@ TEST_F(MapperDownlinkTest, CorrectionsMoveOwnKeyframesOutsideTheLocalWindowAndTh
     EXPECT_TRUE(r->ba_ran);
     EXPECT_LE(r->ba.final_cost, r->ba.initial_cost);
     if (k == 7) {
-      EXPECT_NEAR((keyframeById(KeyframeId{0, 3})->T_w_s.translation() - before_3.translation() - shift).norm(), 0.0,
-                  1e-12)
+      EXPECT_NEAR(
+          (keyframeById(KeyframeId{0, 3})->T_w_s.translation() - before_3.translation() - drift_at(3)).norm(), 0.0,
+          1e-12)
           << "keyframe 3 left the window and took the server's state, held fixed since";
     }
   }
@@ -475,6 +485,8 @@ TEST(MapperOptions, NamesBadValues) {
   o.ba.window = 30;
   EXPECT_NE(o.validate().error().message().find("window"), std::string::npos);
   o = MapperOptions{};
+  EXPECT_TRUE(o.downlink.use_anchors);
+  EXPECT_FALSE(o.downlink.apply_corrections) << "corrections are opt-in (README: when they help)";
   o.downlink.max_anchor_keyframes = 1000;
   EXPECT_NE(o.validate().error().message().find("max_anchor_keyframes"), std::string::npos);
   o = MapperOptions{};
