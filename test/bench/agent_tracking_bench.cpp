@@ -12,6 +12,15 @@
 // With --server HOST:PORT (a cvislam_server running elsewhere, e.g. unpinned), passes alternate between no link
 // and a link thread in this process streaming mapping's deltas to that server, so both see the same machine:
 // two tables, without and with the link, in one run. Pinned with taskset, the link thread shares the core.
+// With the link, what the server sends down (its covisible map, corrections) goes back into mapping between
+// keyframes, as in the agent, so the link passes track against a local map with anchors in it. Local BA's time
+// per keyframe is recorded too (mapping runs between frames, untimed for tracking). --local-map-keyframes N
+// shrinks the local map (N own keyframes) so that on a short sequence the server already has older ones to
+// send down. On the simulator's loop (60 s, which comes back over its start beyond the default local map):
+//
+//   build/default/bin/cvislam_sim --preset loop --seed 1 --stereo --out /tmp/loop
+//   taskset -c 1 build/default/bin/bench_agent_tracking --dataset /tmp/loop/agent0 --server 127.0.0.1:50051
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -40,13 +49,17 @@ struct Recorders {
         orb("orb_extraction", capacity),
         matching("matching", capacity),
         pose("pose_optimisation", capacity),
-        motion("motion_ba", capacity) {}
+        motion("motion_ba", capacity),
+        local_ba("local_ba", capacity) {}
   cvislam::agent::LatencyRecorder total;
   cvislam::agent::LatencyRecorder orb;
   cvislam::agent::LatencyRecorder matching;
   cvislam::agent::LatencyRecorder pose;
   cvislam::agent::LatencyRecorder motion;
+  cvislam::agent::LatencyRecorder local_ba;
   std::size_t frames = 0;
+  std::size_t keyframes_with_anchors = 0;  // local BAs in which anchors' observations took part
+  int anchors_added = 0;
   std::size_t tracked = 0;
   std::size_t keyframes = 0;
   std::uint64_t batches = 0;
@@ -68,7 +81,11 @@ int main(int argc, char** argv) {
   std::string json;
   int passes = 5;
   std::string server;
+  int local_map_keyframes = 0;
   app.add_option("--dataset", dataset, "Sequence folder that holds mav0");
+  app.add_option("--local-map-keyframes", local_map_keyframes,
+                 "N own keyframes in the local map (default: the mapper's, 20)")
+      ->check(CLI::Range(10, 40));
   app.add_option("--server", server,
                  "cvislam_server HOST:PORT: alternate passes without and with the link streaming to it");
   app.add_option("--mode", mode, "stereo or mono")->check(CLI::IsMember({"stereo", "mono"}));
@@ -90,13 +107,25 @@ int main(int argc, char** argv) {
   for (int pass = 0; pass < total_passes; ++pass) {
     const bool with_link = !server.empty() && pass % 2 == 1;
     Recorders& rec = recorders[with_link ? 1 : 0];
-    auto agent = cvislam::test::InlineAgent::create(*sequence, mode == "stereo");
+    cvislam::agent::MapperOptions mapper_options;
+    if (local_map_keyframes > 0) {
+      mapper_options.max_keyframes = local_map_keyframes;
+      mapper_options.imu_init_keyframes = std::min(mapper_options.imu_init_keyframes, local_map_keyframes - 5);
+      mapper_options.imu_init_max_keyframes = local_map_keyframes;
+    }
+    auto agent = cvislam::test::InlineAgent::create(*sequence, mode == "stereo", {}, mapper_options);
     if (!agent) {
       std::cerr << "bench_agent_tracking: " << agent.error().toString() << "\n";
       return 1;
     }
     std::unique_ptr<cvislam::agent::Link> link;
     std::unique_ptr<cvislam::agent::test::DeltaQueue> deltas;
+    cvislam::agent::test::AnchorQueue anchors(16);
+    (*agent)->afterKeyframe([&](const cvislam::agent::MapperReport& report) {
+      if (!report.ba_ran) return;
+      rec.local_ba.add(report.ba_ns);
+      rec.keyframes_with_anchors += report.ba.anchor_factors > 0 ? 1 : 0;
+    });
     std::atomic<bool> stop{false};
     std::thread link_thread;
     if (with_link) {
@@ -104,6 +133,7 @@ int main(int argc, char** argv) {
       options.server = server;
       options.mission = "bench-pass" + std::to_string(pass);  // a fresh mission each pass: same ids, no clash
       options.flush_timeout_s = 5.0;
+      options.local_map_keyframes = static_cast<std::uint32_t>(mapper_options.max_keyframes);
       auto setup = cvislam::agent::makeSensorSetup(*sequence, mode == "stereo", 1.0);
       if (!setup) {
         std::cerr << "bench_agent_tracking: " << setup.error().toString() << "\n";
@@ -118,7 +148,13 @@ int main(int argc, char** argv) {
       link = std::move(created.value());
       deltas = std::make_unique<cvislam::agent::test::DeltaQueue>(64);
       (*agent)->onDelta([&](const cvislam::agent::MapDeltaMessage& d) { deltas->push(d); });
-      link_thread = std::thread([&] { link->run(*deltas, stop); });
+      (*agent)->beforeKeyframe([&](cvislam::agent::Mapper& mapper) {
+        for (const cvislam::agent::AnchorMessage* m = anchors.take(); m != nullptr; m = anchors.take()) {
+          if (auto r = mapper.applyDownlink(*m); r.ok()) rec.anchors_added += r->anchors_added;
+          anchors.done();
+        }
+      });
+      link_thread = std::thread([&] { link->run(*deltas, stop, &anchors); });
     }
     for (std::size_t i = 0; i < (*agent)->frameCount(); ++i) {
       if (!(*agent)->load(i).ok()) continue;
@@ -150,7 +186,7 @@ int main(int argc, char** argv) {
   for (std::size_t k = 0; k < recorders.size(); ++k) {
     Recorders& rec = recorders[k];
     std::vector<cvislam::agent::StageSummary> stages;
-    for (const auto* r : {&rec.total, &rec.orb, &rec.matching, &rec.pose, &rec.motion}) {
+    for (const auto* r : {&rec.total, &rec.orb, &rec.matching, &rec.pose, &rec.motion, &rec.local_ba}) {
       stages.push_back(cvislam::agent::summarise(*r));
     }
     const char* label = k == 0 ? "without the link" : "with the link streaming to the server";
@@ -162,6 +198,8 @@ int main(int argc, char** argv) {
       std::printf("link: %llu batches acknowledged, %.2f MB up, %d passes not flushed, %zu deltas dropped\n",
                   static_cast<unsigned long long>(rec.batches), static_cast<double>(rec.up_bytes) * 1e-6, rec.unflushed,
                   rec.dropped);
+      std::printf("downlink: %d anchors added; %zu of %zu local BAs with anchors' observations in them\n",
+                  rec.anchors_added, rec.keyframes_with_anchors, rec.local_ba.samplesMs().size());
     }
     out[k == 0 ? "without_link" : "with_link"] = nlohmann::json::parse(cvislam::agent::latencyJson(stages));
   }

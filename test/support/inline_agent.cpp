@@ -46,7 +46,10 @@ Status InlineAgent::load(std::size_t i) {
 void InlineAgent::answerKeyframe() {
   if (!sink_.published) return;
   sink_.published = false;
-  const bool processed = mapper_->process(*sink_.message, *snapshot_, delta_.get()).ok();
+  if (before_keyframe_) before_keyframe_(*mapper_);
+  const auto report = mapper_->process(*sink_.message, *snapshot_, delta_.get());
+  const bool processed = report.ok();
+  if (processed && after_keyframe_) after_keyframe_(*report);
   if (delta_ && delta_sink_) {
     delta_->sequence = delta_sequence_++;
     delta_sink_(*delta_);

@@ -74,6 +74,11 @@ class InlineAgent {
     delta_sink_ = std::move(sink);
     if (!delta_) delta_ = std::make_unique<agent::MapDeltaMessage>();
   }
+  // Runs `apply(mapper)` before mapping processes each keyframe (the agent's mapping thread applies the
+  // downlink there).
+  void beforeKeyframe(std::function<void(agent::Mapper&)> apply) { before_keyframe_ = std::move(apply); }
+  // Hands each keyframe's mapper report to `report` (for local BA timings).
+  void afterKeyframe(std::function<void(const agent::MapperReport&)> report) { after_keyframe_ = std::move(report); }
   [[nodiscard]] const dataset::EurocSequence& sequence() const { return sequence_; }
 
  private:
@@ -97,6 +102,8 @@ class InlineAgent {
   std::unique_ptr<agent::MapSnapshotMessage> snapshot_;
   std::unique_ptr<agent::MapDeltaMessage> delta_;
   std::function<void(const agent::MapDeltaMessage&)> delta_sink_;
+  std::function<void(agent::Mapper&)> before_keyframe_;
+  std::function<void(const agent::MapperReport&)> after_keyframe_;
   std::uint64_t delta_sequence_ = 0;
   Sink sink_;
   std::vector<std::uint8_t> left_;

@@ -2,7 +2,9 @@
 // allocation. The real tracker and mapper track a rendered stereo sequence (fixed seed) on this thread while a
 // link thread streams their deltas to a real cvislam server over loopback gRPC. malloc is replaced
 // (test/support/malloc_counter); the link thread allocates (gRPC, protobuf), so the count here is the tracking
-// thread's own. The link thread's allocations are printed per second of sequence, for the record.
+// thread's own. The link thread's allocations are printed per second of sequence, for the record. What the
+// server sends down (the agent's own older keyframes, once the loop comes back over its start) goes through a
+// queue into mapping, so tracking runs against a local map with anchors in it too.
 #include <atomic>
 #include <cstdio>
 #include <thread>
@@ -25,7 +27,9 @@ namespace {
 
 TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   cvislam::test::TempDir dir;
-  constexpr double kDurationS = 8.0;
+  // Long enough for the loop to come back over its start: the server then sends the agent's own older
+  // keyframes down, and tracking runs against a local map with anchors in it.
+  constexpr double kDurationS = 16.0;
   ASSERT_TRUE(sim::renderPreset("loop", 5, kDurationS, /*stereo=*/true, dir.path()).ok());
   auto seq = dataset::EurocSequence::open(dir.path() / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
@@ -40,11 +44,15 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   LinkOptions link_options;
   link_options.server = (*grpc_server)->address();
   link_options.mission = "allocations";
+  // A local map of 15 own keyframes (the server sends down the older ones it sees covisible).
+  constexpr int kLocalMapKeyframes = 15;
+  link_options.local_map_keyframes = kLocalMapKeyframes;
   auto setup = makeSensorSetup(*seq, /*stereo=*/true, 1.0);
   ASSERT_TRUE(setup.ok()) << setup.error().toString();
   auto link = Link::create(link_options, test::kAgent, linkSensors(*seq, *setup, /*stereo=*/true, /*uses_imu=*/true));
   ASSERT_TRUE(link.ok()) << link.error().toString();
   test::DeltaQueue deltas(16);
+  test::AnchorQueue anchors(8);
   // The link thread's own allocation count, sampled by the link thread itself once half the sequence has passed.
   std::atomic<bool> halfway{false};
   long link_allocations_at_halfway = -1;
@@ -61,7 +69,7 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   auto end_at = std::chrono::steady_clock::now();
   std::thread link_thread([&] {
     const long before = cvislam::test::threadMallocCount();
-    (*link)->run(deltas, stop);
+    (*link)->run(deltas, stop, &anchors);
     link_allocations_at_end = cvislam::test::threadMallocCount();
     link_allocations = link_allocations_at_end - before;
   });
@@ -70,9 +78,27 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   tracker_options.agent = test::kAgent;
   MapperOptions mapper_options;
   mapper_options.agent = test::kAgent;
+  mapper_options.max_keyframes = kLocalMapKeyframes;
+  mapper_options.imu_init_keyframes = 10;
+  mapper_options.imu_init_max_keyframes = kLocalMapKeyframes;
   auto agent = cvislam::test::InlineAgent::create(*seq, true, tracker_options, mapper_options);
   ASSERT_TRUE(agent.ok()) << agent.error().toString();
   (*agent)->onDelta([&](const MapDeltaMessage& d) { deltas.push(d); });
+  DownlinkReport downlink;  // summed
+  int keyframes_with_anchors = 0;  // keyframes mapping processed with anchors in the local map
+  (*agent)->beforeKeyframe([&](Mapper& mapper) {
+    for (const AnchorMessage* m = anchors.take(); m != nullptr; m = anchors.take()) {
+      if (auto r = mapper.applyDownlink(*m); r.ok()) {
+        downlink.anchors_added += r->anchors_added;
+        downlink.points_added += r->points_added;
+        downlink.corrections_applied += r->corrections_applied + r->corrections_deferred;
+      }
+      anchors.done();
+    }
+    bool any = false;
+    mapper.map().keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { any = any || kf.anchor; });
+    keyframes_with_anchors += any ? 1 : 0;
+  });
   auto counted = (*agent)->countSteadyAllocations([] { return cvislam::test::threadMallocCount(); },
                                                   [&](std::size_t i) {
                                                     // Paced like the sensor (20 Hz): the link streams while tracking
@@ -98,6 +124,11 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
       steady_frames, steady_keyframes, steady_allocations, link_allocations, second_half, second_half_s,
       static_cast<double>(second_half) / second_half_s, static_cast<unsigned long long>(status.acked_sequence),
       static_cast<double>(status.up_bytes) * 1e-6, status.flushed ? 1 : 0);
+  std::printf("downlink applied by mapping: %d anchors with %d points, %d corrections; %d keyframes processed with "
+              "anchors in the local map\n",
+              downlink.anchors_added, downlink.points_added, downlink.corrections_applied, keyframes_with_anchors);
+  EXPECT_GT(downlink.anchors_added, 0) << "tracking ran against anchors from the server";
+  EXPECT_EQ(anchors.dropped(), 0U);
   ASSERT_GE(steady_frames, 100);
   EXPECT_GE(steady_keyframes, 3);
   EXPECT_EQ(steady_allocations, 0);
