@@ -82,6 +82,60 @@ def pose_mul(A, B):
     return (quat_mul(A[0], B[0]), pose_apply(A, B[1]))
 
 
+def largest_live_step_mm(path, after_s=0.0):
+    """The largest jump of tracking's live position between frames beyond constant velocity (the second
+    difference of trajectory_online.txt), in mm, from `after_s` seconds into the run on (the IMU initialisation
+    moves the world frame once, before): what a correction or an anchor would show as a step."""
+    positions = []
+    start = None
+    try:
+        with open(path) as f:
+            for line in f:
+                fields = line.split()
+                if len(fields) >= 4 and not line.startswith("#"):
+                    start = float(fields[0]) if start is None else start
+                    if float(fields[0]) - start >= after_s:
+                        positions.append([float(v) for v in fields[1:4]])
+    except OSError:
+        return None
+    steps = [sum((positions[i][k] - 2 * positions[i - 1][k] + positions[i - 2][k]) ** 2 for k in range(3)) ** 0.5
+             for i in range(2, len(positions))]
+    return 1000.0 * max(steps) if steps else None
+
+
+def report_downlink_use(out, mission, summary):
+    """What each agent's mapping did with the downlink (summary.json "downlink")."""
+    rows = []
+    for a in mission["agents"]:
+        agent = load_json(os.path.join(out, "agents", a, "summary.json"))
+        if agent is None or "downlink" not in agent:
+            continue
+        d = agent["downlink"]
+        row = {"agent": a, **d, "keyframes": agent.get("keyframes", 0),
+               "largest_live_step_mm": largest_live_step_mm(os.path.join(out, "agents", a, "trajectory_online.txt"),
+                                                            max(0.0, float(agent.get("imu_initialised_at_s", 0))) + 1.0)}
+        rows.append(row)
+    if not rows:
+        return
+    summary["downlink_use"] = rows
+    print("the downlink in the agents' mapping: anchors (the server's keyframes held fixed in local BA) and corrections "
+          "of own keyframes")
+    print(f"{'agent':8} {'anchors in':>10} {'out':>5} {'most held':>9} {'points':>7} {'local BAs with anchors':>23} "
+          f"{'corrections now/later':>21} {'largest[cm, deg]':>17} {'live step max[mm]':>17}")
+    print("  (live step: tracking's largest jump between frames beyond constant velocity, from 1 s after the IMU "
+          "initialisation on)")
+    for r in rows:
+        step = r["largest_live_step_mm"]
+        print(f"{r['agent']:8} {r['anchors_added']:10d} {r['anchors_released']:5d} {r['most_anchors_held']:9d} "
+              f"{r['anchor_points_added']:7d} {r['local_ba_with_anchors']:11d} of {r['keyframes']:<8d} "
+              f"{r['corrections_applied']:10d}/{r['corrections_deferred']:<10d} "
+              f"{100 * r['largest_correction_m']:8.2f}, {r['largest_correction_deg']:6.3f} "
+              f"{step if step is not None else float('nan'):17.1f}")
+    refused = sum(int(r["refused"]) for r in rows)
+    if refused:
+        print(f"  downlink messages mapping refused: {refused} (see the agents' logs)")
+
+
 def report_backend(out, mission, server_agents, summary):
     """The server's back-end (backend.json) and how long the server took to store each batch meanwhile."""
     name = mission["mission"]
@@ -330,6 +384,7 @@ def main():
         accepted = ", ".join(f"{r['agent']} {r['covisible_maps_accepted']}" for r in summary["traffic"])
         refused = sum(r["covisible_maps_refused"] for r in summary["traffic"])
         print(f"covisible maps from the server, checked and accepted: {accepted}; refused: {refused}")
+        report_downlink_use(out, mission, summary)
     print()
     print("== messages by kind, all agents (up: what the server counted as received; sizes are serialized bytes)")
     print(f"{'direction':9} {'kind':16} {'count':>9} {'bytes':>12} {'bytes each':>11}")
