@@ -13,56 +13,15 @@
 
 namespace cvislam::agent::test {
 
-// Mapping's deltas handed to a link thread: a bounded queue of preallocated messages (the agent uses iceoryx).
-class DeltaQueue final : public DeltaSource {
+// A bounded queue of preallocated messages between two threads: the producer fills the slot back() gives
+// (nullptr, counted as dropped, when the queue is full) and commits it; the consumer reads front() and pops it.
+template <typename Message>
+class SlotRing {
  public:
-  explicit DeltaQueue(std::size_t capacity) {
-    for (std::size_t i = 0; i < capacity; ++i) slots_.push_back(std::make_unique<MapDeltaMessage>());
+  explicit SlotRing(std::size_t capacity) {
+    for (std::size_t i = 0; i < capacity; ++i) slots_.push_back(std::make_unique<Message>());
   }
-  // Copies the delta in; false (and counted) when the link has fallen `capacity` deltas behind.
-  bool push(const MapDeltaMessage& delta) {
-    std::lock_guard lock(mutex_);
-    if (count_ == slots_.size()) {
-      ++dropped_;
-      return false;
-    }
-    *slots_[(head_ + count_) % slots_.size()] = delta;
-    ++count_;
-    return true;
-  }
-  const MapDeltaMessage* next() override {
-    if (on_poll) on_poll();  // on the link thread, every iteration of its loop
-    std::lock_guard lock(mutex_);
-    return count_ == 0 ? nullptr : slots_[head_].get();
-  }
-  void release() override {
-    std::lock_guard lock(mutex_);
-    head_ = (head_ + 1) % slots_.size();
-    --count_;
-  }
-  std::function<void()> on_poll;  // set before the link thread starts
-
-  [[nodiscard]] std::size_t dropped() const {
-    std::lock_guard lock(mutex_);
-    return dropped_;
-  }
-
- private:
-  mutable std::mutex mutex_;
-  std::vector<std::unique_ptr<MapDeltaMessage>> slots_;
-  std::size_t head_ = 0;
-  std::size_t count_ = 0;
-  std::size_t dropped_ = 0;
-};
-
-// The link's downlink messages handed to mapping: a bounded queue of preallocated messages, filled on the link
-// thread (loan, publish) and drained on mapping's (take, done).
-class AnchorQueue final : public AnchorSink {
- public:
-  explicit AnchorQueue(std::size_t capacity) {
-    for (std::size_t i = 0; i < capacity; ++i) slots_.push_back(std::make_unique<AnchorMessage>());
-  }
-  AnchorMessage* loan() override {
+  Message* back() {
     std::lock_guard lock(mutex_);
     if (count_ == slots_.size()) {
       ++dropped_;
@@ -70,17 +29,15 @@ class AnchorQueue final : public AnchorSink {
     }
     return slots_[(head_ + count_) % slots_.size()].get();
   }
-  void publish() override {
+  void commit() {
     std::lock_guard lock(mutex_);
     ++count_;
   }
-  void discard() override {}
-  // The oldest message waiting, or nullptr; it stays valid until done().
-  const AnchorMessage* take() {
+  Message* front() {
     std::lock_guard lock(mutex_);
     return count_ == 0 ? nullptr : slots_[head_].get();
   }
-  void done() {
+  void pop() {
     std::lock_guard lock(mutex_);
     head_ = (head_ + 1) % slots_.size();
     --count_;
@@ -92,10 +49,51 @@ class AnchorQueue final : public AnchorSink {
 
  private:
   mutable std::mutex mutex_;
-  std::vector<std::unique_ptr<AnchorMessage>> slots_;
+  std::vector<std::unique_ptr<Message>> slots_;
   std::size_t head_ = 0;
   std::size_t count_ = 0;
   std::size_t dropped_ = 0;
+};
+
+// Mapping's deltas handed to a link thread (the agent uses iceoryx).
+class DeltaQueue final : public DeltaSource {
+ public:
+  explicit DeltaQueue(std::size_t capacity) : ring_(capacity) {}
+  // Copies the delta in; false (and counted) when the link has fallen `capacity` deltas behind.
+  bool push(const MapDeltaMessage& delta) {
+    MapDeltaMessage* slot = ring_.back();
+    if (slot == nullptr) return false;
+    *slot = delta;
+    ring_.commit();
+    return true;
+  }
+  const MapDeltaMessage* next() override {
+    if (on_poll) on_poll();  // on the link thread, every iteration of its loop
+    return ring_.front();
+  }
+  void release() override { ring_.pop(); }
+  std::function<void()> on_poll;  // set before the link thread starts
+  [[nodiscard]] std::size_t dropped() const { return ring_.dropped(); }
+
+ private:
+  SlotRing<MapDeltaMessage> ring_;
+};
+
+// The link's downlink messages handed to mapping: filled on the link thread (loan, publish), drained on
+// mapping's (take, done).
+class AnchorQueue final : public AnchorSink {
+ public:
+  explicit AnchorQueue(std::size_t capacity) : ring_(capacity) {}
+  AnchorMessage* loan() override { return ring_.back(); }
+  void publish() override { ring_.commit(); }
+  void discard() override {}
+  // The oldest message waiting, or nullptr; it stays valid until done().
+  const AnchorMessage* take() { return ring_.front(); }
+  void done() { ring_.pop(); }
+  [[nodiscard]] std::size_t dropped() const { return ring_.dropped(); }
+
+ private:
+  SlotRing<AnchorMessage> ring_;
 };
 
 }  // namespace cvislam::agent::test
