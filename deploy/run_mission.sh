@@ -5,7 +5,7 @@
 # tables; then one agent on the real EuRoC V1_01 excerpt through the same server.
 #
 #   deploy/run_mission.sh [--preset NAME] [--seed N] [--duration SEC] [--mode stereo|mono] [--pace realtime|sync]
-#                         [--out DIR] [--build-dir DIR] [--no-real] [--server-arg ARG ...]
+#                         [--out DIR] [--build-dir DIR] [--no-real] [--server-arg ARG ...] [--agent-config FILE]
 #
 #   --preset    a cvislam_sim preset: overlap2 (default; 2 agents), loop, hall4, hall8, aggressive, or euroc-mh
 #               (the five real EuRoC Machine Hall flights, replayed by the simulator in one world frame)
@@ -18,6 +18,8 @@
 #   --out       results [out/mission]: summary.json, report/index.html, server/, agents/, eval/
 #   --no-real   skip the agent on the real EuRoC excerpt
 #   --server-arg one more cvislam_server argument, repeatable (e.g. --server-arg --no-gba)
+#   --agent-config a cvislam_agent YAML config for the mission's agents (deploy/agent_config.yaml shows every
+#               key; e.g. one with link: apply_corrections: true); command-line options still win
 #   --agents    fly only these of the preset's agents, by number, comma-separated (e.g. --agents 0,1 for
 #               euroc-mh's MH_01 and MH_02); they keep their numbers and trajectories [all]
 #
@@ -35,6 +37,7 @@ out="$repo/out/mission"
 build="$repo/build/default"
 real=1
 server_args=()
+agent_args=()
 only_agents=""
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -47,8 +50,11 @@ while [ $# -gt 0 ]; do
     --build-dir) build=$2; shift 2 ;;
     --no-real) real=0; shift ;;
     --server-arg) server_args+=("$2"); shift 2 ;;
+    --agent-config)
+      [ -f "$2" ] || { echo "run_mission: --agent-config: no such file '$2'" >&2; exit 2; }
+      agent_args=(--config "$(cd "$(dirname "$2")" && pwd)/$(basename "$2")"); shift 2 ;;
     --agents) only_agents=$2; shift 2 ;;
-    -h|--help) sed -n '2,24p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) awk 'NR > 1 && /^set -euo/ { exit } NR > 1' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -150,7 +156,8 @@ echo "== mission '$mission': server on 127.0.0.1:$port, ${#agents[@]} agent(s), 
 for a in "${agents[@]}"; do
   id=${a#agent}
   "$bin/cvislam_agent" --dataset "$cache/$a" --output "$out/agents/$a" --roudi external --agent-id "$id" \
-    --server "127.0.0.1:$port" --mission "$mission" --mode "$mode" --pace "$pace" >"$out/agents/$a.log" 2>&1 &
+    --server "127.0.0.1:$port" --mission "$mission" --mode "$mode" --pace "$pace" ${agent_args[@]+"${agent_args[@]}"} \
+    >"$out/agents/$a.log" 2>&1 &
   pids+=("$!")
 done
 t_agents=$(date +%s)
