@@ -167,7 +167,8 @@ Status decodeCorrections(const google::protobuf::RepeatedPtrField<v1::KeyframeSt
   }
   for (const v1::KeyframeState& c : in) {
     if (c.counter() < lowest_kept || out.correction_count >= kMaxAnchorCorrectionsPerMessage) continue;
-    const std::string what = "downlink correction of keyframe " + std::to_string(agent) + ":" + std::to_string(c.counter());
+    const std::string what =
+        "downlink correction of keyframe " + std::to_string(agent) + ":" + std::to_string(c.counter());
     auto state = wire::fromProto(c, what);
     if (!state) {
       out.correction_count = 0;

@@ -86,25 +86,13 @@ struct Link::Impl {
     }
     out->stream = streams;
     out->sequence = down.sequence();
-    out->has_covisible = 0;
-    bool any = false;
-    if (covisible) {
-      const Status decoded = decodeCovisibleMap(down.covisible(), down.sequence(), *out);
-      if (decoded.ok()) {
-        ++covisible_accepted;
-        out->has_covisible = 1;
-        any = true;
-      } else {
-        ++covisible_refused;
-        covisible_last_refusal = decoded.error().message();
-      }
-    } else {
-      out->selected_count = 0;
-      out->keyframe_count = 0;
-      out->point_count = 0;
-      out->keyframe_update_count = 0;
-      out->point_update_count = 0;
-    }
+    // Without a covisible map, the empty one: the message's counts are cleared all the same.
+    const Status decoded = decodeCovisibleMap(covisible ? down.covisible() : v1::CovisibleMap::default_instance(),
+                                              down.sequence(), *out);
+    out->has_covisible = covisible && decoded.ok() ? 1 : 0;
+    if (covisible) ++(decoded.ok() ? covisible_accepted : covisible_refused);
+    if (!decoded.ok()) covisible_last_refusal = decoded.error().message();
+    bool any = out->has_covisible != 0;
     if (Status c = decodeCorrections(down.corrected_keyframes(), agent, *out); !c.ok()) {
       ++corrections_refused;
       covisible_last_refusal = c.error().message();
@@ -112,9 +100,7 @@ struct Link::Impl {
     any = any || out->correction_count > 0;
     if (sink == nullptr || out == scratch_anchors.get()) return;
     if (any) {
-      out->publish_steady_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                                   std::chrono::steady_clock::now().time_since_epoch())
-                                   .count();
+      out->publish_steady_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch()).count();
       sink->publish();
       ++anchors_published;
     } else {

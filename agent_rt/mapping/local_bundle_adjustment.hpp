@@ -46,7 +46,7 @@ struct LocalBundleAdjustmentOptions {
 struct LocalBundleAdjustmentSummary {
   int window_keyframes = 0;
   int fixed_keyframes = 0;
-  int anchor_keyframes = 0;  // of the fixed ones: the server's
+  int anchor_keyframes = 0;     // of the fixed ones: the server's
   int map_points = 0;           // optimised
   int map_points_left_out = 0;  // observed by the window but with no inverse-depth point: not optimised
   int reprojection_factors = 0;

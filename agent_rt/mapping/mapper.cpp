@@ -8,10 +8,9 @@
 #include <unordered_map>
 #include <vector>
 
-#include "agent_rt/mapping/map_delta_writer.hpp"
+#include "agent_rt/mapping/mapper_state.hpp"
 #include "agent_rt/mapping/two_view_initialiser.hpp"
 #include "agent_rt/runtime/message_conversions.hpp"
-#include "agent_rt/tracking/projection_search.hpp"
 
 namespace cvislam::agent {
 
@@ -49,140 +48,6 @@ Status MapperOptions::validate() const {
   if (Status s = alignment.validate(); !s.ok()) return s;
   return ba.validate();
 }
-
-struct Mapper::State {
-  State(const MapperOptions& o, const camera::CameraModel& l, const camera::CameraModel* r, const SE3d& extrinsics,
-        const SE3d& stereo_extrinsics)
-      : options(o), left(l), T_s_c(extrinsics), T_c0_c1(stereo_extrinsics), map(extrinsics), point_ids(o.agent) {
-    if (r != nullptr) right.emplace(*r);
-    level_scale[0] = 1.0;
-    for (std::size_t i = 1; i < level_scale.size(); ++i)
-      level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
-  }
-
-  MapperOptions options;
-  camera::CameraModel left;
-  std::optional<camera::CameraModel> right;
-  std::optional<features::OrbExtractor> right_orb;
-  SE3d T_s_c;
-  SE3d T_c0_c1;
-  LocalMap map;
-  IdCounter<MapPointId> point_ids;
-  std::array<double, 32> level_scale{};
-
-  std::uint32_t map_id = 0;
-  std::uint32_t epoch = 0;
-  double epoch_scale = 1.0;
-  SE3d epoch_transform;
-  bool imu_initialised = false;
-  bool mono_initialised = false;
-  std::optional<PoolHandle> mono_reference;
-  std::uint64_t expected_sequence = 0;
-  bool seen_message = false;
-  std::uint32_t keyframe_map_id = 0;  // the map the keyframe being processed was inserted into
-  // The newest downlink message applied, (stream, sequence).
-  std::uint32_t downlink_stream = 0;
-  std::uint64_t downlink_sequence = 0;
-  bool downlink_seen = false;
-  std::unordered_map<std::uint64_t, std::uint32_t> message_point;  // point key -> index in the message (scratch)
-  // The server's states of own keyframes that were in the local BA window when they came: applied when the
-  // keyframe leaves the window, so that the keyframes held fixed around the window agree with one another.
-  std::unordered_map<std::uint64_t, KeyframeStateMsg> pending_corrections;
-  // What the server sends is in the agent's world frame as the server holds it (T_m_w, fixed when the agent
-  // map joined the server's map); that differs from the agent's frame now by whatever the server moved since
-  // (a merge's error, global BA). Re-estimated from the newest own keyframe the server corrected, so that the
-  // present stays where it is and only the server's view of the past (drift) moves: local = T * server.
-  SE3d T_local_server;
-
-  [[nodiscard]] KeyframeStateMsg toLocal(const KeyframeStateMsg& c) const {
-    KeyframeStateMsg out = c;
-    out.T_w_s = toMsg(T_local_server * fromMsg(c.T_w_s));
-    out.v_w = toArray(T_local_server.so3() * toVector3(c.v_w));
-    return out;
-  }
-
-  // Takes the server's state; returns the step (translation [m], rotation [deg]).
-  std::pair<double, double> correct(KeyframeData& kf, const KeyframeStateMsg& c) {
-    const SE3d T_w_s = fromMsg(c.T_w_s);
-    const double step_m = (T_w_s.translation() - kf.T_w_s.translation()).norm();
-    const double step_deg = (kf.T_w_s.so3().inverse() * T_w_s.so3()).log().norm() * 180.0 / M_PI;
-    kf.T_w_s = T_w_s;
-    kf.v_w = toVector3(c.v_w);
-    kf.bias = biasFromMsg(c.bias);
-    return {step_m, step_deg};
-  }
-
-  // Pending corrections of own keyframes that are now outside the local BA window.
-  void applyPendingCorrections() {
-    if (pending_corrections.empty()) return;
-    const std::vector<PoolHandle> own = keyframesBySequence();
-    const auto window = static_cast<std::size_t>(options.ba.window);
-    for (std::size_t i = 0; i + window < own.size(); ++i) {
-      KeyframeData& kf = *map.keyframes().get(own[i]);
-      const auto found = pending_corrections.find(key(kf.id));
-      if (found == pending_corrections.end()) continue;
-      (void)correct(kf, found->second);
-      pending_corrections.erase(found);
-    }
-  }
-
-  MapDeltaWriter delta_writer;  // the link's delta, when one is asked for
-
-  // Scratch (mapping may allocate, but reuses).
-  KeyframeData scratch;
-  std::vector<dataset::ImuSample> imu_samples;
-  std::unordered_map<std::uint64_t, PoolHandle> point_index;
-  std::vector<features::Keypoint> right_keypoints;
-  std::vector<features::Descriptor> right_descriptors;
-  std::vector<Vector3d> right_bearings;
-  std::vector<int> right_owner;  // per right keypoint: the left keypoint matched to it, or -1
-  std::vector<int> right_owner_distance;
-  std::vector<double> stereo_depth_m;       // per keypoint of the newest keyframe, 0 without a cam1 match
-  std::vector<std::int32_t> keyframe_slot;  // snapshot index by keyframe pool index, -1 for none
-  std::vector<std::int32_t> point_slot;     // snapshot index by map point pool index, -1 for none
-  KeypointGrid grid;
-
-  static std::uint64_t key(const MapPointId& id) { return (static_cast<std::uint64_t>(id.agent) << 32U) | id.counter; }
-  static std::uint64_t key(const KeyframeId& id) { return (static_cast<std::uint64_t>(id.agent) << 32U) | id.counter; }
-
-  void rebuildPointIndex() {
-    point_index.clear();
-    map.mapPoints().forEach([&](PoolHandle h, const MapPointData& p) { point_index[key(p.id)] = h; });
-  }
-
-  void clearMap() {
-    std::vector<PoolHandle> all;
-    map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) { all.push_back(h); });
-    for (PoolHandle h : all) (void)map.removeKeyframe(h);
-    std::vector<PoolHandle> points;
-    map.mapPoints().forEach([&](PoolHandle h, const MapPointData&) { points.push_back(h); });
-    for (PoolHandle h : points) (void)map.removeMapPoint(h);
-    imu_initialised = false;
-    mono_initialised = false;
-    mono_reference.reset();
-    pending_corrections.clear();
-    T_local_server = SE3d();
-  }
-
-  // Own keyframes by sequence, oldest first (anchors are not among them).
-  [[nodiscard]] std::vector<PoolHandle> keyframesBySequence() const {
-    std::vector<std::pair<std::uint64_t, PoolHandle>> order;
-    map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
-      if (!kf.anchor) order.emplace_back(kf.sequence, h);
-    });
-    std::sort(order.begin(), order.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
-    std::vector<PoolHandle> out;
-    out.reserve(order.size());
-    for (const auto& [sequence, h] : order) out.push_back(h);
-    return out;
-  }
-
-  [[nodiscard]] SE3d cameraPose(const KeyframeData& kf) const { return kf.T_w_s * T_s_c; }
-
-  [[nodiscard]] double levelScale(std::uint8_t octave) const {
-    return level_scale[std::min<std::size_t>(octave, level_scale.size() - 1)];
-  }
-};
 
 Mapper::Mapper(std::unique_ptr<State> state) : s_(std::move(state)) {}
 Mapper::~Mapper() = default;
@@ -447,7 +312,7 @@ int fusePoints(Mapper::State& s, PoolHandle handle, int* merged) {
     const MapPointData* pa = s.map.mapPoints().get(a);
     const MapPointData* pb = s.map.mapPoints().get(b);
     if (pa == nullptr || pb == nullptr || a == b) continue;  // gone in an earlier merge
-    if (pa->from_server && pb->from_server) continue;  // the server's to merge
+    if (pa->from_server && pb->from_server) continue;        // the server's to merge
     // A server point that duplicates an own one goes into the own one: the anchors' observations then hold the
     // agent's point, and nothing about the server's point goes up (the merge is not reported).
     bool keep_b = pb->observation_count >= pa->observation_count;
@@ -633,242 +498,6 @@ Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& re
 
 }  // namespace
 
-Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
-  State& s = *s_;
-  DownlinkReport report;
-  const auto count_anchors = [&] {
-    int n = 0;
-    s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { n += kf.anchor ? 1 : 0; });
-    return n;
-  };
-  // Within a stream, messages apply in order; a new stream (a reconnection) starts its sequences again.
-  if (s.downlink_seen && (msg.stream < s.downlink_stream ||
-                          (msg.stream == s.downlink_stream && msg.sequence <= s.downlink_sequence))) {
-    report.stale = true;
-    report.anchors_held = count_anchors();
-    return report;
-  }
-  if (msg.selected_count > kMaxAnchorKeyframesPerMessage || msg.keyframe_count > kMaxAnchorKeyframesPerMessage ||
-      msg.keyframe_update_count > kMaxAnchorKeyframesPerMessage || msg.point_count > kMaxAnchorPointsPerMessage ||
-      msg.point_update_count > kMaxAnchorPointsPerMessage || msg.correction_count > kMaxAnchorCorrectionsPerMessage) {
-    return Error{ErrorCode::kDataError, "downlink message over the message's capacities: refused"};
-  }
-  s.downlink_seen = true;
-  s.downlink_stream = msg.stream;
-  s.downlink_sequence = msg.sequence;
-  const bool ready = (s.right.has_value() || s.mono_initialised) && (s.imu_initialised || !s.options.use_imu);
-
-  // Corrections of the agent's own keyframes: those outside the local BA window take the server's state now,
-  // those in it when they leave it.
-  if (ready && s.options.downlink.apply_corrections && msg.correction_count > 0) {
-    const std::vector<PoolHandle> own = s.keyframesBySequence();
-    const auto window = static_cast<std::size_t>(s.options.ba.window);
-    const std::size_t outside = own.size() > window ? own.size() - window : 0;
-    std::unordered_map<std::uint64_t, std::pair<PoolHandle, bool>> by_id;  // -> (handle, outside the window)
-    for (std::size_t i = 0; i < own.size(); ++i) by_id.emplace(State::key(s.map.keyframes().get(own[i])->id), std::pair{own[i], i < outside});
-    // The frame: the newest own keyframe the server corrected keeps its local pose.
-    const KeyframeStateMsg* newest = nullptr;
-    std::uint64_t newest_sequence = 0;
-    for (std::uint16_t i = 0; i < msg.correction_count; ++i) {
-      const auto found = by_id.find(State::key(msg.corrections[i].id));
-      if (found == by_id.end()) continue;
-      const std::uint64_t sequence = s.map.keyframes().get(found->second.first)->sequence;
-      if (newest == nullptr || sequence > newest_sequence) {
-        newest = &msg.corrections[i];
-        newest_sequence = sequence;
-      }
-    }
-    if (newest != nullptr) {
-      const KeyframeData& kf = *s.map.keyframes().get(by_id.at(State::key(newest->id)).first);
-      const SE3d T_new = kf.T_w_s * fromMsg(newest->T_w_s).inverse();
-      const SE3d change = T_new * s.T_local_server.inverse();
-      report.frame_change_m = change.translation().norm();
-      // What came down before moves with the frame (the server's points with the anchors that hold them).
-      s.map.keyframes().forEach([&](PoolHandle, KeyframeData& anchor) {
-        if (anchor.anchor) anchor.T_w_s = change * anchor.T_w_s;
-      });
-      for (auto& [key, pending] : s.pending_corrections) {
-        pending.T_w_s = toMsg(change * fromMsg(pending.T_w_s));
-        pending.v_w = toArray(change.so3() * toVector3(pending.v_w));
-      }
-      s.T_local_server = T_new;
-    }
-    for (std::uint16_t i = 0; i < msg.correction_count; ++i) {
-      const KeyframeStateMsg c = s.toLocal(msg.corrections[i]);
-      const auto found = by_id.find(State::key(c.id));
-      if (found == by_id.end()) {
-        ++report.corrections_skipped;
-        continue;
-      }
-      if (!found->second.second) {
-        s.pending_corrections[State::key(c.id)] = c;
-        ++report.corrections_deferred;
-        continue;
-      }
-      s.pending_corrections.erase(State::key(c.id));
-      const auto [step_m, step_deg] = s.correct(*s.map.keyframes().get(found->second.first), c);
-      report.largest_correction_m = std::max(report.largest_correction_m, step_m);
-      report.largest_correction_deg = std::max(report.largest_correction_deg, step_deg);
-      ++report.corrections_applied;
-    }
-  } else {
-    report.corrections_skipped = msg.correction_count;
-  }
-
-  if (msg.has_covisible == 0) {
-    report.anchors_held = count_anchors();
-    return report;
-  }
-  if (!s.options.downlink.use_anchors) {
-    report.skipped = "anchors are switched off (downlink.use_anchors)";
-  } else if (!ready) {
-    report.skipped = "the local map's frame is not final yet";
-  } else if (msg.agent_map != s.map_id) {
-    report.skipped = "the covisible map is in agent map " + std::to_string(msg.agent_map) + ", the local map is map " +
-                     std::to_string(s.map_id);
-  }
-  if (!report.skipped.empty()) {
-    report.anchors_held = count_anchors();
-    return report;
-  }
-
-  // Anchors no longer selected leave (the server sends them again in full when it selects them again); their
-  // points go with them unless an own keyframe observes them too.
-  std::unordered_map<std::uint64_t, std::uint16_t> selected;
-  for (std::uint16_t i = 0; i < msg.selected_count; ++i) selected.emplace(State::key(msg.selected[i]), i);
-  std::unordered_map<std::uint64_t, PoolHandle> keyframe_by_id;
-  std::vector<PoolHandle> released;
-  s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
-    if (kf.anchor && selected.count(State::key(kf.id)) == 0) {
-      released.push_back(h);
-    } else {
-      keyframe_by_id.emplace(State::key(kf.id), h);
-    }
-  });
-  for (PoolHandle h : released) {
-    if (s.map.removeKeyframe(h, MapEventReason::kEvicted).ok()) ++report.anchors_released;
-  }
-
-  // Updates of what was sent before.
-  for (std::uint16_t i = 0; i < msg.keyframe_update_count; ++i) {
-    const auto found = keyframe_by_id.find(State::key(msg.keyframe_updates[i].id));
-    KeyframeData* kf = found != keyframe_by_id.end() ? s.map.keyframes().get(found->second) : nullptr;
-    if (kf == nullptr || !kf->anchor) {
-      ++report.unknown_references;
-      continue;
-    }
-    kf->T_w_s = s.T_local_server * fromMsg(msg.keyframe_updates[i].T_w_c) * s.T_s_c.inverse();
-    ++report.anchor_poses_updated;
-  }
-  s.rebuildPointIndex();
-  const auto set_position = [&](PoolHandle h, const Vector3d& p_w) {
-    MapPointData& p = *s.map.mapPoints().get(h);
-    const KeyframeData* reference = s.map.keyframes().get(p.reference);
-    if (reference == nullptr) return false;
-    const Vector3d p_c = s.cameraPose(*reference).inverse() * p_w;
-    if (!(p_c.z() > 0.0) || !p_c.allFinite()) return false;
-    p.bearing_c = p_c.normalized();
-    p.inverse_depth = 1.0 / p_c.norm();
-    return true;
-  };
-  for (std::uint32_t i = 0; i < msg.point_update_count; ++i) {
-    const auto found = s.point_index.find(State::key(msg.point_updates[i].id));
-    const MapPointData* p = found != s.point_index.end() ? s.map.mapPoints().get(found->second) : nullptr;
-    if (p == nullptr || !p->from_server) {  // own points are the agent's to refine
-      if (p == nullptr) ++report.unknown_references;
-      continue;
-    }
-    if (set_position(found->second, s.T_local_server * toVector3(msg.point_updates[i].p_w))) ++report.points_updated;
-  }
-
-  // New keyframes, in the server's rank order, with the points they observe.
-  s.message_point.clear();
-  for (std::uint32_t i = 0; i < msg.point_count; ++i) s.message_point.emplace(State::key(msg.points[i].id), i);
-  int anchors = count_anchors();
-  int server_points = 0;
-  s.map.mapPoints().forEach([&](PoolHandle, const MapPointData& p) { server_points += p.from_server ? 1 : 0; });
-  const dataset::CameraCalibration& cam = s.left.calibration();
-  for (std::uint16_t i = 0; i < msg.keyframe_count; ++i) {
-    const AnchorKeyframeMsg& a = msg.keyframes[i];
-    if (selected.count(State::key(a.id)) == 0) continue;         // not selected now: of no use
-    if (keyframe_by_id.count(State::key(a.id)) != 0) continue;  // held already (sent twice, or one of the own)
-    if (anchors >= s.options.downlink.max_anchor_keyframes) {
-      ++report.anchors_over_capacity;
-      continue;
-    }
-    KeyframeData& kf = s.scratch;
-    kf.id = a.id;
-    kf.t_ns = a.t_ns;
-    kf.T_w_s = s.T_local_server * fromMsg(a.T_w_c) * s.T_s_c.inverse();
-    kf.v_w.setZero();
-    kf.bias = imu::ImuBias();
-    kf.anchor = true;
-    kf.has_preintegration = false;
-    kf.keypoint_count = std::min<std::uint16_t>(a.observation_count, kMaxKeypointsPerKeyframe);
-    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
-      const AnchorObservationMsg& o = a.observations[k];
-      const double x = o.x;
-      const double y = o.y;
-      const Vector3d ray(x, y, 1.0);
-      const Vector2d undistorted(cam.fx * x + cam.cx, cam.fy * y + cam.cy);
-      const auto px = s.left.project(ray);
-      const Vector2d distorted = px ? Vector2d(*px) : undistorted;
-      kf.keypoints[k] = features::Keypoint{distorted.cast<float>(), 0.0F, 0.0F, o.octave};
-      kf.undistorted_px[k] = undistorted;
-      const auto in_message = s.message_point.find(State::key(o.point));
-      kf.descriptors[k] = in_message != s.message_point.end() ? msg.points[in_message->second].descriptor
-                                                             : features::Descriptor{};
-      kf.has_right[k] = false;
-    }
-    auto inserted = s.map.insertKeyframe(kf);
-    if (!inserted) {
-      ++report.anchors_over_capacity;
-      continue;
-    }
-    const PoolHandle h = *inserted;
-    keyframe_by_id.emplace(State::key(a.id), h);
-    ++anchors;
-    ++report.anchors_added;
-    const SE3d T_c_w = s.cameraPose(*s.map.keyframes().get(h)).inverse();
-    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
-      const MapPointId& id = a.observations[k].point;
-      if (const auto held = s.point_index.find(State::key(id)); held != s.point_index.end()) {
-        if (s.map.addObservation(h, k, held->second).ok()) ++report.points_linked;
-        continue;
-      }
-      const auto in_message = s.message_point.find(State::key(id));
-      if (in_message == s.message_point.end()) {
-        ++report.unknown_references;
-        continue;
-      }
-      if (server_points >= s.options.downlink.max_anchor_points) {
-        ++report.points_over_capacity;
-        continue;
-      }
-      const AnchorPointMsg& m = msg.points[in_message->second];
-      const Vector3d p_c = T_c_w * (s.T_local_server * toVector3(m.p_w));
-      if (!(p_c.z() > 0.0)) {
-        ++report.unknown_references;
-        continue;
-      }
-      auto created = s.map.createMapPoint(h, k, p_c.normalized(), p_c.norm(), id);
-      if (!created) {
-        ++report.points_over_capacity;
-        continue;
-      }
-      MapPointData& p = *s.map.mapPoints().get(*created);
-      p.from_server = true;
-      p.descriptor = m.descriptor;
-      p.octave = m.octave;
-      s.point_index.emplace(State::key(id), *created);
-      ++server_points;
-      ++report.points_added;
-    }
-  }
-  report.anchors_held = anchors;
-  return report;
-}
-
 Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta) {
   State& s = *s_;
   MapperReport report;
@@ -885,9 +514,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     ~DeltaGuard() {
       if (delta == nullptr) return;
       s.map.setEventSink(nullptr);
-      const bool started = s.right.has_value() || s.mono_initialised;
-      s.delta_writer.finish(s.map, msg,
-                            {s.map_id, s.epoch, s.options.use_imu ? s.imu_initialised : started, s.keyframe_map_id});
+      s.delta_writer.finish(s.map, msg, {s.map_id, s.epoch, s.frameFinal(), s.keyframe_map_id});
       report.delta_events_lost = delta->events_lost;
     }
   } delta_guard{s, delta, msg, report};
@@ -968,7 +595,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
   s.rebuildPointIndex();
   for (std::uint16_t k = 0; k < msg.keypoint_count; ++k) {
     if (msg.has_match[k] == 0) continue;
-    const auto found = s.point_index.find(State::key(msg.matched[k]));
+    const auto found = s.point_index.find(msg.matched[k]);
     if (found == s.point_index.end()) continue;  // culled since tracking saw it
     if (s.map.addObservation(handle, k, found->second).ok()) {
       ++report.linked;

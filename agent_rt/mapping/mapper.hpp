@@ -99,7 +99,7 @@ struct MapperReport {
 
 // What one downlink message did to the local map.
 struct DownlinkReport {
-  bool stale = false;  // a message of an older stream or sequence than one applied already: ignored
+  bool stale = false;   // a message of an older stream or sequence than one applied already: ignored
   std::string skipped;  // why the covisible map was not used (another agent map, the map not ready), or empty
   int anchors_added = 0;
   int anchors_released = 0;  // left the server's selection
@@ -107,7 +107,7 @@ struct DownlinkReport {
   int anchor_poses_updated = 0;
   int anchors_over_capacity = 0;  // selected and sent, but the pool's share for anchors is full
   int points_added = 0;
-  int points_linked = 0;         // the server's point was one the local map holds already (own, or sent before)
+  int points_linked = 0;  // the server's point was one the local map holds already (own, or sent before)
   int points_updated = 0;
   int points_over_capacity = 0;  // left out: max_anchor_points reached, or the pool is full
   int unknown_references = 0;    // observations of points neither in the message nor in the map, updates of

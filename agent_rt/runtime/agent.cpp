@@ -12,13 +12,13 @@
 #include <nlohmann/json.hpp>
 
 #include "agent_rt/ipc/embedded_roudi.hpp"
+#include "agent_rt/runtime/iceoryx_channels.hpp"
+#include "agent_rt/runtime/mapping_thread.hpp"
 #include "agent_rt/runtime/message_conversions.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
 #include "common/dataset/euroc.hpp"
 #include "common/dataset/trajectory_io.hpp"
-#include "iceoryx_posh/popo/publisher.hpp"
-#include "iceoryx_posh/popo/subscriber.hpp"
 
 namespace cvislam::agent {
 
@@ -82,34 +82,6 @@ Status AgentOptions::validate() const {
 
 namespace {
 
-// iceoryx hands chunks between threads through lock-free queues that synchronise with fences, which
-// ThreadSanitizer does not model: without help it reports every message as a race. These annotations state
-// the happens-before that iceoryx provides (publish -> take, release of a chunk -> its next loan); they are
-// no-ops outside TSan builds.
-#if defined(__SANITIZE_THREAD__)
-extern "C" void __tsan_acquire(void* address);  // NOLINT(bugprone-reserved-identifier)
-extern "C" void __tsan_release(void* address);  // NOLINT(bugprone-reserved-identifier)
-void tsanAcquire(const void* chunk) {
-  __tsan_acquire(const_cast<void*>(chunk));
-}  // NOLINT(cppcoreguidelines-pro-type-const-cast)
-void tsanRelease(const void* chunk) {
-  __tsan_release(const_cast<void*>(chunk));
-}  // NOLINT(cppcoreguidelines-pro-type-const-cast)
-#else
-void tsanAcquire(const void* /*chunk*/) {}
-void tsanRelease(const void* /*chunk*/) {}
-#endif
-
-// Releases a received chunk (for TSan) when the sample holding it goes.
-struct ChunkReleaseOnExit {
-  const void* chunk;
-  ~ChunkReleaseOnExit() { tsanRelease(chunk); }
-};
-
-std::int64_t steadyNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch()).count();
-}
-
 // Frames read ahead by the loader thread into buffers allocated at start-up; one producer, one consumer.
 class FrameRing {
  public:
@@ -151,277 +123,6 @@ class FrameRing {
   std::atomic<std::size_t> tail_{0};
   std::atomic<bool> done_{false};
 };
-
-iox::capro::ServiceDescription service(AgentId agent, const char* event) {
-  const std::string instance = "agent" + std::to_string(agent);
-  return {"cvislam", iox::capro::IdString_t(iox::cxx::TruncateToCapacity, instance.c_str()),
-          iox::capro::IdString_t(iox::cxx::TruncateToCapacity, event)};
-}
-
-class IceoryxKeyframeSink final : public KeyframeSink {
- public:
-  explicit IceoryxKeyframeSink(iox::popo::Publisher<KeyframeMessage>& publisher) : publisher_(publisher) {}
-  KeyframeMessage* loan() override {
-    auto sample = publisher_.loan();
-    if (sample.has_error()) return nullptr;
-    sample_.emplace(std::move(sample.value()));
-    tsanAcquire(sample_->get());
-    return sample_->get();
-  }
-  void publish() override {
-    if (sample_) {
-      tsanRelease(sample_->get());
-      sample_->publish();
-      sample_.reset();
-    }
-  }
-
- private:
-  iox::popo::Publisher<KeyframeMessage>& publisher_;
-  std::optional<iox::popo::Sample<KeyframeMessage>> sample_;
-};
-
-struct MappingStats {
-  std::size_t keyframes = 0;
-  std::uint64_t lost_messages = 0;
-  double imu_initialised_at_s = -1.0;
-  std::size_t new_maps = 0;
-  // What the server sent down, as mapping applied it.
-  std::size_t downlink_messages = 0;
-  std::size_t downlink_stale = 0;
-  std::size_t downlink_refused = 0;
-  std::size_t downlink_skipped = 0;  // the covisible map was in another agent map, or the map was not ready
-  std::string downlink_last_skip;
-  std::size_t anchors_added = 0;
-  std::size_t anchors_released = 0;
-  int most_anchors_held = 0;
-  std::size_t anchor_points_added = 0;
-  std::size_t anchor_points_linked = 0;
-  std::size_t anchor_updates = 0;
-  std::size_t over_capacity = 0;
-  std::size_t unknown_references = 0;
-  std::size_t corrections_applied = 0;
-  std::size_t corrections_deferred = 0;
-  std::size_t corrections_skipped = 0;
-  double largest_correction_m = 0.0;
-  double largest_correction_deg = 0.0;
-  std::size_t ba_with_anchors = 0;  // local BAs in which anchors' observations took part
-
-  void add(const DownlinkReport& r) {
-    ++downlink_messages;
-    downlink_stale += r.stale ? 1 : 0;
-    if (!r.skipped.empty()) {
-      ++downlink_skipped;
-      downlink_last_skip = r.skipped;
-    }
-    anchors_added += static_cast<std::size_t>(r.anchors_added);
-    anchors_released += static_cast<std::size_t>(r.anchors_released);
-    most_anchors_held = std::max(most_anchors_held, r.anchors_held);
-    anchor_points_added += static_cast<std::size_t>(r.points_added);
-    anchor_points_linked += static_cast<std::size_t>(r.points_linked);
-    anchor_updates += static_cast<std::size_t>(r.anchor_poses_updated + r.points_updated);
-    over_capacity += static_cast<std::size_t>(r.anchors_over_capacity + r.points_over_capacity);
-    unknown_references += static_cast<std::size_t>(r.unknown_references);
-    corrections_applied += static_cast<std::size_t>(r.corrections_applied);
-    corrections_deferred += static_cast<std::size_t>(r.corrections_deferred);
-    corrections_skipped += static_cast<std::size_t>(r.corrections_skipped);
-    largest_correction_m = std::max(largest_correction_m, r.largest_correction_m);
-    largest_correction_deg = std::max(largest_correction_deg, r.largest_correction_deg);
-  }
-};
-
-// The link writes what the server sent down into iceoryx chunks for mapping.
-class IceoryxAnchorSink final : public AnchorSink {
- public:
-  explicit IceoryxAnchorSink(iox::popo::Publisher<AnchorMessage>& publisher) : publisher_(publisher) {}
-  AnchorMessage* loan() override {
-    auto loaned = publisher_.loan();
-    if (loaned.has_error()) return nullptr;
-    sample_.emplace(std::move(loaned.value()));
-    tsanAcquire(sample_->get());
-    return sample_->get();
-  }
-  void publish() override {
-    if (!sample_) return;
-    tsanRelease(sample_->get());
-    sample_->publish();
-    sample_.reset();
-  }
-  void discard() override { sample_.reset(); }
-
- private:
-  iox::popo::Publisher<AnchorMessage>& publisher_;
-  std::optional<iox::popo::Sample<AnchorMessage>> sample_;
-};
-
-// The link reads mapping's deltas from iceoryx.
-class IceoryxDeltaSource final : public DeltaSource {
- public:
-  explicit IceoryxDeltaSource(iox::popo::Subscriber<MapDeltaMessage>& subscriber) : subscriber_(subscriber) {}
-  const MapDeltaMessage* next() override {
-    auto taken = subscriber_.take();
-    if (taken.has_error()) return nullptr;
-    held_.emplace(std::move(taken.value()));
-    tsanAcquire(held_->get());
-    return held_->get();
-  }
-  void release() override {
-    if (held_) tsanRelease(held_->get());
-    held_.reset();
-  }
-
- private:
-  iox::popo::Subscriber<MapDeltaMessage>& subscriber_;
-  std::optional<iox::popo::Sample<const MapDeltaMessage>> held_;
-};
-
-void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool>& tracking_done,
-                   const std::atomic<bool>& stop, LatencyRecorder& receive, LatencyRecorder& local_ba,
-                   LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready) {
-  const bool with_link = !options.link.server.empty();
-  iox::popo::SubscriberOptions sub_options;
-  sub_options.queueCapacity = 32;
-  iox::popo::Subscriber<KeyframeMessage> keyframes(service(options.agent, "keyframes"), sub_options);
-  iox::popo::PublisherOptions pub_options;
-  iox::popo::Publisher<MapSnapshotMessage> snapshots(service(options.agent, "map_snapshot"), pub_options);
-  std::optional<iox::popo::Publisher<MapDeltaMessage>> deltas;
-  if (with_link) deltas.emplace(service(options.agent, "map_delta"), pub_options);
-  // The server's covisible map and corrections, from the link: applied between keyframes, in order.
-  std::optional<iox::popo::Subscriber<AnchorMessage>> anchors;
-  if (with_link) {
-    iox::popo::SubscriberOptions anchor_options;
-    anchor_options.queueCapacity = 8;
-    anchors.emplace(service(options.agent, "anchors"), anchor_options);
-  }
-  const auto apply_anchors = [&] {
-    if (!anchors) return;
-    for (auto taken = anchors->take(); !taken.has_error(); taken = anchors->take()) {
-      const AnchorMessage& m = *taken.value();
-      tsanAcquire(&m);
-      auto applied = mapper.applyDownlink(m);
-      tsanRelease(&m);
-      if (!applied) {
-        ++stats.downlink_refused;
-        std::fprintf(stderr, "[mapping] downlink message refused: %s\n", applied.error().toString().c_str());
-        continue;
-      }
-      stats.add(*applied);
-      if (options.trace_mapping) {
-        std::fprintf(stderr,
-                     "[mapping] downlink %u/%llu: anchors +%d -%d (held %d), points +%d (linked %d, over capacity %d), "
-                     "%d unknown references, corrections %d applied / %d skipped (largest %.3f m)%s%s\n",
-                     m.stream, static_cast<unsigned long long>(m.sequence), applied->anchors_added,
-                     applied->anchors_released, applied->anchors_held, applied->points_added, applied->points_linked,
-                     applied->points_over_capacity, applied->unknown_references, applied->corrections_applied,
-                     applied->corrections_skipped, applied->largest_correction_m, applied->stale ? ", stale" : "",
-                     applied->skipped.empty() ? "" : (", " + applied->skipped).c_str());
-      }
-    }
-  };
-  // RouDi connects publishers and subscribers asynchronously: a snapshot published before tracking's
-  // subscriber is connected would be lost, and tracking would wait for a map that never comes (likewise the
-  // link's deltas).
-  const auto deadline = Clock::now() + std::chrono::seconds(10);
-  while ((!snapshots.hasSubscribers() || (deltas && !deltas->hasSubscribers())) && Clock::now() < deadline &&
-         !stop.load()) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(2));
-  }
-  ready.store(true);
-  std::unique_ptr<MapSnapshotMessage> fallback;  // only if no chunk can be loaned
-  std::unique_ptr<MapDeltaMessage> delta_fallback;
-  std::uint64_t sequence = 0;
-  std::uint64_t delta_sequence = 0;
-  while (true) {
-    apply_anchors();
-    auto taken = keyframes.take();
-    if (taken.has_error()) {
-      if (tracking_done.load() || stop.load()) {
-        if (!keyframes.hasData()) break;
-        continue;
-      }
-      std::this_thread::sleep_for(std::chrono::microseconds(200));
-      continue;
-    }
-    const KeyframeMessage& msg = *taken.value();
-    tsanAcquire(&msg);
-    const ChunkReleaseOnExit release_keyframe{&msg};
-    const std::int64_t t0 = steadyNs();
-    receive.add(t0 - msg.publish_steady_ns);
-    auto loaned = snapshots.loan();
-    MapSnapshotMessage* out = nullptr;
-    if (!loaned.has_error()) {
-      out = loaned.value().get();
-      tsanAcquire(out);
-    } else {
-      if (!fallback) fallback = std::make_unique<MapSnapshotMessage>();
-      out = fallback.get();
-      std::fprintf(stderr, "[mapping] no free snapshot chunk: this keyframe's map is not sent\n");
-    }
-    MapDeltaMessage* delta = nullptr;
-    std::optional<iox::popo::Sample<MapDeltaMessage>> delta_sample;
-    if (deltas) {
-      auto loaned_delta = deltas->loan();
-      if (!loaned_delta.has_error()) {
-        delta_sample.emplace(std::move(loaned_delta.value()));
-        delta = delta_sample->get();
-        tsanAcquire(delta);
-      } else {
-        if (!delta_fallback) delta_fallback = std::make_unique<MapDeltaMessage>();
-        delta = delta_fallback.get();
-        std::fprintf(stderr, "[mapping] no free delta chunk: the link misses this keyframe's changes\n");
-      }
-    }
-    auto report = mapper.process(msg, *out, delta);
-    if (delta_sample) {
-      // Published whatever happened to the keyframe: the link counts deltas by sequence.
-      delta->sequence = delta_sequence;
-      delta->publish_steady_ns = steadyNs();
-      tsanRelease(delta);
-      delta_sample->publish();
-    }
-    if (delta != nullptr) ++delta_sequence;
-    const std::int64_t t1 = steadyNs();
-    mapping_total.add(t1 - t0);
-    const double t_s = static_cast<double>(msg.state.t_ns) * 1e-9;
-    if (!report) {
-      std::fprintf(stderr, "[mapping] keyframe %s refused: %s\n", msg.state.id.toString().c_str(),
-                   report.error().toString().c_str());
-      continue;
-    }
-    ++stats.keyframes;
-    stats.lost_messages += report->lost_messages;
-    if (report->ba_ran) local_ba.add(report->ba_ns);
-    if (report->ba_ran && report->ba.anchor_factors > 0) ++stats.ba_with_anchors;
-    if (options.trace_mapping) {
-      std::fprintf(
-          stderr,
-          "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
-          "triangulated %d, culled %d; BA %d keyframes + %d fixed (%d anchors), %d points (%d left out), %d factors "
-          "(%d cam1, %d mismatches left out, %d by anchors), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
-          t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged, report->stereo_matches,
-          report->stereo_points, report->triangulated, report->culled, report->ba.window_keyframes,
-          report->ba.fixed_keyframes, report->ba.anchor_keyframes, report->ba.map_points,
-          report->ba.map_points_left_out, report->ba.reprojection_factors, report->ba.second_camera_factors,
-          report->ba.second_camera_rejected, report->ba.anchor_factors, report->ba.initial_cost, report->ba.final_cost, report->ba.iterations,
-          static_cast<double>(report->ba_ns) * 1e-6);
-    }
-    if (report->new_map) ++stats.new_maps;
-    if (report->imu_initialised_now && stats.imu_initialised_at_s < 0) stats.imu_initialised_at_s = t_s;
-    if (!options.quiet && (report->imu_initialised_now || report->mono_initialised_now || report->map_restarted ||
-                           report->imu_initialisation_failed || report->new_map || report->lost_messages > 0)) {
-      std::fprintf(stderr, "[mapping] t=%.2f s keyframe %s: %s%s%s%s\n", t_s, msg.state.id.toString().c_str(),
-                   report->new_map ? "new map. " : "",
-                   report->map_restarted ? "IMU initialisation failed 20 times: map restarted. " : "",
-                   report->lost_messages > 0 ? "keyframe messages lost before this one. " : "", report->note.c_str());
-    }
-    if (out != fallback.get()) {
-      out->sequence = sequence++;
-      out->publish_steady_ns = steadyNs();
-      tsanRelease(out);
-      loaned.value().publish();
-    }
-  }
-}
 
 }  // namespace
 
@@ -814,26 +515,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
         {"deltas_lost", summary.link.store.deltas_lost},
         {"up_bytes", summary.link.up_bytes},
         {"down_bytes", summary.link.down_bytes}};
-    const MappingStats& m = mapping_stats;
-    j["downlink"] = {{"messages_applied", m.downlink_messages},
-                     {"stale", m.downlink_stale},
-                     {"refused", m.downlink_refused},
-                     {"covisible_maps_skipped", m.downlink_skipped},
-                     {"last_skip", m.downlink_last_skip},
-                     {"anchors_added", m.anchors_added},
-                     {"anchors_released", m.anchors_released},
-                     {"most_anchors_held", m.most_anchors_held},
-                     {"anchor_points_added", m.anchor_points_added},
-                     {"anchor_points_linked", m.anchor_points_linked},
-                     {"anchor_updates", m.anchor_updates},
-                     {"over_capacity", m.over_capacity},
-                     {"unknown_references", m.unknown_references},
-                     {"corrections_applied", m.corrections_applied},
-                     {"corrections_deferred", m.corrections_deferred},
-                     {"corrections_skipped", m.corrections_skipped},
-                     {"largest_correction_m", m.largest_correction_m},
-                     {"largest_correction_deg", m.largest_correction_deg},
-                     {"local_ba_with_anchors", m.ba_with_anchors}};
+    j["downlink"] = mapping_stats.downlinkJson();
   }
   std::ofstream(options.output / "summary.json") << j.dump(2) << "\n";
   return summary;

@@ -84,7 +84,7 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   auto agent = cvislam::test::InlineAgent::create(*seq, true, tracker_options, mapper_options);
   ASSERT_TRUE(agent.ok()) << agent.error().toString();
   (*agent)->onDelta([&](const MapDeltaMessage& d) { deltas.push(d); });
-  DownlinkReport downlink;  // summed
+  DownlinkReport downlink;         // summed
   int keyframes_with_anchors = 0;  // keyframes mapping processed with anchors in the local map
   (*agent)->beforeKeyframe([&](Mapper& mapper) {
     for (const AnchorMessage* m = anchors.take(); m != nullptr; m = anchors.take()) {
@@ -124,9 +124,10 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
       steady_frames, steady_keyframes, steady_allocations, link_allocations, second_half, second_half_s,
       static_cast<double>(second_half) / second_half_s, static_cast<unsigned long long>(status.acked_sequence),
       static_cast<double>(status.up_bytes) * 1e-6, status.flushed ? 1 : 0);
-  std::printf("downlink applied by mapping: %d anchors with %d points, %d corrections; %d keyframes processed with "
-              "anchors in the local map\n",
-              downlink.anchors_added, downlink.points_added, downlink.corrections_applied, keyframes_with_anchors);
+  std::printf(
+      "downlink applied by mapping: %d anchors with %d points, %d corrections; %d keyframes processed with "
+      "anchors in the local map\n",
+      downlink.anchors_added, downlink.points_added, downlink.corrections_applied, keyframes_with_anchors);
   EXPECT_GT(downlink.anchors_added, 0) << "tracking ran against anchors from the server";
   EXPECT_EQ(anchors.dropped(), 0U);
   ASSERT_GE(steady_frames, 100);

@@ -222,7 +222,8 @@ class MapperDownlinkTest : public MapperTest {
     ASSERT_EQ(poses.size(), 2u);
     scale_ = (poses[1].translation() - poses[0].translation()).norm() /
              (truePose(2).translation() - truePose(0).translation()).norm();
-    for (int k = 3; k <= 4; ++k) ASSERT_TRUE(mapper_->process(keyframe(k, KeyframeKind::kTracked, truePose(k, scale_)), *snapshot_).ok());
+    for (int k = 3; k <= 4; ++k)
+      ASSERT_TRUE(mapper_->process(keyframe(k, KeyframeKind::kTracked, truePose(k, scale_)), *snapshot_).ok());
   }
 
   static MapPointId serverPoint(std::size_t j) { return MapPointId{7, static_cast<std::uint32_t>(j)}; }
@@ -307,10 +308,11 @@ TEST_F(MapperDownlinkTest, AnAnchorFromAnotherAgentTakesPartInLocalBaWithoutMovi
   auto r5 = mapper_->process(keyframe(5, KeyframeKind::kTracked, estimate), *snapshot_, delta.get());
   ASSERT_TRUE(r5.ok()) << r5.error().toString();
   ASSERT_TRUE(r5->ba_ran);
-  std::printf("with anchors: fused %d, merged %d; BA %d window + %d fixed (%d anchors), %d factors of which %d by "
-              "anchors\n",
-              r5->fused, r5->merged, r5->ba.window_keyframes, r5->ba.fixed_keyframes, r5->ba.anchor_keyframes,
-              r5->ba.reprojection_factors, r5->ba.anchor_factors);
+  std::printf(
+      "with anchors: fused %d, merged %d; BA %d window + %d fixed (%d anchors), %d factors of which %d by "
+      "anchors\n",
+      r5->fused, r5->merged, r5->ba.window_keyframes, r5->ba.fixed_keyframes, r5->ba.anchor_keyframes,
+      r5->ba.reprojection_factors, r5->ba.anchor_factors);
   EXPECT_EQ(r5->ba.anchor_keyframes, 2);
   EXPECT_GT(r5->ba.anchor_factors, 100) << "the anchors' observations are residuals of local BA";
   const KeyframeData* anchor = keyframeById(KeyframeId{7, 100});
@@ -469,9 +471,8 @@ TEST_F(MapperDownlinkTest, CorrectionsMoveOwnKeyframesOutsideTheLocalWindowAndTh
     EXPECT_TRUE(r->ba_ran);
     EXPECT_LE(r->ba.final_cost, r->ba.initial_cost);
     if (k == 7) {
-      EXPECT_NEAR(
-          (keyframeById(KeyframeId{0, 3})->T_w_s.translation() - before_3.translation() - drift_at(3)).norm(), 0.0,
-          1e-12)
+      EXPECT_NEAR((keyframeById(KeyframeId{0, 3})->T_w_s.translation() - before_3.translation() - drift_at(3)).norm(),
+                  0.0, 1e-12)
           << "keyframe 3 left the window and took the server's state, held fixed since";
     }
   }
