@@ -96,6 +96,7 @@ struct BackendWorker::MissionState {
   std::map<MapId, std::vector<LoopEdge>> loops;  // every loop closed per map, for later pose graphs
   std::map<AgentId, std::uint32_t> last_loop_query;
   std::map<MapId, int> keyframes_since_redundancy;
+  std::map<MapId, int> keyframes_since_gba;
   std::map<MapId, MapId> merged_into;  // maps that went, and the map each went into
   std::mt19937_64 rng;
   BackendStats stats;  // under the worker's mutex
@@ -105,6 +106,10 @@ Status BackendOptions::validate() const {
   if (loop_cooldown_keyframes < 0) return Error{ErrorCode::kInvalidArgument, "backend.loop_cooldown_keyframes < 0"};
   if (!(loop_cancels_gba_m >= 0.0) || !(loop_cancels_gba_deg >= 0.0)) {
     return Error{ErrorCode::kInvalidArgument, "backend.loop_cancels_gba_m and loop_cancels_gba_deg must be >= 0"};
+  }
+  if (gba_every_keyframes < 0) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "backend.gba_every_keyframes must be >= 0 (0: only after merges and loops)"};
   }
   if (redundancy_every_keyframes < 1) {
     return Error{ErrorCode::kInvalidArgument, "backend.redundancy_every_keyframes must be >= 1"};
@@ -121,11 +126,11 @@ std::string BackendOptions::describe() const {
   out << "merge maps " << (merge_maps ? "on" : "off") << ", loop closure " << (close_loops ? "on" : "off")
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
       << gba.full_iterations << " iterations, " << gba.threads << " threads; a loop cuts it short above "
-      << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg), new keyframes fused "
-      << (fuse_new_keyframes ? "on" : "off") << " (" << fusion.neighbours << " covisible + " << fusion.nearby_keyframes
-      << " within " << fusion.nearby_radius_m << " m and " << fusion.nearby_max_angle_deg
-      << " deg), redundancy removal "
-      << (redundancy.enabled ? "on" : "off") << " (" << redundancy.redundant_fraction
+      << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
+  if (gba_every_keyframes > 0) out << " and per " << gba_every_keyframes << " new keyframes of a map";
+  out << ", new keyframes fused " << (fuse_new_keyframes ? "on" : "off") << " (" << fusion.neighbours << " covisible + "
+      << fusion.nearby_keyframes << " within " << fusion.nearby_radius_m << " m and " << fusion.nearby_max_angle_deg
+      << " deg), redundancy removal " << (redundancy.enabled ? "on" : "off") << " (" << redundancy.redundant_fraction
       << " of points seen by >= " << redundancy.min_other_observers
       << " others, IMU gap <= " << redundancy.max_imu_gap_s << " s; a final pass at the end "
       << (final_redundancy_pass ? "on" : "off") << ")";
@@ -265,18 +270,29 @@ void BackendWorker::handleKeyframes(const Event& event) {
     const CameraTable cameras(sensorsOf(*mission));
     for (const auto& [map, keyframe] : event.keyframes) fuseNewKeyframe(*mission, *s, cameras, keyframe);
   }
-  if (!options_.redundancy.enabled) return;
-  std::vector<MapId> due;
-  {
+  // The maps whose count of new keyframes reaches `every` (their counts start again).
+  const auto due = [&](std::map<MapId, int>& since, int every) {
+    std::vector<MapId> out;
     const std::lock_guard guard(mutex_);
     for (const auto& [map, keyframe] : event.keyframes) {
-      if (++s->keyframes_since_redundancy[map] >= options_.redundancy_every_keyframes) {
-        s->keyframes_since_redundancy[map] = 0;
-        due.push_back(map);
+      if (++since[map] >= every) {
+        since[map] = 0;
+        out.push_back(map);
       }
     }
+    return out;
+  };
+  if (options_.gba_every_keyframes > 0) {
+    // At most one request waits per map (requestGba joins them), so a GBA slower than the keyframes comes
+    // back to back rather than piling up.
+    for (MapId map : due(s->keyframes_since_gba, options_.gba_every_keyframes)) {
+      requestGba(event.mission, map, false, std::nullopt, Clock::now());
+    }
   }
-  for (MapId map : due) removeRedundant(*mission, *s, map);
+  if (!options_.redundancy.enabled) return;
+  for (MapId map : due(s->keyframes_since_redundancy, options_.redundancy_every_keyframes)) {
+    removeRedundant(*mission, *s, map);
+  }
 }
 
 void BackendWorker::finalRedundancyPass(const std::string& name) {

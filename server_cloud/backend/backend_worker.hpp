@@ -6,9 +6,10 @@
 //                   of its covisible and nearby keyframes (map_fusion.hpp), and redundancy removal every
 //                   `redundancy_every_keyframes` new keyframes of a map. Each holds the locks of the maps it
 //                   changes for the milliseconds it takes.
-//   GBA thread      global BA of a map after every merge or loop (and of every map at drain(true), the end of a
-//                   mission), on a snapshot; ingest carries on meanwhile, and the result is applied with the
-//                   corrections of what arrived (applyCorrections). A merge on a map cancels its running GBA,
+//   GBA thread      global BA of a map after every merge or loop, every `gba_every_keyframes` new keyframes
+//                   of a map when set, and of every map at drain(true), the end of a mission; on a snapshot:
+//                   ingest carries on meanwhile, and the result is applied with the corrections of what
+//                   arrived (applyCorrections). A merge on a map cancels its running GBA,
 //                   which then starts again on the changed map; a loop does so only when its pose graph moves
 //                   the query keyframe by more than `loop_cancels_gba_m` / `loop_cancels_gba_deg`. A smaller
 //                   loop lets the running GBA finish: its result is a change of state, composed with the
@@ -52,6 +53,10 @@ struct BackendOptions {
   bool merge_maps = true;
   bool close_loops = true;
   bool gba_after_change = true;  // after every merge and loop
+  // Also a GBA of a map after this many new keyframes since its last request (0: only after merges and loops).
+  // Between merges and loops the map otherwise holds the agents' own onboard estimates, and what the downlink
+  // sends is another agent's drift held fixed; a GBA that has fused them is what makes anchors worth more.
+  int gba_every_keyframes = 0;
   // Fuse every new keyframe with its covisible and nearby keyframes' points (what the search needs is copied
   // under the map's read lock, the search runs without a lock, the result is applied under the write lock).
   bool fuse_new_keyframes = true;

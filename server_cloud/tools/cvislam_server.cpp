@@ -108,7 +108,8 @@ int main(int argc, char** argv) {
   app.add_flag("--no-backend", no_backend, "Run without the back-end: no map fusion, loop closure, GBA or removal");
   app.add_flag("--no-redundancy", no_redundancy, "Keep every keyframe (no redundancy removal)");
   app.add_flag("--no-gba", no_gba,
-               "No global BA (neither after merges and loops nor on every map at shutdown): the server's keyframes "
+               "No global BA (neither after merges and loops, nor periodic, nor on every map at shutdown): the "
+               "server's keyframes "
                "keep the agents' estimates, moved only by merges and pose graphs");
   CLI11_PARSE(app, argc, argv);
 
@@ -127,6 +128,7 @@ int main(int argc, char** argv) {
   if (no_redundancy) options.backend.redundancy.enabled = false;
   if (no_gba) {
     options.backend.gba_after_change = false;
+    options.backend.gba_every_keyframes = 0;
     options.final_gba = false;
   }
   if (auto s = options.validate(); !s.ok()) {

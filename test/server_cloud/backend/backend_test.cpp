@@ -568,6 +568,60 @@ TEST_F(BackendWorkerTest, EveryNewKeyframeIsFusedWithTheMapOnTheControlThread) {
   EXPECT_TRUE(content->checkConsistency().ok());
 }
 
+// Agent 2 flies into agent 1's part of a shared map with a drift of its own (2 cm growing to 8 cm and 1 deg of
+// yaw): no merge or loop happens, so only the periodic GBA can use the points new-keyframe fusion shared.
+class PeriodicGba : public BackendWorkerTest {
+ protected:
+  double agent2ErrorAfter(int gba_every_keyframes, std::size_t* gba_runs) {
+    const test::ViScenario s = scenario(20, 0.5, 0.3);
+    const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 11});
+    {
+      auto record = mission_->agent(2)->write();
+      record->sensors = sensorsOf(s);
+      record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+      const auto drift_at = [](int k) {
+        const double f = static_cast<double>(k - 7) / 12.0;
+        return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.0175 * f)), Vector3d(0.08, -0.05, 0.02) * f);
+      };
+      buildAgentMap(*map->write(), s, AgentPlan{.agent = 2, .first = 8, .last = 19, .E = drift_at}, &*record);
+    }
+    before_ = maxPositionError(*map->read(), s, 2);
+    BackendOptions options;
+    options.redundancy.enabled = false;
+    options.gba_every_keyframes = gba_every_keyframes;
+    BackendWorker worker(options, registry_, nullptr);
+    for (std::uint32_t k = 8; k <= 19; ++k) {
+      EXPECT_TRUE(worker.onKeyframesAdded("m", {{map->id(), KeyframeId{2, k}}}));
+    }
+    worker.drain(false);
+    *gba_runs = worker.stats("m").gba.size();
+    const auto content = map->read();
+    EXPECT_TRUE(content->checkConsistency().ok());
+    return maxPositionError(*content, s, 2);
+  }
+  double before_ = 0.0;
+};
+
+TEST_F(PeriodicGba, AGbaEveryFewKeyframesTakesOutTheDriftOfAnAgentInASharedMap) {
+  std::size_t runs = 0;
+  const double after = agent2ErrorAfter(6, &runs);
+  ASSERT_GT(before_, 0.05);
+  EXPECT_GE(runs, 1U);
+  EXPECT_LE(runs, 2U) << "12 keyframes at one per 6: at most two requests";
+  EXPECT_LT(after, 0.2 * before_) << "before " << before_;
+}
+
+TEST_F(PeriodicGba, OffByDefaultNothingButAMergeOrLoopStartsAGba) {
+  EXPECT_EQ(BackendOptions{}.gba_every_keyframes, 0);
+  std::size_t runs = 0;
+  const double after = agent2ErrorAfter(0, &runs);
+  EXPECT_EQ(runs, 0U);
+  EXPECT_NEAR(after, before_, 1e-9);
+  BackendOptions bad;
+  bad.gba_every_keyframes = -1;
+  EXPECT_FALSE(bad.validate().ok());
+}
+
 TEST_F(BackendWorkerTest, NewKeyframeFusionCanBeTurnedOff) {
   const test::ViScenario s = scenario(20, 0.5, 0.3);
   const auto map = twoAgentsInOneMap(s);
