@@ -1,0 +1,266 @@
+// The back-end's worker while changes arrive during a global BA: keyframes streaming in, a loop, a merge, a
+// removal; nothing accepted may be lost, and each change must end up optimised with the map it went into. Same
+// synthetic maps as backend_test.cpp (backend_test_maps.hpp); real Ceres solves and worker threads, with a gate
+// that holds a GBA after its snapshot so that the order of events is deterministic.
+#include <random>
+#include <thread>
+
+#include <gtest/gtest.h>
+
+#include "server_cloud/backend/backend_worker.hpp"
+#include "test/server_cloud/backend/backend_test_maps.hpp"
+
+namespace cvislam::server::backend {
+namespace {
+
+using namespace test_maps;  // NOLINT(google-build-using-namespace): the tests' shared maps and fixture
+using Eigen::Vector3d;
+using geometry::SE3d;
+using geometry::SO3d;
+
+TEST_F(BackendWorkerTest, GbaWhileKeyframesStreamInLosesNoneAndCarriesTheNewOnesAlong) {
+  const test::ViScenario s = scenario(40, 0.25, 0.5);
+  // The map holds keyframes 0-29 with a perturbation; 30-39 arrive while GBA runs.
+  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 29});
+  {
+    auto content = map->write();
+    std::mt19937_64 rng(9);
+    std::normal_distribution<double> noise(0.0, 0.03);
+    for (std::uint32_t k = 1; k < 30; ++k) {
+      ServerKeyframe* kf = content->keyframe(KeyframeId{1, k});
+      kf->T_w_s = SE3d(kf->T_w_s.so3(), kf->T_w_s.translation() + Vector3d(noise(rng), noise(rng), noise(rng)));
+    }
+  }
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  BackendWorker worker(options, registry_, nullptr);
+  std::thread gba([&] { worker.drain(true); });
+  MapContent late(99);
+  buildAgentMap(late, s, AgentPlan{.agent = 1, .first = 30, .last = 39}, nullptr);
+  for (std::uint32_t k = 30; k < 40; ++k) {
+    auto content = map->write();
+    ServerKeyframe kf = *late.keyframe(KeyframeId{1, k});
+    kf.point.assign(kf.keypoints.size(), MapPointId{});
+    kf.has_point.assign(kf.keypoints.size(), 0);
+    ASSERT_TRUE(content->addKeyframe(std::move(kf)).ok());
+  }
+  gba.join();
+  const BackendStats stats = worker.stats("m");
+  ASSERT_FALSE(stats.gba.empty());
+  EXPECT_FALSE(stats.gba.back().summary.cancelled);
+  const auto content = map->read();
+  EXPECT_EQ(content->keyframes().size(), 40U);
+  const int optimised = stats.gba.back().summary.keyframes;
+  EXPECT_EQ(optimised + stats.gba.back().keyframes_propagated, 40);
+  // The keyframes GBA saw are on the truth; those that came later kept their pose relative to the newest
+  // optimised one (the same change applied).
+  EXPECT_LT(maxPositionError(*content, s, 1), 0.05 + (optimised < 40 ? 0.1 : 0.0));
+  EXPECT_TRUE(content->checkConsistency().ok());
+}
+
+// A loop closed while the map's GBA runs: the drift of `drift_m` (position, with a yaw of `drift_rad`) is injected
+// from keyframe 12 on, as in ALoopClosureRemovesAnInjectedDrift. Returns the worker's stats and the largest
+// keyframe position error before and after.
+struct LoopDuringGba {
+  BackendStats stats;
+  double before = 0.0;
+  double after = 0.0;
+};
+
+LoopDuringGba closeALoopWhileGbaRuns(MissionRegistry& registry, double drift_m, double drift_rad) {
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+  const Vector3d drift_xi = drift_m * Vector3d(0.3, -0.25, 0.05).normalized();
+  const auto drift_at = [&](int k) {
+    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, drift_rad * f)), f * drift_xi);
+  };
+  std::shared_ptr<ServerMap> map = mission->stack().createMap();
+  {
+    auto record = mission->agent(1)->write();
+    record->sensors = sensorsOf(s);
+    record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+    buildAgentMap(
+        *map->write(), s,
+        AgentPlan{
+            .agent = 1, .first = 0, .last = 23, .E = drift_at, .generation = [](int k) { return k >= 12 ? 1 : 0; }},
+        &*record);
+  }
+  LoopDuringGba out;
+  out.before = maxPositionError(*map->read(), s, 1);
+
+  GbaGate gate(map->id());
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });  // the GBA that the loop finds running
+  gate.waitUntilHeld();
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
+  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", record));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").loops.empty(); }));
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+  out.stats = worker.stats("m");
+  const auto content = map->read();
+  EXPECT_TRUE(content->checkConsistency().ok());
+  out.after = maxPositionError(*content, s, 1);
+  return out;
+}
+
+TEST(BackendLoopDuringGba, ASmallLoopLetsTheRunningGbaFinishAndTheGbaAfterItTakesTheLoopIn) {
+  MissionRegistry registry;
+  // About 3 cm and 0.2 deg at the query keyframe: below the 5 cm / 0.5 deg bound.
+  const LoopDuringGba r = closeALoopWhileGbaRuns(registry, 0.035, 0.004);
+  ASSERT_EQ(r.stats.loops.size(), 1U);
+  EXPECT_LT(r.stats.loops[0].correction_m, BackendOptions{}.loop_cancels_gba_m);
+  EXPECT_GT(r.stats.loops[0].correction_m, 0.01);
+  EXPECT_FALSE(r.stats.loops[0].cancelled_gba);
+  EXPECT_EQ(r.stats.gba_cancelled, 0U);
+  ASSERT_GE(r.stats.gba.size(), 2U) << "the running GBA, then the loop's";
+  EXPECT_FALSE(r.stats.gba[0].summary.cancelled) << "the running GBA was applied";
+  EXPECT_FALSE(r.stats.gba.back().summary.cancelled);
+  EXPECT_GE(r.stats.loops[0].match_to_optimised_s, 0.0);
+  ASSERT_GT(r.before, 0.025);
+  EXPECT_LT(r.after, 0.01) << "before " << r.before;
+}
+
+TEST(BackendLoopDuringGba, ABigLoopCutsTheRunningGbaShortAndTheNextOneRemovesTheDrift) {
+  MissionRegistry registry;
+  const LoopDuringGba r = closeALoopWhileGbaRuns(registry, 0.4, 0.05);
+  ASSERT_EQ(r.stats.loops.size(), 1U);
+  EXPECT_GT(r.stats.loops[0].correction_m, BackendOptions{}.loop_cancels_gba_m);
+  EXPECT_TRUE(r.stats.loops[0].cancelled_gba);
+  EXPECT_EQ(r.stats.gba_cancelled, 1U);
+  ASSERT_GE(r.stats.gba.size(), 2U);
+  EXPECT_TRUE(r.stats.gba[0].summary.cancelled) << "cut short, not applied";
+  EXPECT_FALSE(r.stats.gba.back().summary.cancelled);
+  ASSERT_GT(r.before, 0.25);
+  EXPECT_LT(r.after, 0.02) << "before " << r.before;
+}
+
+TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
+  // 0.1 s between keyframes: many of agent 1's are redundant. Agent 2 flies the second half, in its own frame.
+  const test::ViScenario s = scenario(40, 0.1, 0.3);
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, -0.5)), Vector3d(-1.0, 2.0, 0.3));
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 29});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 20, .last = 39, .E = [&](int) { return T_2_truth; }});
+
+  GbaGate gate(map1->id());
+  BackendOptions options;
+  options.redundancy_every_keyframes = 1;
+  options.redundancy.checks_per_round = 1000;
+  options.final_redundancy_pass = false;  // the removal must arrive while the GBA runs, not before it
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry_, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });
+  gate.waitUntilHeld();  // (a failure here leaves the gate open: the GBA runs on)
+  // While map 1's GBA runs: a keyframe arrives (a redundancy round), then agent 2's map matches.
+  EXPECT_TRUE(worker.onKeyframesAdded("m", {{map1->id(), KeyframeId{1, 29}}}));
+  EXPECT_TRUE(eventually([&] { return worker.stats("m").redundancy_checked > 0; }));
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 25}, map2->id(), KeyframeId{1, 24}, map1->id());
+  record.match.T_qmap_cmap = T_2_truth;
+  EXPECT_TRUE(worker.onMatch("m", record));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").merges.empty(); }));
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  const std::uint64_t removed = stats.redundant_removed;
+  EXPECT_GT(removed, 5U);
+  {
+    // Every removal is queued for agent 1's downlink, once.
+    const auto agent1 = mission_->findAgent(1)->read();
+    EXPECT_EQ(agent1->removals_to_send.size(), removed);
+    EXPECT_EQ(agent1->server_removed_keyframes.size(), removed);
+  }
+  EXPECT_EQ(stats.gba_cancelled, 1U) << "the merge cut the running GBA short";
+  ASSERT_GE(stats.gba.size(), 2U);
+  EXPECT_TRUE(stats.gba.front().summary.cancelled);
+  EXPECT_FALSE(stats.gba.back().summary.cancelled);
+  EXPECT_GE(stats.merges[0].match_to_optimised_s, 0.0);
+  EXPECT_EQ(mission_->stack().find(map2->id()), nullptr);
+  const auto merged = map1->read();
+  EXPECT_TRUE(merged->checkConsistency().ok());
+  EXPECT_EQ(merged->keyframes().size(), 30U - removed + 20U) << "the removal held through the merge and the GBAs";
+  EXPECT_EQ(stats.gba.back().summary.keyframes, static_cast<int>(merged->keyframes().size()));
+  EXPECT_LT(maxPositionError(*merged, s, 1), 0.02);
+  EXPECT_LT(maxPositionError(*merged, s, 2), 0.02);
+  EXPECT_EQ(mission_->findAgent(2)->read()->agent_maps.at(0).map, map1->id());
+}
+
+// A loop in map 2 waits for map 2's GBA, and map 2 is merged into map 1 before that GBA can run: the loop's time to
+// optimised must come from map 1's GBA. `hold` says whose GBA is held while the loop and the merge arrive.
+void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the_merged_away_map) {
+  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+  const auto addAgent = [&](const test::ViScenario& s, const AgentPlan& plan) {
+    std::shared_ptr<ServerMap> map = mission->stack().createMap();
+    auto record = mission->agent(plan.agent)->write();
+    record->sensors = sensorsOf(s);
+    record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+    buildAgentMap(*map->write(), s, plan, &*record);
+    return map;
+  };
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  // Agent 2 drifts from keyframe 12 on (as in ALoopClosureRemovesAnInjectedDrift), in a frame of its own.
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, 0.6)), Vector3d(2.0, 1.0, -0.2));
+  const auto drift_at = [](int k) {
+    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * Vector3d(0.3, -0.25, 0.05));
+  };
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 11});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2,
+                                          .first = 0,
+                                          .last = 23,
+                                          .E = [&](int k) { return T_2_truth * drift_at(k); },
+                                          .generation = [](int k) { return k >= 12 ? 1 : 0; }});
+  GbaGate gate(hold_the_merged_away_map ? map2->id() : map1->id());
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });
+  gate.waitUntilHeld();
+  // While map 1's GBA runs: a loop in map 2 (its GBA is queued behind), then map 2 merges into map 1.
+  recognition::MatchRecord loop =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{2, 22}, map2->id(), KeyframeId{2, 3}, map2->id());
+  loop.match.T_cmap_cq = T_2_truth * s.keyframe_states[22].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", loop));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").loops.empty(); }));
+  recognition::MatchRecord merge =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 5}, map2->id(), KeyframeId{1, 5}, map1->id());
+  merge.match.T_qmap_cmap = T_2_truth;
+  EXPECT_TRUE(worker.onMatch("m", merge));
+  EXPECT_TRUE(eventually([&] { return !worker.stats("m").merges.empty(); }));
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.loops.size(), 1U);
+  ASSERT_EQ(stats.merges.size(), 1U);
+  EXPECT_GE(stats.loops[0].match_to_optimised_s, 0.0) << "the loop's waiter went with its map";
+  EXPECT_GE(stats.merges[0].match_to_optimised_s, 0.0);
+  EXPECT_EQ(mission->stack().find(map2->id()), nullptr);
+  const auto merged = map1->read();
+  EXPECT_TRUE(merged->checkConsistency().ok());
+  EXPECT_LT(maxPositionError(*merged, s, 2), 0.03);
+}
+
+TEST(BackendMergeDuringGba, ALoopWaitingBehindAnotherMapsGbaIsOptimisedWithTheMapItsMapWentInto) {
+  MissionRegistry registry;
+  loopWaitingForAMapThatIsMergedAway(registry, false);
+}
+
+TEST(BackendMergeDuringGba, ALoopWaitingWhileItsOwnMapsGbaRunsIsOptimisedWithTheMapItsMapWentInto) {
+  MissionRegistry registry;
+  loopWaitingForAMapThatIsMergedAway(registry, true);
+}
+
+}  // namespace
+}  // namespace cvislam::server::backend
