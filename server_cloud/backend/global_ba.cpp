@@ -351,6 +351,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     change.emplace(c.id, delta);
     by_time[{kf->id.agent, kf->agent_map}].emplace(kf->t_ns, delta);
     kf->T_w_s = delta * kf->T_w_s;
+    kf->refined = true;
     if (c.velocity_bias_after) {
       // The solve estimated velocity and biases: they replace the held ones (an agent update meanwhile is lost).
       kf->v_w = c.velocity_bias_after->first;

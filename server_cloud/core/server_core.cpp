@@ -50,7 +50,8 @@ std::string ServerOptions::describe() const {
       << "  downlink_rate_hz:             " << session.downlink_rate_hz << "\n"
       << "  max_corrections_per_message:  " << session.max_corrections_per_message << "\n"
       << "  covisible_map:                " << (session.covisible.enabled ? "true" : "false") << " (K "
-      << session.covisible.keyframes << ", budget " << session.covisible.budget_bytes << " B per message)\n"
+      << session.covisible.keyframes << ", budget " << session.covisible.budget_bytes << " B per message"
+      << (session.covisible.foreign_refined_only ? ", other agents' keyframes once refined" : "") << ")\n"
       << "  max_keypoints_per_keyframe:   " << session.ingest.max_keypoints_per_keyframe << "\n"
       << "  max_imu_samples_per_keyframe: " << session.ingest.max_imu_samples_per_keyframe << "\n"
       << "  max_maps_per_agent:           " << session.ingest.max_maps_per_agent << "\n"
@@ -85,6 +86,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   link.read("covisible_keyframes", o.session.covisible.keyframes);
   link.read("covisible_seed_keyframes", o.session.covisible.seed_keyframes);
   link.read("covisible_own_recent_excluded", o.session.covisible.own_recent_excluded);
+  link.read("covisible_foreign_refined_only", o.session.covisible.foreign_refined_only);
   link.read("downlink_budget_bytes", o.session.covisible.budget_bytes);
   link.read("keepalive_time_ms", o.keepalive_time_ms);
   link.read("keepalive_timeout_ms", o.keepalive_timeout_ms);

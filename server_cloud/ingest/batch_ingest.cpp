@@ -510,6 +510,7 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
       kf->T_w_s = u.state.T_w_s;
       kf->v_w = u.state.v_w;
       kf->bias = u.state.bias;
+      kf->refined = false;  // the agent's estimate again
       ++report.keyframe_updates;
     }
   }

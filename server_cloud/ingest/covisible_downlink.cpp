@@ -70,6 +70,10 @@ std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& conten
     if (content.keyframe(seeds[i]) == nullptr) continue;
     for (const auto& [other, shared] : content.covisible(seeds[i])) {
       if (isRecentOwn(other)) continue;
+      if (options.foreign_refined_only && other.agent != newest.agent) {
+        const ServerKeyframe* kf = content.keyframe(other);
+        if (kf == nullptr || !kf->refined) continue;
+      }
       if (std::find(seeds.begin(), seeds.end(), other) != seeds.end()) continue;
       weight[other] += shared;
     }

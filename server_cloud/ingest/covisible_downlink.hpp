@@ -41,6 +41,10 @@ struct CovisibleOptions {
   // The agent's own newest keyframes are in its local map already, and are never sent down: as many as its Hello
   // says its local map keeps, else this many (the agent's default N).
   int own_recent_excluded = 20;
+  // Another agent's keyframe is sent only while its state is the server's refined one (ServerKeyframe::refined),
+  // never that agent's raw onboard estimate: two agents that held each other's onboard keyframes fixed would
+  // pull each other's drift in (co-drift). The agent's own older keyframes are always eligible.
+  bool foreign_refined_only = true;
   // Per message; 2 messages per second at 150 kB is the downlink goal of 0.30 MB/s.
   std::size_t budget_bytes = 150000;
   // A keyframe or point sent before is sent again when the server moved it by more than this.
@@ -63,7 +67,8 @@ CovisibleCameras covisibleCameras(const Mission& mission);
 
 // The K keyframes of `content` most covisible with `seeds` (the agent's newest keyframes, newest first), best
 // first, with their summed covisibility; the seeds and the agent's own newest `own_recent_excluded` keyframes
-// (counters above seeds[0].counter - own_recent_excluded) are left out.
+// (counters above seeds[0].counter - own_recent_excluded) are left out, and so are other agents' keyframes that
+// are not refined when `foreign_refined_only`.
 std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& content, const std::vector<KeyframeId>& seeds,
                                                         const CovisibleOptions& options);
 

@@ -77,8 +77,10 @@ TEST(GlobalBa, ConvergesToTheTruthFromAPerturbedStartWithImuFactorsOnlyInsideEac
   // IMU only between consecutive keyframes of one agent: 7 + 7, never across agents.
   EXPECT_EQ(summary->imu_factors, 14);
   EXPECT_LT(summary->final_cost, 0.2 * summary->initial_cost);
+  for (const auto& [id, kf] : map.keyframes()) EXPECT_FALSE(kf.refined) << id.toString() << " before any GBA";
   const AppliedCorrections applied = applyCorrections(map, keyframeCorrections(*snapshot), pointCorrections(*snapshot));
   EXPECT_EQ(applied.keyframes_optimised, 16);
+  for (const auto& [id, kf] : map.keyframes()) EXPECT_TRUE(kf.refined) << id.toString() << " is the GBA's state now";
   const double after = std::max(maxPositionError(map, s, 1), maxPositionError(map, s, 2));
   EXPECT_LT(after, 0.01) << "before " << before;
   // From the perturbed start it reaches the same optimum as from the truth.

@@ -280,6 +280,7 @@ TEST_F(BatchIngestTest, KeyframeAndPointSentInFullAgainAreDroppedAndCounted) {
 
 TEST_F(BatchIngestTest, KeyframeAndPointUpdatesReplaceTheStoredState) {
   ingestOk(makeKeyframeBatch(1, 0, 2));
+  map0()->write()->keyframe(kfId(0))->refined = true;  // as a GBA leaves it
   v1::MapBatch batch;
   v1::KeyframeState state = makeState(0);
   state.mutable_t_w_s()->set_px(7.5);
@@ -300,6 +301,7 @@ TEST_F(BatchIngestTest, KeyframeAndPointUpdatesReplaceTheStoredState) {
   EXPECT_DOUBLE_EQ(kf->v_w.z(), -0.5);
   EXPECT_DOUBLE_EQ(kf->bias.gyro.x(), 0.25);
   EXPECT_TRUE(agent_.corrections.empty());  // the agent's own updates are not server corrections
+  EXPECT_FALSE(kf->refined) << "the agent's estimate replaced the server's";
   EXPECT_TRUE(content->point(ptId(1))->p_w.isApprox(Eigen::Vector3d(4, 5, 6)));
 }
 

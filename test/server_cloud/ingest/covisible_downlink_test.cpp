@@ -50,8 +50,11 @@ struct Scene {
       addKeyframe(KeyframeId{1, c}, Vector3d(x, 0.0, 0.0));
       agent1.push_back(KeyframeId{1, c});
     }
-    // Agent 2: over the start, 0.3 m to the side.
-    for (std::uint32_t c = 0; c < 10; ++c) addKeyframe(KeyframeId{2, c}, Vector3d(0.05 * c, 0.3, 0.0));
+    // Agent 2: over the start, 0.3 m to the side; a GBA has refined its keyframes.
+    for (std::uint32_t c = 0; c < 10; ++c) {
+      addKeyframe(KeyframeId{2, c}, Vector3d(0.05 * c, 0.3, 0.0));
+      map.keyframe(KeyframeId{2, c})->refined = true;
+    }
   }
 
   // A keyframe at camera position p_c (looking along +z), observing every wall point within 1 m in x.
@@ -131,6 +134,37 @@ TEST(CovisibleDownlink, SelectsTheKMostCovisibleKeyframesOfOtherAgentsAndTheAgen
     for (const KeyframeId& seed : scene.seeds()) weight += scene.map.covisibility(seed, id);
     EXPECT_LE(weight, ranked.back().second) << id.toString();
   }
+}
+
+// Another agent's keyframe that holds its agent's onboard estimate (no GBA since it arrived, or its agent updated
+// it after one) would pull that agent's drift into this one's local BA: it waits until the server refined it.
+// The agent's own past goes down either way.
+TEST(CovisibleDownlink, AnotherAgentsKeyframesGoDownOnlyWhileTheirStateIsTheServersRefinedOne) {
+  Scene scene;
+  CovisibleOptions options;
+  options.own_recent_excluded = 50;
+  const auto agentsIn = [&](const CovisibleOptions& o) {
+    std::set<std::uint32_t> agent2;
+    int agent1 = 0;
+    for (const auto& [id, weight] : selectCovisible(scene.map, scene.seeds(), o)) {
+      if (id.agent == 2) agent2.insert(id.counter);
+      agent1 += id.agent == 1 ? 1 : 0;
+    }
+    return std::make_pair(agent2, agent1);
+  };
+  ASSERT_GE(agentsIn(options).first.size(), 3U) << "refined, agent 2's keyframes compete";
+  // Agent 2 updates keyframes 0..4 (its local BA): those hold its onboard estimate again.
+  for (std::uint32_t c = 0; c < 5; ++c) scene.map.keyframe(KeyframeId{2, c})->refined = false;
+
+  const auto [agent2, agent1] = agentsIn(options);
+  for (std::uint32_t c : agent2) EXPECT_GE(c, 5U) << "agent 2's keyframe " << c << " holds its onboard estimate";
+  EXPECT_GT(agent1, 0) << "the agent's own past is not held back";
+  // Unrefined own keyframes (agent 1 never had a GBA here) go down all the same: they are its own estimates.
+  for (const auto& [id, kf] : scene.map.keyframes()) EXPECT_TRUE(id.agent == 2 || !kf.refined);
+
+  options.foreign_refined_only = false;  // the rule off: every keyframe competes again
+  const auto all = agentsIn(options).first;
+  EXPECT_TRUE(std::any_of(all.begin(), all.end(), [](std::uint32_t c) { return c < 5; }));
 }
 
 TEST(CovisibleDownlink, TheLocalMapSizeTheAgentsHelloGaveDecidesWhichOfItsOwnKeyframesAreLeftOut) {
