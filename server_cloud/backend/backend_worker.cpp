@@ -104,6 +104,9 @@ struct BackendWorker::MissionState {
 
 Status BackendOptions::validate() const {
   if (loop_cooldown_keyframes < 0) return Error{ErrorCode::kInvalidArgument, "backend.loop_cooldown_keyframes < 0"};
+  if (frame_follows_keyframes < 1) {
+    return Error{ErrorCode::kInvalidArgument, "backend.frame_follows_keyframes must be >= 1 (1: the newest alone)"};
+  }
   if (!(loop_cancels_gba_m >= 0.0) || !(loop_cancels_gba_deg >= 0.0)) {
     return Error{ErrorCode::kInvalidArgument, "backend.loop_cancels_gba_m and loop_cancels_gba_deg must be >= 0"};
   }
@@ -127,6 +130,7 @@ std::string BackendOptions::describe() const {
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
       << gba.full_iterations << " iterations, " << gba.threads << " threads; a loop cuts it short above "
       << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
+  out << ", an agent's frame follows its " << frame_follows_keyframes << " newest corrected keyframes";
   if (gba_every_keyframes > 0) out << " and per " << gba_every_keyframes << " new keyframes of a map";
   out << ", new keyframes fused " << (fuse_new_keyframes ? "on" : "off") << " (" << fusion.neighbours << " covisible + "
       << fusion.nearby_keyframes << " within " << fusion.nearby_radius_m << " m and " << fusion.nearby_max_angle_deg
@@ -502,7 +506,8 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
   {
     StackLocks locks(mission, {map});
     MapContent& content = locks.map(map->id());
-    const AppliedCorrections applied = applyCorrections(content, *corrections, {});
+    const AppliedCorrections applied = applyCorrections(
+        content, *corrections, {}, ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes});
     updateRecords(locks.records(), applied);
     record.fusion = fuseMatch(content, match, cameras.lookup(), options_.fusion);
   }
@@ -649,7 +654,8 @@ void BackendWorker::gba(const GbaRequest& request) {
     } else {
       const auto start = Clock::now();
       const AppliedCorrections applied =
-          applyCorrections(locks.map(request.map), keyframeCorrections(*snapshot), pointCorrections(*snapshot));
+          applyCorrections(locks.map(request.map), keyframeCorrections(*snapshot), pointCorrections(*snapshot),
+                           ApplyOptions{/*marks_refined=*/true, options_.frame_follows_keyframes});
       updateRecords(locks.records(), applied);
       record.keyframes_propagated = applied.keyframes_propagated;
       record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();

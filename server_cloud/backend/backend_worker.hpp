@@ -63,6 +63,10 @@ struct BackendOptions {
   // A loop whose query keyframe is within this many keyframes of its agent's previous loop is left out (the
   // pose graph and GBA of the previous one already hold it).
   int loop_cooldown_keyframes = 20;
+  // After a GBA or a loop's pose graph, an agent map's T_m_w changes as its this many newest corrected keyframes
+  // did (mean rotation, least-squares translation); 1 follows the newest keyframe alone, whose own correction
+  // (it is the least constrained) then turns every anchor the agent is sent next.
+  int frame_follows_keyframes = 10;
   // A loop cuts a running GBA of its map short only when its pose graph moves the query keyframe by more than
   // this (either bound); smaller loops wait for the next GBA, so long solves are not thrown away again and again.
   double loop_cancels_gba_m = 0.05;

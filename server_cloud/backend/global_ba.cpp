@@ -338,20 +338,44 @@ std::vector<PointCorrection> pointCorrections(const GbaSnapshot& snapshot) {
   return out;
 }
 
+SE3d windowChange(const std::map<std::int64_t, TimedChange>& series, int window) {
+  // Rotation: the normalised mean of the changes' quaternions (sign-aligned; they differ by little).
+  // Translation: given that rotation, the one that moves the window's keyframe positions where their own
+  // changes move them, in the least-squares sense.
+  auto it = series.end();
+  Eigen::Vector4d q_sum = Eigen::Vector4d::Zero();
+  Eigen::Vector3d before_sum = Eigen::Vector3d::Zero();
+  Eigen::Vector3d after_sum = Eigen::Vector3d::Zero();
+  int n = 0;
+  const Eigen::Quaterniond q_ref = std::prev(series.end())->second.delta.so3().quaternion();
+  while (it != series.begin() && n < std::max(window, 1)) {
+    --it;
+    const Eigen::Quaterniond& q = it->second.delta.so3().quaternion();
+    q_sum += (q.coeffs().dot(q_ref.coeffs()) < 0.0 ? -1.0 : 1.0) * q.coeffs();
+    before_sum += it->second.p_before;
+    after_sum += it->second.delta * it->second.p_before;
+    ++n;
+  }
+  const Eigen::Quaterniond q_mean(Eigen::Vector4d(q_sum.normalized()));
+  const geometry::SO3d R(q_mean);
+  return SE3d(R, (after_sum - (R * before_sum)) / static_cast<double>(n));
+}
+
 AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeCorrection>& keyframes,
-                                    const std::vector<PointCorrection>& points) {
+                                    const std::vector<PointCorrection>& points, const ApplyOptions& options) {
   AppliedCorrections applied;
   // The change of every corrected keyframe, and per agent map its corrected keyframes by time.
   std::unordered_map<KeyframeId, SE3d> change;
-  std::map<std::pair<AgentId, std::uint32_t>, std::map<std::int64_t, SE3d>> by_time;
+  std::map<std::pair<AgentId, std::uint32_t>, std::map<std::int64_t, TimedChange>> by_time;
+  std::map<std::pair<AgentId, std::uint32_t>, SE3d> frame_change;  // per agent map, from its newest keyframes
   for (const KeyframeCorrection& c : keyframes) {
     ServerKeyframe* kf = map.keyframe(c.id);
     if (kf == nullptr) continue;  // removed meanwhile
     const SE3d delta = c.T_w_s_after * c.T_w_s_before.inverse();
     change.emplace(c.id, delta);
-    by_time[{kf->id.agent, kf->agent_map}].emplace(kf->t_ns, delta);
+    by_time[{kf->id.agent, kf->agent_map}].emplace(kf->t_ns, TimedChange{delta, kf->T_w_s.translation()});
     kf->T_w_s = delta * kf->T_w_s;
-    kf->refined = true;
+    kf->refined = options.marks_refined;
     if (c.velocity_bias_after) {
       // The solve estimated velocity and biases: they replace the held ones (an agent update meanwhile is lost).
       kf->v_w = c.velocity_bias_after->first;
@@ -362,14 +386,21 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     ++applied.keyframes_optimised;
     applied.changed.push_back(c.id);
   }
-  // Keyframes that arrived meanwhile: their agent map's nearest corrected keyframe in time (earlier first).
+  // Per agent map, the change of its frame: that of its newest corrected keyframes, so that one keyframe's
+  // own correction (the newest is the least constrained) does not turn the whole frame.
+  for (const auto& [key, series] : by_time) {
+    if (!series.empty()) frame_change[key] = windowChange(series, options.frame_window);
+  }
+  // Keyframes that arrived meanwhile: newer than every corrected keyframe of their agent map, the frame's change
+  // (they were made in that frame); else their nearest corrected keyframe in time (earlier first).
   for (const auto& [id, kf_const] : map.keyframes()) {
     if (change.count(id) != 0) continue;
     const auto series = by_time.find({id.agent, kf_const.agent_map});
     if (series == by_time.end() || series->second.empty()) continue;
     auto it = series->second.upper_bound(kf_const.t_ns);
+    const bool newest = it == series->second.end();
     if (it != series->second.begin()) --it;
-    const SE3d delta = it->second;
+    const SE3d delta = newest ? frame_change.at(series->first) : it->second.delta;
     ServerKeyframe* kf = map.keyframe(id);
     kf->T_w_s = delta * kf->T_w_s;
     kf->v_w = delta.so3() * kf->v_w;
@@ -377,9 +408,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     ++applied.keyframes_propagated;
     applied.changed.push_back(id);
   }
-  for (const auto& [key, series] : by_time) {
-    if (!series.empty()) applied.newest_change[key] = series.rbegin()->second;
-  }
+  applied.newest_change = frame_change;
   // Points: their own change, else their reference keyframe's.
   std::unordered_map<MapPointId, const PointCorrection*> corrected;
   for (const PointCorrection& c : points) corrected.emplace(c.id, &c);

@@ -136,14 +136,32 @@ struct AppliedCorrections {
   int points_optimised = 0;
   int points_propagated = 0;
   std::vector<KeyframeId> changed;  // every keyframe whose state changed (for the downlink)
-  // Per (agent, agent map): the change of its newest keyframe in this map, for the agent map's T_m_w, so that what
-  // the agent sends next lands where the corrected map expects it.
+  // Per (agent, agent map): the change of its newest keyframes in this map (windowChange), for the agent map's
+  // T_m_w, so that what the agent sends next lands where the corrected map expects it.
   std::map<std::pair<AgentId, std::uint32_t>, geometry::SE3d> newest_change;
 };
 
+// One corrected keyframe's change and its position before it.
+struct TimedChange {
+  geometry::SE3d delta;
+  Eigen::Vector3d p_before;
+};
+
+// The change of an agent map's frame from the changes of its `window` newest corrected keyframes (by time, in
+// `series`, which is not empty): the mean rotation, and the translation that fits their positions given it.
+// A window of 1 is the newest keyframe's own change.
+geometry::SE3d windowChange(const std::map<std::int64_t, TimedChange>& series, int window);
+
 // Applies corrections computed on a snapshot to the map as it is now (see the header comment).
+struct ApplyOptions {
+  // The corrected keyframes' state is then the server's refined one (ServerKeyframe::refined, which the downlink
+  // requires of another agent's keyframes): true for a GBA. A loop's pose graph moves keyframes without their
+  // points' evidence and clears the flag, so that its crude states wait for the GBA that follows it.
+  bool marks_refined = true;
+  int frame_window = 1;  // how many of an agent map's newest corrected keyframes its frame follows (windowChange)
+};
 AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeCorrection>& keyframes,
-                                    const std::vector<PointCorrection>& points);
+                                    const std::vector<PointCorrection>& points, const ApplyOptions& options = {});
 
 // The corrections a solved snapshot implies.
 std::vector<KeyframeCorrection> keyframeCorrections(const GbaSnapshot& snapshot);

@@ -125,6 +125,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("gba_after_change", b.gba_after_change);
   backend.read("final_gba", o.final_gba);
   backend.read("loop_cooldown_keyframes", b.loop_cooldown_keyframes);
+  backend.read("frame_follows_keyframes", b.frame_follows_keyframes);
   backend.read("loop_cancels_gba_m", b.loop_cancels_gba_m);
   backend.read("loop_cancels_gba_deg", b.loop_cancels_gba_deg);
   backend.read("gba_structure_iterations", b.gba.structure_iterations);

@@ -51,8 +51,8 @@ struct ServerKeyframe {
   std::optional<KeyframeId> imu_from;                 // the previous keyframe of the agent, linked by `imu`
   std::vector<dataset::ImuSample> imu;                // raw samples from imu_from's time to t_ns
   std::optional<imu::Preintegration> preintegration;  // rebuilt on the server from `imu`
-  // Its state is the server's (a GBA or a loop's pose graph estimated it), not its agent's onboard estimate: set
-  // when a correction is applied, cleared when its agent sends an update of it.
+  // Its state is the server's (a GBA estimated it), not its agent's onboard estimate: set when a GBA's correction
+  // is applied, cleared when a loop's pose graph moves it (until the GBA that follows) or its agent sends an update.
   bool refined = false;
 
   [[nodiscard]] int observationCount() const;

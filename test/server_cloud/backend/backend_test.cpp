@@ -7,7 +7,9 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <map>
 #include <random>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -98,6 +100,29 @@ TEST(GlobalBa, ConvergesToTheTruthFromAPerturbedStartWithImuFactorsOnlyInsideEac
   EXPECT_LT(worst_pose, 0.001);
 }
 
+// A loop's pose graph moves keyframes without their points' evidence: what it applies is not the refined state
+// the downlink waits for (another agent's keyframes go down only while refined), so it clears the flag that a GBA
+// set, and the GBA after it sets it again.
+TEST(GlobalBa, APoseGraphsCorrectionClearsTheRefinedStateThatAGbaSets) {
+  const test::ViScenario s = scenario(8, 0.5, 0.5);
+  MapContent map(0);
+  buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 7}, nullptr);
+  std::vector<KeyframeCorrection> moves;
+  for (const auto& [id, kf] : map.keyframes()) {
+    moves.push_back({id, kf.T_w_s, SE3d(SO3d(), Vector3d(0.01, 0.0, 0.0)) * kf.T_w_s, std::nullopt});
+  }
+  ASSERT_FALSE(moves.empty());
+  (void)applyCorrections(map, moves, {}, ApplyOptions{.marks_refined = true});
+  for (const auto& [id, kf] : map.keyframes()) EXPECT_TRUE(kf.refined) << id.toString() << " after a GBA";
+  for (KeyframeCorrection& m : moves) {
+    m.T_w_s_before = map.keyframe(m.id)->T_w_s;
+    m.T_w_s_after = SE3d(SO3d(), Vector3d(0.0, 0.02, 0.0)) * m.T_w_s_before;
+  }
+  const AppliedCorrections pose_graph = applyCorrections(map, moves, {}, ApplyOptions{.marks_refined = false});
+  EXPECT_EQ(pose_graph.keyframes_optimised, static_cast<int>(moves.size()));
+  for (const auto& [id, kf] : map.keyframes()) EXPECT_FALSE(kf.refined) << id.toString() << " after a pose graph";
+}
+
 // A map whose gravity is off by 1 deg of roll (every estimate turned about the oldest keyframe): vision cannot
 // see it, the IMU can. A gauge on the whole oldest pose keeps the tilt; the position-and-yaw gauge lets GBA
 // take it out and leaves the oldest keyframe's position and heading where they were.
@@ -174,6 +199,61 @@ TEST(GlobalBa, ACancelledSolveSaysSoAndChangesNothing) {
   ASSERT_TRUE(summary.ok());
   EXPECT_TRUE(summary->cancelled);
   EXPECT_FALSE(makeGbaSnapshot(map, {}).ok());  // no sensors: the error names the agent
+}
+
+// An agent map's frame change after a GBA or a loop (T_m_w follows it): 10 keyframes 0.3 m apart along x, and a
+// change given per keyframe.
+std::map<std::int64_t, TimedChange> seriesOf(const std::vector<SE3d>& deltas) {
+  std::map<std::int64_t, TimedChange> series;
+  for (std::size_t i = 0; i < deltas.size(); ++i) {
+    series.emplace(static_cast<std::int64_t>(i) * 500'000'000, TimedChange{deltas[i], Vector3d(0.3 * i, 1.0, 1.5)});
+  }
+  return series;
+}
+
+double angleDeg(const SO3d& a, const SO3d& b) {
+  return (a.inverse() * b).log().norm() * 180.0 / M_PI;
+}
+
+TEST(FrameChange, ARigidChangeOfTheWholeWindowIsThatChangeWhateverTheWindow) {
+  const SE3d rigid(SO3d::exp(Vector3d(0.01, -0.02, 0.3)), Vector3d(0.4, -0.2, 0.05));
+  const auto series = seriesOf(std::vector<SE3d>(10, rigid));
+  for (int window : {1, 3, 10, 50}) {
+    const SE3d change = windowChange(series, window);
+    EXPECT_LT(angleDeg(change.so3(), rigid.so3()), 1e-9) << window;
+    EXPECT_LT((change.translation() - rigid.translation()).norm(), 1e-9) << window;
+  }
+}
+
+TEST(FrameChange, TheNewestKeyframesOwnTurnDoesNotTurnTheFrameWhenTheWindowFollowsTen) {
+  // Nine keyframes move by one rigid change; the newest, least constrained, also turns 1 deg about its own position.
+  const SE3d rigid(SO3d::exp(Vector3d(0.0, 0.0, 0.02)), Vector3d(0.05, 0.0, 0.0));
+  std::vector<SE3d> deltas(10, rigid);
+  const Vector3d p_newest(0.3 * 9, 1.0, 1.5);
+  const SE3d about_newest = SE3d(SO3d(), rigid * p_newest) *
+                            SE3d(SO3d::exp(Vector3d(0.0, 0.0, M_PI / 180.0)), Vector3d::Zero()) *
+                            SE3d(SO3d(), -(rigid * p_newest));
+  deltas.back() = about_newest * rigid;
+  const auto series = seriesOf(deltas);
+  const Vector3d anchor(p_newest + Vector3d(8.0, 0.0, 0.0));  // what is sent next, 8 m from the agent
+  const SE3d newest_only = windowChange(series, 1);
+  const SE3d ten = windowChange(series, 10);
+  EXPECT_NEAR(angleDeg(newest_only.so3(), rigid.so3()), 1.0, 1e-6);
+  EXPECT_NEAR(angleDeg(ten.so3(), rigid.so3()), 0.1, 1e-3);
+  // The newest alone swings the anchor by 8 m x 1 deg = 14 cm; following ten keyframes, by a tenth of that.
+  EXPECT_GT((newest_only * anchor - rigid * anchor).norm(), 0.13);
+  EXPECT_LT((ten * anchor - rigid * anchor).norm(), 0.02);
+  // And the agent's newest keyframe itself still lands within millimetres of its own corrected position.
+  EXPECT_LT((ten * p_newest - deltas.back() * p_newest).norm(), 0.01);
+}
+
+TEST(FrameChange, TranslationsAlongTheWindowAverage) {
+  std::vector<SE3d> deltas;
+  for (int i = 0; i < 10; ++i) deltas.emplace_back(SO3d(), Vector3d(0.01 * i, 0.0, -0.02));
+  const SE3d change = windowChange(seriesOf(deltas), 4);  // the newest four: 0.06 .. 0.09
+  EXPECT_LT(change.so3().log().norm(), 1e-12);
+  EXPECT_NEAR(change.translation().x(), 0.075, 1e-12);
+  EXPECT_NEAR(change.translation().z(), -0.02, 1e-12);
 }
 
 // -------------------------------------------------------------------------------- the worker: a mission
