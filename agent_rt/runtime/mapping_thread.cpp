@@ -53,6 +53,43 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     anchor_options.queueCapacity = 8;
     anchors.emplace(service(options.agent, "anchors"), anchor_options);
   }
+  // anchors.txt: after every downlink message that carried a covisible map, the local map's newest own keyframe
+  // and every anchor held, each with its pose in the agent's world frame, so that the anchors' consistency with
+  // the agent's own estimate can be checked against ground truth after the run (deploy/anchor_consistency.py).
+  struct FileCloser {
+    void operator()(std::FILE* f) const {
+      if (f != nullptr) std::fclose(f);
+    }
+  };
+  std::unique_ptr<std::FILE, FileCloser> anchor_log;
+  if (with_link && !options.output.empty()) {
+    anchor_log.reset(std::fopen((options.output / "anchors.txt").c_str(), "w"));
+    if (anchor_log) {
+      std::fprintf(anchor_log.get(),
+                   "# kind(K: newest own keyframe, A: anchor) stream sequence keyframe_agent keyframe_counter t_ns "
+                   "tx ty tz qx qy qz qw (T_w_s, the agent's world frame)\n");
+    }
+  }
+  const auto log_anchors = [&](const AnchorMessage& m) {
+    if (!anchor_log || m.has_covisible == 0) return;
+    const auto write = [&](char kind, const KeyframeData& kf) {
+      const Eigen::Vector3d& t = kf.T_w_s.translation();
+      const Eigen::Quaterniond& q = kf.T_w_s.quaternion();
+      std::fprintf(anchor_log.get(), "%c %u %llu %u %u %lld %.6f %.6f %.6f %.9f %.9f %.9f %.9f\n", kind, m.stream,
+                   static_cast<unsigned long long>(m.sequence), static_cast<unsigned>(kf.id.agent),
+                   static_cast<unsigned>(kf.id.counter), static_cast<long long>(kf.t_ns), t.x(), t.y(), t.z(), q.x(),
+                   q.y(), q.z(), q.w());
+    };
+    const KeyframeData* newest = nullptr;
+    mapper.map().keyframes().forEach([&](PoolHandle, const KeyframeData& kf) {
+      if (!kf.anchor && (newest == nullptr || kf.sequence > newest->sequence)) newest = &kf;
+    });
+    if (newest == nullptr) return;
+    write('K', *newest);
+    mapper.map().keyframes().forEach([&](PoolHandle, const KeyframeData& kf) {
+      if (kf.anchor) write('A', kf);
+    });
+  };
   const auto apply_anchors = [&] {
     if (!anchors) return;
     for (auto taken = anchors->take(); !taken.has_error(); taken = anchors->take()) {
@@ -66,6 +103,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
         continue;
       }
       stats.add(*applied);
+      log_anchors(m);
       if (options.trace_mapping) {
         std::fprintf(stderr,
                      "[mapping] downlink %u/%llu: anchors +%d -%d (held %d), points +%d (linked %d, over capacity %d), "
