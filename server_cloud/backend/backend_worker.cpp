@@ -58,10 +58,10 @@ AgentSensorsMap sensorsOf(const Mission& mission) {
   return out;
 }
 
-// Brings the records up to date after `applied` changed the map: each agent map's T_m_w follows its newest
-// keyframe, and every changed keyframe is queued for the downlink.
+// Brings the records up to date after `applied` changed the map: each agent map's T_m_w follows its frame's
+// change (its newest corrected keyframes'), and every changed keyframe is queued for the downlink.
 void updateRecords(std::map<AgentId, AgentRecord*>& records, const AppliedCorrections& applied) {
-  for (const auto& [key, change] : applied.newest_change) {
+  for (const auto& [key, change] : applied.frame_change) {
     const auto it = records.find(key.first);
     if (it == records.end()) continue;
     const auto agent_map = it->second->agent_maps.find(key.second);

@@ -367,7 +367,6 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
   // The change of every corrected keyframe, and per agent map its corrected keyframes by time.
   std::unordered_map<KeyframeId, SE3d> change;
   std::map<std::pair<AgentId, std::uint32_t>, std::map<std::int64_t, TimedChange>> by_time;
-  std::map<std::pair<AgentId, std::uint32_t>, SE3d> frame_change;  // per agent map, from its newest keyframes
   for (const KeyframeCorrection& c : keyframes) {
     ServerKeyframe* kf = map.keyframe(c.id);
     if (kf == nullptr) continue;  // removed meanwhile
@@ -389,7 +388,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
   // Per agent map, the change of its frame: that of its newest corrected keyframes, so that one keyframe's
   // own correction (the newest is the least constrained) does not turn the whole frame.
   for (const auto& [key, series] : by_time) {
-    if (!series.empty()) frame_change[key] = windowChange(series, options.frame_window);
+    if (!series.empty()) applied.frame_change[key] = windowChange(series, options.frame_window);
   }
   // Keyframes that arrived meanwhile: newer than every corrected keyframe of their agent map, the frame's change
   // (they were made in that frame); else their nearest corrected keyframe in time (earlier first).
@@ -400,7 +399,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     auto it = series->second.upper_bound(kf_const.t_ns);
     const bool newest = it == series->second.end();
     if (it != series->second.begin()) --it;
-    const SE3d delta = newest ? frame_change.at(series->first) : it->second.delta;
+    const SE3d delta = newest ? applied.frame_change.at(series->first) : it->second.delta;
     ServerKeyframe* kf = map.keyframe(id);
     kf->T_w_s = delta * kf->T_w_s;
     kf->v_w = delta.so3() * kf->v_w;
@@ -408,7 +407,6 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     ++applied.keyframes_propagated;
     applied.changed.push_back(id);
   }
-  applied.newest_change = frame_change;
   // Points: their own change, else their reference keyframe's.
   std::unordered_map<MapPointId, const PointCorrection*> corrected;
   for (const PointCorrection& c : points) corrected.emplace(c.id, &c);

@@ -138,7 +138,7 @@ struct AppliedCorrections {
   std::vector<KeyframeId> changed;  // every keyframe whose state changed (for the downlink)
   // Per (agent, agent map): the change of its newest keyframes in this map (windowChange), for the agent map's
   // T_m_w, so that what the agent sends next lands where the corrected map expects it.
-  std::map<std::pair<AgentId, std::uint32_t>, geometry::SE3d> newest_change;
+  std::map<std::pair<AgentId, std::uint32_t>, geometry::SE3d> frame_change;
 };
 
 // One corrected keyframe's change and its position before it.
@@ -152,7 +152,6 @@ struct TimedChange {
 // A window of 1 is the newest keyframe's own change.
 geometry::SE3d windowChange(const std::map<std::int64_t, TimedChange>& series, int window);
 
-// Applies corrections computed on a snapshot to the map as it is now (see the header comment).
 struct ApplyOptions {
   // The corrected keyframes' state is then the server's refined one (ServerKeyframe::refined, which the downlink
   // requires of another agent's keyframes): true for a GBA. A loop's pose graph moves keyframes without their
@@ -160,6 +159,7 @@ struct ApplyOptions {
   bool marks_refined = true;
   int frame_window = 1;  // how many of an agent map's newest corrected keyframes its frame follows (windowChange)
 };
+// Applies corrections computed on a snapshot to the map as it is now (see the header comment).
 AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeCorrection>& keyframes,
                                     const std::vector<PointCorrection>& points, const ApplyOptions& options = {});
 
