@@ -2,7 +2,8 @@
 # The project's main job: a collaborative mission, end to end. It installs what is missing, builds, renders a
 # simulated multi-agent mission once (cached), starts an iceoryx RouDi, cvislam_server on loopback and one
 # cvislam_agent process per agent, waits for them, has the server write what it holds, and prints the result
-# tables; then one agent on the real EuRoC V1_01 excerpt through the same server.
+# tables; then one agent on the real EuRoC V1_01 excerpt through the same server; then it reads the maps back
+# through the map service (cvislam_mapctl), as an API client would.
 #
 #   deploy/run_mission.sh [--preset NAME] [--seed N] [--duration SEC] [--mode stereo|mono] [--pace realtime|sync]
 #                         [--out DIR] [--build-dir DIR] [--no-real] [--server-arg ARG ...] [--agent-config FILE]
@@ -15,7 +16,7 @@
 #   --pace      sync (default: after each keyframe tracking waits for mapping, so every run gives the same
 #               figures on a loaded machine) or realtime (frames at the sensor rate, as on a robot; on this
 #               2-core machine several realtime agents compete for the cores, see issue 17)
-#   --out       results [out/mission]: summary.json, report/index.html, server/, agents/, eval/
+#   --out       results [out/mission]: summary.json, report/index.html, server/, agents/, eval/, maps/
 #   --no-real   skip the agent on the real EuRoC excerpt
 #   --server-arg one more cvislam_server argument, repeatable (e.g. --server-arg --no-gba)
 #   --agent-config a cvislam_agent YAML config for the mission's agents (deploy/agent_config.yaml shows every
@@ -75,7 +76,7 @@ echo "== build (preset 'default' in $build)"
 if [ ! -f "$build/build.ninja" ]; then
   cmake -S "$repo" --preset default -B "$build" >/dev/null
 fi
-cmake --build "$build" --target cvislam_sim cvislam_server cvislam_agent cvislam_eval
+cmake --build "$build" --target cvislam_sim cvislam_server cvislam_agent cvislam_eval cvislam_mapctl
 bin="$build/bin"
 t_built=$(date +%s)
 
@@ -193,6 +194,16 @@ elif [ "$real" = 1 ]; then
   echo "== real data: SKIPPED ($data/euroc-v101-excerpt not found; set CVISLAM_DATA_DIR)"
 fi
 
+# 4. The map service, as an API client sees it: the mission's maps, and their files (PLY points, TUM keyframes,
+#    a JSON summary) in $out/maps. Read while the server runs, so before its final GBA.
+echo "== map service (cvislam_mapctl; the maps before the server's final GBA, files in $out/maps)"
+if "$bin/cvislam_mapctl" --server "127.0.0.1:$port" maps "$mission" >"$out/maps.txt" 2>&1 &&
+   "$bin/cvislam_mapctl" --server "127.0.0.1:$port" export "$mission" --out "$out/maps" >>"$out/maps.txt" 2>&1; then
+  sed -n '2,$p' "$out/maps.txt" | grep -v ' bytes ' | sed 's/^/  /'
+else
+  echo "run_mission: the map service failed:" >&2; cat "$out/maps.txt" >&2; failed=1
+fi
+
 kill -TERM "$server_pid"
 wait "$server_pid" || { echo "run_mission: cvislam_server failed:" >&2; tail -5 "$out/server.log" >&2; failed=1; }
 server_pid=""
@@ -209,7 +220,7 @@ cat >"$out/mission.json" <<EOF
             "total_until_report": $((t_done - t_start))}}
 EOF
 
-# 4. Scores, tables, summary.json and the report with pictures.
+# 5. Scores, tables, summary.json and the report with pictures.
 /usr/bin/python3 "$repo/deploy/mission_report.py" --out "$out" --eval "$bin/cvislam_eval"
 echo
 echo "wall time: build $((t_built - t_start)) s, render $((t_rendered - t_built)) s, mission $((t_ran - t_agents)) s," \

@@ -16,6 +16,7 @@
 #include "cvislam/v1/agent_link.grpc.pb.h"
 #include "cvislam/v1/monitor.grpc.pb.h"
 #include "server_cloud/service/grpc_status.hpp"
+#include "server_cloud/service/map_service.hpp"
 
 namespace cvislam::server {
 
@@ -226,11 +227,12 @@ class MonitorService final : public v1::Monitor::CallbackService {
 }  // namespace
 
 struct GrpcServer::Impl {
-  explicit Impl(ServerCore& c) : core(c), link(c), monitor(c) {}
+  explicit Impl(ServerCore& c) : core(c), link(c), monitor(c), map_service(makeMapService(c)) {}
 
   ServerCore& core;
   AgentLinkService link;
   MonitorService monitor;
+  std::unique_ptr<grpc::Service> map_service;
   std::unique_ptr<grpc::Server> server;
   int port = 0;
   std::string address;
@@ -275,6 +277,7 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
   builder.AddListeningPort(o.listen, grpc::InsecureServerCredentials(), &impl->port);
   builder.RegisterService(&impl->link);
   builder.RegisterService(&impl->monitor);
+  builder.RegisterService(impl->map_service.get());
   builder.SetMaxReceiveMessageSize(static_cast<int>(o.max_message_bytes));
   builder.SetMaxSendMessageSize(static_cast<int>(o.max_message_bytes));
   // Notice agents that vanished without closing (keepalive), allow the agents' own keepalive pings, and
@@ -294,6 +297,7 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
     health->SetServingStatus(true);
     health->SetServingStatus("cvislam.v1.AgentLink", true);
     health->SetServingStatus("cvislam.v1.Monitor", true);
+    health->SetServingStatus("cvislam.v1.MapService", true);
   }
   const std::string host = o.listen.substr(0, o.listen.rfind(':'));
   impl->address = host + ":" + std::to_string(impl->port);

@@ -1,6 +1,7 @@
 // The server's gRPC endpoint, on one port: the agent link (cvislam.v1.AgentLink), monitoring
-// (cvislam.v1.Monitor) and grpc.health.v1. The adapters are thin: they turn wire messages into calls on
-// ServerCore and internal statuses into grpc::Status. gRPC headers stay in the .cpp files.
+// (cvislam.v1.Monitor), the map service for API clients (cvislam.v1.MapService) and grpc.health.v1. The adapters are
+// thin: they turn wire messages into calls on ServerCore and internal statuses into grpc::Status. gRPC headers stay in
+// the .cpp files.
 #pragma once
 
 #include <chrono>

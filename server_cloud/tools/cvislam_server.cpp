@@ -1,5 +1,6 @@
 // cvislam_server: the collaborative SLAM server. Agents stream their maps to it over the agent link; it keeps
-// one map stack per mission, and API clients read its statistics over cvislam.v1.Monitor.
+// one map stack per mission, and API clients read its maps over cvislam.v1.MapService (cvislam_mapctl) and its
+// statistics over cvislam.v1.Monitor.
 //
 //   cvislam_server --listen HOST:PORT [--config FILE] [--output DIR] [--port-file FILE]
 //
