@@ -194,12 +194,14 @@ elif [ "$real" = 1 ]; then
   echo "== real data: SKIPPED ($data/euroc-v101-excerpt not found; set CVISLAM_DATA_DIR)"
 fi
 
-# 4. The map service, as an API client sees it: the mission's maps, and their files (PLY points, TUM keyframes,
-#    a JSON summary) in $out/maps. Read while the server runs, so before its final GBA.
+# 4. The map service, as an API client sees it: the mission's maps, their files (PLY points, TUM keyframes, a JSON
+#    summary) and its events so far, in $out/maps. Read while the server runs, so before its final GBA.
 echo "== map service (cvislam_mapctl; the maps before the server's final GBA, files in $out/maps)"
 if "$bin/cvislam_mapctl" --server "127.0.0.1:$port" maps "$mission" >"$out/maps.txt" 2>&1 &&
-   "$bin/cvislam_mapctl" --server "127.0.0.1:$port" export "$mission" --out "$out/maps" >>"$out/maps.txt" 2>&1; then
+   "$bin/cvislam_mapctl" --server "127.0.0.1:$port" export "$mission" --out "$out/maps" >>"$out/maps.txt" 2>&1 &&
+   "$bin/cvislam_mapctl" --server "127.0.0.1:$port" watch "$mission" --from 1 --seconds 1 >"$out/maps/events.txt" 2>&1; then
   sed -n '2,$p' "$out/maps.txt" | grep -v ' bytes ' | sed 's/^/  /'
+  echo "  $(grep -c '^#' "$out/maps/events.txt") map events so far (cvislam_mapctl watch): $(grep -c 'keyframe added' "$out/maps/events.txt") keyframes added, $(grep -c 'maps merged' "$out/maps/events.txt") merges, $(grep -c 'map corrected' "$out/maps/events.txt") corrections, $(grep -c 'keyframe removed' "$out/maps/events.txt") removals; in maps/events.txt"
 else
   echo "run_mission: the map service failed:" >&2; cat "$out/maps.txt" >&2; failed=1
 fi

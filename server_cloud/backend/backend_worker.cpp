@@ -49,6 +49,17 @@ class StackLocks {
   std::map<MapId, MapContent*> by_map_;
 };
 
+// A map's keyframes moved (a GBA's or a loop's corrections): one event for the map service's watchers.
+void appendCorrected(Mission& mission, MapId map, const AppliedCorrections& applied, const char* cause) {
+  if (applied.changed.empty()) return;
+  MissionEvent corrected;
+  corrected.kind = MissionEvent::Kind::kMapCorrected;
+  corrected.map = map;
+  corrected.keyframes = static_cast<std::uint32_t>(applied.changed.size());
+  corrected.cause = cause;
+  mission.events().append(std::move(corrected));
+}
+
 AgentSensorsMap sensorsOf(const Mission& mission) {
   AgentSensorsMap out;
   for (const SharedAgentRecord& shared : mission.agents()) {
@@ -419,6 +430,14 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   }
   mission.stack().remove(from->id());
+  {
+    MissionEvent merged;
+    merged.kind = MissionEvent::Kind::kMapsMerged;
+    merged.map = into->id();
+    merged.from_map = from->id();
+    merged.cause = "map fusion";
+    mission.events().append(std::move(merged));
+  }
   if (recognition_ != nullptr) {
     recognition_->enqueue(recognition::KeyframeEvent{
         recognition::KeyframeEvent::Kind::kMerged, mission.name(), into->id(), {}, from->id()});
@@ -509,6 +528,7 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     const AppliedCorrections applied = applyCorrections(
         content, *corrections, {}, ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes});
     updateRecords(locks.records(), applied);
+    appendCorrected(mission, map->id(), applied, "loop closure");
     record.fusion = fuseMatch(content, match, cameras.lookup(), options_.fusion);
   }
   std::size_t index = 0;
@@ -536,6 +556,15 @@ void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId
       it->second->server_removed_keyframes.insert(id.counter);
       it->second->removals_to_send.insert(id.counter);
       it->second->corrections.erase(id.counter);
+    }
+    for (const KeyframeId& id : report.removed_keyframes) {
+      MissionEvent removed;
+      removed.kind = MissionEvent::Kind::kKeyframeRemoved;
+      removed.agent = id.agent;
+      removed.keyframe = id;
+      removed.map = map_id;
+      removed.cause = "redundant";
+      mission.events().append(std::move(removed));
     }
   }
   if (recognition_ != nullptr) {
@@ -657,6 +686,7 @@ void BackendWorker::gba(const GbaRequest& request) {
           applyCorrections(locks.map(request.map), keyframeCorrections(*snapshot), pointCorrections(*snapshot),
                            ApplyOptions{/*marks_refined=*/true, options_.frame_follows_keyframes});
       updateRecords(locks.records(), applied);
+      appendCorrected(*mission, request.map, applied, "global BA");
       record.keyframes_propagated = applied.keyframes_propagated;
       record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
     }

@@ -218,6 +218,10 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
     record->down["welcome"].add(1, reply.ByteSizeLong());
   }
   if (replace_old) replace_old();
+  MissionEvent connected;
+  connected.kind = MissionEvent::Kind::kAgentConnected;
+  connected.agent = agent_id;
+  mission->events().append(std::move(connected));
   mission_ = std::move(mission);
   record_ = std::move(shared_record);
   mission_name_ = hello.mission();
@@ -266,6 +270,23 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
 
   // Traffic by kind: the serialized size of each part.
   for (const wire::BatchPart& part : wire::batchParts(batch)) record->up[part.kind].add(part.count, part.bytes);
+  for (const auto& [map, id] : report->added_keyframes) {
+    MissionEvent added;
+    added.kind = MissionEvent::Kind::kKeyframeAdded;
+    added.agent = id.agent;
+    added.keyframe = id;
+    added.map = map;
+    mission_->events().append(std::move(added));
+  }
+  for (std::size_t i = 0; i < report->removed_keyframe_ids.size(); ++i) {
+    MissionEvent removed;
+    removed.kind = MissionEvent::Kind::kKeyframeRemoved;
+    removed.agent = report->removed_keyframe_ids[i].agent;
+    removed.keyframe = report->removed_keyframe_ids[i];
+    removed.map = report->removed_keyframe_maps[i];
+    removed.cause = "agent";
+    mission_->events().append(std::move(removed));
+  }
   if (on_stored_) on_stored_(mission_name_, *report);
   return Status::Ok();
 }
@@ -373,6 +394,12 @@ void AgentSession::close(const Status& reason) {
   if (record->connections == stream_) {
     record->connected = false;
     record->cancel_stream = nullptr;
+    if (mission_) {
+      MissionEvent gone;
+      gone.kind = MissionEvent::Kind::kAgentDisconnected;
+      gone.agent = agent_;
+      mission_->events().append(std::move(gone));
+    }
   }
   if (!reason.ok()) record->last_error = reason.error().toString();
 }

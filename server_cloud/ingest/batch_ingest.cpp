@@ -534,6 +534,7 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
     (void)map.removeKeyframe(KeyframeId{agent.id, c}, &went);
     agent.keyframes.erase(c);
     report.removed_keyframe_ids.push_back(KeyframeId{agent.id, c});
+    report.removed_keyframe_maps.push_back(map.id());
     for (const MapPointId& p : went) {
       if (p.agent == agent.id) agent.points.erase(p.counter);
     }

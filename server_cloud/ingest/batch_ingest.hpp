@@ -40,6 +40,7 @@ struct IngestReport {
   int imu_links_missing = 0;     // the IMU predecessor is not held (or its samples do not cover the gap)
   std::vector<std::pair<MapId, KeyframeId>> added_keyframes;  // for place recognition
   std::vector<KeyframeId> removed_keyframe_ids;
+  std::vector<MapId> removed_keyframe_maps;  // the map each of removed_keyframe_ids was in
 };
 
 // `agent` is the caller's (locked) record of the agent; its sensors must be known (a Hello came first).

@@ -227,12 +227,12 @@ class MonitorService final : public v1::Monitor::CallbackService {
 }  // namespace
 
 struct GrpcServer::Impl {
-  explicit Impl(ServerCore& c) : core(c), link(c), monitor(c), map_service(makeMapService(c)) {}
+  explicit Impl(ServerCore& c) : core(c), link(c), monitor(c), maps(c) {}
 
   ServerCore& core;
   AgentLinkService link;
   MonitorService monitor;
-  std::unique_ptr<grpc::Service> map_service;
+  MapService maps;
   std::unique_ptr<grpc::Server> server;
   int port = 0;
   std::string address;
@@ -253,6 +253,7 @@ struct GrpcServer::Impl {
       lock.unlock();
       const auto now = Clock::now();
       link.registry().forEach([&](LinkReactor& r) { r.tick(now); });
+      maps.tick();
       if (now >= next_sample) {
         core.sampleTimeline();
         next_sample += std::chrono::duration_cast<Clock::duration>(timeline_period);
@@ -277,7 +278,7 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
   builder.AddListeningPort(o.listen, grpc::InsecureServerCredentials(), &impl->port);
   builder.RegisterService(&impl->link);
   builder.RegisterService(&impl->monitor);
-  builder.RegisterService(impl->map_service.get());
+  builder.RegisterService(impl->maps.service());
   builder.SetMaxReceiveMessageSize(static_cast<int>(o.max_message_bytes));
   builder.SetMaxSendMessageSize(static_cast<int>(o.max_message_bytes));
   // Notice agents that vanished without closing (keepalive), allow the agents' own keepalive pings, and
@@ -323,6 +324,7 @@ void GrpcServer::shutdown(std::chrono::milliseconds grace) {
   impl_->wake.notify_all();
   if (impl_->periodic.joinable()) impl_->periodic.join();
   if (auto* health = impl_->server->GetHealthCheckService()) health->SetServingStatus(false);
+  impl_->maps.stopWatches();  // they never end by themselves
   impl_->server->Shutdown(std::chrono::system_clock::now() + grace);
   impl_->server->Wait();
 }

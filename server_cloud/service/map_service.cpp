@@ -2,6 +2,9 @@
 
 #include <algorithm>
 #include <functional>
+#include <mutex>
+#include <optional>
+#include <set>
 #include <utility>
 #include <vector>
 
@@ -74,9 +77,160 @@ class FileChunks {
   std::size_t offset_ = 0;
 };
 
+v1::MissionEventMessage::Kind toWire(MissionEvent::Kind kind) {
+  switch (kind) {
+    case MissionEvent::Kind::kAgentConnected:
+      return v1::MissionEventMessage::AGENT_CONNECTED;
+    case MissionEvent::Kind::kAgentDisconnected:
+      return v1::MissionEventMessage::AGENT_DISCONNECTED;
+    case MissionEvent::Kind::kKeyframeAdded:
+      return v1::MissionEventMessage::KEYFRAME_ADDED;
+    case MissionEvent::Kind::kKeyframeRemoved:
+      return v1::MissionEventMessage::KEYFRAME_REMOVED;
+    case MissionEvent::Kind::kMapsMerged:
+      return v1::MissionEventMessage::MAPS_MERGED;
+    case MissionEvent::Kind::kMapCorrected:
+      return v1::MissionEventMessage::MAP_CORRECTED;
+  }
+  return v1::MissionEventMessage::KIND_UNSPECIFIED;
+}
+
+class WatchReactor;
+
+// The open WatchMission streams. Lock order: the registry before a reactor.
+class WatchRegistry {
+ public:
+  bool add(WatchReactor* r) {
+    std::lock_guard lock(mutex_);
+    if (stopped_) return false;
+    reactors_.insert(r);
+    return true;
+  }
+  void remove(WatchReactor* r) {
+    std::lock_guard lock(mutex_);
+    reactors_.erase(r);
+  }
+  template <typename F>
+  void forEach(F&& f) {
+    std::lock_guard lock(mutex_);
+    for (WatchReactor* r : reactors_) f(*r);
+  }
+  void stop() {
+    std::lock_guard lock(mutex_);
+    stopped_ = true;
+  }
+
+ private:
+  std::mutex mutex_;
+  std::set<WatchReactor*> reactors_;
+  bool stopped_ = false;
+};
+
+// One WatchMission stream: one write in flight at a time, each carrying every event the log gained since the
+// last (up to kMaxEvents). Callbacks and the periodic tick lock `mutex_`.
+class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionResponse> {
+ public:
+  static constexpr std::size_t kMaxEvents = 512;
+
+  WatchReactor(std::shared_ptr<Mission> mission, std::uint64_t from, WatchRegistry& registry)
+      : mission_(std::move(mission)), next_(from), registry_(registry) {
+    std::lock_guard lock(mutex_);
+    if (!registry_.add(this)) {
+      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is stopping"));
+      return;
+    }
+    registered_ = true;
+    sendLocked();
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    writing_ = false;
+    if (pending_finish_) {
+      finishNow(*pending_finish_);
+      return;
+    }
+    if (!ok) {
+      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "the client stopped reading"));
+      return;
+    }
+    sendLocked();
+  }
+  void OnCancel() override {
+    std::lock_guard lock(mutex_);
+    finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled"));
+  }
+  void OnDone() override {
+    if (registered_) registry_.remove(this);
+    delete this;
+  }
+
+  void tick() {
+    std::lock_guard lock(mutex_);
+    sendLocked();
+  }
+  void stop() {
+    std::lock_guard lock(mutex_);
+    finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is stopping"));
+  }
+
+ private:
+  void sendLocked() {
+    if (writing_ || finish_called_ || pending_finish_) return;
+    MissionEventLog::Page page = mission_->events().read(next_, kMaxEvents);
+    if (page.events.empty() && page.skipped == 0) return;
+    next_ = page.next;
+    response_.Clear();
+    response_.set_skipped(page.skipped);
+    for (const MissionEvent& e : page.events) {
+      v1::MissionEventMessage& m = *response_.add_events();
+      m.set_number(e.number);
+      m.set_t_unix_ns(e.t_unix_ns);
+      m.set_kind(toWire(e.kind));
+      m.set_agent(e.agent);
+      if (e.kind == MissionEvent::Kind::kKeyframeAdded || e.kind == MissionEvent::Kind::kKeyframeRemoved) {
+        m.mutable_keyframe()->set_agent(e.keyframe.agent);
+        m.mutable_keyframe()->set_counter(e.keyframe.counter);
+      }
+      m.set_map_id(e.map);
+      m.set_from_map_id(e.from_map);
+      m.set_keyframes(e.keyframes);
+      m.set_cause(e.cause);
+    }
+    writing_ = true;
+    StartWrite(&response_);
+  }
+  void finishLocked(const grpc::Status& status) {
+    if (finish_called_ || pending_finish_) return;
+    if (writing_) {
+      pending_finish_ = status;
+      return;
+    }
+    finishNow(status);
+  }
+  void finishNow(grpc::Status status) {
+    if (finish_called_) return;
+    finish_called_ = true;
+    pending_finish_.reset();
+    Finish(std::move(status));
+  }
+
+  std::shared_ptr<Mission> mission_;
+  std::uint64_t next_;
+  WatchRegistry& registry_;
+  bool registered_ = false;
+  std::mutex mutex_;
+  v1::WatchMissionResponse response_;
+  bool writing_ = false;
+  bool finish_called_ = false;
+  std::optional<grpc::Status> pending_finish_;
+};
+
 class MapServiceImpl final : public v1::MapService::CallbackService {
  public:
   explicit MapServiceImpl(ServerCore& core) : core_(core) {}
+
+  WatchRegistry& watches() { return watches_; }
 
   grpc::ServerUnaryReactor* ListMissions(grpc::CallbackServerContext* context, const v1::ListMissionsRequest*,
                                          v1::ListMissionsResponse* response) override {
@@ -130,6 +284,22 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     return new Writer([files](v1::ExportChunk& chunk) { return files->next(chunk); });
   }
 
+  grpc::ServerWriteReactor<v1::WatchMissionResponse>* WatchMission(grpc::CallbackServerContext*,
+                                                                   const v1::WatchMissionRequest* request) override {
+    using Refusal = StreamWriter<v1::WatchMissionResponse>;
+    if (request->mission().empty()) {
+      return new Refusal(toGrpc(Error{ErrorCode::kInvalidArgument, "the request names no mission"}));
+    }
+    std::shared_ptr<Mission> mission = core_.missions().find(request->mission());
+    if (!mission) {
+      return new Refusal(toGrpc(Error{ErrorCode::kNotFound, "no mission '" + request->mission() +
+                                                                "' on this server (yet: watch it once an agent "
+                                                                "has connected to it)"}));
+    }
+    const std::uint64_t from = request->from_event() == 0 ? mission->events().nextNumber() : request->from_event();
+    return new WatchReactor(std::move(mission), from, watches_);
+  }
+
  private:
   static grpc::ServerUnaryReactor* finish(grpc::CallbackServerContext* context, const Status& status) {
     auto* reactor = context->DefaultReactor();
@@ -138,12 +308,30 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
   }
 
   ServerCore& core_;
+  WatchRegistry watches_;
 };
 
 }  // namespace
 
-std::unique_ptr<grpc::Service> makeMapService(ServerCore& core) {
-  return std::make_unique<MapServiceImpl>(core);
+struct MapService::Impl {
+  explicit Impl(ServerCore& core) : service(core) {}
+  MapServiceImpl service;
+};
+
+MapService::MapService(ServerCore& core) : impl_(std::make_unique<Impl>(core)) {}
+MapService::~MapService() = default;
+
+grpc::Service* MapService::service() {
+  return &impl_->service;
+}
+
+void MapService::tick() {
+  impl_->service.watches().forEach([](WatchReactor& r) { r.tick(); });
+}
+
+void MapService::stopWatches() {
+  impl_->service.watches().stop();
+  impl_->service.watches().forEach([](WatchReactor& r) { r.stop(); });
 }
 
 }  // namespace cvislam::server

@@ -29,6 +29,7 @@
 #include "common/geometry/lie.hpp"
 #include "common/imu/preintegration.hpp"
 #include "server_cloud/stack/map_content.hpp"
+#include "server_cloud/stack/mission_events.hpp"
 
 namespace cvislam::server {
 
@@ -193,9 +194,15 @@ class Mission {
   [[nodiscard]] SharedAgentRecord findAgent(AgentId id) const;
   [[nodiscard]] std::vector<SharedAgentRecord> agents() const;  // by id
 
+  // What happened to the mission's maps, for the map service's WatchMission (it locks itself: append from
+  // anywhere, under any other lock).
+  [[nodiscard]] MissionEventLog& events() { return events_; }
+  [[nodiscard]] const MissionEventLog& events() const { return events_; }
+
  private:
   std::string name_;
   MapStack stack_;
+  MissionEventLog events_;
   Synchronized<std::map<AgentId, SharedAgentRecord>> agents_;
   std::atomic<int> gba_running_{0};
 };

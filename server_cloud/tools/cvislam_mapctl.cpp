@@ -5,6 +5,7 @@
 //   cvislam_mapctl ... get MISSION MAP [--observations] [--descriptors] [--chunk-bytes N] [--out FILE.json|FILE.ply]
 //   cvislam_mapctl ... trajectory MISSION AGENT [--out FILE.txt]
 //   cvislam_mapctl ... export MISSION [--map M] --out DIR
+//   cvislam_mapctl ... watch MISSION [--from N] [--count N] [--seconds S]
 //
 // Tables by default; --json prints the server's answer as JSON instead (get: a summary, since a map can be large;
 // its content goes to --out). Exit status: 0 done, 1 the server refused or could not be reached (the message says
@@ -298,6 +299,90 @@ int exportMap(const Globals& g, v1::MapService::Stub& stub, const v1::ExportMapR
   return 0;
 }
 
+const char* kindName(v1::MissionEventMessage::Kind kind) {
+  switch (kind) {
+    case v1::MissionEventMessage::AGENT_CONNECTED:
+      return "agent connected";
+    case v1::MissionEventMessage::AGENT_DISCONNECTED:
+      return "agent disconnected";
+    case v1::MissionEventMessage::KEYFRAME_ADDED:
+      return "keyframe added";
+    case v1::MissionEventMessage::KEYFRAME_REMOVED:
+      return "keyframe removed";
+    case v1::MissionEventMessage::MAPS_MERGED:
+      return "maps merged";
+    case v1::MissionEventMessage::MAP_CORRECTED:
+      return "map corrected";
+    default:
+      return "unknown";
+  }
+}
+
+// Prints events as they come until `count` were printed (0: no limit), `seconds` passed (0: none) or the server
+// ends the stream. The last line says which event to resume from.
+int watch(const Globals& g, v1::MapService::Stub& stub, const v1::WatchMissionRequest& request, std::uint64_t count,
+          double seconds) {
+  grpc::ClientContext c;
+  if (seconds > 0) {
+    c.set_deadline(std::chrono::system_clock::now() +
+                   std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::duration<double>(seconds)));
+  }
+  auto reader = stub.WatchMission(&c, request);
+  v1::WatchMissionResponse response;
+  std::uint64_t printed = 0;
+  std::uint64_t next = request.from_event();
+  while (reader->Read(&response)) {
+    if (response.skipped() > 0) {
+      std::printf("(%llu older events are no longer held by the server)\n",
+                  static_cast<unsigned long long>(response.skipped()));
+    }
+    for (const auto& e : response.events()) {
+      if (g.json) {
+        std::string text;
+        (void)google::protobuf::util::MessageToJsonString(e, &text);
+        std::printf("%s\n", text.c_str());
+      } else {
+        std::string what;
+        switch (e.kind()) {
+          case v1::MissionEventMessage::AGENT_CONNECTED:
+          case v1::MissionEventMessage::AGENT_DISCONNECTED:
+            what = "agent " + std::to_string(e.agent());
+            break;
+          case v1::MissionEventMessage::KEYFRAME_ADDED:
+          case v1::MissionEventMessage::KEYFRAME_REMOVED:
+            what = std::to_string(e.keyframe().agent()) + ":" + std::to_string(e.keyframe().counter()) + " in map " +
+                   std::to_string(e.map_id());
+            break;
+          case v1::MissionEventMessage::MAPS_MERGED:
+            what = "map " + std::to_string(e.from_map_id()) + " into map " + std::to_string(e.map_id());
+            break;
+          case v1::MissionEventMessage::MAP_CORRECTED:
+            what = "map " + std::to_string(e.map_id()) + ", " + std::to_string(e.keyframes()) + " keyframes";
+            break;
+          default:
+            break;
+        }
+        if (!e.cause().empty()) what += " (" + e.cause() + ")";
+        std::printf("#%-7llu %-18s %s\n", static_cast<unsigned long long>(e.number()), kindName(e.kind()),
+                    what.c_str());
+      }
+      next = e.number() + 1;
+      std::fflush(stdout);
+      if (count > 0 && ++printed >= count) {
+        c.TryCancel();
+        break;
+      }
+    }
+    if (count > 0 && printed >= count) break;
+  }
+  const grpc::Status status = reader->Finish();
+  const bool ended_by_us =
+      (count > 0 && printed >= count) || (seconds > 0 && status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED);
+  if (!g.json) std::fprintf(stderr, "resume with --from %llu\n", static_cast<unsigned long long>(next));
+  if (!ended_by_us && !status.ok()) return failed(g, status);
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -340,6 +425,15 @@ int main(int argc, char** argv) {
   export_cmd->add_option("--map", export_map, "Only this map [every map]");
   export_cmd->add_option("--out", out, "Folder to write the files into")->required();
 
+  std::uint64_t from_event = 0;
+  std::uint64_t count = 0;
+  double seconds = 0;
+  auto* watch_cmd = app.add_subcommand("watch", "Print what happens to a mission's maps as it happens");
+  watch_cmd->add_option("mission", mission, "Mission name")->required();
+  watch_cmd->add_option("--from", from_event, "First event number; 0: only new events [0]");
+  watch_cmd->add_option("--count", count, "Stop after this many events; 0: never [0]");
+  watch_cmd->add_option("--seconds", seconds, "Stop after this long; 0: never [0]")->check(CLI::NonNegativeNumber);
+
   CLI11_PARSE(app, argc, argv);
 
   auto channel_args = grpc::ChannelArguments();
@@ -362,6 +456,12 @@ int main(int argc, char** argv) {
     request.set_mission(mission);
     request.set_agent(agent);
     return trajectory(g, *stub, request, out);
+  }
+  if (watch_cmd->parsed()) {
+    v1::WatchMissionRequest request;
+    request.set_mission(mission);
+    request.set_from_event(from_event);
+    return watch(g, *stub, request, count, seconds);
   }
   v1::ExportMapRequest request;
   request.set_mission(mission);

@@ -298,6 +298,15 @@ TEST_F(BackendWorkerTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesIt
   const SE3d T_m_w = agent2->agent_maps.at(0).T_m_w;
   EXPECT_LT((T_m_w * T_2_truth).translation().norm(), 0.05);
   EXPECT_EQ(agent2->keyframes.at(9).map, map1->id());
+  // Watchers of the mission saw the merge, then the GBA's correction of the merged map.
+  const auto events = mission_->events().read(1, 100).events;
+  ASSERT_GE(events.size(), 2U);
+  EXPECT_EQ(events[0].kind, MissionEvent::Kind::kMapsMerged);
+  EXPECT_EQ(events[0].map, map1->id());
+  EXPECT_EQ(events[0].from_map, map2->id());
+  EXPECT_EQ(events[1].kind, MissionEvent::Kind::kMapCorrected);
+  EXPECT_EQ(events[1].cause, "global BA");
+  EXPECT_EQ(events[1].keyframes, 16U);
 }
 
 TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
@@ -328,6 +337,12 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
 
   const BackendStats stats = worker.stats("m");
   ASSERT_EQ(stats.loops.size(), 1U);
+  const auto events = mission_->events().read(1, 100).events;
+  ASSERT_GE(events.size(), 2U);
+  EXPECT_EQ(events[0].kind, MissionEvent::Kind::kMapCorrected);
+  EXPECT_EQ(events[0].cause, "loop closure");
+  EXPECT_GT(events[0].keyframes, 10U);
+  EXPECT_EQ(events[1].cause, "global BA");
   // The pose graph alone took out most of the query keyframe's drift (GBA the rest, below).
   const Vector3d p22 = s.keyframe_states[22].T_w_s.translation();
   const double drift_m = (drift * p22 - p22).norm();

@@ -224,6 +224,29 @@ TEST_F(AgentSessionTest, BatchesInOrderAreStoredAndAcknowledgedByTheNextDownlink
   EXPECT_EQ(keyframesInMaps(), 4U);
 }
 
+TEST_F(AgentSessionTest, ConnectionsKeyframesAddedAndRemovalsGoIntoTheMissionsEventLog) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  v1::MapBatch removal;
+  removal.set_sequence(2);
+  removal.add_removed_keyframes(1);
+  sendOk(*sut, batchMessage(removal));
+  sut->close(Status::Ok());
+
+  const auto page = core_.missions().find(kMission)->events().read(1, 100);
+
+  ASSERT_EQ(page.events.size(), 5U);
+  EXPECT_EQ(page.events[0].kind, MissionEvent::Kind::kAgentConnected);
+  EXPECT_EQ(page.events[0].agent, kAgent);
+  EXPECT_EQ(page.events[1].kind, MissionEvent::Kind::kKeyframeAdded);
+  EXPECT_EQ(page.events[2].keyframe, (KeyframeId{kAgent, 1}));
+  EXPECT_EQ(page.events[3].kind, MissionEvent::Kind::kKeyframeRemoved);
+  EXPECT_EQ(page.events[3].keyframe, (KeyframeId{kAgent, 1}));
+  EXPECT_EQ(page.events[3].cause, "agent");
+  EXPECT_EQ(page.events[3].map, page.events[2].map);
+  EXPECT_EQ(page.events[4].kind, MissionEvent::Kind::kAgentDisconnected);
+}
+
 TEST_F(AgentSessionTest, EveryStoredBatchIsTimedAndThoseThatMetAGlobalBaAlsoApart) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 2);

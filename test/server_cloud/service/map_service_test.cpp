@@ -4,6 +4,7 @@
 // the Python client (python3-grpcio with the stubs the build generated), which writes a PLY.
 #include "server_cloud/service/grpc_server.hpp"
 
+#include <atomic>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -11,6 +12,7 @@
 #include <memory>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <grpcpp/grpcpp.h>
@@ -292,6 +294,142 @@ TEST_F(MapServiceTest, ThePythonClientFetchesTheLargestMapAndWritesItsPoints) {
   EXPECT_EQ(rows, 2400U);
   EXPECT_EQ(refused.exit_code, 1) << refused.output;
   EXPECT_THAT(refused.output, HasSubstr("NOT_FOUND"));
+}
+
+MissionEvent keyframeAdded(std::uint32_t counter) {
+  MissionEvent e;
+  e.kind = MissionEvent::Kind::kKeyframeAdded;
+  e.agent = 2;
+  e.keyframe = KeyframeId{2, counter};
+  return e;
+}
+
+// Reads responses until `n` events came (or the stream ended).
+std::vector<v1::MissionEventMessage> readEvents(grpc::ClientReaderInterface<v1::WatchMissionResponse>& reader,
+                                                std::size_t n, std::uint64_t* skipped = nullptr) {
+  std::vector<v1::MissionEventMessage> events;
+  v1::WatchMissionResponse response;
+  while (events.size() < n && reader.Read(&response)) {
+    if (skipped != nullptr) *skipped += response.skipped();
+    events.insert(events.end(), response.events().begin(), response.events().end());
+  }
+  return events;
+}
+
+TEST_F(MapServiceTest, WatchStreamsWhatHappensAfterItStartsAndAnotherResumesFromANumber) {
+  MissionEventLog& log = core_->missions().find("survey")->events();
+  log.append(keyframeAdded(0));  // before the watch: not sent to a watch from 0
+  v1::WatchMissionRequest request;
+  request.set_mission("survey");
+  auto context = callContext();
+  auto reader = stub_->WatchMission(context.get(), request);
+  // Nothing tells the client when the server registered the call, so events keep coming until it saw three.
+  std::atomic<bool> seen{false};
+  std::thread appender([&log, &seen] {
+    for (std::uint32_t c = 1; c <= 500 && !seen; ++c) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      MissionEvent merged;
+      merged.kind = MissionEvent::Kind::kMapsMerged;
+      merged.map = 0;
+      merged.from_map = c;
+      log.append(merged);
+    }
+  });
+
+  const auto events = readEvents(*reader, 3);
+  seen = true;
+  appender.join();
+  context->TryCancel();
+  (void)reader->Finish();
+
+  ASSERT_GE(events.size(), 3U);
+  EXPECT_GE(events[0].number(), 2U) << "event 1 came before the watch";
+  EXPECT_EQ(events[1].number(), events[0].number() + 1);
+  EXPECT_EQ(events[2].number(), events[0].number() + 2);
+  EXPECT_EQ(events[1].kind(), v1::MissionEventMessage::MAPS_MERGED);
+  EXPECT_EQ(events[1].from_map_id(), events[1].number() - 1);  // merged.from_map = c, appended as number c + 1
+  EXPECT_GT(events[0].t_unix_ns(), 0);
+
+  // A client that saw the first of them resumes from the next number, and gets the other two at once.
+  request.set_from_event(events[0].number() + 1);
+  auto again_context = callContext();
+  auto again = stub_->WatchMission(again_context.get(), request);
+  const auto resumed = readEvents(*again, 2);
+  again_context->TryCancel();
+  (void)again->Finish();
+  ASSERT_GE(resumed.size(), 2U);
+  EXPECT_EQ(resumed[0].number(), events[1].number());
+  EXPECT_EQ(resumed[1].number(), events[2].number());
+}
+
+TEST_F(MapServiceTest, AWatcherFarBehindLearnsHowManyEventsTheServerNoLongerHolds) {
+  MissionEventLog& log = core_->missions().find("survey")->events();
+  const std::size_t total = MissionEventLog::kDefaultCapacity + 100;
+  for (std::size_t i = 0; i < total; ++i) log.append(keyframeAdded(static_cast<std::uint32_t>(i)));
+  v1::WatchMissionRequest request;
+  request.set_mission("survey");
+  request.set_from_event(1);
+  auto context = callContext();
+  auto reader = stub_->WatchMission(context.get(), request);
+
+  std::uint64_t skipped = 0;
+  const auto events = readEvents(*reader, MissionEventLog::kDefaultCapacity, &skipped);
+  context->TryCancel();
+  (void)reader->Finish();
+
+  EXPECT_EQ(skipped, 100U);
+  ASSERT_EQ(events.size(), MissionEventLog::kDefaultCapacity);
+  EXPECT_EQ(events.front().number(), 101U);
+  EXPECT_EQ(events.back().number(), total);
+  EXPECT_EQ(events.back().keyframe().counter(), total - 1);
+}
+
+TEST_F(MapServiceTest, WatchingAnUnknownMissionIsNotFoundAndAStoppingServerEndsEveryWatch) {
+  v1::WatchMissionRequest unknown;
+  unknown.set_mission("nowhere");
+  auto unknown_context = callContext();
+  auto refused = stub_->WatchMission(unknown_context.get(), unknown);
+  v1::WatchMissionResponse response;
+  while (refused->Read(&response)) {
+  }
+  const grpc::Status s_unknown = refused->Finish();
+
+  MissionEventLog& log = core_->missions().find("survey")->events();
+  v1::WatchMissionRequest request;
+  request.set_mission("survey");
+  request.set_from_event(log.nextNumber());  // the event appended next, whenever the server registers the call
+  auto context = callContext();
+  auto reader = stub_->WatchMission(context.get(), request);
+  log.append(keyframeAdded(5));
+  ASSERT_EQ(readEvents(*reader, 1).size(), 1U);  // the stream is open and served
+  server_->shutdown(std::chrono::milliseconds(5000));
+  while (reader->Read(&response)) {
+  }
+  const grpc::Status s_stopped = reader->Finish();
+
+  EXPECT_EQ(s_unknown.error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_THAT(s_unknown.error_message(), HasSubstr("no mission 'nowhere'"));
+  EXPECT_EQ(s_stopped.error_code(), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_THAT(s_stopped.error_message(), HasSubstr("stopping"));
+}
+
+TEST_F(MapServiceTest, MapctlWatchPrintsEventsFromANumberAndSaysWhereToResume) {
+  MissionEventLog& log = core_->missions().find("survey")->events();
+  for (std::uint32_t c = 0; c < 5; ++c) log.append(keyframeAdded(c));
+  MissionEvent corrected;
+  corrected.kind = MissionEvent::Kind::kMapCorrected;
+  corrected.map = 0;
+  corrected.keyframes = 42;
+  corrected.cause = "global BA";
+  log.append(corrected);
+
+  const auto run =
+      test::runCommand(CVISLAM_MAPCTL_BINARY, "--server " + server_->address() + " watch survey --from 4 --count 3");
+
+  ASSERT_EQ(run.exit_code, 0) << run.output;
+  EXPECT_THAT(run.output, HasSubstr("#4       keyframe added     2:3 in map 0"));
+  EXPECT_THAT(run.output, HasSubstr("#6       map corrected      map 0, 42 keyframes (global BA)"));
+  EXPECT_THAT(run.output, HasSubstr("resume with --from 7"));
 }
 
 }  // namespace
