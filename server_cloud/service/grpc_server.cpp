@@ -17,6 +17,7 @@
 #include "cvislam/v1/monitor.grpc.pb.h"
 #include "server_cloud/service/grpc_status.hpp"
 #include "server_cloud/service/map_service.hpp"
+#include "server_cloud/service/write_gate.hpp"
 
 namespace cvislam::server {
 
@@ -87,7 +88,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
       finishLocked(grpc::Status::OK);
       return;
     }
-    if (finish_called_ || pending_finish_) return;  // ending already (cancelled, or a write failed): no more reads
+    if (gate_.finishing()) return;  // ending already (cancelled, or a write failed): no more reads
     const std::size_t wire_bytes = in_.Length();
     if (!grpc::SerializationTraits<v1::AgentUplink>::Deserialize(&in_, &parsed_).ok()) {
       const Status malformed =
@@ -111,11 +112,9 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
 
   void OnWriteDone(bool ok) override {
     std::lock_guard lock(mutex_);
-    writing_ = false;
-    // A finish that waited for this write goes first, whether the write went through or not: finishLocked()
-    // would ignore another one while it is pending, and the stream would never end.
-    if (pending_finish_) {
-      finishNow(*pending_finish_);
+    // A finish that waited for this write goes first, whether the write went through or not.
+    if (auto status = gate_.writeDone()) {
+      Finish(std::move(*status));
       return;
     }
     if (!ok) {
@@ -145,7 +144,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
     std::lock_guard lock(mutex_);
     // One message in flight and none waiting: an agent that does not read gets no queue that grows (its
     // acknowledgements are cumulative and its corrections wait in its record).
-    if (finish_called_ || pending_finish_ || writing_ || !queue_.empty()) return;
+    if (!gate_.writable() || !queue_.empty()) return;
     if (session_->nextDownlink(now, periodic_)) enqueueLocked(periodic_);
   }
 
@@ -158,26 +157,14 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
     writeNextLocked();
   }
   void writeNextLocked() {
-    if (writing_ || finish_called_ || queue_.empty()) return;
+    if (!gate_.writable() || queue_.empty()) return;
     out_ = std::move(queue_.front());
     queue_.pop_front();
-    writing_ = true;
+    gate_.writeStarted();
     StartWrite(&out_);
   }
   void finishLocked(const grpc::Status& status) {
-    if (finish_called_ || pending_finish_) return;
-    if (writing_) {
-      pending_finish_ = status;  // after the write in flight
-      return;
-    }
-    finishNow(status);
-  }
-  // By value: OnWriteDone passes *pending_finish_, which is reset here before Finish() reads it.
-  void finishNow(grpc::Status status) {
-    if (finish_called_) return;
-    finish_called_ = true;
-    pending_finish_.reset();
-    Finish(std::move(status));
+    if (auto now = gate_.finish(status)) Finish(std::move(*now));
   }
 
   std::shared_ptr<StreamHandle> handle_;
@@ -190,9 +177,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   v1::ServerDownlink periodic_;
   grpc::ByteBuffer out_;
   std::deque<grpc::ByteBuffer> queue_;
-  bool writing_ = false;
-  bool finish_called_ = false;
-  std::optional<grpc::Status> pending_finish_;
+  WriteGate gate_;
   Status closing_status_;
 };
 

@@ -14,6 +14,7 @@
 #include "server_cloud/maps/map_export.hpp"
 #include "server_cloud/maps/map_reader.hpp"
 #include "server_cloud/service/grpc_status.hpp"
+#include "server_cloud/service/write_gate.hpp"
 
 namespace cvislam::server {
 
@@ -145,9 +146,8 @@ class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionRespo
 
   void OnWriteDone(bool ok) override {
     std::lock_guard lock(mutex_);
-    writing_ = false;
-    if (pending_finish_) {
-      finishNow(*pending_finish_);
+    if (auto status = gate_.writeDone()) {
+      Finish(std::move(*status));
       return;
     }
     if (!ok) {
@@ -176,7 +176,7 @@ class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionRespo
 
  private:
   void sendLocked() {
-    if (writing_ || finish_called_ || pending_finish_) return;
+    if (!gate_.writable()) return;
     MissionEventLog::Page page = mission_->events().read(next_, kMaxEvents);
     if (page.events.empty() && page.skipped == 0) return;
     next_ = page.next;
@@ -197,22 +197,11 @@ class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionRespo
       m.set_keyframes(e.keyframes);
       m.set_cause(e.cause);
     }
-    writing_ = true;
+    gate_.writeStarted();
     StartWrite(&response_);
   }
   void finishLocked(const grpc::Status& status) {
-    if (finish_called_ || pending_finish_) return;
-    if (writing_) {
-      pending_finish_ = status;
-      return;
-    }
-    finishNow(status);
-  }
-  void finishNow(grpc::Status status) {
-    if (finish_called_) return;
-    finish_called_ = true;
-    pending_finish_.reset();
-    Finish(std::move(status));
+    if (auto now = gate_.finish(status)) Finish(std::move(*now));
   }
 
   std::shared_ptr<Mission> mission_;
@@ -221,9 +210,7 @@ class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionRespo
   bool registered_ = false;
   std::mutex mutex_;
   v1::WatchMissionResponse response_;
-  bool writing_ = false;
-  bool finish_called_ = false;
-  std::optional<grpc::Status> pending_finish_;
+  WriteGate gate_;
 };
 
 class MapServiceImpl final : public v1::MapService::CallbackService {

@@ -267,6 +267,7 @@ int exportMap(const Globals& g, v1::MapService::Stub& stub, const v1::ExportMapR
     std::fprintf(stderr, "cvislam_mapctl: cannot create %s: %s\n", dir.c_str(), ec.message().c_str());
     return 1;
   }
+  const auto start = std::chrono::steady_clock::now();
   const auto c = context(g);
   auto reader = stub.ExportMap(c.get(), request);
   v1::ExportChunk chunk;
@@ -283,6 +284,8 @@ int exportMap(const Globals& g, v1::MapService::Stub& stub, const v1::ExportMapR
     if (chunk.file_end()) complete.insert(name);
   }
   if (auto s = reader->Finish(); !s.ok()) return failed(g, s);
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::size_t total = 0;
   for (const auto& [name, data] : files) {
     if (complete.count(name) == 0) {
       std::fprintf(stderr, "cvislam_mapctl: %s came incomplete (no file_end)\n", name.c_str());
@@ -295,7 +298,9 @@ int exportMap(const Globals& g, v1::MapService::Stub& stub, const v1::ExportMapR
       return 1;
     }
     std::printf("%10zu bytes  %s\n", data.size(), (dir / name).c_str());
+    total += data.size();
   }
+  std::printf("exported %zu files, %.2f MB, in %.3f s\n", files.size(), static_cast<double>(total) / 1e6, seconds);
   return 0;
 }
 

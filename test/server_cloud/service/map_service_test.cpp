@@ -261,6 +261,7 @@ TEST_F(MapServiceTest, MapctlPrintsTablesExportsFilesAndFailsClearly) {
   EXPECT_THAT(readFile(dir.path() / "m1.ply"), HasSubstr("element vertex 600\n"));
   ASSERT_EQ(exported.exit_code, 0) << exported.output;
   EXPECT_TRUE(std::filesystem::exists(dir.path() / "export" / "map0.ply"));
+  EXPECT_THAT(exported.output, HasSubstr("exported 4 files"));
   EXPECT_TRUE(std::filesystem::exists(dir.path() / "export" / "keyframes_agent2_map0.txt"));
   EXPECT_THAT(readFile(dir.path() / "export" / "map0.json"), HasSubstr("\"keyframes\": 80"));
   EXPECT_EQ(unknown.exit_code, 1);
