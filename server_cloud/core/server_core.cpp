@@ -4,6 +4,7 @@
 #include <cmath>
 #include <fstream>
 #include <map>
+#include <set>
 #include <sstream>
 
 #include <google/protobuf/util/json_util.h>
@@ -61,7 +62,9 @@ std::string ServerOptions::describe() const {
       << "  recognition:                  " << recognition.recognition.describe() << "\n"
       << "  backend.enabled:              " << (backend.enabled ? "true" : "false") << "\n"
       << "  backend:                      " << backend.describe() << "\n"
-      << "  final_gba:                    " << (final_gba ? "true" : "false") << "\n";
+      << "  final_gba:                    " << (final_gba ? "true" : "false") << "\n"
+      << "  store:                        " << (store.empty() ? "(none: maps in memory only)" : store.string())
+      << " (sync " << toString(store_sync) << ")\n";
   return out.str();
 }
 
@@ -73,11 +76,19 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
 
   config::YamlSection server(root["server"], "server");
   std::string output = o.output.string();
+  std::string store = o.store.string();
+  std::string store_sync(toString(o.store_sync));
   server.read("listen", o.listen);
   server.read("output", output);
   server.read("timeline_interval_s", o.timeline_interval_s);
+  server.read("store", store);
+  server.read("store_sync", store_sync);
   if (Status s = server.finish(); !s.ok()) return in_file(s);
   o.output = output;
+  o.store = store;
+  auto sync = parseStoreSync(store_sync);
+  if (!sync) return in_file(Status(sync.error().withContext("server.store_sync")));
+  o.store_sync = *sync;
 
   config::YamlSection link(root["link"], "link");
   link.read("downlink_rate_hz", o.session.downlink_rate_hz);
@@ -190,6 +201,52 @@ void ServerCore::drainWorkers(bool final_gba) const {
 }
 
 std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream) {
+  return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), storedListener(),
+                                        store_.get());
+}
+
+Result<RecoveryReport> ServerCore::openStore() {
+  if (options_.store.empty()) return RecoveryReport{};
+  SqliteStoreOptions store_options;
+  store_options.path = options_.store;
+  store_options.sync = options_.store_sync;
+  store_options.software = options_.session.server_name;
+  auto store = openSqliteStore(store_options);
+  if (!store) return store.error();
+  return attachStore(std::move(store).value());
+}
+
+Result<RecoveryReport> ServerCore::attachStore(std::unique_ptr<MapStore> store) {
+  if (store_) return Error{ErrorCode::kFailedPrecondition, "the server has a map store already"};
+  const auto start = Clock::now();
+  RecoveryReport report;
+  report.store = store->describe();
+  const AgentSession::StoredListener on_stored = storedListener();
+  std::set<std::pair<std::string, AgentId>> agents;
+  std::set<std::string> missions;
+  Status replayed = store->replay("", [&](const StoreRecord& r) -> Status {
+    if (Status s = replayStored(missions_, options_.session, r, on_stored); !s.ok()) return s;
+    (r.kind == StoreRecord::Kind::kHello ? report.hellos : report.batches) += 1;
+    report.bytes += r.body.size();
+    agents.emplace(r.mission, r.agent);
+    missions.insert(r.mission);
+    return Status::Ok();
+  });
+  if (!replayed.ok()) {
+    return replayed.error().withContext("replaying " + report.store +
+                                        " (nothing was served from it; fix or move the store aside)");
+  }
+  for (const auto& mission : missions_.missions()) {
+    for (const auto& agent : mission->agents()) report.keyframes += agent->read()->keyframes.size();
+  }
+  report.missions = missions.size();
+  report.agents = agents.size();
+  report.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  store_ = std::move(store);
+  return report;
+}
+
+AgentSession::StoredListener ServerCore::storedListener() const {
   AgentSession::StoredListener on_stored;
   recognition::RecognitionWorker* worker = recognition_.get();
   backend::BackendWorker* back_end = backend_.get();
@@ -209,7 +266,7 @@ std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> canc
       }
     };
   }
-  return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), std::move(on_stored));
+  return on_stored;
 }
 
 void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& out) const {

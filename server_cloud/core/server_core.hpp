@@ -16,6 +16,8 @@
 #include "server_cloud/ingest/agent_session.hpp"
 #include "server_cloud/recognition/recognition_worker.hpp"
 #include "server_cloud/stack/map_stack.hpp"
+#include "server_cloud/store/map_store.hpp"
+#include "server_cloud/store/sqlite_store.hpp"
 
 namespace cvislam::v1 {
 class ServerStats;
@@ -40,6 +42,10 @@ struct ServerOptions {
   // Map fusion, loop closure, global BA and redundancy removal (started with place recognition, which feeds it).
   backend::BackendOptions backend;
   bool final_gba = true;  // writeOutputs() runs a last GBA on every map first (the end of a mission)
+  // The map store (map_store.hpp): a SQLite file that makes every Hello and batch durable before it is
+  // acknowledged, and that openStore() replays at start. Empty: maps live in memory only.
+  std::filesystem::path store;
+  SqliteStoreOptions::Sync store_sync = SqliteStoreOptions::Sync::kFull;
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line
@@ -61,6 +67,18 @@ struct TimelineSample {
   std::uint64_t down_bytes = 0;
 };
 
+// What openStore() found and replayed.
+struct RecoveryReport {
+  std::string store;  // the store's description
+  std::uint64_t hellos = 0;
+  std::uint64_t batches = 0;
+  std::uint64_t keyframes = 0;
+  std::uint64_t bytes = 0;
+  std::size_t missions = 0;
+  std::size_t agents = 0;
+  double seconds = 0.0;
+};
+
 class ServerCore {
  public:
   using Clock = std::chrono::steady_clock;
@@ -77,6 +95,15 @@ class ServerCore {
   // The workers, or nullptr when they are not running.
   [[nodiscard]] recognition::RecognitionWorker* recognition() const { return recognition_.get(); }
   [[nodiscard]] backend::BackendWorker* backend() const { return backend_.get(); }
+
+  // Opens options.store (nothing to do when it is empty) and replays it into the missions, so that the server
+  // holds everything it acknowledged before it stopped; from then on every session writes to it. Call after
+  // startWorkers() (place recognition and the back-end see the replayed keyframes) and before serving. The error
+  // names the file and the record that is wrong.
+  Result<RecoveryReport> openStore();
+  // The same with a store made elsewhere (tests; the scale-out issue's shared store).
+  Result<RecoveryReport> attachStore(std::unique_ptr<MapStore> store);
+  [[nodiscard]] MapStore* store() const { return store_.get(); }
 
   [[nodiscard]] const ServerOptions& options() const { return options_; }
   [[nodiscard]] MissionRegistry& missions() { return missions_; }
@@ -113,6 +140,9 @@ class ServerCore {
   Synchronized<std::vector<TimelineSample>> timeline_;
   std::unique_ptr<recognition::RecognitionWorker> recognition_;
   std::unique_ptr<backend::BackendWorker> backend_;  // after recognition_: it goes first
+  std::unique_ptr<MapStore> store_;
+
+  [[nodiscard]] AgentSession::StoredListener storedListener() const;
 };
 
 }  // namespace cvislam::server

@@ -112,11 +112,12 @@ Status SessionOptions::validate() const {
 }
 
 AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& options,
-                           std::function<void()> cancel_stream, StoredListener on_stored)
+                           std::function<void()> cancel_stream, StoredListener on_stored, MapStore* store)
     : missions_(missions),
       options_(options),
       cancel_stream_(std::move(cancel_stream)),
       on_stored_(std::move(on_stored)),
+      store_(store),
       covisible_(options.covisible) {}
 
 AgentSession::~AgentSession() {
@@ -190,18 +191,25 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
                                                     "' is connected already, from another process; give this "
                                                     "agent another --agent-id"};
       }
+    }
+    // Durable before anything changes: the batches that follow need the sensors when the store is replayed.
+    if (store_ != nullptr) {
+      StoreRecord stored{0, StoreRecord::Kind::kHello, hello.mission(), agent_id, 0, hello.SerializeAsString()};
+      if (Status s = store_->append(stored); !s.ok()) {
+        return Error{ErrorCode::kUnavailable,
+                     "the server could not store the Hello (" + s.error().message() + "); connect again later"};
+      }
+    }
+    if (record->connected) {
       // The same process again: its old stream is stale (it broke without the server noticing yet).
       replace_old = std::move(record->cancel_stream);
     }
     record->cancel_stream = cancel_stream_;
     record->connected = true;
-    record->session = hello.session();
     ++record->connections;
     stream_ = record->connections;
     record->finished = false;
-    record->software = hello.software();
-    record->local_map_keyframes = hello.local_map_keyframes();
-    record->sensors = std::move(sensors).value();
+    applyHello(*record, hello, std::move(sensors).value());
     record->up["message"].add(1, wire_bytes);
     record->up["hello"].add(1, wire_bytes);
 
@@ -259,24 +267,55 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
                    std::to_string(record->stored_sequence) + ", so the next is " +
                    std::to_string(record->stored_sequence + 1));
   }
-  auto report = ingestBatch(batch, *record, mission_->stack(), options_.ingest);
-  if (!report) return report.error().withContext("batch " + std::to_string(sequence));
-  record->stored_sequence = sequence;
-  record->duplicate_objects += static_cast<std::uint64_t>(report->duplicate_objects);
-  record->imu_links_missing += static_cast<std::uint64_t>(report->imu_links_missing);
+  std::function<Status()> commit;
+  if (store_ != nullptr) {
+    commit = [&]() -> Status {
+      StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
+      if (Status s = store_->append(stored); !s.ok()) {
+        return Error{ErrorCode::kUnavailable, "the server could not store batch " + std::to_string(sequence) + " (" +
+                                                  s.error().message() + "); it was not applied: send it again later"};
+      }
+      return Status::Ok();
+    };
+  }
+  auto report = applyBatch(*mission_, *record, batch, options_.ingest, commit);
+  if (!report) return report.error();
   const double ingest_ms = std::chrono::duration<double, std::milli>(Clock::now() - arrived).count();
   record->ingest_ms.add(ingest_ms);
   if (gba_at_arrival || mission_->gbaRunning()) record->ingest_during_gba_ms.add(ingest_ms);
 
   // Traffic by kind: the serialized size of each part.
   for (const wire::BatchPart& part : wire::batchParts(batch)) record->up[part.kind].add(part.count, part.bytes);
+  if (on_stored_) on_stored_(mission_name_, *report);
+  return Status::Ok();
+}
+
+void applyHello(AgentRecord& record, const v1::Hello& hello, AgentSensors sensors) {
+  record.session = hello.session();
+  record.software = hello.software();
+  record.local_map_keyframes = hello.local_map_keyframes();
+  record.sensors = std::move(sensors);
+}
+
+Result<IngestReport> applyBatch(Mission& mission, AgentRecord& record, const v1::MapBatch& batch,
+                                const IngestLimits& limits, const std::function<Status()>& commit) {
+  const std::uint64_t sequence = batch.sequence();
+  auto report = ingestBatch(batch, record, mission.stack(), limits, commit);
+  if (!report) {
+    return report.error().code() == ErrorCode::kUnavailable
+               ? report.error()
+               : report.error().withContext("batch " + std::to_string(sequence));
+  }
+  record.stored_sequence = sequence;
+  record.duplicate_objects += static_cast<std::uint64_t>(report->duplicate_objects);
+  record.imu_links_missing += static_cast<std::uint64_t>(report->imu_links_missing);
   for (const auto& [map, id] : report->added_keyframes) {
     MissionEvent added;
     added.kind = MissionEvent::Kind::kKeyframeAdded;
     added.agent = id.agent;
     added.keyframe = id;
     added.map = map;
-    mission_->events().append(std::move(added));
+    mission.events().append(std::move(added));
   }
   for (std::size_t i = 0; i < report->removed_keyframe_ids.size(); ++i) {
     MissionEvent removed;
@@ -285,9 +324,49 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
     removed.keyframe = report->removed_keyframe_ids[i];
     removed.map = report->removed_keyframe_maps[i];
     removed.cause = "agent";
-    mission_->events().append(std::move(removed));
+    mission.events().append(std::move(removed));
   }
-  if (on_stored_) on_stored_(mission_name_, *report);
+  return report;
+}
+
+Status replayStored(MissionRegistry& missions, const SessionOptions& options, const StoreRecord& stored,
+                    const AgentSession::StoredListener& on_stored) {
+  const std::string where = "store record " + std::to_string(stored.number) + " (" +
+                            std::string(toString(stored.kind)) + " of agent " + std::to_string(stored.agent) +
+                            ", mission '" + stored.mission + "')";
+  const auto damaged = [&](const std::string& what) { return Error{ErrorCode::kDataError, where + ": " + what}; };
+  if (Status s = checkMissionName(stored.mission); !s.ok()) return damaged(s.error().message());
+  auto mission = missions.getOrCreate(stored.mission);
+  auto shared_record = mission->agent(stored.agent);
+  if (stored.kind == StoreRecord::Kind::kHello) {
+    v1::Hello hello;
+    if (!hello.ParseFromString(stored.body)) return damaged("the Hello does not parse");
+    if (hello.agent_id() != stored.agent || hello.mission() != stored.mission) {
+      return damaged("the Hello names agent " + std::to_string(hello.agent_id()) + " of mission '" + hello.mission() +
+                     "'");
+    }
+    auto sensors = sensorsFromHello(hello);
+    if (!sensors) return damaged(sensors.error().message());
+    auto record = shared_record->write();
+    applyHello(*record, hello, std::move(sensors).value());
+    return Status::Ok();
+  }
+  v1::MapBatch batch;
+  if (!batch.ParseFromString(stored.body)) return damaged("the batch does not parse");
+  if (batch.sequence() != stored.sequence) {
+    return damaged("the batch says it is sequence " + std::to_string(batch.sequence()));
+  }
+  Result<IngestReport> report = Error{ErrorCode::kInternal, "not applied"};
+  {
+    auto record = shared_record->write();
+    if (stored.sequence != record->stored_sequence + 1) {
+      return damaged("batch " + std::to_string(stored.sequence) + " follows batch " +
+                     std::to_string(record->stored_sequence) + ": the store has a gap");
+    }
+    report = applyBatch(*mission, *record, batch, options.ingest, {});
+    if (!report) return damaged(report.error().message());
+    if (on_stored) on_stored(stored.mission, *report);
+  }
   return Status::Ok();
 }
 

@@ -21,9 +21,12 @@
 #include "server_cloud/ingest/batch_ingest.hpp"
 #include "server_cloud/ingest/covisible_downlink.hpp"
 #include "server_cloud/stack/map_stack.hpp"
+#include "server_cloud/store/map_store.hpp"
 
 namespace cvislam::v1 {
 class AgentUplink;
+class Hello;
+class MapBatch;
 class ServerDownlink;
 }  // namespace cvislam::v1
 
@@ -51,8 +54,10 @@ class AgentSession {
   // `on_stored`, when set, hears of every batch stored (mission name, what changed); it is called with the
   // agent's record locked, so it must only hand the news on (place recognition queues it).
   using StoredListener = std::function<void(const std::string& mission, const IngestReport& report)>;
+  // `store`, when set, makes every Hello and batch durable before it takes effect (map_store.hpp); a batch the
+  // store refuses is not applied, and the stream ends with UNAVAILABLE so that the agent sends it again.
   AgentSession(MissionRegistry& missions, const SessionOptions& options, std::function<void()> cancel_stream,
-               StoredListener on_stored = {});
+               StoredListener on_stored = {}, MapStore* store = nullptr);
   ~AgentSession();
   AgentSession(const AgentSession&) = delete;
   AgentSession& operator=(const AgentSession&) = delete;
@@ -84,6 +89,7 @@ class AgentSession {
   SessionOptions options_;
   std::function<void()> cancel_stream_;
   StoredListener on_stored_;
+  MapStore* store_ = nullptr;
   std::shared_ptr<Mission> mission_;
   SharedAgentRecord record_;
   std::string mission_name_;
@@ -96,5 +102,20 @@ class AgentSession {
   Clock::time_point last_down_{};
   bool closed_ = false;
 };
+
+// What a Hello sets in the agent's record (live and when the store is replayed).
+void applyHello(AgentRecord& record, const v1::Hello& hello, AgentSensors sensors);
+
+// Stores the next batch of the agent (record.stored_sequence + 1; the caller checked that): ingest, the stored
+// sequence, the counters and the mission's events. `commit`, when set, runs after ingest's checks and before
+// anything changes (the store's append); its error leaves everything as it was.
+Result<IngestReport> applyBatch(Mission& mission, AgentRecord& record, const v1::MapBatch& batch,
+                                const IngestLimits& limits, const std::function<Status()>& commit);
+
+// Applies one record of a map store (map_store.hpp) to `missions`, as the live stream applied it; `on_stored`
+// hears of the batch as it did then. A record that does not apply (a gap in an agent's sequences, a body that
+// does not parse or that ingest refuses) is an error that names it.
+Status replayStored(MissionRegistry& missions, const SessionOptions& options, const StoreRecord& stored,
+                    const AgentSession::StoredListener& on_stored);
 
 }  // namespace cvislam::server

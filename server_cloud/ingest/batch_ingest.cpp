@@ -409,13 +409,16 @@ void toMapFrame(const SE3d& T_m_w, wire::KeyframeStateValues& state) {
 }  // namespace
 
 Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, MapStack& stack,
-                                 const IngestLimits& limits) {
+                                 const IngestLimits& limits, const std::function<Status()>& commit) {
   if (!agent.sensors) return Error{ErrorCode::kFailedPrecondition, "a map batch before the Hello"};
   IngestReport report;
   Checker checker(agent, limits, report);
   auto checked = checker.check(batch);
   if (!checked) return checked.error();
   Plan& plan = *checked;
+  if (commit) {
+    if (Status s = commit(); !s.ok()) return s.error();
+  }
 
   // Everything is checked: from here on nothing fails. New agent maps get new server maps.
   for (std::uint32_t agent_map : plan.new_agent_maps) {

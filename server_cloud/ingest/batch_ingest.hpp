@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <utility>
 #include <vector>
 
@@ -44,7 +45,9 @@ struct IngestReport {
 };
 
 // `agent` is the caller's (locked) record of the agent; its sensors must be known (a Hello came first).
+// `commit`, when set, runs once every check has passed and before anything changes (no map is locked then); when
+// it fails, ingest returns its error and nothing has changed.
 Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, MapStack& stack,
-                                 const IngestLimits& limits);
+                                 const IngestLimits& limits, const std::function<Status()>& commit = {});
 
 }  // namespace cvislam::server

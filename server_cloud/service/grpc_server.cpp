@@ -2,6 +2,7 @@
 
 #include <atomic>
 #include <condition_variable>
+#include <cstdio>
 #include <deque>
 #include <mutex>
 #include <optional>
@@ -106,7 +107,15 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
       finishLocked(toGrpc(status));
       return;
     }
-    if (reply_due) enqueueLocked(reply_);
+    if (reply_due) {
+      if (reply_.has_welcome()) {
+        // One line per stream: when agents came (back), and where they resume.
+        std::fprintf(stderr, "[server] agent %u of mission '%s' connected; it resumes after batch %llu\n",
+                     static_cast<unsigned>(session_->agent()), session_->mission().c_str(),
+                     static_cast<unsigned long long>(reply_.welcome().stored_sequence()));
+      }
+      enqueueLocked(reply_);
+    }
     StartRead(&in_);
   }
 

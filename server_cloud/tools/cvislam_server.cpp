@@ -2,7 +2,7 @@
 // one map stack per mission, and API clients read its maps over cvislam.v1.MapService (cvislam_mapctl) and its
 // statistics over cvislam.v1.Monitor.
 //
-//   cvislam_server --listen HOST:PORT [--config FILE] [--output DIR] [--port-file FILE]
+//   cvislam_server --listen HOST:PORT [--config FILE] [--output DIR] [--port-file FILE] [--store FILE]
 //
 // HOST:PORT may use port 0: the server then takes a free port and prints it ("listening on 127.0.0.1:PORT",
 // and into --port-file). It runs until SIGINT or SIGTERM, then ends the agents' streams, writes DIR
@@ -112,6 +112,14 @@ int main(int argc, char** argv) {
                "No global BA (neither after merges and loops, nor periodic, nor on every map at shutdown): the "
                "server's keyframes "
                "keep the agents' estimates, moved only by merges and pose graphs");
+  std::string store;
+  std::string store_sync;
+  app.add_option("--store", store,
+                 "Map store file (SQLite): every batch is durable before it is acknowledged, and a restarted server "
+                 "replays it and holds everything it acknowledged. Made when missing [none: maps in memory only]");
+  app.add_option("--store-sync", store_sync,
+                 "full: a commit survives power loss; normal: it survives a crash of the process (SIGKILL) but maybe "
+                 "not of the machine; off: left to the OS [full]");
   CLI11_PARSE(app, argc, argv);
 
   ServerOptions options;
@@ -124,6 +132,15 @@ int main(int argc, char** argv) {
   if (!listen.empty()) options.listen = listen;
   if (!output.empty()) options.output = output;
   if (!vocabulary.empty()) options.recognition.vocabulary = vocabulary;
+  if (!store.empty()) options.store = store;
+  if (!store_sync.empty()) {
+    auto sync = cvislam::server::parseStoreSync(store_sync);
+    if (!sync) {
+      std::cerr << "cvislam_server: --store-sync: " << sync.error().message() << "\n";
+      return 2;
+    }
+    options.store_sync = *sync;
+  }
   if (no_recognition) options.recognition.enabled = false;
   if (no_backend) options.backend.enabled = false;
   if (no_redundancy) options.backend.redundancy.enabled = false;
@@ -155,6 +172,21 @@ int main(int argc, char** argv) {
   if (auto s = core.startWorkers(); !s.ok()) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 1;
+  }
+  if (!options.store.empty()) {
+    std::fprintf(stderr, "[server] opening the map store %s\n", options.store.string().c_str());
+    auto recovered = core.openStore();
+    if (!recovered) {
+      std::cerr << "cvislam_server: " << recovered.error().message() << "\n";
+      return 1;
+    }
+    const auto& r = *recovered;
+    std::fprintf(stderr,
+                 "[server] map store: %s; replayed %llu batches and %llu hellos (%.2f MB) of %zu agents in %zu "
+                 "missions, %llu keyframes, in %.2f s\n",
+                 r.store.c_str(), static_cast<unsigned long long>(r.batches), static_cast<unsigned long long>(r.hellos),
+                 static_cast<double>(r.bytes) / 1e6, r.agents, r.missions, static_cast<unsigned long long>(r.keyframes),
+                 r.seconds);
   }
   auto server = cvislam::server::GrpcServer::start(core);
   if (!server) {

@@ -11,6 +11,7 @@ find_package(nlohmann_json 3.10 REQUIRED CONFIG)      # nlohmann-json3-dev
 find_package(CLI11 REQUIRED CONFIG)                   # libcli11-dev
 find_package(Protobuf REQUIRED)                       # libprotobuf-dev protobuf-compiler (CMake's FindProtobuf)
 find_package(gRPC REQUIRED CONFIG)                    # libgrpc++-dev protobuf-compiler-grpc
+find_package(SQLite3 REQUIRED)                        # libsqlite3-dev (the server's map store; CMake's FindSQLite3)
 
 # OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).
 # We install the per-module -dev packages and fall back to a small find-module; see README "Dependencies".

@@ -1,0 +1,211 @@
+// The server core with a map store, driven without gRPC: a core that is dropped (as a SIGKILL would drop it) and
+// made again over the same store holds every batch it acknowledged, each once; the agent reconnects and goes on
+// where it was; a batch the store refuses is neither applied nor acknowledged; and a store that cannot be replayed
+// stops the start with an error that names the record.
+#include <memory>
+#include <set>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <gmock/gmock.h>
+
+#include <gtest/gtest.h>
+
+#include "cvislam/v1/agent_link.pb.h"
+#include "server_cloud/core/server_core.hpp"
+#include "server_cloud/store/sqlite_store.hpp"
+#include "test/server_cloud/link_messages.hpp"
+#include "test/support/temp_dir.hpp"
+
+namespace cvislam::server {
+namespace {
+
+using test::batchMessage;
+using test::helloMessage;
+using test::makeKeyframeBatch;
+using ::testing::HasSubstr;
+
+const std::string kMission = "hall-1";
+constexpr std::uint32_t kAgent = 4;
+constexpr std::uint64_t kSession = 0x5eed'0001;
+
+// The store's seam for a disk that fails: Hellos are kept, batches refused.
+class RefusingStore final : public MapStore {
+ public:
+  Status append(const StoreRecord& r) override {
+    if (r.kind == StoreRecord::Kind::kBatch) return Error{ErrorCode::kIoError, "disk full"};
+    ++hellos;
+    return Status::Ok();
+  }
+  Status replay(const std::string&, const std::function<Status(const StoreRecord&)>&) const override {
+    return Status::Ok();
+  }
+  [[nodiscard]] Result<std::vector<std::string>> missions() const override { return std::vector<std::string>{}; }
+  [[nodiscard]] StoreCounters counters() const override { return {}; }
+  [[nodiscard]] std::string describe() const override { return "refusing"; }
+  int hellos = 0;
+};
+
+class DurableCoreTest : public ::testing::Test {
+ protected:
+  ServerOptions options() const {
+    ServerOptions o;
+    o.store = dir_ / "maps.db";
+    o.store_sync = SqliteStoreOptions::Sync::kNormal;
+    return o;
+  }
+  std::unique_ptr<ServerCore> startCore(RecoveryReport* report = nullptr) {
+    auto core = std::make_unique<ServerCore>(options());
+    auto recovered = core->openStore();
+    EXPECT_TRUE(recovered.ok()) << recovered.error().toString();
+    if (report != nullptr && recovered.ok()) *report = *recovered;
+    return core;
+  }
+  Status send(AgentSession& session, const v1::AgentUplink& message) {
+    reply_.Clear();
+    return session.handle(message, message.ByteSizeLong(), reply_, reply_due_);
+  }
+  void sendOk(AgentSession& session, const v1::AgentUplink& message) {
+    const Status s = send(session, message);
+    ASSERT_TRUE(s.ok()) << s.error().toString();
+  }
+  // A store written as a server would have written it: the agent's Hello, then these (sequence, body) batches.
+  void writeStore(const std::vector<std::pair<std::uint64_t, std::string>>& batches) {
+    SqliteStoreOptions o;
+    o.path = options().store;
+    auto store = openSqliteStore(o);
+    ASSERT_TRUE(store.ok()) << store.error().toString();
+    const std::string hello = test::makeHello(kMission, kAgent, kSession).SerializeAsString();
+    ASSERT_TRUE((*store)->append({0, StoreRecord::Kind::kHello, kMission, kAgent, 0, hello}).ok());
+    for (const auto& [sequence, body] : batches) {
+      ASSERT_TRUE((*store)->append({0, StoreRecord::Kind::kBatch, kMission, kAgent, sequence, body}).ok());
+    }
+  }
+  // The agent's keyframe counters in the mission's maps, each as often as a map holds it.
+  static std::multiset<std::uint32_t> keyframesInMaps(const ServerCore& core) {
+    std::multiset<std::uint32_t> out;
+    for (const auto& map : core.missions().find(kMission)->stack().maps()) {
+      for (const auto& [id, kf] : map->read()->keyframes()) out.insert(id.counter);
+    }
+    return out;
+  }
+
+  cvislam::test::TempDir dir_;
+  v1::ServerDownlink reply_;
+  bool reply_due_ = false;
+};
+
+TEST_F(DurableCoreTest, ARestartedCoreHoldsEveryAcknowledgedBatchOnceAndTheAgentGoesOnWhereItWas) {
+  std::multiset<std::uint32_t> before;
+  std::size_t points_before = 0;
+  {
+    auto core = startCore();
+    auto session = core->openSession({});
+    sendOk(*session, helloMessage(kMission, kAgent, kSession));
+    for (std::uint64_t s = 1; s <= 5; ++s) {
+      sendOk(*session, batchMessage(makeKeyframeBatch(s, static_cast<std::uint32_t>(2 * (s - 1)), 2)));
+    }
+    before = keyframesInMaps(*core);
+    points_before = core->missions().find(kMission)->agent(kAgent)->read()->points.size();
+    // Dropped without a goodbye, as a killed process would be (closing a session writes nothing to the store).
+  }
+  ASSERT_EQ(before.size(), 10U);
+
+  RecoveryReport report;
+  auto core = startCore(&report);
+  EXPECT_EQ(report.hellos, 1U);
+  EXPECT_EQ(report.batches, 5U);
+  EXPECT_EQ(report.keyframes, 10U);
+  EXPECT_EQ(report.missions, 1U);
+  EXPECT_EQ(report.agents, 1U);
+  EXPECT_EQ(keyframesInMaps(*core), before);
+  {
+    auto record = core->missions().find(kMission)->agent(kAgent)->read();
+    EXPECT_EQ(record->stored_sequence, 5U);
+    EXPECT_EQ(record->points.size(), points_before);
+    EXPECT_FALSE(record->connected);
+  }
+
+  // The same agent process reconnects: told batch 5 is stored; it sends 5 again (it never saw the ack) and 6.
+  auto session = core->openSession({});
+  sendOk(*session, helloMessage(kMission, kAgent, kSession));
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 5U);
+  EXPECT_EQ(reply_.welcome().keyframes_held(), 10U);
+  sendOk(*session, batchMessage(makeKeyframeBatch(5, 8, 2)));
+  sendOk(*session, batchMessage(makeKeyframeBatch(6, 10, 2)));
+  const auto after = keyframesInMaps(*core);
+  EXPECT_EQ(after.size(), 12U);
+  EXPECT_EQ(std::set<std::uint32_t>(after.begin(), after.end()).size(), 12U);  // each once
+  EXPECT_EQ(core->missions().find(kMission)->agent(kAgent)->read()->duplicate_batches, 1U);
+  EXPECT_EQ(core->store()->counters().records, 1U + 5U + 1U + 1U);  // two Hellos, batches 1..6
+}
+
+TEST_F(DurableCoreTest, AnotherProcessClaimingTheAgentAfterARestartIsStillRefused) {
+  {
+    auto core = startCore();
+    auto session = core->openSession({});
+    sendOk(*session, helloMessage(kMission, kAgent, kSession));
+    sendOk(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
+  }
+  auto core = startCore();
+  auto session = core->openSession({});
+  const Status s = send(*session, helloMessage(kMission, kAgent, kSession + 1));
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kFailedPrecondition);
+  EXPECT_THAT(s.error().message(), HasSubstr("streamed by another process before"));
+}
+
+TEST_F(DurableCoreTest, ABatchTheStoreRefusesIsNeitherAppliedNorAcknowledgedAndEndsTheStreamUnavailable) {
+  ServerCore core(ServerOptions{});
+  auto store = std::make_unique<RefusingStore>();
+  RefusingStore* refusing = store.get();
+  ASSERT_TRUE(core.attachStore(std::move(store)).ok());
+  auto session = core.openSession({});
+  sendOk(*session, helloMessage(kMission, kAgent, kSession));
+  EXPECT_EQ(refusing->hellos, 1);
+  const Status s = send(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.error().code(), ErrorCode::kUnavailable);
+  EXPECT_THAT(s.error().message(), HasSubstr("could not store batch 1 (disk full)"));
+  auto mission = core.missions().find(kMission);
+  auto record = mission->agent(kAgent)->read();
+  EXPECT_EQ(record->stored_sequence, 0U);
+  EXPECT_TRUE(record->keyframes.empty());
+  EXPECT_TRUE(mission->stack().maps().empty());
+  EXPECT_EQ(mission->events().nextNumber(), 2U);  // the connection only
+}
+
+TEST_F(DurableCoreTest, AStoreWithAGapInAnAgentsBatchesStopsTheStartNamingTheRecord) {
+  writeStore(
+      {{1, makeKeyframeBatch(1, 0, 2).SerializeAsString()}, {3, makeKeyframeBatch(3, 4, 2).SerializeAsString()}});
+  ServerCore core(options());
+  auto recovered = core.openStore();
+  ASSERT_FALSE(recovered.ok());
+  EXPECT_THAT(recovered.error().message(), HasSubstr("store record 3 (batch of agent 4, mission 'hall-1')"));
+  EXPECT_THAT(recovered.error().message(), HasSubstr("batch 3 follows batch 1: the store has a gap"));
+  EXPECT_EQ(core.store(), nullptr);  // nothing is served from it
+}
+
+TEST_F(DurableCoreTest, ARecordWhoseBodyDoesNotParseOrApplyStopsTheStartNamingIt) {
+  for (const std::string& body : {std::string("\xff\xff\xff\xff", 4), std::string()}) {
+    SCOPED_TRACE(body.size());
+    std::filesystem::remove(options().store);
+    writeStore({{1, body}});
+    ServerCore core(options());
+    auto recovered = core.openStore();
+    ASSERT_FALSE(recovered.ok());
+    EXPECT_THAT(recovered.error().message(), HasSubstr("store record 2"));
+  }
+}
+
+TEST_F(DurableCoreTest, WithoutAStorePathNothingIsOpenedAndNothingIsWritten) {
+  ServerCore core(ServerOptions{});
+  auto recovered = core.openStore();
+  ASSERT_TRUE(recovered.ok());
+  EXPECT_EQ(core.store(), nullptr);
+  EXPECT_TRUE(std::filesystem::is_empty(dir_.path()));
+}
+
+}  // namespace
+}  // namespace cvislam::server
