@@ -23,6 +23,11 @@
 #               key; e.g. one with link: apply_corrections: true); command-line options still win
 #   --agents    fly only these of the preset's agents, by number, comma-separated (e.g. --agents 0,1 for
 #               euroc-mh's MH_01 and MH_02); they keep their numbers and trajectories [all]
+#   --no-store  the server keeps its maps in memory only (default: a map store, out/.../store.db, that makes
+#               every batch durable before it is acknowledged)
+#   --kill-server N  the restart test: kill the server with SIGKILL N times at random moments (2-8 s apart,
+#               --kill-seed S, default 1) while the agents fly, and start it again on its store at once; the
+#               kills, the replays and the time until every agent streams again go to restarts.csv and the end
 #
 # Environment: CVISLAM_DATA_DIR (default ../shared/data beside the repository) for the real data and the
 # euroc-mh flights; CVISLAM_SIM_CACHE (default out/sim-cache) for rendered missions.
@@ -40,6 +45,9 @@ real=1
 server_args=()
 agent_args=()
 only_agents=""
+store=1
+kills=0
+kill_seed=1
 while [ $# -gt 0 ]; do
   case "$1" in
     --preset) preset=$2; shift 2 ;;
@@ -55,6 +63,9 @@ while [ $# -gt 0 ]; do
       [ -f "$2" ] || { echo "run_mission: --agent-config: no such file '$2'" >&2; exit 2; }
       agent_args=(--config "$(cd "$(dirname "$2")" && pwd)/$(basename "$2")"); shift 2 ;;
     --agents) only_agents=$2; shift 2 ;;
+    --no-store) store=0; shift ;;
+    --kill-server) kills=$2; shift 2 ;;
+    --kill-seed) kill_seed=$2; shift 2 ;;
     -h|--help) awk 'NR > 1 && /^set -euo/ { exit } NR > 1' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
@@ -64,6 +75,10 @@ case "$pace" in realtime|sync) ;; *) echo "run_mission: --pace must be realtime 
 [[ -z "$only_agents" || "$only_agents" =~ ^[0-9]+(,[0-9]+)*$ ]] ||
   { echo "run_mission: --agents must be agent numbers separated by commas (e.g. 0,1), not '$only_agents'" >&2; exit 2; }
 [[ "$seed" =~ ^[0-9]+$ ]] || { echo "run_mission: --seed must be a whole number, not '$seed'" >&2; exit 2; }
+[[ "$kills" =~ ^[0-9]+$ && "$kill_seed" =~ ^[0-9]+$ ]] ||
+  { echo "run_mission: --kill-server and --kill-seed must be whole numbers" >&2; exit 2; }
+[ "$kills" -eq 0 ] || [ "$store" = 1 ] ||
+  { echo "run_mission: --kill-server needs the map store (drop --no-store)" >&2; exit 2; }
 if [ -z "$duration" ]; then
   if [ "$preset" = euroc-mh ]; then duration=90; else duration=60; fi
 fi
@@ -146,13 +161,54 @@ roudi_pid=$!
 for _ in $(seq 100); do grep -q "RouDi is ready" "$out/roudi.log" && break; sleep 0.1; done
 grep -q "RouDi is ready" "$out/roudi.log" || { echo "run_mission: iox-roudi did not start:" >&2; cat "$out/roudi.log" >&2; exit 1; }
 
-"$bin/cvislam_server" --listen 127.0.0.1:0 --port-file "$out/server.port" --output "$out/server" \
-  --status-interval 10 "${server_args[@]}" >"$out/server.log" 2>&1 &
-server_pid=$!
-for _ in $(seq 100); do [ -s "$out/server.port" ] && break; sleep 0.1; done
-[ -s "$out/server.port" ] || { echo "run_mission: cvislam_server did not start:" >&2; cat "$out/server.log" >&2; exit 1; }
+store_args=()
+[ "$store" = 1 ] && store_args=(--store "$out/store.db")
+# Starts the server on $1 (host:port) and waits until it serves (after replaying its store).
+start_server() {
+  rm -f "$out/server.port"
+  "$bin/cvislam_server" --listen "$1" --port-file "$out/server.port" --output "$out/server" \
+    --status-interval 10 ${store_args[@]+"${store_args[@]}"} ${server_args[@]+"${server_args[@]}"} >"$out/server.log" 2>&1 &
+  server_pid=$!
+  for _ in $(seq 600); do [ -s "$out/server.port" ] && break; kill -0 "$server_pid" 2>/dev/null || break; sleep 0.05; done
+  [ -s "$out/server.port" ] || { echo "run_mission: cvislam_server did not start:" >&2; cat "$out/server.log" >&2; exit 1; }
+}
+start_server 127.0.0.1:0
 port=$(cat "$out/server.port")
-echo "== mission '$mission': server on 127.0.0.1:$port, ${#agents[@]} agent(s), $mode-inertial, pace $pace"
+echo "== mission '$mission': server on 127.0.0.1:$port, ${#agents[@]} agent(s), $mode-inertial, pace $pace," \
+  "$([ "$store" = 1 ] && echo "map store $out/store.db" || echo "no map store")"
+
+# The restart test's schedule: kill k at kill_at[k] seconds after the agents start (seeded).
+kill_at=()
+if [ "$kills" -gt 0 ]; then
+  RANDOM=$kill_seed
+  t_kill=0
+  for _ in $(seq "$kills"); do t_kill=$((t_kill + 2 + RANDOM % 7)); kill_at+=("$t_kill"); done
+  echo "kill,at_s,replay_s,serving_s,all_agents_streaming_s,keyframes_replayed" >"$out/restarts.csv"
+  echo "== restart test: the server is killed (SIGKILL) at ${kill_at[*]} s and started again on its store"
+fi
+# Kills the server, starts it again on the same port and store, and times it (one line of restarts.csv).
+restart_server() {
+  local k=$1 t0 t1 now replayed
+  t0=$(date +%s.%N)
+  kill -KILL "$server_pid"
+  wait "$server_pid" 2>/dev/null || true
+  mv "$out/server.log" "$out/server.killed$k.log"
+  start_server "127.0.0.1:$port"
+  t1=$(date +%s.%N)
+  # Every agent still flying has connected again when the new server has one "connected" line per agent.
+  local flying=0
+  for p in "${pids[@]}"; do kill -0 "$p" 2>/dev/null && flying=$((flying + 1)); done
+  for _ in $(seq 400); do
+    [ "$(grep -c 'connected; it resumes' "$out/server.log" || true)" -ge "$flying" ] && break
+    sleep 0.05
+  done
+  now=$(date +%s.%N)
+  replayed=$(sed -n 's/.*replayed.*missions, \([0-9]*\) keyframes, in \([0-9.]*\) s/\1 \2/p' "$out/server.log")
+  echo "$k,${kill_at[$((k - 1))]},${replayed#* },$(awk "BEGIN { print $t1 - $t0 }"),$(awk "BEGIN { print $now - $t0 }"),${replayed%% *}" \
+    >>"$out/restarts.csv"
+  printf '  kill %d at %s s: serving again after %.2f s, every agent streaming after %.2f s (%s keyframes replayed)\n' \
+    "$k" "${kill_at[$((k - 1))]}" "$(awk "BEGIN { print $t1 - $t0 }")" "$(awk "BEGIN { print $now - $t0 }")" "${replayed%% *}"
+}
 
 for a in "${agents[@]}"; do
   id=${a#agent}
@@ -162,18 +218,29 @@ for a in "${agents[@]}"; do
   pids+=("$!")
 done
 t_agents=$(date +%s)
-# Progress: every 10 s, each agent's newest progress line.
+# Progress: every 10 s, each agent's newest progress line; the restart test's kills when they are due.
 failed=0
+next_kill=0
+ticks=0
 while true; do
   running=0
   for p in "${pids[@]}"; do kill -0 "$p" 2>/dev/null && running=$((running + 1)); done
   [ "$running" -eq 0 ] && break
-  sleep 10
+  sleep 0.5
+  ticks=$((ticks + 1))
+  if [ "$next_kill" -lt "${#kill_at[@]}" ] && [ $(( $(date +%s) - t_agents )) -ge "${kill_at[$next_kill]}" ]; then
+    next_kill=$((next_kill + 1))
+    restart_server "$next_kill"
+  fi
+  [ $((ticks % 20)) -eq 0 ] || continue
   for a in "${agents[@]}"; do
     line=$(grep -a '^\[agent\] frame' "$out/agents/$a.log" | tail -1 | sed 's/^\[agent\] //') || true
     [ -n "$line" ] && printf '  %-7s %s\n' "$a" "$line"
   done
 done
+if [ "$kills" -gt 0 ] && [ "$next_kill" -lt "$kills" ]; then
+  echo "  the agents finished after $next_kill of the $kills kills" >&2
+fi
 for i in "${!pids[@]}"; do
   if ! wait "${pids[$i]}"; then
     echo "run_mission: ${agents[$i]} failed; its log ends:" >&2
@@ -213,6 +280,22 @@ kill -TERM "$roudi_pid" 2>/dev/null || true
 wait "$roudi_pid" 2>/dev/null || true
 roudi_pid=""
 t_done=$(date +%s)
+
+# The restart test's verdict: per agent, the keyframes it made against those the last server holds, keyframes
+# held twice across the exported maps, and batches a restarted server had acknowledged but no longer held.
+if [ "$kills" -gt 0 ]; then
+  echo "== restart test: $next_kill kills (seed $kill_seed), restarts.csv"
+  for a in "${agents[@]}"; do
+    id=${a#agent}
+    made=$(grep -vc '^#' "$out/agents/$a/keyframes.txt" || true)
+    held=$(jq -r --argjson id "$id" --arg m "$mission" \
+      '[.agents[] | select(.agent_id == $id and .mission == $m) | .keyframes | tonumber] | add // 0' "$out/server/stats.json")
+    twice=$(cat "$out/maps/keyframes_agent${id}"_map*.txt 2>/dev/null | grep -v '^#' | awk '{ print $1 }' | sort | uniq -d | wc -l)
+    lost=$(jq -r '.acked_batches_lost' "$out/agents/$a/link.json")
+    streams=$(jq -r '.connections' "$out/agents/$a/link.json")
+    echo "  $a: $made keyframes made, $held held by the server, $twice held twice, $lost acknowledged batches lost, $streams streams"
+  done
+fi
 
 cat >"$out/mission.json" <<EOF
 {"preset": "$preset", "seed": $seed, "duration_s": $duration, "mode": "$mode", "pace": "$pace",

@@ -391,6 +391,7 @@ Status Link::writeReport(const std::filesystem::path& dir) const {
                       {"deltas_lost", st.store.deltas_lost},
                       {"delta_events_lost", st.store.delta_events_lost},
                       {"corrections_received", st.store.corrections_received},
+                      {"acked_batches_lost", st.store.acked_batches_lost},
                       {"covisible_maps_accepted", st.covisible_accepted},
                       {"covisible_maps_refused", st.covisible_refused},
                       {"covisible_last_refusal", st.covisible_last_refusal},

@@ -401,6 +401,7 @@ void LinkStore::onDelta(const MapDeltaMessage& d) {
 }
 
 void LinkStore::onWelcome(std::uint64_t stored) {
+  if (stored < acked_) counters_.acked_batches_lost += acked_ - stored;
   acked_ = stored;
   keyframes_->forEach([&](PoolHandle, Keyframe& kf) {
     if (kf.full_sent > stored) {

@@ -56,6 +56,9 @@ struct LinkStoreCounters {
   std::uint64_t points_dropped = 0;
   std::uint64_t removals_dropped = 0;  // culls and merges not sent because the store of them was full
   std::uint64_t corrections_received = 0;
+  // Batches the server had acknowledged and then, in a Welcome, said it does not hold (a server that restarted
+  // without its store): their content was sent again, but the acknowledgement had been wrong.
+  std::uint64_t acked_batches_lost = 0;
 };
 
 // What is waiting, for the progress line and the end of a run.

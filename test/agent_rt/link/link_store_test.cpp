@@ -102,6 +102,7 @@ TEST_F(LinkStoreTest, WhatWasSentAfterTheServersStoredSequenceIsSentAgainAndNoth
 
   reconnect();  // the server holds batch 1 only
   EXPECT_EQ(next_sequence, 2U);
+  EXPECT_EQ(sut.counters().acked_batches_lost, 0U);  // batch 2 was never acknowledged
   ASSERT_TRUE(sendNext());
   ASSERT_EQ(batch.keyframes_size(), 1);
   EXPECT_EQ(batch.keyframes(0).counter(), 1U);
@@ -131,6 +132,7 @@ TEST_F(LinkStoreTest, AServerThatLostEverythingGetsTheCurrentMapInFull) {
   server.restart();  // empty
   reconnect();
   EXPECT_EQ(next_sequence, 1U);
+  EXPECT_EQ(sut.counters().acked_batches_lost, 1U);  // batch 1 was acknowledged, and the server lost it
   ASSERT_TRUE(sendNext());
   ASSERT_EQ(batch.keyframes_size(), 1);
   EXPECT_EQ(batch.keyframes(0).counter(), 1U);
