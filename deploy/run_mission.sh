@@ -188,7 +188,7 @@ if [ "$kills" -gt 0 ]; then
 fi
 # Kills the server, starts it again on the same port and store, and times it (one line of restarts.csv).
 restart_server() {
-  local k=$1 t0 t1 now replayed
+  local k=$1 t0 t1 now replayed serving streaming
   t0=$(date +%s.%N)
   kill -KILL "$server_pid"
   wait "$server_pid" 2>/dev/null || true
@@ -204,10 +204,11 @@ restart_server() {
   done
   now=$(date +%s.%N)
   replayed=$(sed -n 's/.*replayed.*missions, \([0-9]*\) keyframes, in \([0-9.]*\) s/\1 \2/p' "$out/server.log")
-  echo "$k,${kill_at[$((k - 1))]},${replayed#* },$(awk "BEGIN { print $t1 - $t0 }"),$(awk "BEGIN { print $now - $t0 }"),${replayed%% *}" \
-    >>"$out/restarts.csv"
+  serving=$(awk "BEGIN { print $t1 - $t0 }")
+  streaming=$(awk "BEGIN { print $now - $t0 }")
+  echo "$k,${kill_at[$((k - 1))]},${replayed#* },$serving,$streaming,${replayed%% *}" >>"$out/restarts.csv"
   printf '  kill %d at %s s: serving again after %.2f s, every agent streaming after %.2f s (%s keyframes replayed)\n' \
-    "$k" "${kill_at[$((k - 1))]}" "$(awk "BEGIN { print $t1 - $t0 }")" "$(awk "BEGIN { print $now - $t0 }")" "${replayed%% *}"
+    "$k" "${kill_at[$((k - 1))]}" "$serving" "$streaming" "${replayed%% *}"
 }
 
 for a in "${agents[@]}"; do

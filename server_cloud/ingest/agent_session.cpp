@@ -272,8 +272,8 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
     commit = [&]() -> Status {
       StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
       if (Status s = store_->append(stored); !s.ok()) {
-        return Error{ErrorCode::kUnavailable, "the server could not store batch " + std::to_string(sequence) + " (" +
-                                                  s.error().message() + "); it was not applied: send it again later"};
+        return Error{ErrorCode::kUnavailable,
+                     "the server could not store it (" + s.error().message() + "); it was not applied: send it again"};
       }
       return Status::Ok();
     };
@@ -301,11 +301,7 @@ Result<IngestReport> applyBatch(Mission& mission, AgentRecord& record, const v1:
                                 const IngestLimits& limits, const std::function<Status()>& commit) {
   const std::uint64_t sequence = batch.sequence();
   auto report = ingestBatch(batch, record, mission.stack(), limits, commit);
-  if (!report) {
-    return report.error().code() == ErrorCode::kUnavailable
-               ? report.error()
-               : report.error().withContext("batch " + std::to_string(sequence));
-  }
+  if (!report) return report.error().withContext("batch " + std::to_string(sequence));
   record.stored_sequence = sequence;
   record.duplicate_objects += static_cast<std::uint64_t>(report->duplicate_objects);
   record.imu_links_missing += static_cast<std::uint64_t>(report->imu_links_missing);
@@ -356,17 +352,14 @@ Status replayStored(MissionRegistry& missions, const SessionOptions& options, co
   if (batch.sequence() != stored.sequence) {
     return damaged("the batch says it is sequence " + std::to_string(batch.sequence()));
   }
-  Result<IngestReport> report = Error{ErrorCode::kInternal, "not applied"};
-  {
-    auto record = shared_record->write();
-    if (stored.sequence != record->stored_sequence + 1) {
-      return damaged("batch " + std::to_string(stored.sequence) + " follows batch " +
-                     std::to_string(record->stored_sequence) + ": the store has a gap");
-    }
-    report = applyBatch(*mission, *record, batch, options.ingest, {});
-    if (!report) return damaged(report.error().message());
-    if (on_stored) on_stored(stored.mission, *report);
+  auto record = shared_record->write();
+  if (stored.sequence != record->stored_sequence + 1) {
+    return damaged("batch " + std::to_string(stored.sequence) + " follows batch " +
+                   std::to_string(record->stored_sequence) + ": the store has a gap");
   }
+  auto report = applyBatch(*mission, *record, batch, options.ingest, {});
+  if (!report) return damaged(report.error().message());
+  if (on_stored) on_stored(stored.mission, *report);
   return Status::Ok();
 }
 
