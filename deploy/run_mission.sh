@@ -163,6 +163,13 @@ grep -q "RouDi is ready" "$out/roudi.log" || { echo "run_mission: iox-roudi did 
 
 store_args=()
 [ "$store" = 1 ] && store_args=(--store "$out/store.db")
+# Every mission has its token (the server's tokens file, readable by this user only): the agents and the map
+# service client present it, as a deployment's would (CVISLAM_TOKEN keeps it out of the process list).
+new_token() { od -An -N16 -tx1 /dev/urandom | tr -d ' \n'; }
+mission_token=$(new_token)
+real_token=$(new_token)
+(umask 077; printf '%s %s\neuroc-v101 %s\n' "$mission" "$mission_token" "$real_token" >"$out/tokens")
+store_args+=(--tokens "$out/tokens")
 # Starts the server on $1 (host:port) and waits until it serves (after replaying its store).
 start_server() {
   rm -f "$out/server.port"
@@ -175,7 +182,7 @@ start_server() {
 start_server 127.0.0.1:0
 port=$(cat "$out/server.port")
 echo "== mission '$mission': server on 127.0.0.1:$port, ${#agents[@]} agent(s), $mode-inertial, pace $pace," \
-  "$([ "$store" = 1 ] && echo "map store $out/store.db" || echo "no map store")"
+  "$([ "$store" = 1 ] && echo "map store $out/store.db" || echo "no map store"), mission tokens in $out/tokens"
 
 # The restart test's schedule: kill k at kill_at[k] seconds after the agents start (seeded).
 kill_at=()
@@ -213,7 +220,7 @@ restart_server() {
 
 for a in "${agents[@]}"; do
   id=${a#agent}
-  "$bin/cvislam_agent" --dataset "$cache/$a" --output "$out/agents/$a" --roudi external --agent-id "$id" \
+  CVISLAM_TOKEN="$mission_token" "$bin/cvislam_agent" --dataset "$cache/$a" --output "$out/agents/$a" --roudi external --agent-id "$id" \
     --server "127.0.0.1:$port" --mission "$mission" --mode "$mode" --pace "$pace" ${agent_args[@]+"${agent_args[@]}"} \
     >"$out/agents/$a.log" 2>&1 &
   pids+=("$!")
@@ -255,7 +262,7 @@ t_ran=$(date +%s)
 # 3. One agent on real images through the same server: the EuRoC V1_01 excerpt (4.7 s, stereo-inertial).
 if [ "$real" = 1 ] && [ -d "$data/euroc-v101-excerpt/mav0" ]; then
   echo "== real data: one agent on the EuRoC V1_01 excerpt, mission 'euroc-v101'"
-  "$bin/cvislam_agent" --dataset "$data/euroc-v101-excerpt" --output "$out/agents/real_v101" --roudi external \
+  CVISLAM_TOKEN="$real_token" "$bin/cvislam_agent" --dataset "$data/euroc-v101-excerpt" --output "$out/agents/real_v101" --roudi external \
     --agent-id 0 --server "127.0.0.1:$port" --mission euroc-v101 --mode stereo --pace sync \
     >"$out/agents/real_v101.log" 2>&1 || { echo "run_mission: the real-data agent failed:" >&2; tail -5 "$out/agents/real_v101.log" >&2; failed=1; }
 elif [ "$real" = 1 ]; then
@@ -265,6 +272,7 @@ fi
 # 4. The map service, as an API client sees it: the mission's maps, their files (PLY points, TUM keyframes, a JSON
 #    summary) and its events so far, in $out/maps. Read while the server runs, so before its final GBA.
 echo "== map service (cvislam_mapctl; the maps before the server's final GBA, files in $out/maps)"
+export CVISLAM_TOKEN="$mission_token"
 if "$bin/cvislam_mapctl" --server "127.0.0.1:$port" maps "$mission" >"$out/maps.txt" 2>&1 &&
    "$bin/cvislam_mapctl" --server "127.0.0.1:$port" export "$mission" --out "$out/maps" >>"$out/maps.txt" 2>&1 &&
    "$bin/cvislam_mapctl" --server "127.0.0.1:$port" watch "$mission" --from 1 --seconds 1 >"$out/maps/events.txt" 2>&1; then

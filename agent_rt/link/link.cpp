@@ -26,6 +26,10 @@ Status LinkOptions::validate() const {
   if (server.empty()) return Status::Ok();
   if (server.find(':') == std::string::npos) return bad("server '" + server + "': give host:port");
   if (mission.empty()) return bad("mission must not be empty");
+  for (char c : token) {
+    // gRPC aborts the process on a metadata value it cannot send: refuse it here, with a message.
+    if (c <= ' ' || c > '~') return bad("the token may hold printable ASCII characters only, without spaces");
+  }
   if (!(max_rate_hz > 0.0) || max_rate_hz > 100.0) return bad("max_rate_hz must be in (0, 100]");
   if (max_batch_bytes < (16U << 10U)) return bad("max_batch_bytes must be at least 16 KiB");
   if (!(reconnect_min_s > 0.0) || reconnect_max_s < reconnect_min_s) {
@@ -50,7 +54,8 @@ struct Link::Impl {
         agent(a),
         store(a, o.store),
         client(LinkClientOptions{o.server, o.keepalive_ms,
-                                 std::chrono::milliseconds(static_cast<int>(o.connect_timeout_s * 1000)), 16U << 20U}) {
+                                 std::chrono::milliseconds(static_cast<int>(o.connect_timeout_s * 1000)), 16U << 20U,
+                                 o.token, o.tls_ca_pem}) {
     timeline.reserve(4096);
   }
 

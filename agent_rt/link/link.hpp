@@ -37,6 +37,8 @@ namespace cvislam::agent {
 struct LinkOptions {
   std::string server;  // host:port; empty: no link
   std::string mission = "default";
+  std::string token;         // the mission's token (the server's tokens file); empty: none
+  std::string tls_ca_pem;    // PEM of the CA that signed the server's TLS certificate; empty: plaintext
   double max_rate_hz = 5.0;  // up messages per second (paper: 5)
   std::size_t max_batch_bytes = 512U << 10U;
   double reconnect_min_s = 0.2;  // backoff after a failed attempt, doubling up to reconnect_max_s

@@ -95,7 +95,13 @@ LinkClient::LinkClient(const LinkClientOptions& options) : impl_(std::make_uniqu
   args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
   args.SetMaxSendMessageSize(static_cast<int>(options.max_message_bytes));
   args.SetMaxReceiveMessageSize(static_cast<int>(options.max_message_bytes));
-  impl_->channel = grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
+  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+  if (!options.tls_root_pem.empty()) {
+    grpc::SslCredentialsOptions tls;
+    tls.pem_root_certs = options.tls_root_pem;
+    credentials = grpc::SslCredentials(tls);
+  }
+  impl_->channel = grpc::CreateCustomChannel(options.server, credentials, args);
   impl_->stub = v1::AgentLink::NewStub(impl_->channel);
 }
 
@@ -115,6 +121,7 @@ Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connect(const v1::AgentU
   {
     std::lock_guard lock(s.context_mutex);
     s.context = std::make_unique<grpc::ClientContext>();
+    if (!s.options.token.empty()) s.context->AddMetadata("authorization", "Bearer " + s.options.token);
   }
   s.stream = s.stub->Connect(s.context.get());
   s.startReader();
@@ -137,8 +144,9 @@ Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connect(const v1::AgentU
   const grpc::Status status = s.teardown();
   lock.lock();
   s.last_error = status.ok() ? "the server sent no Welcome" : "the server refused the Hello: " + describe(status);
-  const ErrorCode code =
-      status.error_code() == grpc::StatusCode::UNAVAILABLE ? ErrorCode::kUnavailable : ErrorCode::kFailedPrecondition;
+  ErrorCode code = ErrorCode::kFailedPrecondition;
+  if (status.error_code() == grpc::StatusCode::UNAVAILABLE) code = ErrorCode::kUnavailable;
+  if (status.error_code() == grpc::StatusCode::UNAUTHENTICATED) code = ErrorCode::kUnauthenticated;
   return Error{code, s.last_error};
 }
 

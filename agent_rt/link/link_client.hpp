@@ -22,6 +22,8 @@ struct LinkClientOptions {
   int keepalive_ms = 1000;
   std::chrono::milliseconds connect_timeout{1000};
   std::size_t max_message_bytes = 16U << 20U;
+  std::string token;         // the mission's token, sent as "authorization: Bearer <token>"; empty: none
+  std::string tls_root_pem;  // PEM of the CA that signed the server's certificate; empty: plaintext
 };
 
 class LinkClient {

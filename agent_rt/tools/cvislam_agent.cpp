@@ -12,7 +12,10 @@
 #include <atomic>
 #include <csignal>
 #include <cstdio>
+#include <cstdlib>
+#include <fstream>
 #include <iostream>
+#include <sstream>
 #include <string>
 
 #include <CLI/CLI.hpp>
@@ -56,6 +59,12 @@ int main(int argc, char** argv) {
                  "Stream the map to the cvislam_server at HOST:PORT; without it the agent runs alone. The agent never "
                  "waits for the server: it reconnects by itself and resends what was not acknowledged");
   app.add_option("--mission", mission, "Mission name on the server (letters, digits, . _ -) [default]");
+  std::string token;
+  std::string tls_ca;
+  app.add_option("--token", token,
+                 "The mission's token, when the server has a tokens file [$CVISLAM_TOKEN; none]. The environment "
+                 "variable keeps it out of the process list");
+  app.add_option("--tls-ca", tls_ca, "Speak TLS, trusting the server certificate's CA in this PEM file [plaintext]");
   app.add_option("--max-frames", max_frames, "Stop after this many frames (0 = all)");
   app.add_flag("--no-imu", no_imu, "Vision only");
   app.add_flag("--quiet", quiet, "No progress output");
@@ -100,6 +109,20 @@ int main(int argc, char** argv) {
   if (no_imu) options.use_imu = false;
   if (!server.empty()) options.link.server = server;
   if (!mission.empty()) options.link.mission = mission;
+  if (token.empty()) {
+    if (const char* from_env = std::getenv("CVISLAM_TOKEN"); from_env != nullptr) token = from_env;
+  }
+  options.link.token = token;
+  if (!tls_ca.empty()) {
+    std::ifstream in(tls_ca, std::ios::binary);
+    std::ostringstream pem;
+    pem << in.rdbuf();
+    if (!in || pem.str().find("-----BEGIN ") == std::string::npos) {
+      std::cerr << "cvislam_agent: --tls-ca " << tls_ca << " is not a readable PEM file\n";
+      return 2;
+    }
+    options.link.tls_ca_pem = pem.str();
+  }
   options.quiet = quiet;
   options.trace_mapping = trace_mapping;
   options.max_frames = max_frames;

@@ -28,6 +28,8 @@ std::string_view toString(ErrorCode code) noexcept {
       return "resource exhausted";
     case ErrorCode::kUnavailable:
       return "unavailable";
+    case ErrorCode::kUnauthenticated:
+      return "unauthenticated";
   }
   return "unknown error";
 }

@@ -27,6 +27,7 @@ enum class ErrorCode {
   kFailedPrecondition,  // the request is well formed but not valid in this state (another protocol version)
   kResourceExhausted,   // a limit was reached (message size, agents per mission)
   kUnavailable,         // the peer cannot be reached now; trying again later may work
+  kUnauthenticated,     // the caller presented no credentials, or the wrong ones, for what it asked
 };
 
 std::string_view toString(ErrorCode code) noexcept;

@@ -12,6 +12,7 @@
 
 #include "common/config/yaml_section.hpp"
 #include "common/dataset/trajectory_io.hpp"
+#include "cvislam/v1/agent_link.pb.h"
 #include "cvislam/v1/monitor.pb.h"
 
 namespace cvislam::server {
@@ -34,6 +35,10 @@ Status ServerOptions::validate() const {
     return invalid("timeline_interval_s must be >= 0.05");
   }
   if (Status s = session.validate(); !s.ok()) return s;
+  if (Status s = rate_limit.validate(); !s.ok()) return s;
+  if (tls_certificate.empty() != tls_private_key.empty()) {
+    return invalid("TLS needs both a certificate and its private key (--tls-cert and --tls-key)");
+  }
   if (backend.enabled) {
     if (Status s = backend.validate(); !s.ok()) return s;
   }
@@ -64,7 +69,16 @@ std::string ServerOptions::describe() const {
       << "  backend:                      " << backend.describe() << "\n"
       << "  final_gba:                    " << (final_gba ? "true" : "false") << "\n"
       << "  store:                        " << (store.empty() ? "(none: maps in memory only)" : store.string())
-      << " (sync " << toString(store_sync) << ")\n";
+      << " (sync " << toString(store_sync) << ")\n"
+      << "  tokens:                       "
+      << (tokens_file.empty() ? "(none: every mission open to every client)" : tokens_file.string()) << "\n"
+      << "  tls:                          "
+      << (tls_certificate.empty() ? "(off: plaintext)" : tls_certificate.string() + ", key " + tls_private_key.string())
+      << "\n"
+      << "  max_missions:                 " << session.max_missions << "\n"
+      << "  max_agents_per_mission:       " << session.max_agents_per_mission << "\n"
+      << "  requests_per_s:               " << rate_limit.rate_per_s << " per client (burst " << rate_limit.burst
+      << ")\n";
   return out.str();
 }
 
@@ -83,9 +97,18 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   server.read("timeline_interval_s", o.timeline_interval_s);
   server.read("store", store);
   server.read("store_sync", store_sync);
+  std::string tokens = o.tokens_file.string();
+  std::string tls_cert = o.tls_certificate.string();
+  std::string tls_key = o.tls_private_key.string();
+  server.read("tokens", tokens);
+  server.read("tls_certificate", tls_cert);
+  server.read("tls_private_key", tls_key);
   if (Status s = server.finish(); !s.ok()) return in_file(s);
   o.output = output;
   o.store = store;
+  o.tokens_file = tokens;
+  o.tls_certificate = tls_cert;
+  o.tls_private_key = tls_key;
   auto sync = parseStoreSync(store_sync);
   if (!sync) return in_file(Status(sync.error().withContext("server.store_sync")));
   o.store_sync = *sync;
@@ -108,6 +131,10 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   limits.read("max_keypoints_per_keyframe", o.session.ingest.max_keypoints_per_keyframe);
   limits.read("max_imu_samples_per_keyframe", o.session.ingest.max_imu_samples_per_keyframe);
   limits.read("max_maps_per_agent", o.session.ingest.max_maps_per_agent);
+  limits.read("max_missions", o.session.max_missions);
+  limits.read("max_agents_per_mission", o.session.max_agents_per_mission);
+  limits.read("requests_per_s", o.rate_limit.rate_per_s);
+  limits.read("request_burst", o.rate_limit.burst);
   if (Status s = limits.finish(); !s.ok()) return in_file(s);
 
   config::YamlSection recognition(root["recognition"], "recognition");
@@ -170,7 +197,8 @@ recognition::RecognitionWorkerOptions defaultRecognitionOptions() {
   return o;
 }
 
-ServerCore::ServerCore(const ServerOptions& options) : options_(options), start_(Clock::now()) {}
+ServerCore::ServerCore(const ServerOptions& options)
+    : options_(options), start_(Clock::now()), limiter_(options.rate_limit) {}
 
 ServerCore::~ServerCore() = default;
 
@@ -200,9 +228,17 @@ void ServerCore::drainWorkers(bool final_gba) const {
   if (recognition_) recognition_->drain();
 }
 
-std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream) {
+std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream, std::string token) {
   return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), storedListener(),
-                                        store_.get());
+                                        store_.get(), SessionCredentials{&tokens_, std::move(token)});
+}
+
+Status ServerCore::loadTokens() {
+  if (options_.tokens_file.empty()) return Status::Ok();
+  auto loaded = MissionTokens::load(options_.tokens_file);
+  if (!loaded) return loaded.error();
+  tokens_ = std::move(loaded).value();
+  return Status::Ok();
 }
 
 Result<RecoveryReport> ServerCore::openStore() {
@@ -246,6 +282,88 @@ Result<RecoveryReport> ServerCore::attachStore(std::unique_ptr<MapStore> store) 
   return report;
 }
 
+Result<LoadReport> ServerCore::loadMission(const MapStore* source, const std::string& from, const std::string& as) {
+  const auto start = Clock::now();
+  if (source == nullptr) source = store_.get();
+  if (source == nullptr) {
+    return Error{ErrorCode::kFailedPrecondition,
+                 "no store to load mission '" + from + "' from (give --store or --load-from)"};
+  }
+  LoadReport report;
+  report.source = source->describe();
+  report.from = from;
+  report.as = as;
+  if (from == as) return Error{ErrorCode::kInvalidArgument, "mission '" + from + "' cannot be loaded as itself"};
+  if (missions_.find(as) && !store_) {
+    report.already_held = true;
+    return report;
+  }
+  // Collected first: the source may be this server's own store, which the copy appends to.
+  std::vector<StoreRecord> records;
+  if (Status s = source->replay(from,
+                                [&](const StoreRecord& r) -> Status {
+                                  records.push_back(r);
+                                  return Status::Ok();
+                                });
+      !s.ok()) {
+    return s.error().withContext("reading mission '" + from + "' of " + report.source);
+  }
+  if (records.empty()) {
+    std::string held;
+    if (auto names = source->missions(); names) {
+      for (const std::string& n : *names) held += (held.empty() ? "" : ", ") + n;
+    }
+    return Error{ErrorCode::kNotFound,
+                 report.source + " holds no mission '" + from + "' (it holds: " + (held.empty() ? "none" : held) + ")"};
+  }
+  // What an earlier load stored of `as` already: all of it (a restart replayed it), or a part (that load was cut
+  // short by a crash; it goes on from there, as the copy keeps the source's order).
+  std::size_t held = 0;
+  if (store_) {
+    if (Status s = store_->replay(as,
+                                  [&](const StoreRecord&) -> Status {
+                                    ++held;
+                                    return Status::Ok();
+                                  });
+        !s.ok()) {
+      return s.error().withContext("reading mission '" + as + "' of " + store_->describe());
+    }
+  }
+  if (held >= records.size()) {
+    report.already_held = true;
+    return report;
+  }
+  const AgentSession::StoredListener on_stored = storedListener();
+  for (std::size_t i = held; i < records.size(); ++i) {
+    StoreRecord& r = records[i];
+    r.mission = as;
+    if (r.kind == StoreRecord::Kind::kHello) {
+      // The Hello names its mission; the copy names the new one (replay checks that they agree).
+      v1::Hello hello;
+      if (!hello.ParseFromString(r.body)) {
+        return Error{ErrorCode::kDataError,
+                     report.source + " record " + std::to_string(r.number) + ": the Hello does not parse"};
+      }
+      hello.set_mission(as);
+      r.body = hello.SerializeAsString();
+    }
+    if (store_) {
+      if (Status s = store_->append(r); !s.ok()) {
+        return s.error().withContext("storing mission '" + as + "' (loaded from '" + from + "')");
+      }
+    }
+    if (Status s = replayStored(missions_, options_.session, r, on_stored); !s.ok()) {
+      return s.error().withContext("loading mission '" + from + "' of " + report.source + " as '" + as + "'");
+    }
+    (r.kind == StoreRecord::Kind::kHello ? report.hellos : report.batches) += 1;
+  }
+  if (auto mission = missions_.find(as)) {
+    for (const auto& agent : mission->agents()) report.keyframes += agent->read()->keyframes.size();
+  }
+  report.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  return report;
+}
+
 AgentSession::StoredListener ServerCore::storedListener() const {
   AgentSession::StoredListener on_stored;
   recognition::RecognitionWorker* worker = recognition_.get();
@@ -269,11 +387,13 @@ AgentSession::StoredListener ServerCore::storedListener() const {
   return on_stored;
 }
 
-void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& out) const {
+void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& out,
+                           const std::function<bool(const std::string&)>& visible) const {
   out.Clear();
   out.set_uptime_s(std::chrono::duration<double>(Clock::now() - start_).count());
   for (const auto& mission : missions_.missions()) {
     if (!mission_filter.empty() && mission->name() != mission_filter) continue;
+    if (visible && !visible(mission->name())) continue;
     for (const auto& shared : mission->agents()) {
       auto record = shared->read();
       v1::AgentStats& a = *out.add_agents();

@@ -12,6 +12,8 @@
 
 #include "common/core/result.hpp"
 #include "common/core/synchronized.hpp"
+#include "server_cloud/access/mission_tokens.hpp"
+#include "server_cloud/access/rate_limiter.hpp"
 #include "server_cloud/backend/backend_worker.hpp"
 #include "server_cloud/ingest/agent_session.hpp"
 #include "server_cloud/recognition/recognition_worker.hpp"
@@ -46,6 +48,13 @@ struct ServerOptions {
   // acknowledged, and that openStore() replays at start. Empty: maps live in memory only.
   std::filesystem::path store;
   SqliteStoreOptions::Sync store_sync = SqliteStoreOptions::Sync::kFull;
+  // Access (server_cloud/access): the missions' tokens (empty: every mission open to every client), and the
+  // requests per second per client (map service and monitor calls, agent streams opened).
+  std::filesystem::path tokens_file;
+  RateLimitOptions rate_limit;
+  // TLS on the port (agent link, map service, monitor, health): PEM files; both empty: plaintext.
+  std::filesystem::path tls_certificate;
+  std::filesystem::path tls_private_key;
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line
@@ -79,6 +88,18 @@ struct RecoveryReport {
   double seconds = 0.0;
 };
 
+// What loadMission() copied.
+struct LoadReport {
+  std::string source;         // the store it came from
+  std::string from;           // the mission there
+  std::string as;             // the mission here
+  bool already_held = false;  // `as` was here already (a restart replayed it): nothing was copied
+  std::uint64_t hellos = 0;
+  std::uint64_t batches = 0;
+  std::uint64_t keyframes = 0;
+  double seconds = 0.0;
+};
+
 class ServerCore {
  public:
   using Clock = std::chrono::steady_clock;
@@ -105,15 +126,37 @@ class ServerCore {
   Result<RecoveryReport> attachStore(std::unique_ptr<MapStore> store);
   [[nodiscard]] MapStore* store() const { return store_.get(); }
 
+  // Map reuse: copies mission `from` of `source` (this server's own store when nullptr) into this server as the
+  // new mission `as`. Its records, renamed, go into this server's store (when it has one) and are applied as a
+  // replay applies them, so the map service serves the map at once and place recognition and the back-end rebuild
+  // what they derive; an agent that flies `as` later is matched against it. The loaded agents keep their ids (and
+  // their keyframes' ids), so the agents of `as` take other ids. When `as` is here already (a restarted server
+  // replayed it from its store) nothing is copied. Call after openStore() and before serving. Errors name the
+  // store and the mission (NOT_FOUND lists the missions the store holds).
+  Result<LoadReport> loadMission(const MapStore* source, const std::string& from, const std::string& as);
+
   [[nodiscard]] const ServerOptions& options() const { return options_; }
   [[nodiscard]] MissionRegistry& missions() { return missions_; }
   [[nodiscard]] const MissionRegistry& missions() const { return missions_; }
 
-  // A session for a new agent stream (see AgentSession for `cancel_stream`).
-  std::unique_ptr<AgentSession> openSession(std::function<void()> cancel_stream);
+  // Reads options.tokens_file (nothing to do when it is empty): from then on every mission needs its token. The
+  // error names the file and line.
+  Status loadTokens();
+  void setTokens(MissionTokens tokens) { tokens_ = std::move(tokens); }  // tests
+  [[nodiscard]] const MissionTokens& tokens() const { return tokens_; }
+  // One request of `client` (its address and token; the adapters make the key) against options.rate_limit:
+  // RESOURCE_EXHAUSTED naming `what` and the limit when the client is over it.
+  Status admitRequest(const std::string& client, const std::string& what) { return limiter_.admit(client, what); }
+  [[nodiscard]] const RateLimiter& rateLimiter() const { return limiter_; }
 
-  // Statistics of one mission, or of every mission when `mission` is empty.
-  void fillStats(const std::string& mission, v1::ServerStats& out) const;
+  // A session for a new agent stream (see AgentSession for `cancel_stream`); `token` is what the stream
+  // presented, checked against the tokens when its Hello names the mission.
+  std::unique_ptr<AgentSession> openSession(std::function<void()> cancel_stream, std::string token = {});
+
+  // Statistics of one mission, or of every mission when `mission` is empty; `visible`, when set, leaves out the
+  // missions it says no to (those a caller's token does not open).
+  void fillStats(const std::string& mission, v1::ServerStats& out,
+                 const std::function<bool(const std::string&)>& visible = {}) const;
 
   // Records one timeline sample per agent (the service calls it every timeline_interval_s).
   void sampleTimeline();
@@ -141,6 +184,8 @@ class ServerCore {
   std::unique_ptr<recognition::RecognitionWorker> recognition_;
   std::unique_ptr<backend::BackendWorker> backend_;  // after recognition_: it goes first
   std::unique_ptr<MapStore> store_;
+  MissionTokens tokens_;
+  RateLimiter limiter_;
 
   [[nodiscard]] AgentSession::StoredListener storedListener() const;
 };

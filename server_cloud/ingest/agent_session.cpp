@@ -101,6 +101,9 @@ Status SessionOptions::validate() const {
     return invalid("downlink_rate_hz must be in (0, 100]");
   }
   if (max_corrections_per_message < 1) return invalid("max_corrections_per_message must be >= 1");
+  if (max_missions < 1 || max_agents_per_mission < 1) {
+    return invalid("limits.max_missions and limits.max_agents_per_mission must be >= 1");
+  }
   if (ingest.max_keypoints_per_keyframe < 1 || ingest.max_imu_samples_per_keyframe < 1 ||
       ingest.max_maps_per_agent < 1) {
     return invalid("ingest limits must be >= 1");
@@ -112,12 +115,14 @@ Status SessionOptions::validate() const {
 }
 
 AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& options,
-                           std::function<void()> cancel_stream, StoredListener on_stored, MapStore* store)
+                           std::function<void()> cancel_stream, StoredListener on_stored, MapStore* store,
+                           SessionCredentials credentials)
     : missions_(missions),
       options_(options),
       cancel_stream_(std::move(cancel_stream)),
       on_stored_(std::move(on_stored)),
       store_(store),
+      credentials_(std::move(credentials)),
       covisible_(options.covisible) {}
 
 AgentSession::~AgentSession() {
@@ -164,13 +169,20 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
                                                      std::to_string(wire::kProtocolVersion)};
   }
   if (Status s = checkMissionName(hello.mission()); !s.ok()) return s;
+  if (credentials_.tokens != nullptr) {
+    if (Status s = credentials_.tokens->authorize(hello.mission(), credentials_.token); !s.ok()) return s;
+  }
   if (hello.agent_id() > 0xFFFF) return invalid("agent id " + std::to_string(hello.agent_id()) + " is over 65535");
   auto sensors = sensorsFromHello(hello);
   if (!sensors) return sensors.error();
 
   const auto agent_id = static_cast<AgentId>(hello.agent_id());
-  auto mission = missions_.getOrCreate(hello.mission());
-  auto shared_record = mission->agent(agent_id);
+  auto opened = missions_.open(hello.mission(), options_.max_missions);
+  if (!opened) return opened.error();
+  std::shared_ptr<Mission> mission = std::move(opened).value();
+  auto admitted = mission->admitAgent(agent_id, options_.max_agents_per_mission);
+  if (!admitted) return admitted.error();
+  SharedAgentRecord shared_record = std::move(admitted).value();
   std::function<void()> replace_old;
   {
     auto record = shared_record->write();

@@ -18,6 +18,7 @@
 #include <string>
 
 #include "common/core/result.hpp"
+#include "server_cloud/access/mission_tokens.hpp"
 #include "server_cloud/ingest/batch_ingest.hpp"
 #include "server_cloud/ingest/covisible_downlink.hpp"
 #include "server_cloud/stack/map_stack.hpp"
@@ -40,8 +41,16 @@ struct SessionOptions {
   IngestLimits ingest;
   CovisibleOptions covisible;  // the map data of the downlink
   std::string server_name = "cvislam_server";
+  std::size_t max_missions = 64;            // missions a server holds; a Hello for one more is refused
+  std::size_t max_agents_per_mission = 32;  // agents of one mission; a Hello of one more is refused
 
   [[nodiscard]] Status validate() const;
+};
+
+// What the stream presented: the mission tokens decide whether its Hello may open the mission it names.
+struct SessionCredentials {
+  const MissionTokens* tokens = nullptr;  // nullptr: no check
+  std::string token;                      // the bearer token of the stream's metadata; "" when none
 };
 
 class AgentSession {
@@ -56,8 +65,9 @@ class AgentSession {
   using StoredListener = std::function<void(const std::string& mission, const IngestReport& report)>;
   // `store`, when set, makes every Hello and batch durable before it takes effect (map_store.hpp); a batch the
   // store refuses is not applied, and the stream ends with UNAVAILABLE so that the agent sends it again.
+  // `credentials`: the Hello is refused with UNAUTHENTICATED, before anything is made, unless they open its mission.
   AgentSession(MissionRegistry& missions, const SessionOptions& options, std::function<void()> cancel_stream,
-               StoredListener on_stored = {}, MapStore* store = nullptr);
+               StoredListener on_stored = {}, MapStore* store = nullptr, SessionCredentials credentials = {});
   ~AgentSession();
   AgentSession(const AgentSession&) = delete;
   AgentSession& operator=(const AgentSession&) = delete;
@@ -90,6 +100,7 @@ class AgentSession {
   std::function<void()> cancel_stream_;
   StoredListener on_stored_;
   MapStore* store_ = nullptr;
+  SessionCredentials credentials_;
   std::shared_ptr<Mission> mission_;
   SharedAgentRecord record_;
   std::string mission_name_;

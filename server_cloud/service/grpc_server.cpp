@@ -4,9 +4,10 @@
 #include <condition_variable>
 #include <cstdio>
 #include <deque>
+#include <fstream>
 #include <mutex>
-#include <optional>
 #include <set>
+#include <sstream>
 #include <thread>
 
 #include <grpcpp/grpcpp.h>
@@ -16,6 +17,7 @@
 
 #include "cvislam/v1/agent_link.grpc.pb.h"
 #include "cvislam/v1/monitor.grpc.pb.h"
+#include "server_cloud/service/call_access.hpp"
 #include "server_cloud/service/grpc_status.hpp"
 #include "server_cloud/service/map_service.hpp"
 #include "server_cloud/service/write_gate.hpp"
@@ -75,10 +77,20 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   LinkReactor(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry)
       : handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
     std::weak_ptr<StreamHandle> weak = handle_;
-    session_ = core.openSession([weak] {
-      if (auto h = weak.lock()) h->cancel();
-    });
+    const std::string token = presentedToken(*context);
+    session_ = core.openSession(
+        [weak] {
+          if (auto h = weak.lock()) h->cancel();
+        },
+        token);
     registry_.add(this);
+    // The mission's token is checked at the Hello (it names the mission); the rate of streams opened here.
+    if (Status admitted = core.admitRequest(clientKey(*context, token), "opening an agent stream"); !admitted.ok()) {
+      std::lock_guard lock(mutex_);
+      closing_status_ = admitted;
+      finishLocked(toGrpc(admitted));
+      return;
+    }
     StartRead(&in_);
   }
 
@@ -208,8 +220,15 @@ class MonitorService final : public v1::Monitor::CallbackService {
   explicit MonitorService(ServerCore& core) : core_(core) {}
   grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
                                      v1::ServerStats* response) override {
-    core_.fillStats(request->mission(), *response);
     auto* reactor = context->DefaultReactor();
+    if (Status s = admitCall(core_, *context, request->mission(), "GetStats"); !s.ok()) {
+      reactor->Finish(toGrpc(s));
+      return reactor;
+    }
+    const std::string token = presentedToken(*context);
+    const MissionTokens& tokens = core_.tokens();
+    core_.fillStats(request->mission(), *response,
+                    [&](const std::string& mission) { return tokens.admits(mission, token); });
     reactor->Finish(grpc::Status::OK);
     return reactor;
   }
@@ -217,6 +236,18 @@ class MonitorService final : public v1::Monitor::CallbackService {
  private:
   ServerCore& core_;
 };
+
+// A PEM file's text; the error names the file and what it is for.
+Result<std::string> readPem(const std::filesystem::path& file, const std::string& what) {
+  std::ifstream in(file, std::ios::binary);
+  if (!in) return Error{ErrorCode::kNotFound, "cannot read the " + what + " " + file.string()};
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (text.str().find("-----BEGIN ") == std::string::npos) {
+    return Error{ErrorCode::kParseError, "the " + what + " " + file.string() + " is not a PEM file"};
+  }
+  return text.str();
+}
 
 }  // namespace
 
@@ -268,8 +299,18 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
   const ServerOptions& o = core.options();
   auto impl = std::make_unique<Impl>(core);
   grpc::EnableDefaultHealthCheckService(true);
+  std::shared_ptr<grpc::ServerCredentials> credentials = grpc::InsecureServerCredentials();
+  if (!o.tls_certificate.empty()) {
+    auto certificate = readPem(o.tls_certificate, "TLS certificate (--tls-cert)");
+    if (!certificate) return certificate.error();
+    auto key = readPem(o.tls_private_key, "TLS private key (--tls-key)");
+    if (!key) return key.error();
+    grpc::SslServerCredentialsOptions tls;
+    tls.pem_key_cert_pairs.push_back({std::move(key).value(), std::move(certificate).value()});
+    credentials = grpc::SslServerCredentials(tls);
+  }
   grpc::ServerBuilder builder;
-  builder.AddListeningPort(o.listen, grpc::InsecureServerCredentials(), &impl->port);
+  builder.AddListeningPort(o.listen, credentials, &impl->port);
   builder.RegisterService(&impl->link);
   builder.RegisterService(&impl->monitor);
   builder.RegisterService(impl->maps.service());
@@ -286,7 +327,9 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
   impl->server = builder.BuildAndStart();
   if (!impl->server || impl->port == 0) {
     return Error{ErrorCode::kUnavailable,
-                 "cannot listen on " + o.listen + " (is the port taken, or the address not this machine's?)"};
+                 "cannot listen on " + o.listen + " (is the port taken, or the address not this machine's?" +
+                     (o.tls_certificate.empty() ? "" : " Or do the TLS certificate and key not belong together?") +
+                     ")"};
   }
   if (auto* health = impl->server->GetHealthCheckService()) {
     health->SetServingStatus(true);

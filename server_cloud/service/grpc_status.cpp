@@ -19,6 +19,8 @@ grpc::StatusCode toGrpcCode(ErrorCode code) {
       return grpc::StatusCode::RESOURCE_EXHAUSTED;
     case ErrorCode::kUnavailable:
       return grpc::StatusCode::UNAVAILABLE;
+    case ErrorCode::kUnauthenticated:
+      return grpc::StatusCode::UNAUTHENTICATED;
     case ErrorCode::kIoError:
     case ErrorCode::kDegenerate:
     case ErrorCode::kInternal:

@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <functional>
 #include <mutex>
-#include <optional>
 #include <set>
 #include <utility>
 #include <vector>
@@ -13,6 +12,7 @@
 #include "cvislam/v1/map_service.grpc.pb.h"
 #include "server_cloud/maps/map_export.hpp"
 #include "server_cloud/maps/map_reader.hpp"
+#include "server_cloud/service/call_access.hpp"
 #include "server_cloud/service/grpc_status.hpp"
 #include "server_cloud/service/write_gate.hpp"
 
@@ -221,17 +221,28 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
 
   grpc::ServerUnaryReactor* ListMissions(grpc::CallbackServerContext* context, const v1::ListMissionsRequest*,
                                          v1::ListMissionsResponse* response) override {
+    if (Status s = admitCall(core_, *context, "", "ListMissions"); !s.ok()) return finish(context, s);
     maps::listMissions(core_.missions(), *response);
+    // Only the missions the caller's token opens: a client of one mission does not learn the others.
+    const std::string token = presentedToken(*context);
+    auto* missions = response->mutable_missions();
+    missions->erase(std::remove_if(missions->begin(), missions->end(),
+                                   [&](const v1::MissionInfo& m) { return !core_.tokens().admits(m.name(), token); }),
+                    missions->end());
     return finish(context, Status{});
   }
 
   grpc::ServerUnaryReactor* ListMaps(grpc::CallbackServerContext* context, const v1::ListMapsRequest* request,
                                      v1::ListMapsResponse* response) override {
+    if (Status s = admitCall(core_, *context, request->mission(), "ListMaps"); !s.ok()) return finish(context, s);
     return finish(context, maps::listMaps(core_.missions(), request->mission(), *response));
   }
 
   grpc::ServerUnaryReactor* GetTrajectory(grpc::CallbackServerContext* context, const v1::GetTrajectoryRequest* request,
                                           v1::GetTrajectoryResponse* response) override {
+    if (Status s = admitCall(core_, *context, request->mission(), "GetTrajectory"); !s.ok()) {
+      return finish(context, s);
+    }
     if (request->agent() > 0xFFFFU) {
       return finish(context, Error{ErrorCode::kInvalidArgument,
                                    "agent " + std::to_string(request->agent()) + " is not an agent id (0-65535)"});
@@ -240,9 +251,10 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
                                                static_cast<AgentId>(request->agent()), *response));
   }
 
-  grpc::ServerWriteReactor<v1::MapChunk>* GetMap(grpc::CallbackServerContext*,
+  grpc::ServerWriteReactor<v1::MapChunk>* GetMap(grpc::CallbackServerContext* context,
                                                  const v1::GetMapRequest* request) override {
     using Writer = StreamWriter<v1::MapChunk>;
+    if (Status s = admitCall(core_, *context, request->mission(), "GetMap"); !s.ok()) return new Writer(toGrpc(s));
     maps::SnapshotOptions options;
     options.observations = request->observations();
     options.descriptors = request->descriptors();
@@ -254,9 +266,10 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     return new Writer([shared](v1::MapChunk& chunk) { return shared->next(chunk); });
   }
 
-  grpc::ServerWriteReactor<v1::ExportChunk>* ExportMap(grpc::CallbackServerContext*,
+  grpc::ServerWriteReactor<v1::ExportChunk>* ExportMap(grpc::CallbackServerContext* context,
                                                        const v1::ExportMapRequest* request) override {
     using Writer = StreamWriter<v1::ExportChunk>;
+    if (Status s = admitCall(core_, *context, request->mission(), "ExportMap"); !s.ok()) return new Writer(toGrpc(s));
     std::vector<maps::MapSnapshot> snapshots;
     if (request->has_map_id()) {
       auto one = maps::snapshotMap(core_.missions(), request->mission(), request->map_id());
@@ -271,11 +284,14 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     return new Writer([files](v1::ExportChunk& chunk) { return files->next(chunk); });
   }
 
-  grpc::ServerWriteReactor<v1::WatchMissionResponse>* WatchMission(grpc::CallbackServerContext*,
+  grpc::ServerWriteReactor<v1::WatchMissionResponse>* WatchMission(grpc::CallbackServerContext* context,
                                                                    const v1::WatchMissionRequest* request) override {
     using Refusal = StreamWriter<v1::WatchMissionResponse>;
     if (request->mission().empty()) {
       return new Refusal(toGrpc(Error{ErrorCode::kInvalidArgument, "the request names no mission"}));
+    }
+    if (Status s = admitCall(core_, *context, request->mission(), "WatchMission"); !s.ok()) {
+      return new Refusal(toGrpc(s));
     }
     std::shared_ptr<Mission> mission = core_.missions().find(request->mission());
     if (!mission) {

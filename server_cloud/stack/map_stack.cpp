@@ -45,6 +45,21 @@ SharedAgentRecord Mission::agent(AgentId id) {
   return slot;
 }
 
+Result<SharedAgentRecord> Mission::admitAgent(AgentId id, std::size_t max_agents) {
+  auto agents = agents_.write();
+  auto it = agents->find(id);
+  if (it != agents->end()) return it->second;
+  if (agents->size() >= max_agents) {
+    return Error{ErrorCode::kResourceExhausted, "mission '" + name_ + "' has " + std::to_string(agents->size()) +
+                                                    " agents, its limit (limits.max_agents_per_mission); agent " +
+                                                    std::to_string(id) + " cannot join it"};
+  }
+  auto record = std::make_shared<Synchronized<AgentRecord>>();
+  record->write()->id = id;
+  agents->emplace(id, record);
+  return record;
+}
+
 SharedAgentRecord Mission::findAgent(AgentId id) const {
   auto agents = agents_.read();
   auto it = agents->find(id);
@@ -63,6 +78,20 @@ std::shared_ptr<Mission> MissionRegistry::getOrCreate(const std::string& name) {
   auto& slot = (*missions)[name];
   if (!slot) slot = std::make_shared<Mission>(name);
   return slot;
+}
+
+Result<std::shared_ptr<Mission>> MissionRegistry::open(const std::string& name, std::size_t max_missions) {
+  auto missions = missions_.write();
+  auto it = missions->find(name);
+  if (it != missions->end()) return it->second;
+  if (missions->size() >= max_missions) {
+    return Error{ErrorCode::kResourceExhausted, "this server holds " + std::to_string(missions->size()) +
+                                                    " missions, its limit (limits.max_missions); mission '" + name +
+                                                    "' cannot start here (use another server, or raise the limit)"};
+  }
+  auto mission = std::make_shared<Mission>(name);
+  missions->emplace(name, mission);
+  return mission;
 }
 
 std::shared_ptr<Mission> MissionRegistry::find(const std::string& name) const {

@@ -25,6 +25,7 @@
 #include "common/camera/camera_model.hpp"
 #include "common/core/ids.hpp"
 #include "common/core/percentile.hpp"
+#include "common/core/result.hpp"
 #include "common/core/synchronized.hpp"
 #include "common/geometry/lie.hpp"
 #include "common/imu/preintegration.hpp"
@@ -184,6 +185,9 @@ class Mission {
 
   // The agent's record, made on first use.
   SharedAgentRecord agent(AgentId id);
+  // The same for a live Hello: a new agent is refused with RESOURCE_EXHAUSTED when the mission has
+  // `max_agents` already (an agent it knows always comes back).
+  Result<SharedAgentRecord> admitAgent(AgentId id, std::size_t max_agents);
 
   // Global BA runs of this mission's maps under way (the back-end counts them; ingest reads it to time batches
   // that met one).
@@ -211,6 +215,9 @@ class Mission {
 class MissionRegistry {
  public:
   std::shared_ptr<Mission> getOrCreate(const std::string& name);
+  // The same for a live Hello: a new mission is refused with RESOURCE_EXHAUSTED when the server holds
+  // `max_missions` already.
+  Result<std::shared_ptr<Mission>> open(const std::string& name, std::size_t max_missions);
   [[nodiscard]] std::shared_ptr<Mission> find(const std::string& name) const;
   [[nodiscard]] std::vector<std::shared_ptr<Mission>> missions() const;  // by name
 

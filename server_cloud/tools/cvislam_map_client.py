@@ -5,7 +5,8 @@ A short client in another language than the server, to show the API is usable fr
 Debian's python3-grpcio and python3-protobuf, and the Python stubs that the build generates (build/<preset>/python;
 --stubs or CVISLAM_PY_STUBS point elsewhere).
 
-  cvislam_map_client.py --server 127.0.0.1:50051 --mission overlap2 [--map 0] --out map.ply
+  cvislam_map_client.py --server 127.0.0.1:50051 --mission overlap2 [--map 0] --out map.ply \
+      [--token T | $CVISLAM_TOKEN] [--tls-ca ca.pem]
 
 Exit status: 0 written, 1 the server refused or could not be reached, 2 bad arguments or missing stubs.
 """
@@ -32,7 +33,13 @@ def main():
     parser.add_argument("--out", required=True, help="PLY file to write")
     parser.add_argument("--stubs", help="folder of the generated Python stubs [build/default/python]")
     parser.add_argument("--timeout", type=float, default=30.0, help="seconds per call [%(default)s]")
+    parser.add_argument("--token", default=os.environ.get("CVISLAM_TOKEN", ""),
+                        help="the mission's token, when the server has a tokens file [$CVISLAM_TOKEN]")
+    parser.add_argument("--tls-ca", help="speak TLS, trusting the server certificate's CA in this PEM file")
     args = parser.parse_args()
+    if any(c <= " " or c > "~" for c in args.token):
+        print("cvislam_map_client: --token may hold printable ASCII characters only, without spaces", file=sys.stderr)
+        return 2
 
     stubs = find_stubs(args.stubs)
     if stubs is None:
@@ -48,11 +55,22 @@ def main():
               file=sys.stderr)
         return 2
 
-    stub = map_service_pb2_grpc.MapServiceStub(grpc.insecure_channel(args.server))
+    if args.tls_ca:
+        try:
+            with open(args.tls_ca, "rb") as f:
+                channel = grpc.secure_channel(args.server, grpc.ssl_channel_credentials(root_certificates=f.read()))
+        except OSError as e:
+            print("cvislam_map_client: --tls-ca: %s" % e, file=sys.stderr)
+            return 2
+    else:
+        channel = grpc.insecure_channel(args.server)
+    stub = map_service_pb2_grpc.MapServiceStub(channel)
+    metadata = [("authorization", "Bearer " + args.token)] if args.token else None
     try:
         map_id = args.map
         if map_id is None:
-            maps = stub.ListMaps(map_service_pb2.ListMapsRequest(mission=args.mission), timeout=args.timeout).maps
+            maps = stub.ListMaps(map_service_pb2.ListMapsRequest(mission=args.mission), timeout=args.timeout,
+                                 metadata=metadata).maps
             if not maps:
                 print("cvislam_map_client: mission %s has no map yet" % args.mission, file=sys.stderr)
                 return 1
@@ -62,7 +80,7 @@ def main():
         chunks = 0
         last = False
         request = map_service_pb2.GetMapRequest(mission=args.mission, map_id=map_id)
-        for chunk in stub.GetMap(request, timeout=args.timeout):
+        for chunk in stub.GetMap(request, timeout=args.timeout, metadata=metadata):
             chunks += 1
             keyframes += len(chunk.keyframes)
             points.extend((p.p_m.x, p.p_m.y, p.p_m.z, p.observations) for p in chunk.points)

@@ -1,6 +1,6 @@
 // cvislam_mapctl: reads a running cvislam_server's maps over cvislam.v1.MapService.
 //
-//   cvislam_mapctl [--server HOST:PORT] [--json] [--timeout S] list
+//   cvislam_mapctl [--server HOST:PORT] [--token T] [--tls-ca CA.pem] [--json] [--timeout S] list
 //   cvislam_mapctl ... maps MISSION
 //   cvislam_mapctl ... get MISSION MAP [--observations] [--descriptors] [--chunk-bytes N] [--out FILE.json|FILE.ply]
 //   cvislam_mapctl ... trajectory MISSION AGENT [--out FILE.txt]
@@ -12,6 +12,7 @@
 // which and why), 2 bad command line.
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -19,6 +20,7 @@
 #include <memory>
 #include <optional>
 #include <set>
+#include <sstream>
 #include <string>
 
 #include <google/protobuf/util/json_util.h>
@@ -35,10 +37,13 @@ struct Globals {
   std::string server = "127.0.0.1:50051";
   bool json = false;
   double timeout_s = 30.0;
+  std::string token;
+  std::string tls_ca;
 };
 
 std::unique_ptr<grpc::ClientContext> context(const Globals& g) {
   auto c = std::make_unique<grpc::ClientContext>();
+  if (!g.token.empty()) c->AddMetadata("authorization", "Bearer " + g.token);
   c->set_deadline(std::chrono::system_clock::now() +
                   std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::duration<double>(g.timeout_s)));
   return c;
@@ -76,6 +81,8 @@ int failed(const Globals& g, const grpc::Status& status) {
   if (status.error_code() == grpc::StatusCode::UNAVAILABLE ||
       status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED) {
     hint = " (is cvislam_server running there? --server HOST:PORT)";
+  } else if (status.error_code() == grpc::StatusCode::UNAUTHENTICATED && g.token.empty()) {
+    hint = " (give the mission's token: --token T or CVISLAM_TOKEN)";
   } else if (status.error_code() == grpc::StatusCode::UNIMPLEMENTED) {
     hint = " (the server there does not offer cvislam.v1.MapService: an older build, or not a cvislam_server)";
   }
@@ -328,6 +335,7 @@ const char* kindName(v1::MissionEventMessage::Kind kind) {
 int watch(const Globals& g, v1::MapService::Stub& stub, const v1::WatchMissionRequest& request, std::uint64_t count,
           double seconds) {
   grpc::ClientContext c;
+  if (!g.token.empty()) c.AddMetadata("authorization", "Bearer " + g.token);
   if (seconds > 0) {
     c.set_deadline(std::chrono::system_clock::now() +
                    std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::duration<double>(seconds)));
@@ -396,6 +404,10 @@ int main(int argc, char** argv) {
   app.add_option("--server", g.server, "The server's host:port [127.0.0.1:50051]");
   app.add_flag("--json", g.json, "Print the answer as JSON instead of tables");
   app.add_option("--timeout", g.timeout_s, "Seconds each call may take [30]")->check(CLI::PositiveNumber);
+  app.add_option("--token", g.token,
+                 "The mission's token, when the server has a tokens file [$CVISLAM_TOKEN; none]. The environment "
+                 "variable keeps it out of the process list");
+  app.add_option("--tls-ca", g.tls_ca, "Speak TLS, trusting the server certificate's CA in this PEM file [plaintext]");
   app.require_subcommand(1);
 
   app.add_subcommand("list", "Every mission on the server, with its agents and counts");
@@ -443,7 +455,29 @@ int main(int argc, char** argv) {
 
   auto channel_args = grpc::ChannelArguments();
   channel_args.SetMaxReceiveMessageSize(64 << 20);
-  auto channel = grpc::CreateCustomChannel(g.server, grpc::InsecureChannelCredentials(), channel_args);
+  if (g.token.empty()) {
+    if (const char* from_env = std::getenv("CVISLAM_TOKEN"); from_env != nullptr) g.token = from_env;
+  }
+  for (char c : g.token) {
+    if (c <= ' ' || c > '~') {
+      std::fprintf(stderr, "cvislam_mapctl: --token may hold printable ASCII characters only, without spaces\n");
+      return 2;
+    }
+  }
+  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+  if (!g.tls_ca.empty()) {
+    std::ifstream in(g.tls_ca, std::ios::binary);
+    std::ostringstream pem;
+    pem << in.rdbuf();
+    if (!in || pem.str().find("-----BEGIN ") == std::string::npos) {
+      std::fprintf(stderr, "cvislam_mapctl: --tls-ca %s is not a readable PEM file\n", g.tls_ca.c_str());
+      return 2;
+    }
+    grpc::SslCredentialsOptions tls;
+    tls.pem_root_certs = pem.str();
+    credentials = grpc::SslCredentials(tls);
+  }
+  auto channel = grpc::CreateCustomChannel(g.server, credentials, channel_args);
   auto stub = v1::MapService::NewStub(channel);
 
   if (app.got_subcommand("list")) return list(g, *stub);

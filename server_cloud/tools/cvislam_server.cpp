@@ -10,12 +10,15 @@
 // Exit status: 0 after a clean stop, 1 it could not start or write its outputs, 2 bad command line or config.
 #include <pthread.h>
 
+#include <algorithm>
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <string>
+#include <vector>
 
 #include <CLI/CLI.hpp>
 
@@ -120,6 +123,35 @@ int main(int argc, char** argv) {
   app.add_option("--store-sync", store_sync,
                  "full: a commit survives power loss; normal: it survives a crash of the process (SIGKILL) but maybe "
                  "not of the machine; off: left to the OS [full]");
+  std::string tokens;
+  std::string tls_cert;
+  std::string tls_key;
+  app.add_option("--tokens", tokens,
+                 "Tokens file: one 'MISSION TOKEN' line per mission ('*': an operator token for every mission). "
+                 "Agents and clients then present their mission's token; a mission not listed cannot be opened "
+                 "[none: every mission open to every client]");
+  app.add_option("--tls-cert", tls_cert, "PEM certificate (chain) for TLS on the port [none: plaintext]");
+  app.add_option("--tls-key", tls_key, "PEM private key of --tls-cert");
+  std::optional<std::size_t> max_missions;
+  std::optional<std::size_t> max_agents;
+  std::optional<double> requests_per_s;
+  app.add_option("--max-missions", max_missions, "Missions this server holds at most [64]");
+  app.add_option("--max-agents-per-mission", max_agents, "Agents of one mission at most [32]");
+  app.add_option("--requests-per-s", requests_per_s,
+                 "Requests per second per client (map service and monitor calls, agent streams opened), with a "
+                 "burst of twice as many; 0: no limit [50]");
+  std::vector<std::string> load_missions;
+  std::string load_from;
+  app.add_option("--load-mission", load_missions,
+                 "Map reuse: FROM=AS loads mission FROM (a finished one) as the new mission AS before serving, "
+                 "stored in --store; agents of AS are matched against its map. Repeatable. Loaded agents keep their "
+                 "ids: give AS's agents other ids")
+      ->check([](const std::string& v) {
+        const auto eq = v.find('=');
+        return eq == std::string::npos || eq == 0 || eq + 1 == v.size() ? std::string("give FROM=AS") : std::string();
+      });
+  app.add_option("--load-from", load_from,
+                 "The store --load-mission reads (not in use by a running server) [this server's --store]");
   CLI11_PARSE(app, argc, argv);
 
   ServerOptions options;
@@ -140,6 +172,15 @@ int main(int argc, char** argv) {
       return 2;
     }
     options.store_sync = *sync;
+  }
+  if (!tokens.empty()) options.tokens_file = tokens;
+  if (!tls_cert.empty()) options.tls_certificate = tls_cert;
+  if (!tls_key.empty()) options.tls_private_key = tls_key;
+  if (max_missions) options.session.max_missions = *max_missions;
+  if (max_agents) options.session.max_agents_per_mission = *max_agents;
+  if (requests_per_s) {
+    options.rate_limit.rate_per_s = *requests_per_s;
+    options.rate_limit.burst = std::max(1.0, 2.0 * *requests_per_s);
   }
   if (no_recognition) options.recognition.enabled = false;
   if (no_backend) options.backend.enabled = false;
@@ -169,6 +210,14 @@ int main(int argc, char** argv) {
 
   if (!quiet) std::fprintf(stderr, "[server] options:\n%s", options.describe().c_str());
   cvislam::server::ServerCore core(options);
+  if (auto s = core.loadTokens(); !s.ok()) {
+    std::cerr << "cvislam_server: " << s.error().message() << "\n";
+    return 2;
+  }
+  if (core.tokens().enabled()) {
+    std::fprintf(stderr, "[server] tokens: %zu missions listed in %s\n", core.tokens().missions(),
+                 options.tokens_file.string().c_str());
+  }
   if (auto s = core.startWorkers(); !s.ok()) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 1;
@@ -187,6 +236,39 @@ int main(int argc, char** argv) {
                  r.store.c_str(), static_cast<unsigned long long>(r.batches), static_cast<unsigned long long>(r.hellos),
                  static_cast<double>(r.bytes) / 1e6, r.agents, r.missions, static_cast<unsigned long long>(r.keyframes),
                  r.seconds);
+  }
+  if (!load_missions.empty()) {
+    std::unique_ptr<cvislam::server::MapStore> source;
+    if (!load_from.empty()) {
+      cvislam::server::SqliteStoreOptions source_options;
+      source_options.path = load_from;
+      source_options.create_if_missing = false;
+      auto opened = cvislam::server::openSqliteStore(source_options);
+      if (!opened) {
+        std::cerr << "cvislam_server: --load-from: " << opened.error().message() << "\n";
+        return 1;
+      }
+      source = std::move(opened).value();
+    }
+    for (const std::string& spec : load_missions) {
+      const std::string from = spec.substr(0, spec.find('='));
+      const std::string as = spec.substr(spec.find('=') + 1);
+      auto loaded = core.loadMission(source.get(), from, as);
+      if (!loaded) {
+        std::cerr << "cvislam_server: --load-mission " << spec << ": " << loaded.error().message() << "\n";
+        return 1;
+      }
+      if (loaded->already_held) {
+        std::fprintf(stderr, "[server] mission '%s' is held already (loaded before): not loaded again\n", as.c_str());
+      } else {
+        std::fprintf(stderr,
+                     "[server] loaded mission '%s' of %s as '%s': %llu batches and %llu hellos, %llu keyframes, in "
+                     "%.2f s\n",
+                     from.c_str(), loaded->source.c_str(), as.c_str(), static_cast<unsigned long long>(loaded->batches),
+                     static_cast<unsigned long long>(loaded->hellos),
+                     static_cast<unsigned long long>(loaded->keyframes), loaded->seconds);
+      }
+    }
   }
   auto server = cvislam::server::GrpcServer::start(core);
   if (!server) {

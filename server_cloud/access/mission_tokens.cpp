@@ -1,0 +1,112 @@
+#include "server_cloud/access/mission_tokens.hpp"
+
+#include <cctype>
+#include <fstream>
+#include <sstream>
+
+namespace cvislam::server {
+
+namespace {
+
+// Compares without stopping at the first difference, so that the time taken says nothing about how much of a
+// guess was right.
+bool sameToken(std::string_view a, std::string_view b) {
+  if (a.size() != b.size() || a.empty()) return false;
+  unsigned char diff = 0;
+  for (std::size_t i = 0; i < a.size(); ++i) {
+    diff |= static_cast<unsigned char>(static_cast<unsigned char>(a[i]) ^ static_cast<unsigned char>(b[i]));
+  }
+  return diff == 0;
+}
+
+bool printableToken(std::string_view token) {
+  for (char c : token) {
+    if (std::isgraph(static_cast<unsigned char>(c)) == 0) return false;
+  }
+  return true;
+}
+
+}  // namespace
+
+Result<MissionTokens> MissionTokens::load(const std::filesystem::path& file) {
+  std::ifstream in(file, std::ios::binary);
+  if (!in) {
+    return Error{ErrorCode::kNotFound, "cannot read the tokens file " + file.string() + " (check the path)"};
+  }
+  std::ostringstream text;
+  text << in.rdbuf();
+  return parse(text.str(), file.string());
+}
+
+Result<MissionTokens> MissionTokens::parse(std::string_view text, const std::string& source) {
+  MissionTokens tokens;
+  tokens.enabled_ = true;
+  std::istringstream lines{std::string(text)};
+  std::string line;
+  int number = 0;
+  const auto bad = [&](const std::string& what) {
+    return Error{ErrorCode::kParseError, source + " line " + std::to_string(number) + ": " + what};
+  };
+  while (std::getline(lines, line)) {
+    ++number;
+    if (const auto hash = line.find('#'); hash != std::string::npos) line.resize(hash);
+    std::istringstream fields(line);
+    std::string mission;
+    std::string token;
+    std::string extra;
+    if (!(fields >> mission)) continue;  // blank or comment
+    if (!(fields >> token)) return bad("'" + mission + "' has no token: write 'MISSION TOKEN'");
+    if (fields >> extra) return bad("more than 'MISSION TOKEN' ('" + extra + "')");
+    if (token.size() < kMinTokenChars || !printableToken(token)) {
+      return bad("the token of '" + mission + "' has " + std::to_string(token.size()) + " characters; use at least " +
+                 std::to_string(kMinTokenChars) + " (e.g. openssl rand -hex 16)");
+    }
+    if (mission == "*") {
+      if (!tokens.operator_token_.empty()) return bad("a second operator token ('*')");
+      tokens.operator_token_ = token;
+      continue;
+    }
+    if (!tokens.by_mission_.emplace(mission, token).second) return bad("mission '" + mission + "' is listed twice");
+  }
+  if (tokens.by_mission_.empty() && tokens.operator_token_.empty()) {
+    return Error{ErrorCode::kParseError,
+                 source + " lists no mission: write one 'MISSION TOKEN' line per mission (or leave tokens off)"};
+  }
+  return tokens;
+}
+
+Status MissionTokens::authorize(std::string_view mission, std::string_view presented) const {
+  if (!enabled_) return Status::Ok();
+  const std::string name(mission);
+  if (presented.empty()) {
+    return Error{ErrorCode::kUnauthenticated,
+                 "mission '" + name +
+                     "' needs its token: send gRPC metadata 'authorization: Bearer <token>' (--token, or "
+                     "CVISLAM_TOKEN)"};
+  }
+  if (sameToken(presented, operator_token_)) return Status::Ok();
+  const auto it = by_mission_.find(name);
+  if (it == by_mission_.end()) {
+    return Error{ErrorCode::kUnauthenticated, "mission '" + name +
+                                                  "' is not in this server's tokens file; add a line '" + name +
+                                                  " TOKEN' there and restart the server"};
+  }
+  if (!sameToken(presented, it->second)) {
+    return Error{ErrorCode::kUnauthenticated, "the token presented is not mission '" + name + "''s token"};
+  }
+  return Status::Ok();
+}
+
+std::string_view bearerToken(std::string_view authorization) {
+  constexpr std::string_view kScheme = "bearer ";
+  if (authorization.size() <= kScheme.size()) return {};
+  for (std::size_t i = 0; i < kScheme.size(); ++i) {
+    if (std::tolower(static_cast<unsigned char>(authorization[i])) != kScheme[i]) return {};
+  }
+  std::string_view token = authorization.substr(kScheme.size());
+  while (!token.empty() && token.front() == ' ') token.remove_prefix(1);
+  while (!token.empty() && token.back() == ' ') token.remove_suffix(1);
+  return token;
+}
+
+}  // namespace cvislam::server
