@@ -18,8 +18,10 @@ packages=(
   libopencv-core-dev libopencv-imgproc-dev libopencv-features2d-dev libopencv-calib3d-dev libopencv-imgcodecs-dev
   # agent <-> server link and the map service
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
-  # the server's map store
-  libsqlite3-dev
+  # the server's map store; openssl makes the throwaway certificate of the TLS tests
+  libsqlite3-dev openssl
+  # fuzzing the server's inbound messages with libFuzzer (test/fuzz/run_fuzz.sh)
+  clang libclang-rt-14-dev
   # the map service's Python client (server_cloud/tools/cvislam_map_client.py) and its test
   python3-grpcio python3-protobuf
   # zero-copy tracking <-> mapping; libacl1-dev because iceoryx's RouDi headers include <sys/acl.h>

@@ -260,7 +260,9 @@ Status MapContent::checkConsistency() const {
       const ServerMapPoint* p = point(kf.point[k]);
       if (p == nullptr) return bad("keyframe " + id.toString() + " observes missing point " + kf.point[k].toString());
       const auto matches = std::count_if(p->observations.begin(), p->observations.end(),
-                                         [&](const auto& o) { return o.keyframe == id && o.keypoint == k; });
+                                         [&, observer = id](const auto& o) {  // clang 14 cannot capture a binding
+                                           return o.keyframe == observer && o.keypoint == k;
+                                         });
       if (matches != 1) return bad("point " + p->id.toString() + " does not list keyframe " + id.toString() + " once");
     }
   }

@@ -21,6 +21,13 @@ if(CVISLAM_SANITIZE)
   add_link_options(-fsanitize=${CVISLAM_SANITIZE})
 endif()
 
+if(CVISLAM_FUZZ)
+  if(NOT CMAKE_CXX_COMPILER_ID MATCHES "Clang")
+    message(FATAL_ERROR "CVISLAM_FUZZ needs clang (libFuzzer): configure with CXX=clang++-14, or use test/fuzz/run_fuzz.sh")
+  endif()
+  add_compile_options(-fsanitize=fuzzer-no-link)
+endif()
+
 # Warnings for project code only (imported targets are SYSTEM includes, so third-party headers stay quiet).
 set(CVISLAM_WARNING_FLAGS -Wall -Wextra -Wshadow -Wnon-virtual-dtor -Wcast-align -Wunused -Woverloaded-virtual
     -Wdouble-promotion -Wformat=2 -Wimplicit-fallthrough)
