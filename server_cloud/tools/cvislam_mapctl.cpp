@@ -81,8 +81,6 @@ int failed(const Globals& g, const grpc::Status& status) {
   if (status.error_code() == grpc::StatusCode::UNAVAILABLE ||
       status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED) {
     hint = " (is cvislam_server running there? --server HOST:PORT)";
-  } else if (status.error_code() == grpc::StatusCode::UNAUTHENTICATED && g.token.empty()) {
-    hint = " (give the mission's token: --token T or CVISLAM_TOKEN)";
   } else if (status.error_code() == grpc::StatusCode::UNIMPLEMENTED) {
     hint = " (the server there does not offer cvislam.v1.MapService: an older build, or not a cvislam_server)";
   }
