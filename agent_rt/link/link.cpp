@@ -14,6 +14,7 @@
 
 #include "agent_rt/link/anchor_decoder.hpp"
 #include "agent_rt/link/link_client.hpp"
+#include "common/core/text.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 
@@ -26,9 +27,8 @@ Status LinkOptions::validate() const {
   if (server.empty()) return Status::Ok();
   if (server.find(':') == std::string::npos) return bad("server '" + server + "': give host:port");
   if (mission.empty()) return bad("mission must not be empty");
-  for (char c : token) {
-    // gRPC aborts the process on a metadata value it cannot send: refuse it here, with a message.
-    if (c <= ' ' || c > '~') return bad("the token may hold printable ASCII characters only, without spaces");
+  if (!token.empty() && !text::isPrintableToken(token)) {
+    return bad("the token may hold printable ASCII characters only, without spaces");
   }
   if (!(max_rate_hz > 0.0) || max_rate_hz > 100.0) return bad("max_rate_hz must be in (0, 100]");
   if (max_batch_bytes < (16U << 10U)) return bad("max_batch_bytes must be at least 16 KiB");

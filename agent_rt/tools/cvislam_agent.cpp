@@ -13,14 +13,13 @@
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
-#include <fstream>
 #include <iostream>
-#include <sstream>
 #include <string>
 
 #include <CLI/CLI.hpp>
 
 #include "agent_rt/runtime/agent.hpp"
+#include "common/core/text.hpp"
 
 namespace {
 std::atomic<bool> g_stop{false};
@@ -114,14 +113,12 @@ int main(int argc, char** argv) {
   }
   options.link.token = token;
   if (!tls_ca.empty()) {
-    std::ifstream in(tls_ca, std::ios::binary);
-    std::ostringstream pem;
-    pem << in.rdbuf();
-    if (!in || pem.str().find("-----BEGIN ") == std::string::npos) {
-      std::cerr << "cvislam_agent: --tls-ca " << tls_ca << " is not a readable PEM file\n";
+    auto pem = cvislam::text::readPemFile(tls_ca, "CA file (--tls-ca)");
+    if (!pem) {
+      std::cerr << "cvislam_agent: " << pem.error().message() << "\n";
       return 2;
     }
-    options.link.tls_ca_pem = pem.str();
+    options.link.tls_ca_pem = std::move(pem).value();
   }
   options.quiet = quiet;
   options.trace_mapping = trace_mapping;

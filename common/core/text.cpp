@@ -3,9 +3,32 @@
 #include <charconv>
 #include <cmath>
 #include <cstdio>
+#include <iterator>
 #include <limits>
 
 namespace cvislam::text {
+
+bool isPrintableToken(std::string_view s) noexcept {
+  if (s.empty()) return false;
+  for (const char c : s) {
+    if (c <= ' ' || c > '~') return false;
+  }
+  return true;
+}
+
+Result<std::string> readTextFile(const std::filesystem::path& path, std::string_view what) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return Error{ErrorCode::kNotFound, "cannot read the " + std::string(what) + " " + path.string()};
+  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+Result<std::string> readPemFile(const std::filesystem::path& path, std::string_view what) {
+  auto pem = readTextFile(path, what);
+  if (pem && pem->find("-----BEGIN ") == std::string::npos) {
+    return Error{ErrorCode::kParseError, "the " + std::string(what) + " " + path.string() + " is not a PEM file"};
+  }
+  return pem;
+}
 
 std::string_view trim(std::string_view s) noexcept {
   const auto is_blank = [](char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\n'; };

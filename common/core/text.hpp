@@ -13,6 +13,15 @@
 
 namespace cvislam::text {
 
+// Whether `s` is a usable credential or metadata value: non-empty printable ASCII without spaces (gRPC aborts the
+// process on a metadata value it cannot send, so clients check before sending).
+bool isPrintableToken(std::string_view s) noexcept;
+
+// A whole file's bytes; the error (kNotFound) names `what` and the file ("cannot read the tokens file /x").
+Result<std::string> readTextFile(const std::filesystem::path& path, std::string_view what);
+// The same for a PEM file (certificates, keys), which must hold a "-----BEGIN " block (kParseError otherwise).
+Result<std::string> readPemFile(const std::filesystem::path& path, std::string_view what);
+
 // A signed decimal integer, the whole field ("1403715273262142976"). Rejects signs-only, blanks, junk.
 std::optional<std::int64_t> parseInt64(std::string_view field) noexcept;
 

@@ -1,8 +1,9 @@
 #include "server_cloud/access/mission_tokens.hpp"
 
 #include <cctype>
-#include <fstream>
 #include <sstream>
+
+#include "common/core/text.hpp"
 
 namespace cvislam::server {
 
@@ -19,23 +20,12 @@ bool sameToken(std::string_view a, std::string_view b) {
   return diff == 0;
 }
 
-bool printableToken(std::string_view token) {
-  for (char c : token) {
-    if (std::isgraph(static_cast<unsigned char>(c)) == 0) return false;
-  }
-  return true;
-}
-
 }  // namespace
 
 Result<MissionTokens> MissionTokens::load(const std::filesystem::path& file) {
-  std::ifstream in(file, std::ios::binary);
-  if (!in) {
-    return Error{ErrorCode::kNotFound, "cannot read the tokens file " + file.string() + " (check the path)"};
-  }
-  std::ostringstream text;
-  text << in.rdbuf();
-  return parse(text.str(), file.string());
+  auto text = text::readTextFile(file, "tokens file");
+  if (!text) return text.error();
+  return parse(*text, file.string());
 }
 
 Result<MissionTokens> MissionTokens::parse(std::string_view text, const std::string& source) {
@@ -57,7 +47,7 @@ Result<MissionTokens> MissionTokens::parse(std::string_view text, const std::str
     if (!(fields >> mission)) continue;  // blank or comment
     if (!(fields >> token)) return bad("'" + mission + "' has no token: write 'MISSION TOKEN'");
     if (fields >> extra) return bad("more than 'MISSION TOKEN' ('" + extra + "')");
-    if (token.size() < kMinTokenChars || !printableToken(token)) {
+    if (token.size() < kMinTokenChars || !text::isPrintableToken(token)) {
       return bad("the token of '" + mission + "' has " + std::to_string(token.size()) + " characters; use at least " +
                  std::to_string(kMinTokenChars) + " (e.g. openssl rand -hex 16)");
     }

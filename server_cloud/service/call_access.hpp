@@ -2,10 +2,13 @@
 // key naming the client for the rate limit. Only service/ includes it (gRPC headers).
 #pragma once
 
+#include <cstdint>
+#include <cstdio>
 #include <string>
 
 #include <grpcpp/server_context.h>
 
+#include "common/core/hash.hpp"
 #include "server_cloud/access/mission_tokens.hpp"
 #include "server_cloud/core/server_core.hpp"
 
@@ -26,20 +29,22 @@ inline std::string clientKey(const grpc::CallbackServerContext& context, const s
   std::string peer = context.peer();  // "ipv4:127.0.0.1:52814", "ipv6:[::1]:52814"
   if (const auto colon = peer.rfind(':'); colon != std::string::npos && colon > peer.find(':')) peer.resize(colon);
   if (token.empty()) return peer + " (no token)";
-  std::uint32_t hash = 2166136261U;
-  for (char c : token) hash = (hash ^ static_cast<unsigned char>(c)) * 16777619U;
   char fingerprint[16];
-  std::snprintf(fingerprint, sizeof(fingerprint), "%08x", hash);
+  std::snprintf(fingerprint, sizeof(fingerprint), "%08x", static_cast<std::uint32_t>(fnv1a64(token)));
   return peer + " (token #" + fingerprint + ")";
 }
 
-// The rate limit, then the mission's token: the status the call is refused with, or OK.
-inline Status admitCall(ServerCore& core, const grpc::CallbackServerContext& context, const std::string& mission,
-                        const std::string& what) {
-  const std::string token = presentedToken(context);
+// The rate limit, then the mission's token (`token`: presentedToken(context)): the status the call is refused
+// with, or OK.
+inline Status admitCall(ServerCore& core, const grpc::CallbackServerContext& context, const std::string& token,
+                        const std::string& mission, const std::string& what) {
   if (Status s = core.admitRequest(clientKey(context, token), what); !s.ok()) return s;
   if (mission.empty()) return Status::Ok();
   return core.tokens().authorize(mission, token);
+}
+inline Status admitCall(ServerCore& core, const grpc::CallbackServerContext& context, const std::string& mission,
+                        const std::string& what) {
+  return admitCall(core, context, presentedToken(context), mission, what);
 }
 
 }  // namespace cvislam::server

@@ -4,10 +4,8 @@
 #include <condition_variable>
 #include <cstdio>
 #include <deque>
-#include <fstream>
 #include <mutex>
 #include <set>
-#include <sstream>
 #include <thread>
 
 #include <grpcpp/grpcpp.h>
@@ -15,6 +13,7 @@
 #include <grpcpp/support/byte_buffer.h>
 #include <grpcpp/support/proto_buffer_reader.h>
 
+#include "common/core/text.hpp"
 #include "cvislam/v1/agent_link.grpc.pb.h"
 #include "cvislam/v1/monitor.grpc.pb.h"
 #include "server_cloud/service/call_access.hpp"
@@ -221,11 +220,11 @@ class MonitorService final : public v1::Monitor::CallbackService {
   grpc::ServerUnaryReactor* GetStats(grpc::CallbackServerContext* context, const v1::GetStatsRequest* request,
                                      v1::ServerStats* response) override {
     auto* reactor = context->DefaultReactor();
-    if (Status s = admitCall(core_, *context, request->mission(), "GetStats"); !s.ok()) {
+    const std::string token = presentedToken(*context);
+    if (Status s = admitCall(core_, *context, token, request->mission(), "GetStats"); !s.ok()) {
       reactor->Finish(toGrpc(s));
       return reactor;
     }
-    const std::string token = presentedToken(*context);
     const MissionTokens& tokens = core_.tokens();
     core_.fillStats(request->mission(), *response,
                     [&](const std::string& mission) { return tokens.admits(mission, token); });
@@ -236,18 +235,6 @@ class MonitorService final : public v1::Monitor::CallbackService {
  private:
   ServerCore& core_;
 };
-
-// A PEM file's text; the error names the file and what it is for.
-Result<std::string> readPem(const std::filesystem::path& file, const std::string& what) {
-  std::ifstream in(file, std::ios::binary);
-  if (!in) return Error{ErrorCode::kNotFound, "cannot read the " + what + " " + file.string()};
-  std::ostringstream text;
-  text << in.rdbuf();
-  if (text.str().find("-----BEGIN ") == std::string::npos) {
-    return Error{ErrorCode::kParseError, "the " + what + " " + file.string() + " is not a PEM file"};
-  }
-  return text.str();
-}
 
 }  // namespace
 
@@ -301,9 +288,9 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
   grpc::EnableDefaultHealthCheckService(true);
   std::shared_ptr<grpc::ServerCredentials> credentials = grpc::InsecureServerCredentials();
   if (!o.tls_certificate.empty()) {
-    auto certificate = readPem(o.tls_certificate, "TLS certificate (--tls-cert)");
+    auto certificate = text::readPemFile(o.tls_certificate, "TLS certificate (--tls-cert)");
     if (!certificate) return certificate.error();
-    auto key = readPem(o.tls_private_key, "TLS private key (--tls-key)");
+    auto key = text::readPemFile(o.tls_private_key, "TLS private key (--tls-key)");
     if (!key) return key.error();
     grpc::SslServerCredentialsOptions tls;
     tls.pem_key_cert_pairs.push_back({std::move(key).value(), std::move(certificate).value()});

@@ -221,10 +221,10 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
 
   grpc::ServerUnaryReactor* ListMissions(grpc::CallbackServerContext* context, const v1::ListMissionsRequest*,
                                          v1::ListMissionsResponse* response) override {
-    if (Status s = admitCall(core_, *context, "", "ListMissions"); !s.ok()) return finish(context, s);
+    const std::string token = presentedToken(*context);
+    if (Status s = admitCall(core_, *context, token, "", "ListMissions"); !s.ok()) return finish(context, s);
     maps::listMissions(core_.missions(), *response);
     // Only the missions the caller's token opens: a client of one mission does not learn the others.
-    const std::string token = presentedToken(*context);
     auto* missions = response->mutable_missions();
     missions->erase(std::remove_if(missions->begin(), missions->end(),
                                    [&](const v1::MissionInfo& m) { return !core_.tokens().admits(m.name(), token); }),

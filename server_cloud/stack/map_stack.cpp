@@ -1,5 +1,7 @@
 #include "server_cloud/stack/map_stack.hpp"
 
+#include <limits>
+
 namespace cvislam::server {
 
 std::shared_ptr<ServerMap> MapStack::createMap(MapOrigin origin) {
@@ -36,13 +38,7 @@ std::vector<std::shared_ptr<ServerMap>> MapStack::maps() const {
 }
 
 SharedAgentRecord Mission::agent(AgentId id) {
-  auto agents = agents_.write();
-  auto& slot = (*agents)[id];
-  if (!slot) {
-    slot = std::make_shared<Synchronized<AgentRecord>>();
-    slot->write()->id = id;
-  }
-  return slot;
+  return admitAgent(id, std::numeric_limits<std::size_t>::max()).value();  // no limit: never fails
 }
 
 Result<SharedAgentRecord> Mission::admitAgent(AgentId id, std::size_t max_agents) {
@@ -74,10 +70,7 @@ std::vector<SharedAgentRecord> Mission::agents() const {
 }
 
 std::shared_ptr<Mission> MissionRegistry::getOrCreate(const std::string& name) {
-  auto missions = missions_.write();
-  auto& slot = (*missions)[name];
-  if (!slot) slot = std::make_shared<Mission>(name);
-  return slot;
+  return open(name, std::numeric_limits<std::size_t>::max()).value();  // no limit: never fails
 }
 
 Result<std::shared_ptr<Mission>> MissionRegistry::open(const std::string& name, std::size_t max_missions) {

@@ -20,13 +20,13 @@
 #include <memory>
 #include <optional>
 #include <set>
-#include <sstream>
 #include <string>
 
 #include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 #include <CLI/CLI.hpp>
 
+#include "common/core/text.hpp"
 #include "cvislam/v1/map_service.grpc.pb.h"
 
 namespace {
@@ -456,23 +456,19 @@ int main(int argc, char** argv) {
   if (g.token.empty()) {
     if (const char* from_env = std::getenv("CVISLAM_TOKEN"); from_env != nullptr) g.token = from_env;
   }
-  for (char c : g.token) {
-    if (c <= ' ' || c > '~') {
-      std::fprintf(stderr, "cvislam_mapctl: --token may hold printable ASCII characters only, without spaces\n");
-      return 2;
-    }
+  if (!g.token.empty() && !cvislam::text::isPrintableToken(g.token)) {
+    std::fprintf(stderr, "cvislam_mapctl: --token may hold printable ASCII characters only, without spaces\n");
+    return 2;
   }
   std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
   if (!g.tls_ca.empty()) {
-    std::ifstream in(g.tls_ca, std::ios::binary);
-    std::ostringstream pem;
-    pem << in.rdbuf();
-    if (!in || pem.str().find("-----BEGIN ") == std::string::npos) {
-      std::fprintf(stderr, "cvislam_mapctl: --tls-ca %s is not a readable PEM file\n", g.tls_ca.c_str());
+    auto pem = cvislam::text::readPemFile(g.tls_ca, "CA file (--tls-ca)");
+    if (!pem) {
+      std::fprintf(stderr, "cvislam_mapctl: %s\n", pem.error().message().c_str());
       return 2;
     }
     grpc::SslCredentialsOptions tls;
-    tls.pem_root_certs = pem.str();
+    tls.pem_root_certs = std::move(pem).value();
     credentials = grpc::SslCredentials(tls);
   }
   auto channel = grpc::CreateCustomChannel(g.server, credentials, channel_args);

@@ -1,5 +1,6 @@
 #include "common/core/text.hpp"
 
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
 #include "test/support/temp_dir.hpp"
@@ -82,6 +83,38 @@ TEST(LineReader, MissingFileAndFolderGiveClearErrors) {
   auto folder = LineReader::open(dir.path());
   ASSERT_FALSE(folder.ok());
   EXPECT_NE(folder.error().message().find("folder"), std::string::npos);
+}
+
+TEST(IsPrintableToken, AcceptsPrintableAsciiWithoutSpacesOnly) {
+  EXPECT_TRUE(isPrintableToken("4f1c0a57-c2a0_4b2e~!"));
+  EXPECT_FALSE(isPrintableToken(""));
+  EXPECT_FALSE(isPrintableToken("with space"));
+  EXPECT_FALSE(isPrintableToken("tab\there"));
+  EXPECT_FALSE(isPrintableToken("line\n"));
+  EXPECT_FALSE(isPrintableToken("caf\xc3\xa9"));
+  EXPECT_FALSE(isPrintableToken(std::string_view("nul\0x", 5)));
+}
+
+TEST(ReadFiles, WholeFilesPemChecksAndErrorsThatNameTheFile) {
+  cvislam::test::TempDir dir;
+  std::ofstream(dir.path() / "ca.pem") << "-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n";
+  std::ofstream(dir.path() / "notes.txt") << "line 1\nline 2";
+  const auto pem = readPemFile(dir.path() / "ca.pem", "CA file");
+  const auto text = readTextFile(dir.path() / "notes.txt", "notes");
+  const auto not_pem = readPemFile(dir.path() / "notes.txt", "CA file");
+  const auto missing = readTextFile(dir.path() / "absent", "tokens file");
+
+  ASSERT_TRUE(pem.ok());
+  EXPECT_THAT(*pem, ::testing::StartsWith("-----BEGIN CERTIFICATE-----"));
+  ASSERT_TRUE(text.ok());
+  EXPECT_EQ(*text, "line 1\nline 2");
+  ASSERT_FALSE(not_pem.ok());
+  EXPECT_EQ(not_pem.error().code(), ErrorCode::kParseError);
+  EXPECT_THAT(not_pem.error().message(),
+              ::testing::HasSubstr("the CA file " + (dir.path() / "notes.txt").string() + " is not a PEM file"));
+  ASSERT_FALSE(missing.ok());
+  EXPECT_EQ(missing.error().code(), ErrorCode::kNotFound);
+  EXPECT_THAT(missing.error().message(), ::testing::HasSubstr("cannot read the tokens file"));
 }
 
 }  // namespace

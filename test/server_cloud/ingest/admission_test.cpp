@@ -10,6 +10,7 @@
 #include "cvislam/v1/agent_link.pb.h"
 #include "server_cloud/core/server_core.hpp"
 #include "test/server_cloud/link_messages.hpp"
+#include "test/server_cloud/session_driver.hpp"
 
 namespace cvislam::server {
 namespace {
@@ -39,10 +40,7 @@ class AdmissionTest : public ::testing::Test {
   Status hello(const std::string& mission, std::uint32_t agent, std::uint64_t process, const std::string& token,
                std::unique_ptr<AgentSession>* keep = nullptr) {
     auto session = core_->openSession({}, token);
-    v1::ServerDownlink reply;
-    bool due = false;
-    const v1::AgentUplink message = helloMessage(mission, agent, process);
-    const Status s = session->handle(message, message.ByteSizeLong(), reply, due);
+    const Status s = test::sendTo(*session, helloMessage(mission, agent, process));
     if (keep != nullptr) *keep = std::move(session);
     return s;
   }
@@ -69,10 +67,7 @@ TEST_F(AdmissionTest, EachMissionsTokenOpensItAndWritesGoThrough) {
   std::unique_ptr<AgentSession> a;
   ASSERT_TRUE(hello("hall-a", 1, 11, kTokenA, &a).ok());
   ASSERT_TRUE(hello("hall-b", 1, 12, kTokenB).ok());
-  v1::ServerDownlink reply;
-  bool due = false;
-  const v1::AgentUplink batch = batchMessage(makeKeyframeBatch(1, 0, 3));
-  ASSERT_TRUE(a->handle(batch, batch.ByteSizeLong(), reply, due).ok());
+  ASSERT_TRUE(test::sendTo(*a, batchMessage(makeKeyframeBatch(1, 0, 3))).ok());
   EXPECT_EQ(core_->missions().find("hall-a")->agent(1)->read()->keyframes.size(), 3U);
   EXPECT_EQ(core_->missions().find("hall-b")->agent(1)->read()->keyframes.size(), 0U);
 }

@@ -17,6 +17,7 @@
 #include "cvislam/v1/agent_link.pb.h"
 #include "server_cloud/core/server_core.hpp"
 #include "test/server_cloud/link_messages.hpp"
+#include "test/server_cloud/session_driver.hpp"
 
 namespace cvislam::server {
 namespace {
@@ -51,8 +52,7 @@ class AgentSessionTest : public ::testing::Test {
 
   // Sends one message; returns its status, and the immediate reply in `reply_` when one is due.
   Status send(AgentSession& session, const v1::AgentUplink& message) {
-    reply_.Clear();
-    return session.handle(message, message.ByteSizeLong(), reply_, reply_due_);
+    return test::sendTo(session, message, &reply_, &reply_due_);
   }
   void sendOk(AgentSession& session, const v1::AgentUplink& message) {
     const Status s = send(session, message);

@@ -16,6 +16,7 @@
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
 #include "test/server_cloud/link_messages.hpp"
+#include "test/server_cloud/session_driver.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::server {
@@ -63,8 +64,7 @@ class DurableCoreTest : public ::testing::Test {
     return core;
   }
   Status send(AgentSession& session, const v1::AgentUplink& message) {
-    reply_.Clear();
-    return session.handle(message, message.ByteSizeLong(), reply_, reply_due_);
+    return test::sendTo(session, message, &reply_, &reply_due_);
   }
   void sendOk(AgentSession& session, const v1::AgentUplink& message) {
     const Status s = send(session, message);

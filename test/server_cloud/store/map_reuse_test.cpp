@@ -14,6 +14,7 @@
 #include "server_cloud/maps/map_reader.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
 #include "test/server_cloud/link_messages.hpp"
+#include "test/server_cloud/session_driver.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::server {
@@ -23,12 +24,6 @@ using test::batchMessage;
 using test::helloMessage;
 using test::makeKeyframeBatch;
 using ::testing::HasSubstr;
-
-Status send(AgentSession& session, const v1::AgentUplink& message) {
-  v1::ServerDownlink reply;
-  bool due = false;
-  return session.handle(message, message.ByteSizeLong(), reply, due);
-}
 
 ServerOptions storeOptions(const std::filesystem::path& file) {
   ServerOptions o;
@@ -63,11 +58,11 @@ class MapReuseTest : public ::testing::Test {
     ASSERT_TRUE(core->openStore().ok());
     for (std::uint32_t agent : {1U, 2U}) {
       auto session = core->openSession({});
-      ASSERT_TRUE(send(*session, helloMessage("day1", agent, 100 + agent)).ok());
+      ASSERT_TRUE(test::sendTo(*session, helloMessage("day1", agent, 100 + agent)).ok());
       const std::uint32_t batches = agent == 1 ? 3 : 1;
       for (std::uint32_t b = 0; b < batches; ++b) {
         const std::uint32_t count = agent == 1 && b == 2 ? 3 : (agent == 1 ? 2 : 3);
-        ASSERT_TRUE(send(*session, batchMessage(makeKeyframeBatch(b + 1, 2 * b, count))).ok());
+        ASSERT_TRUE(test::sendTo(*session, batchMessage(makeKeyframeBatch(b + 1, 2 * b, count))).ok());
       }
       session->close(Status::Ok());
     }
@@ -160,10 +155,10 @@ TEST_F(MapReuseTest, ANewAgentJoinsTheLoadedMissionBesideItsAgents) {
   ASSERT_TRUE(core.loadMission(source.get(), "day1", "day2").ok());
 
   auto newcomer = core.openSession({});
-  ASSERT_TRUE(send(*newcomer, helloMessage("day2", 5, 555)).ok());
-  ASSERT_TRUE(send(*newcomer, batchMessage(makeKeyframeBatch(1, 0, 2))).ok());
+  ASSERT_TRUE(test::sendTo(*newcomer, helloMessage("day2", 5, 555)).ok());
+  ASSERT_TRUE(test::sendTo(*newcomer, batchMessage(makeKeyframeBatch(1, 0, 2))).ok());
   auto impostor = core.openSession({});
-  const Status taken = send(*impostor, helloMessage("day2", 1, 556));
+  const Status taken = test::sendTo(*impostor, helloMessage("day2", 1, 556));
 
   EXPECT_EQ(core.missions().find("day2")->agent(5)->read()->keyframes.size(), 2U);
   ASSERT_FALSE(taken.ok()) << "a new process took a loaded agent's id";
