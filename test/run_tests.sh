@@ -1,7 +1,12 @@
 #!/usr/bin/env bash
 # Installs what is missing, builds everything and runs every test through CTest.
 #
-#   test/run_tests.sh [--preset default|asan|tsan] [extra ctest arguments, e.g. -R Lie -L integration]
+#   test/run_tests.sh [--preset default|asan|tsan] [--no-board] [extra ctest arguments, e.g. -R Lie -L integration]
+#
+# With the default preset and no extra ctest arguments it then cross-builds the agent for aarch64 and runs a
+# fixed subset of its tests, and the real-data excerpt, under qemu (test/run_board_tests.sh); --no-board skips
+# that. The deployment files' checks (label deploy) need the npm tools of deploy/install_deploy_tools.sh,
+# which this script installs.
 #
 # Tests that need the real data ($CVISLAM_DATA_DIR, else ../shared/data) are reported as skipped, with
 # the reason, when it is absent: never as passed.
@@ -9,15 +14,22 @@ set -euo pipefail
 
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 preset=default
-if [ "${1:-}" = "--preset" ]; then
-  preset=$2; shift 2
-fi
+board=1
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --preset) preset=$2; shift 2 ;;
+    --no-board) board=0; shift ;;
+    *) break ;;
+  esac
+done
+if [ "$preset" != default ] || [ $# -gt 0 ]; then board=0; fi
 case "$preset" in
   default|asan|tsan) ;;
   *) echo "run_tests: unknown preset '$preset' (use default, asan or tsan)" >&2; exit 2 ;;
 esac
 
 "$repo/deploy/install_deps.sh"
+"$repo/deploy/install_deploy_tools.sh"
 cd "$repo"
 build="build/$preset"
 start=$(date +%s)
@@ -36,5 +48,8 @@ if [ -f "$junit" ]; then
   failed=$(grep -c 'status="fail"' "$junit" || true)
   skipped=$(grep -Ec 'status="(notrun|disabled)"' "$junit" || true)
   echo "ctest: $((total - failed - skipped)) passed, $failed failed, $skipped skipped"
+fi
+if [ "$board" -eq 1 ]; then
+  "$repo/test/run_board_tests.sh" || rc=1
 fi
 exit "$rc"

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <set>
@@ -36,6 +37,12 @@ Status ServerOptions::validate() const {
   }
   if (Status s = session.validate(); !s.ok()) return s;
   if (Status s = rate_limit.validate(); !s.ok()) return s;
+  if (!health_listen.empty() && health_listen.find(':') == std::string::npos) {
+    return invalid("health_listen address '" + health_listen + "': give host:port, e.g. 0.0.0.0:50052, or \"\"");
+  }
+  if (!health_listen.empty() && health_listen == listen) {
+    return invalid("health_listen must be another port than listen (" + listen + ")");
+  }
   if (tls_certificate.empty() != tls_private_key.empty()) {
     return invalid("TLS needs both a certificate and its private key (--tls-cert and --tls-key)");
   }
@@ -48,6 +55,7 @@ Status ServerOptions::validate() const {
 std::string ServerOptions::describe() const {
   std::ostringstream out;
   out << "  listen:                       " << listen << "\n"
+      << "  health_listen:                " << (health_listen.empty() ? "(none)" : health_listen) << "\n"
       << "  output:                       " << (output.empty() ? "(none)" : output.string()) << "\n"
       << "  max_message_bytes:            " << max_message_bytes << "\n"
       << "  keepalive_time_ms:            " << keepalive_time_ms << "\n"
@@ -93,6 +101,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   std::string store = o.store.string();
   std::string store_sync(toString(o.store_sync));
   server.read("listen", o.listen);
+  server.read("health_listen", o.health_listen);
   server.read("output", output);
   server.read("timeline_interval_s", o.timeline_interval_s);
   server.read("store", store);
@@ -191,9 +200,28 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   return in_file(o.validate());
 }
 
+namespace {
+
+// The vocabulary this build ships: in the source tree where the build ran, else where `cmake --install` put
+// it beside the binary (<prefix>/share/cvislam/vocabulary), as in the container images.
+std::filesystem::path shippedVocabulary() {
+  const std::filesystem::path in_source_tree = CVISLAM_DEFAULT_VOCABULARY;
+  std::error_code ec;
+  if (std::filesystem::exists(in_source_tree, ec)) return in_source_tree;
+  const std::filesystem::path binary = std::filesystem::read_symlink("/proc/self/exe", ec);
+  if (!ec) {
+    const auto installed =
+        binary.parent_path().parent_path() / "share" / "cvislam" / "vocabulary" / in_source_tree.filename();
+    if (std::filesystem::exists(installed, ec)) return installed;
+  }
+  return in_source_tree;  // loading it fails naming this path
+}
+
+}  // namespace
+
 recognition::RecognitionWorkerOptions defaultRecognitionOptions() {
   recognition::RecognitionWorkerOptions o;
-  o.vocabulary = CVISLAM_DEFAULT_VOCABULARY;
+  o.vocabulary = shippedVocabulary();
   return o;
 }
 

@@ -55,6 +55,9 @@ struct ServerOptions {
   // TLS on the port (agent link, map service, monitor, health): PEM files; both empty: plaintext.
   std::filesystem::path tls_certificate;
   std::filesystem::path tls_private_key;
+  // A second, plaintext port that serves grpc.health.v1 and nothing else (host:port; empty: none), for
+  // probes that cannot speak TLS (Kubernetes' gRPC probes). The services stay behind TLS on `listen`.
+  std::string health_listen;
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line

@@ -246,13 +246,27 @@ struct GrpcServer::Impl {
   MonitorService monitor;
   MapService maps;
   std::unique_ptr<grpc::Server> server;
+  std::unique_ptr<grpc::Server> health_server;  // plaintext, grpc.health.v1 only (ServerOptions::health_listen)
   int port = 0;
+  int health_port = 0;
   std::string address;
   std::thread periodic;
   std::mutex mutex;
   std::condition_variable wake;
   bool stopping = false;
   bool shut_down = false;
+
+  // Both ports answer for the server and each of its services.
+  void setServing(bool serving) {
+    for (grpc::Server* s : {server.get(), health_server.get()}) {
+      grpc::HealthCheckServiceInterface* health = s != nullptr ? s->GetHealthCheckService() : nullptr;
+      if (health == nullptr) continue;
+      health->SetServingStatus(serving);
+      for (const char* service : {"cvislam.v1.AgentLink", "cvislam.v1.Monitor", "cvislam.v1.MapService"}) {
+        health->SetServingStatus(service, serving);
+      }
+    }
+  }
 
   void runPeriodic() {
     using Clock = AgentSession::Clock;
@@ -318,12 +332,19 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
                      (o.tls_certificate.empty() ? "" : " Or do the TLS certificate and key not belong together?") +
                      ")"};
   }
-  if (auto* health = impl->server->GetHealthCheckService()) {
-    health->SetServingStatus(true);
-    health->SetServingStatus("cvislam.v1.AgentLink", true);
-    health->SetServingStatus("cvislam.v1.Monitor", true);
-    health->SetServingStatus("cvislam.v1.MapService", true);
+  if (!o.health_listen.empty()) {
+    grpc::ServerBuilder health_builder;  // no services registered: the default health service only
+    health_builder.AddListeningPort(o.health_listen, grpc::InsecureServerCredentials(), &impl->health_port);
+    health_builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+    impl->health_server = health_builder.BuildAndStart();
+    if (!impl->health_server || impl->health_port == 0) {
+      impl->server->Shutdown();
+      return Error{ErrorCode::kUnavailable,
+                   "cannot listen for health checks on " + o.health_listen +
+                       " (health_listen: is the port taken, or the address not this machine's?)"};
+    }
   }
+  impl->setServing(true);
   const std::string host = o.listen.substr(0, o.listen.rfind(':'));
   impl->address = host + ":" + std::to_string(impl->port);
   Impl* raw = impl.get();
@@ -333,6 +354,9 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
 
 int GrpcServer::port() const {
   return impl_->port;
+}
+int GrpcServer::healthPort() const {
+  return impl_->health_port;
 }
 std::string GrpcServer::address() const {
   return impl_->address;
@@ -347,10 +371,14 @@ void GrpcServer::shutdown(std::chrono::milliseconds grace) {
   }
   impl_->wake.notify_all();
   if (impl_->periodic.joinable()) impl_->periodic.join();
-  if (auto* health = impl_->server->GetHealthCheckService()) health->SetServingStatus(false);
+  impl_->setServing(false);
   impl_->maps.stopWatches();  // they never end by themselves
   impl_->server->Shutdown(std::chrono::system_clock::now() + grace);
   impl_->server->Wait();
+  if (impl_->health_server) {
+    impl_->health_server->Shutdown(std::chrono::system_clock::now() + grace);
+    impl_->health_server->Wait();
+  }
 }
 
 }  // namespace cvislam::server

@@ -23,6 +23,7 @@ class GrpcServer {
   GrpcServer& operator=(const GrpcServer&) = delete;
 
   [[nodiscard]] int port() const;
+  [[nodiscard]] int healthPort() const;       // the plaintext health port as bound; 0 without health_listen
   [[nodiscard]] std::string address() const;  // host:port as bound
 
   // Stops accepting; open streams get `grace` to end, then are cancelled. Idempotent.

@@ -132,6 +132,10 @@ int main(int argc, char** argv) {
                  "[none: every mission open to every client]");
   app.add_option("--tls-cert", tls_cert, "PEM certificate (chain) for TLS on the port [none: plaintext]");
   app.add_option("--tls-key", tls_key, "PEM private key of --tls-cert");
+  std::string health_listen;
+  app.add_option("--health-listen", health_listen,
+                 "Also serve grpc.health.v1 alone, in plaintext, on this host:port (for Kubernetes probes, which "
+                 "cannot speak TLS) [none]");
   std::optional<std::size_t> max_missions;
   std::optional<std::size_t> max_agents;
   std::optional<double> requests_per_s;
@@ -176,6 +180,7 @@ int main(int argc, char** argv) {
   if (!tokens.empty()) options.tokens_file = tokens;
   if (!tls_cert.empty()) options.tls_certificate = tls_cert;
   if (!tls_key.empty()) options.tls_private_key = tls_key;
+  if (!health_listen.empty()) options.health_listen = health_listen;
   if (max_missions) options.session.max_missions = *max_missions;
   if (max_agents) options.session.max_agents_per_mission = *max_agents;
   if (requests_per_s) {
@@ -276,6 +281,7 @@ int main(int argc, char** argv) {
     return 1;
   }
   std::printf("listening on %s\n", (*server)->address().c_str());
+  if ((*server)->healthPort() != 0) std::printf("health checks on port %d (plaintext)\n", (*server)->healthPort());
   std::fflush(stdout);
   if (!port_file.empty()) {
     const std::string tmp = port_file + ".tmp";

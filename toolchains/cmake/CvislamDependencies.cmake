@@ -11,7 +11,9 @@ find_package(nlohmann_json 3.10 REQUIRED CONFIG)      # nlohmann-json3-dev
 find_package(CLI11 REQUIRED CONFIG)                   # libcli11-dev
 find_package(Protobuf REQUIRED)                       # libprotobuf-dev protobuf-compiler (CMake's FindProtobuf)
 find_package(gRPC REQUIRED CONFIG)                    # libgrpc++-dev protobuf-compiler-grpc
-find_package(SQLite3 REQUIRED)                        # libsqlite3-dev (the server's map store; CMake's FindSQLite3)
+if(CVISLAM_BUILD_SERVER)
+  find_package(SQLite3 REQUIRED)                      # libsqlite3-dev (the server's map store; CMake's FindSQLite3)
+endif()
 
 # OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).
 # We install the per-module -dev packages and fall back to a small find-module; see README "Dependencies".
@@ -28,4 +30,15 @@ if(CVISLAM_BUILD_TESTS)
 endif()
 if(CVISLAM_BUILD_BENCHMARKS)
   find_package(benchmark REQUIRED CONFIG)             # libbenchmark-dev
+endif()
+
+# Cross-compiling against a sysroot (toolchains/aarch64-linux-gnu.cmake): package configs written for the
+# board's own /usr must be pointed into the sysroot. (gRPC's code generators: see toolchains/make_sysroot.sh.)
+if(CMAKE_CROSSCOMPILING AND CMAKE_SYSROOT)
+  # Ceres' exported targets name /usr/lib/<triple>/liblapack.so and friends by absolute path.
+  get_target_property(_ceres_libs Ceres::ceres INTERFACE_LINK_LIBRARIES)
+  if(_ceres_libs)
+    list(TRANSFORM _ceres_libs REPLACE "^/usr/" "${CMAKE_SYSROOT}/usr/")
+    set_target_properties(Ceres::ceres PROPERTIES INTERFACE_LINK_LIBRARIES "${_ceres_libs}")
+  endif()
 endif()

@@ -317,8 +317,10 @@ TEST_F(MapperDownlinkTest, AnAnchorFromAnotherAgentTakesPartInLocalBaWithoutMovi
   EXPECT_GT(r5->ba.anchor_factors, 100) << "the anchors' observations are residuals of local BA";
   const KeyframeData* anchor = keyframeById(KeyframeId{7, 100});
   ASSERT_NE(anchor, nullptr);
-  EXPECT_EQ((anchor->T_w_s.translation() - anchor_before.translation()).norm(), 0.0) << "held fixed";
-  EXPECT_EQ((anchor->T_w_s.so3().inverse() * anchor_before.so3()).log().norm(), 0.0);
+  // Held fixed by local BA. Not compared bit for bit: the frame bookkeeping re-expresses anchors with a change
+  // that is the identity up to rounding, and on aarch64 (fused multiply-adds) that leaves 1e-19 m.
+  EXPECT_LT((anchor->T_w_s.translation() - anchor_before.translation()).norm(), 1e-12) << "held fixed";
+  EXPECT_LT((anchor->T_w_s.so3().inverse() * anchor_before.so3()).log().norm(), 1e-12);
   const KeyframeData* own = keyframeById(KeyframeId{0, 5});
   ASSERT_NE(own, nullptr);
   EXPECT_LT((own->T_w_s.translation() - truePose(5, scale_).translation()).norm(), 0.005 * scale_)

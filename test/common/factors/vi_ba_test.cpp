@@ -68,34 +68,60 @@ TEST(VisualInertialBundleAdjustment, ConvergesFromAPerturbedStartToTheTruth) {
   }
 }
 
-TEST(VisualInertialBundleAdjustment, WithPixelNoiseStaysWithinMillimetresOfTheTruth) {
+// With pixel noise the optimum is no longer the truth, and where it lies depends on the noise drawn: over 30
+// noise seeds of this scene (x86-64) the worst keyframe ended 1.4 to 14.7 mm (median 5 mm) from the truth, and
+// the aarch64 build draws another realisation from the same seed (a visibility test near its threshold flips,
+// so 16 fewer observations take noise). So the solver is held to what it controls: from the perturbed start it
+// reaches the same optimum as a solve started at the truth. The distance to the truth gets the noise's bound.
+TEST(VisualInertialBundleAdjustment, WithPixelNoiseReachesTheOptimumAStartAtTheTruthReaches) {
   test::ViScenarioOptions options = scenarioOptions(8, 300);
   options.pixel_sigma = 0.5;
   const test::ViScenario scenario = test::makeViScenario(options);
   const test::ViBaState truth = test::trueViBaState(scenario);
+  const auto solve = [&](test::ViBaState& state) {
+    ceres::Problem problem;
+    test::addViBaFactors(scenario, state, problem);
+    problem.SetParameterBlockConstant(state.poses[0].data());
+    ceres::Solver::Options solver_options;
+    solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
+    solver_options.max_num_iterations = 100;
+    solver_options.function_tolerance = 1e-12;
+    solver_options.gradient_tolerance = 1e-14;
+    solver_options.parameter_tolerance = 1e-12;
+    ceres::Solver::Summary summary;
+    ceres::Solve(solver_options, &problem, &summary);
+    return summary;
+  };
+  test::ViBaState optimum = truth;
+  const ceres::Solver::Summary reference = solve(optimum);
+  ASSERT_TRUE(reference.IsSolutionUsable()) << reference.FullReport();
   test::ViBaState state = truth;
   test::perturbViBaState(state, 0.1, 2.0 * M_PI / 180.0, 4);
-  ceres::Problem problem;
-  test::addViBaFactors(scenario, state, problem);
-  problem.SetParameterBlockConstant(state.poses[0].data());
-  ceres::Solver::Options solver_options;
-  solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
-  solver_options.max_num_iterations = 50;
-  ceres::Solver::Summary summary;
-  ceres::Solve(solver_options, &problem, &summary);
+  const ceres::Solver::Summary summary = solve(state);
   ASSERT_TRUE(summary.IsSolutionUsable()) << summary.FullReport();
-  double worst_position_m = 0.0;
-  double worst_rotation_deg = 0.0;
+
+  double to_optimum_m = 0.0;
+  double to_optimum_deg = 0.0;
+  double to_truth_m = 0.0;
+  double to_truth_deg = 0.0;
   for (std::size_t i = 0; i < truth.poses.size(); ++i) {
     const SE3d T = poseFromBlock(state.poses[i].data());
+    const SE3d T_opt = poseFromBlock(optimum.poses[i].data());
     const SE3d T_true = poseFromBlock(truth.poses[i].data());
-    worst_position_m = std::max(worst_position_m, (T.translation() - T_true.translation()).norm());
-    worst_rotation_deg = std::max(worst_rotation_deg, (T_true.so3().inverse() * T.so3()).log().norm() * 180.0 / M_PI);
+    to_optimum_m = std::max(to_optimum_m, (T.translation() - T_opt.translation()).norm());
+    to_optimum_deg = std::max(to_optimum_deg, (T_opt.so3().inverse() * T.so3()).log().norm() * 180.0 / M_PI);
+    to_truth_m = std::max(to_truth_m, (T.translation() - T_true.translation()).norm());
+    to_truth_deg = std::max(to_truth_deg, (T_true.so3().inverse() * T.so3()).log().norm() * 180.0 / M_PI);
   }
-  std::printf("VI-BA with 0.5 px noise: worst keyframe error %.2f mm, %.4f deg\n", 1e3 * worst_position_m,
-              worst_rotation_deg);
-  EXPECT_LT(worst_position_m, 5e-3);
-  EXPECT_LT(worst_rotation_deg, 0.05);
+  std::printf(
+      "VI-BA with 0.5 px noise: cost %.6g (from the truth %.6g); worst keyframe %.4f mm, %.6f deg from the "
+      "optimum, %.2f mm, %.4f deg from the truth\n",
+      summary.final_cost, reference.final_cost, 1e3 * to_optimum_m, to_optimum_deg, 1e3 * to_truth_m, to_truth_deg);
+  EXPECT_NEAR(summary.final_cost, reference.final_cost, 1e-6 * reference.final_cost);
+  EXPECT_LT(to_optimum_m, 1e-4);
+  EXPECT_LT(to_optimum_deg, 1e-3);
+  EXPECT_LT(to_truth_m, 0.02);
+  EXPECT_LT(to_truth_deg, 0.1);
 }
 
 // The same problem with each point as one (a, b, rho) block (inverse_depth_point_factor.hpp) and the points

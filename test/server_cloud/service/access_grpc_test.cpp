@@ -249,6 +249,7 @@ class TlsTest : public AccessTest {
     ServerOptions options;
     options.tls_certificate = cert;
     options.tls_private_key = key;
+    options.health_listen = "127.0.0.1:0";
     ca_ = cert;
     grpc::SslCredentialsOptions tls;
     tls.pem_root_certs = readFile(cert);
@@ -304,6 +305,36 @@ TEST_F(TlsTest, MapctlAndThePythonClientWorkWithTheCaAndTheToken) {
   EXPECT_THAT(python_refused.output, HasSubstr("UNAUTHENTICATED"));
 }
 
+// Kubernetes' gRPC probes cannot speak TLS: the plaintext health port answers for the server and each service,
+// and serves nothing else.
+TEST_F(TlsTest, ThePlaintextHealthPortAnswersProbesAndServesNothingElse) {
+  ASSERT_NE(server_->healthPort(), 0);
+  ASSERT_NE(server_->healthPort(), server_->port());
+  auto plain =
+      grpc::CreateChannel("127.0.0.1:" + std::to_string(server_->healthPort()), grpc::InsecureChannelCredentials());
+  auto health = grpc::health::v1::Health::NewStub(plain);
+  for (const char* service : {"", "cvislam.v1.AgentLink", "cvislam.v1.MapService", "cvislam.v1.Monitor"}) {
+    grpc::health::v1::HealthCheckRequest request;
+    request.set_service(service);
+    grpc::health::v1::HealthCheckResponse response;
+    const grpc::Status s = health->Check(callContext("").get(), request, &response);
+    ASSERT_TRUE(s.ok()) << service << ": " << s.error_message();
+    EXPECT_EQ(response.status(), grpc::health::v1::HealthCheckResponse::SERVING) << service;
+  }
+  v1::ListMapsRequest request;
+  request.set_mission("survey");
+  v1::ListMapsResponse response;
+  const grpc::Status maps =
+      v1::MapService::NewStub(plain)->ListMaps(callContext(kTokenSurvey).get(), request, &response);
+  EXPECT_EQ(maps.error_code(), grpc::StatusCode::UNIMPLEMENTED) << maps.error_message();
+  EXPECT_EQ(hello(plain, "depot", 2, kTokenDepot).error_code(), grpc::StatusCode::UNIMPLEMENTED);
+
+  server_->shutdown(std::chrono::milliseconds(100));  // a stopping server says so on the probe port first
+  grpc::health::v1::HealthCheckResponse after;
+  const grpc::Status gone = health->Check(callContext("").get(), {}, &after);
+  EXPECT_TRUE(!gone.ok() || after.status() == grpc::health::v1::HealthCheckResponse::NOT_SERVING);
+}
+
 TEST(TlsOptions, AMissingOrBrokenCertificateStopsTheStartNamingTheFile) {
   cvislam::test::TempDir dir;
   std::ofstream(dir.path() / "not.pem") << "hello\n";
@@ -324,6 +355,11 @@ TEST(TlsOptions, AMissingOrBrokenCertificateStopsTheStartNamingTheFile) {
 
   options.tls_private_key.clear();
   EXPECT_THAT(options.validate().error().message(), HasSubstr("both a certificate and its private key"));
+  options.tls_certificate.clear();
+  options.health_listen = options.listen;
+  EXPECT_THAT(options.validate().error().message(), HasSubstr("health_listen must be another port"));
+  options.health_listen = "50052";
+  EXPECT_THAT(options.validate().error().message(), HasSubstr("give host:port"));
 }
 
 }  // namespace

@@ -1,0 +1,36 @@
+# The cvislam server image: cvislam_server, cvislam_mapctl and the shipped vocabulary, run as a non-root user.
+#
+#   docker build -f deploy/docker/server.Dockerfile -t cvislam-server .     (from the repository root)
+#   docker run -p 50051:50051 -v cvislam-store:/var/lib/cvislam cvislam-server
+#
+# Stage 1 builds with the project's own dependency script and the release preset; stage 2 has only the shared
+# libraries the binaries link. RUNTIME_PACKAGES is checked against the binaries' ELF NEEDED entries by
+# test/deploy/runtime_packages_test.py (CTest: deploy_runtime_packages), so it cannot drift from the build.
+FROM debian:12.8 AS build
+WORKDIR /src
+COPY deploy/install_deps.sh deploy/install_deps.sh
+RUN deploy/install_deps.sh && rm -rf /var/lib/apt/lists/*
+COPY . .
+RUN cmake --preset release \
+ && cmake --build --preset release --target cvislam_server cvislam_mapctl \
+ && cmake --install build/release --component server --prefix /opt/cvislam
+
+FROM debian:12.8-slim
+ARG RUNTIME_PACKAGES="libabsl20220623 libatlas3-base libcholmod3 libcxsparse3 libgoogle-glog0v6 libgrpc++1.51 \
+libgrpc29 libopencv-calib3d406 libopencv-core406 libopencv-imgcodecs406 libopencv-imgproc406 libprotobuf32 \
+libsqlite3-0 libyaml-cpp0.7"
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends ${RUNTIME_PACKAGES} \
+ && rm -rf /var/lib/apt/lists/* \
+ && groupadd --gid 10001 cvislam \
+ && useradd --uid 10001 --gid 10001 --no-create-home --shell /usr/sbin/nologin cvislam \
+ && mkdir -p /var/lib/cvislam /etc/cvislam \
+ && chown 10001:10001 /var/lib/cvislam
+COPY --from=build /opt/cvislam /opt/cvislam
+ENV PATH=/opt/cvislam/bin:${PATH}
+USER 10001:10001
+WORKDIR /var/lib/cvislam
+EXPOSE 50051
+VOLUME ["/var/lib/cvislam"]
+ENTRYPOINT ["/opt/cvislam/bin/cvislam_server"]
+CMD ["--listen", "0.0.0.0:50051", "--store", "/var/lib/cvislam/store.db", "--output", "/var/lib/cvislam/output"]

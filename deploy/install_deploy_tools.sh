@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Installs the tools that check the deployment files offline, from the npm registry, into out/deploy-tools
+# (never into the repository): kubernetes-models (Kubernetes schemas), yaml, dockerfilelint. Versions are pinned
+# in deploy/tools/package.json. Idempotent: with the same versions installed it returns at once, offline.
+#
+#   deploy/install_deploy_tools.sh [--dir DIR]      (default: out/deploy-tools, or $CVISLAM_DEPLOY_TOOLS)
+#
+# Needs node and npm (Debian: nodejs npm; installed here when missing) and kubectl for `kubectl kustomize`.
+set -euo pipefail
+
+repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+dir=${CVISLAM_DEPLOY_TOOLS:-$repo/out/deploy-tools}
+if [ "${1:-}" = "--dir" ]; then dir=$2; fi
+
+if ! command -v npm >/dev/null 2>&1; then
+  echo "install_deploy_tools: installing nodejs and npm from Debian" >&2
+  sudo_cmd=()
+  if [ "$(id -u)" -ne 0 ]; then sudo_cmd=(sudo); fi
+  DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -q --no-install-recommends nodejs npm >&2
+fi
+if ! command -v kubectl >/dev/null 2>&1; then
+  echo "install_deploy_tools: kubectl not found. The manifest check renders with 'kubectl kustomize' (kubectl" \
+       ">= 1.27; Debian's kubernetes-client 1.20 has a kustomize too old for these files)." >&2
+  exit 1
+fi
+
+if [ -f "$dir/.stamp" ] && cmp -s "$dir/.stamp" "$repo/deploy/tools/package.json" && [ -d "$dir/node_modules" ]; then
+  echo "install_deploy_tools: present in $dir"
+  exit 0
+fi
+mkdir -p "$dir"
+cp "$repo/deploy/tools/package.json" "$dir/package.json"
+echo "install_deploy_tools: npm install into $dir" >&2
+(cd "$dir" && npm install --no-audit --no-fund --loglevel=error >&2)
+cp "$repo/deploy/tools/package.json" "$dir/.stamp"
+echo "install_deploy_tools: done ($dir)"

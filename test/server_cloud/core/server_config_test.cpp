@@ -1,0 +1,50 @@
+// The server's config files as shipped: deploy/server_config.yaml documents the defaults, and the cluster's
+// deploy/k8s/base/server.yaml must load (unknown keys are refused) with the paths the StatefulSet mounts.
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include "server_cloud/core/server_core.hpp"
+#include "test/support/temp_dir.hpp"
+
+namespace cvislam::server {
+namespace {
+
+using ::testing::HasSubstr;
+
+const std::filesystem::path kSource = CVISLAM_SOURCE_DIR;
+
+TEST(ServerConfigFiles, TheDocumentedConfigHoldsExactlyTheDefaults) {
+  ServerOptions loaded;
+  const Status s = loadServerConfig(kSource / "deploy" / "server_config.yaml", loaded);
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  EXPECT_EQ(loaded.describe(), ServerOptions{}.describe());
+}
+
+TEST(ServerConfigFiles, TheClusterConfigLoadsWithThePathsTheStatefulSetMounts) {
+  ServerOptions o;
+  const Status s = loadServerConfig(kSource / "deploy" / "k8s" / "base" / "server.yaml", o);
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  ASSERT_TRUE(o.validate().ok()) << o.validate().error().toString();
+  EXPECT_EQ(o.listen, "0.0.0.0:50051");
+  EXPECT_EQ(o.health_listen, "0.0.0.0:50052");
+  EXPECT_EQ(o.store, "/var/lib/cvislam/store.db");          // the StatefulSet's volumeClaimTemplate "store"
+  EXPECT_EQ(o.tokens_file, "/etc/cvislam/secrets/tokens");  // the Secret's keys, mounted there
+  EXPECT_EQ(o.tls_certificate, "/etc/cvislam/secrets/tls.crt");
+  EXPECT_EQ(o.tls_private_key, "/etc/cvislam/secrets/tls.key");
+}
+
+TEST(ServerConfigFiles, AnUnknownKeyIsRefusedNamingIt) {
+  cvislam::test::TempDir dir;
+  std::ofstream(dir.path() / "bad.yaml") << "server:\n  listen: 0.0.0.0:1\n  health_port: 50052\n";
+  ServerOptions o;
+  const Status s = loadServerConfig(dir.path() / "bad.yaml", o);
+  ASSERT_FALSE(s.ok());
+  EXPECT_THAT(s.error().message(), HasSubstr("health_port"));
+}
+
+}  // namespace
+}  // namespace cvislam::server
