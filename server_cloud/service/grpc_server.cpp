@@ -247,6 +247,9 @@ struct GrpcServer::Impl {
   MapService maps;
   std::unique_ptr<grpc::Server> server;
   std::unique_ptr<grpc::Server> health_server;  // plaintext, grpc.health.v1 only (ServerOptions::health_listen)
+  // gRPC refuses to start a server with no synchronous method to poll for, and the default health service
+  // alone does not count. A Monitor base with no method overridden gives it one, and answers UNIMPLEMENTED.
+  v1::Monitor::Service health_port_placeholder;
   int port = 0;
   int health_port = 0;
   std::string address;
@@ -333,8 +336,9 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
                      ")"};
   }
   if (!o.health_listen.empty()) {
-    grpc::ServerBuilder health_builder;  // no services registered: the default health service only
+    grpc::ServerBuilder health_builder;  // the default health service, and nothing that answers
     health_builder.AddListeningPort(o.health_listen, grpc::InsecureServerCredentials(), &impl->health_port);
+    health_builder.RegisterService(&impl->health_port_placeholder);
     health_builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
     impl->health_server = health_builder.BuildAndStart();
     if (!impl->health_server || impl->health_port == 0) {
