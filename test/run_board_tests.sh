@@ -54,12 +54,8 @@ rc=0
 junit="$PWD/$build/ctest-junit.xml"
 t0=$(date +%s)
 ctest --preset board-aarch64 "${filter[@]}" --output-junit "$junit" || rc=$?
-if [ -f "$junit" ]; then
-  total=$(grep -c '<testcase ' "$junit" || true)
-  failed=$(grep -c 'status="fail"' "$junit" || true)
-  skipped=$(grep -Ec 'status="(notrun|disabled)"' "$junit" || true)
-  echo "ctest (aarch64, qemu): $((total - failed - skipped)) passed, $failed failed, $skipped skipped in $(( $(date +%s) - t0 )) s"
-fi
+. "$repo/test/ctest_summary.sh"
+ctest_summary "$junit" "ctest (aarch64, qemu, $(( $(date +%s) - t0 )) s)"
 
 if [ "$excerpt" -eq 1 ]; then
   data=${CVISLAM_DATA_DIR:-$repo/../shared/data}

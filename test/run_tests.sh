@@ -41,14 +41,8 @@ echo "run_tests: build took $(( $(date +%s) - start )) s"
 junit="$build/ctest-junit.xml"
 rc=0
 ctest --preset "$preset" --output-junit "$PWD/$junit" "$@" || rc=$?
-# CTest folds skipped tests into "100% tests passed"; count them apart so that a run without the real data
-# cannot pass for a full one.
-if [ -f "$junit" ]; then
-  total=$(grep -c '<testcase ' "$junit" || true)
-  failed=$(grep -c 'status="fail"' "$junit" || true)
-  skipped=$(grep -Ec 'status="(notrun|disabled)"' "$junit" || true)
-  echo "ctest: $((total - failed - skipped)) passed, $failed failed, $skipped skipped"
-fi
+. "$repo/test/ctest_summary.sh"
+ctest_summary "$junit" ctest
 if [ "$board" -eq 1 ]; then
   "$repo/test/run_board_tests.sh" || rc=1
 fi

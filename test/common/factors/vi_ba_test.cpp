@@ -29,6 +29,22 @@ test::ViScenarioOptions scenarioOptions(int keyframes, int points) {
   return options;
 }
 
+// The scene's VI-BA from `state`, the first keyframe's pose held (the gauge), solved to tight tolerances.
+ceres::Solver::Summary solveViBa(const test::ViScenario& scenario, test::ViBaState& state, int max_iterations) {
+  ceres::Problem problem;
+  test::addViBaFactors(scenario, state, problem);
+  problem.SetParameterBlockConstant(state.poses[0].data());
+  ceres::Solver::Options options;
+  options.linear_solver_type = ceres::SPARSE_SCHUR;
+  options.max_num_iterations = max_iterations;
+  options.function_tolerance = 1e-12;
+  options.gradient_tolerance = 1e-14;
+  options.parameter_tolerance = 1e-12;
+  ceres::Solver::Summary summary;
+  ceres::Solve(options, &problem, &summary);
+  return summary;
+}
+
 TEST(VisualInertialBundleAdjustment, ConvergesFromAPerturbedStartToTheTruth) {
   const test::ViScenario scenario = test::makeViScenario(scenarioOptions(8, 300));
   ASSERT_EQ(scenario.points.size(), 300u);
@@ -36,18 +52,7 @@ TEST(VisualInertialBundleAdjustment, ConvergesFromAPerturbedStartToTheTruth) {
   test::ViBaState state = truth;
   test::perturbViBaState(state, 0.1, 2.0 * M_PI / 180.0, 3);
 
-  ceres::Problem problem;
-  test::addViBaFactors(scenario, state, problem);
-  problem.SetParameterBlockConstant(state.poses[0].data());  // the gauge: the first keyframe's pose
-
-  ceres::Solver::Options options;
-  options.linear_solver_type = ceres::SPARSE_SCHUR;
-  options.max_num_iterations = 50;
-  options.function_tolerance = 1e-12;
-  options.gradient_tolerance = 1e-14;
-  options.parameter_tolerance = 1e-12;
-  ceres::Solver::Summary summary;
-  ceres::Solve(options, &problem, &summary);
+  const ceres::Solver::Summary summary = solveViBa(scenario, state, 50);
   ASSERT_TRUE(summary.IsSolutionUsable()) << summary.FullReport();
   std::printf("VI-BA: %d keyframes, %zu points, %zu observations: cost %.3e -> %.3e in %d iterations\n",
               scenario.options.keyframes, scenario.points.size(), scenario.observations.size(), summary.initial_cost,
@@ -78,20 +83,7 @@ TEST(VisualInertialBundleAdjustment, WithPixelNoiseReachesTheOptimumAStartAtTheT
   options.pixel_sigma = 0.5;
   const test::ViScenario scenario = test::makeViScenario(options);
   const test::ViBaState truth = test::trueViBaState(scenario);
-  const auto solve = [&](test::ViBaState& state) {
-    ceres::Problem problem;
-    test::addViBaFactors(scenario, state, problem);
-    problem.SetParameterBlockConstant(state.poses[0].data());
-    ceres::Solver::Options solver_options;
-    solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
-    solver_options.max_num_iterations = 100;
-    solver_options.function_tolerance = 1e-12;
-    solver_options.gradient_tolerance = 1e-14;
-    solver_options.parameter_tolerance = 1e-12;
-    ceres::Solver::Summary summary;
-    ceres::Solve(solver_options, &problem, &summary);
-    return summary;
-  };
+  const auto solve = [&](test::ViBaState& state) { return solveViBa(scenario, state, 100); };
   test::ViBaState optimum = truth;
   const ceres::Solver::Summary reference = solve(optimum);
   ASSERT_TRUE(reference.IsSolutionUsable()) << reference.FullReport();
