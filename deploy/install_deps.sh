@@ -20,6 +20,9 @@ packages=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   # the server's map store; openssl makes the throwaway certificate of the TLS tests
   libsqlite3-dev openssl
+  # scale-out: the replicas' shared store and mission leases in PostgreSQL (libpq; the tests start a throwaway
+  # cluster with postgresql-15's initdb and pg_ctl)
+  libpq-dev postgresql-15
   # fuzzing the server's inbound messages with libFuzzer (test/fuzz/run_fuzz.sh)
   clang libclang-rt-14-dev
   # the map service's Python client (server_cloud/tools/cvislam_map_client.py) and its test

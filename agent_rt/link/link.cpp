@@ -25,7 +25,10 @@ using Clock = std::chrono::steady_clock;
 Status LinkOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "link: " + what}; };
   if (server.empty()) return Status::Ok();
-  if (server.find(':') == std::string::npos) return bad("server '" + server + "': give host:port");
+  for (const std::string& one : splitServerList(server)) {
+    if (one.find(':') == std::string::npos)
+      return bad("server '" + one + "': give host:port (or several, comma-separated)");
+  }
   if (mission.empty()) return bad("mission must not be empty");
   if (!token.empty() && !text::isPrintableToken(token)) {
     return bad("the token may hold printable ASCII characters only, without spaces");

@@ -2,12 +2,14 @@
 
 #include <condition_variable>
 #include <deque>
+#include <map>
 #include <mutex>
 #include <thread>
 
 #include <grpcpp/grpcpp.h>
 
 #include "cvislam/v1/agent_link.grpc.pb.h"
+#include "proto/wire/wire.hpp"
 
 namespace cvislam::agent {
 
@@ -26,8 +28,30 @@ std::string describe(const grpc::Status& s) {
 
 struct LinkClient::Impl {
   LinkClientOptions options;
-  std::shared_ptr<grpc::Channel> channel;
-  std::unique_ptr<v1::AgentLink::Stub> stub;
+  grpc::ChannelArguments args;
+  std::shared_ptr<grpc::ChannelCredentials> credentials;
+  struct Target {
+    std::shared_ptr<grpc::Channel> channel;
+    std::unique_ptr<v1::AgentLink::Stub> stub;
+  };
+  std::map<std::string, Target> targets;  // by host:port, made when first used
+  std::vector<std::string> addresses;     // options.server, split
+  std::size_t next_address = 0;
+  std::string redirect;  // where the last refusal sent us; tried first
+  std::string target;    // the replica of the open (or last) stream
+  std::string owner;     // the owner the last stream's trailing metadata named; "" when none
+  std::uint64_t redirects = 0;
+
+  Target& targetFor(const std::string& address) {
+    auto it = targets.find(address);
+    if (it == targets.end()) {
+      Target t;
+      t.channel = grpc::CreateCustomChannel(address, credentials, args);
+      t.stub = v1::AgentLink::NewStub(t.channel);
+      it = targets.emplace(address, std::move(t)).first;
+    }
+    return it->second;
+  }
 
   // The open stream, if any.
   std::unique_ptr<grpc::ClientContext> context;
@@ -68,12 +92,23 @@ struct LinkClient::Impl {
   // Ends the stream (cancelling it when it is still open) and collects its status.
   grpc::Status teardown() {
     if (!stream) return grpc::Status::OK;
-    context->TryCancel();
+    bool still_reading = false;
+    {
+      std::lock_guard lock(mutex);
+      still_reading = reading;
+    }
+    // A stream the server ended already keeps its status (and trailing metadata): cancel only an open one.
+    if (still_reading) context->TryCancel();
     if (reader.joinable()) reader.join();
     grpc::Status status = stream->Finish();
     stream.reset();
     {
       std::lock_guard lock(context_mutex);
+      owner.clear();
+      const auto& trailing = context->GetServerTrailingMetadata();
+      if (auto it = trailing.find(wire::kOwnerMetadataKey); it != trailing.end()) {
+        owner.assign(it->second.data(), it->second.size());
+      }
       context.reset();
     }
     std::lock_guard lock(mutex);
@@ -83,26 +118,28 @@ struct LinkClient::Impl {
 };
 
 LinkClient::LinkClient(const LinkClientOptions& options) : impl_(std::make_unique<Impl>()) {
-  impl_->options = options;
-  grpc::ChannelArguments args;
+  Impl& s = *impl_;
+  s.options = options;
   // Notice a dead or hung server within a few seconds, and come back quickly after it restarts.
-  args.SetInt(GRPC_ARG_KEEPALIVE_TIME_MS, options.keepalive_ms);
-  args.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, options.keepalive_ms);
-  args.SetInt(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
-  args.SetInt(GRPC_ARG_HTTP2_MAX_PINGS_WITHOUT_DATA, 0);
-  args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);
-  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 100);
-  args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
-  args.SetMaxSendMessageSize(static_cast<int>(options.max_message_bytes));
-  args.SetMaxReceiveMessageSize(static_cast<int>(options.max_message_bytes));
-  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+  s.args.SetInt(GRPC_ARG_KEEPALIVE_TIME_MS, options.keepalive_ms);
+  s.args.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, options.keepalive_ms);
+  s.args.SetInt(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  s.args.SetInt(GRPC_ARG_HTTP2_MAX_PINGS_WITHOUT_DATA, 0);
+  s.args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);
+  s.args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 100);
+  s.args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
+  s.args.SetMaxSendMessageSize(static_cast<int>(options.max_message_bytes));
+  s.args.SetMaxReceiveMessageSize(static_cast<int>(options.max_message_bytes));
+  s.credentials = grpc::InsecureChannelCredentials();
   if (!options.tls_root_pem.empty()) {
     grpc::SslCredentialsOptions tls;
     tls.pem_root_certs = options.tls_root_pem;
-    credentials = grpc::SslCredentials(tls);
+    s.credentials = grpc::SslCredentials(tls);
   }
-  impl_->channel = grpc::CreateCustomChannel(options.server, credentials, args);
-  impl_->stub = v1::AgentLink::NewStub(impl_->channel);
+  s.addresses = splitServerList(options.server);
+  if (s.addresses.empty()) s.addresses.push_back(options.server);
+  s.target = s.addresses.front();
+  s.targetFor(s.target);  // the first replica's channel now: it starts connecting in the background
 }
 
 LinkClient::~LinkClient() {
@@ -111,11 +148,39 @@ LinkClient::~LinkClient() {
 
 Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connect(const v1::AgentUplink& hello) {
   Impl& s = *impl_;
+  // A refusal that names the owner is followed at once (twice at most: ownership may move once meanwhile).
+  for (int hop = 0;; ++hop) {
+    s.target = !s.redirect.empty() ? s.redirect : s.addresses[s.next_address % s.addresses.size()];
+    auto welcome = connectTo(s.target, hello);
+    if (welcome) return welcome;
+    const bool redirected = !s.owner.empty() && s.owner != s.target;
+    if (redirected && hop < 2) {
+      s.redirect = s.owner;
+      ++s.redirects;
+      continue;
+    }
+    // Next time: the next replica of the list (a redirect that led nowhere is forgotten).
+    if (redirected) {
+      s.redirect = s.owner;
+    } else if (!s.redirect.empty()) {
+      s.redirect.clear();
+    } else {
+      ++s.next_address;
+    }
+    return welcome;
+  }
+}
+
+Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connectTo(const std::string& address,
+                                                                  const v1::AgentUplink& hello) {
+  Impl& s = *impl_;
   s.teardown();
+  s.owner.clear();
+  Impl::Target& target = s.targetFor(address);
   const auto deadline = std::chrono::system_clock::now() + s.options.connect_timeout;
-  if (!s.channel->WaitForConnected(deadline)) {
+  if (!target.channel->WaitForConnected(deadline)) {
     std::lock_guard lock(s.mutex);
-    s.last_error = "server " + s.options.server + " unreachable";
+    s.last_error = "server " + address + " unreachable";
     return Error{ErrorCode::kUnavailable, s.last_error};
   }
   {
@@ -123,7 +188,7 @@ Result<std::unique_ptr<v1::ServerDownlink>> LinkClient::connect(const v1::AgentU
     s.context = std::make_unique<grpc::ClientContext>();
     if (!s.options.token.empty()) s.context->AddMetadata("authorization", "Bearer " + s.options.token);
   }
-  s.stream = s.stub->Connect(s.context.get());
+  s.stream = target.stub->Connect(s.context.get());
   s.startReader();
   if (!s.stream->Write(hello)) {
     const grpc::Status status = s.teardown();
@@ -203,6 +268,25 @@ void LinkClient::abandon() {
 void LinkClient::cancel() {
   std::lock_guard lock(impl_->context_mutex);
   if (impl_->context) impl_->context->TryCancel();
+}
+
+std::string LinkClient::target() const {
+  return impl_->target;
+}
+
+std::uint64_t LinkClient::redirects() const {
+  return impl_->redirects;
+}
+
+std::vector<std::string> splitServerList(const std::string& servers) {
+  std::vector<std::string> out;
+  std::size_t start = 0;
+  while (start <= servers.size()) {
+    const std::size_t comma = std::min(servers.find(',', start), servers.size());
+    if (comma > start) out.push_back(servers.substr(start, comma - start));
+    start = comma + 1;
+  }
+  return out;
 }
 
 std::string LinkClient::lastError() const {

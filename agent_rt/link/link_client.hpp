@@ -1,12 +1,17 @@
 // The agent's end of the link stream, over gRPC. One stream at a time; a reader thread keeps a Read pending so
 // that acknowledgements arrive while the link thread writes (and so that gRPC notices a broken connection).
 // gRPC headers stay in link_client.cpp.
+//
+// Scale-out: `server` may list several replicas ("a:50051,b:50051"). A replica that does not serve the mission
+// refuses the Hello and names the one that does (trailing metadata, wire::kOwnerMetadataKey); connect() goes
+// there at once. When a replica cannot be reached the next connect() tries the next one in the list.
 #pragma once
 
 #include <chrono>
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "common/core/result.hpp"
 
@@ -18,7 +23,7 @@ class ServerDownlink;
 namespace cvislam::agent {
 
 struct LinkClientOptions {
-  std::string server;  // host:port
+  std::string server;  // host:port, or several, comma-separated (replicas)
   int keepalive_ms = 1000;
   std::chrono::milliseconds connect_timeout{1000};
   std::size_t max_message_bytes = 16U << 20U;
@@ -50,11 +55,19 @@ class LinkClient {
   void cancel();
   // Why the last stream ended ("" while it is open).
   [[nodiscard]] std::string lastError() const;
+  // The replica the last connect() reached (or tried last).
+  [[nodiscard]] std::string target() const;
+  // Redirects followed so far.
+  [[nodiscard]] std::uint64_t redirects() const;
 
   struct Impl;
 
  private:
+  Result<std::unique_ptr<v1::ServerDownlink>> connectTo(const std::string& address, const v1::AgentUplink& hello);
   std::unique_ptr<Impl> impl_;
 };
+
+// "a:1,b:2" -> {"a:1", "b:2"} (empty entries dropped).
+std::vector<std::string> splitServerList(const std::string& servers);
 
 }  // namespace cvislam::agent

@@ -32,6 +32,9 @@ namespace cvislam::wire {
 
 // The protocol this build speaks; a Hello with another version is refused.
 inline constexpr std::uint32_t kProtocolVersion = 1;
+// Scale-out: when a replica refuses an agent's Hello because another replica serves its mission, the stream's
+// trailing metadata names that replica's host:port under this key, and the agent connects there next.
+inline constexpr const char* kOwnerMetadataKey = "cvislam-owner";
 
 // What one covisible map (downlink) may carry at most: the server never sends more, the agent refuses more.
 inline constexpr int kMaxCovisibleKeyframesPerMessage = 32;  // selected, in full, and pose updates, each

@@ -1,5 +1,7 @@
 #include "server_cloud/core/server_core.hpp"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
@@ -15,12 +17,30 @@
 #include "common/dataset/trajectory_io.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "cvislam/v1/monitor.pb.h"
+#include "server_cloud/cluster/pg_connection.hpp"
+#include "server_cloud/cluster/postgres_store.hpp"
 
 namespace cvislam::server {
 
 namespace {
 Error invalid(const std::string& what) {
   return Error{ErrorCode::kInvalidArgument, what};
+}
+
+// Where redirected agents reach this replica: cluster.advertise, or `listen` when it names a host and a port.
+std::string clusterAddress(const ServerOptions& o) {
+  if (!o.cluster.advertise.empty()) return o.cluster.advertise;
+  const auto colon = o.listen.rfind(':');
+  const std::string host = o.listen.substr(0, colon);
+  const std::string port = o.listen.substr(colon + 1);
+  if (host.empty() || host == "0.0.0.0" || host == "[::]" || host == "::" || port == "0") return {};
+  return o.listen;
+}
+
+std::string hostName() {
+  char name[256] = {};
+  if (::gethostname(name, sizeof name - 1) != 0 || name[0] == '\0') return "replica";
+  return name;
 }
 }  // namespace
 
@@ -48,6 +68,20 @@ Status ServerOptions::validate() const {
   }
   if (backend.enabled) {
     if (Status s = backend.validate(); !s.ok()) return s;
+  }
+  if (cluster.enabled()) {
+    if (!store.empty()) {
+      return invalid(
+          "give either a store file (server.store: one server) or cluster.postgres (replicas sharing a "
+          "PostgreSQL store), not both");
+    }
+    if (!(cluster.lease_ttl_s >= 1.0) || cluster.lease_ttl_s > 600.0) {
+      return invalid("cluster.lease_ttl_s must be in [1, 600]");
+    }
+    if (clusterAddress(*this).empty()) {
+      return invalid("cluster.advertise (--advertise) is needed: listen '" + listen +
+                     "' is a wildcard address or port 0, which agents redirected to this replica cannot reach");
+    }
   }
   return recognition.enabled ? recognition.validate() : Status::Ok();
 }
@@ -86,12 +120,19 @@ std::string ServerOptions::describe() const {
       << "  max_missions:                 " << session.max_missions << "\n"
       << "  max_agents_per_mission:       " << session.max_agents_per_mission << "\n"
       << "  requests_per_s:               " << rate_limit.rate_per_s << " per client (burst " << rate_limit.burst
-      << ")\n";
+      << ")\n"
+      << "  cluster:                      "
+      << (cluster.enabled()
+              ? "replica " + (cluster.replica.empty() ? std::string("(host name)") : cluster.replica) + " at " +
+                    clusterAddress(*this) + ", store " + cluster::redactConninfo(cluster.postgres) + ", lease " +
+                    std::to_string(cluster.lease_ttl_s) + " s"
+              : std::string("(off: this server serves every mission)"))
+      << "\n";
   return out.str();
 }
 
 Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
-  auto loaded = config::loadSections(file.string(), {"server", "link", "limits", "recognition", "backend"});
+  auto loaded = config::loadSections(file.string(), {"server", "link", "limits", "recognition", "backend", "cluster"});
   if (!loaded) return loaded.error();
   const YAML::Node& root = *loaded;
   const auto in_file = [&](const Status& s) { return s.ok() ? s : Status(s.error().withContext(file.string())); };
@@ -121,6 +162,13 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   auto sync = parseStoreSync(store_sync);
   if (!sync) return in_file(Status(sync.error().withContext("server.store_sync")));
   o.store_sync = *sync;
+
+  config::YamlSection cluster(root["cluster"], "cluster");
+  cluster.read("postgres", o.cluster.postgres);
+  cluster.read("replica", o.cluster.replica);
+  cluster.read("advertise", o.cluster.advertise);
+  cluster.read("lease_ttl_s", o.cluster.lease_ttl_s);
+  if (Status s = cluster.finish(); !s.ok()) return in_file(s);
 
   config::YamlSection link(root["link"], "link");
   link.read("downlink_rate_hz", o.session.downlink_rate_hz);
@@ -258,7 +306,11 @@ void ServerCore::drainWorkers(bool final_gba) const {
 
 std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream, std::string token) {
   return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), storedListener(),
-                                        store_.get(), SessionCredentials{&tokens_, std::move(token)});
+                                        store_.get(), SessionCredentials{&tokens_, std::move(token)}, ownership());
+}
+
+MissionOwnership* ServerCore::ownership() const {
+  return replica_.get();
 }
 
 Status ServerCore::loadTokens() {
@@ -270,6 +322,24 @@ Status ServerCore::loadTokens() {
 }
 
 Result<RecoveryReport> ServerCore::openStore() {
+  if (options_.cluster.enabled()) {
+    const std::string holder =
+        cluster::makeHolderName(options_.cluster.replica.empty() ? hostName() : options_.cluster.replica);
+    cluster::PostgresStoreOptions store_options;
+    store_options.conninfo = options_.cluster.postgres;
+    store_options.holder = holder;
+    store_options.software = options_.session.server_name;
+    auto store = cluster::openPostgresStore(store_options);
+    if (!store) return store.error();
+    cluster::LeaseOptions lease_options;
+    lease_options.conninfo = options_.cluster.postgres;
+    lease_options.holder = holder;
+    lease_options.address = clusterAddress(options_);
+    lease_options.ttl_s = options_.cluster.lease_ttl_s;
+    auto leases = cluster::MissionLeases::open(lease_options);
+    if (!leases) return leases.error();
+    return joinCluster(std::move(store).value(), std::move(leases).value());
+  }
   if (options_.store.empty()) return RecoveryReport{};
   SqliteStoreOptions store_options;
   store_options.path = options_.store;
@@ -310,8 +380,40 @@ Result<RecoveryReport> ServerCore::attachStore(std::unique_ptr<MapStore> store) 
   return report;
 }
 
+Result<RecoveryReport> ServerCore::joinCluster(std::unique_ptr<MapStore> store,
+                                               std::unique_ptr<cluster::MissionLeases> leases) {
+  if (store_) return Error{ErrorCode::kFailedPrecondition, "the server has a map store already"};
+  RecoveryReport report;
+  report.store = store->describe() + ", replica " + leases->options().holder + " at " + leases->options().address;
+  store_ = std::move(store);
+  replica_ = std::make_unique<cluster::ReplicaCoordinator>(
+      std::move(leases), [this](const std::string& mission) { return loadFromStore(mission); });
+  replica_->start();
+  return report;
+}
+
+Status ServerCore::leaveCluster() {
+  if (!replica_) return Status::Ok();
+  return replica_->release();
+}
+
+Status ServerCore::loadFromStore(const std::string& mission) {
+  if (!store_) return Status::Ok();
+  if (missions_.find(mission)) {
+    return Error{ErrorCode::kFailedPrecondition, "mission '" + mission + "' is in memory already"};
+  }
+  const AgentSession::StoredListener on_stored = storedListener();
+  return store_->replay(
+      mission, [&](const StoreRecord& r) -> Status { return replayStored(missions_, options_.session, r, on_stored); });
+}
+
 Result<LoadReport> ServerCore::loadMission(const MapStore* source, const std::string& from, const std::string& as) {
   const auto start = Clock::now();
+  if (replica_) {
+    return Error{ErrorCode::kFailedPrecondition,
+                 "loading a mission (--load-mission) is not supported on scale-out replicas yet: load it with a "
+                 "single server, or fly the mission anew"};
+  }
   if (source == nullptr) source = store_.get();
   if (source == nullptr) {
     return Error{ErrorCode::kFailedPrecondition,

@@ -15,6 +15,8 @@
 #include "server_cloud/access/mission_tokens.hpp"
 #include "server_cloud/access/rate_limiter.hpp"
 #include "server_cloud/backend/backend_worker.hpp"
+#include "server_cloud/cluster/mission_leases.hpp"
+#include "server_cloud/cluster/replica_coordinator.hpp"
 #include "server_cloud/ingest/agent_session.hpp"
 #include "server_cloud/recognition/recognition_worker.hpp"
 #include "server_cloud/stack/map_stack.hpp"
@@ -30,6 +32,17 @@ namespace cvislam::server {
 // Place recognition's defaults, with the vocabulary file of this build's source tree
 // (deploy/vocabulary/orb_k10_l5.cvvoc).
 recognition::RecognitionWorkerOptions defaultRecognitionOptions();
+
+// Scale-out (server_cloud/cluster): replicas that share a PostgreSQL store, each serving the missions whose leases it
+// holds. Off when `postgres` is empty.
+struct ClusterOptions {
+  std::string postgres;      // libpq connection string of the shared store, e.g. "host=db port=5432 dbname=cvislam"
+  std::string replica;       // this replica's name in the leases and logs; empty: the host name
+  std::string advertise;     // host:port where agents and clients reach this replica; empty: `listen`, when usable
+  double lease_ttl_s = 3.0;  // a replica that stops renewing loses its missions this long after
+
+  [[nodiscard]] bool enabled() const { return !postgres.empty(); }
+};
 
 struct ServerOptions {
   std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
@@ -58,6 +71,7 @@ struct ServerOptions {
   // A second, plaintext port that serves grpc.health.v1 and nothing else (host:port; empty: none), for
   // probes that cannot speak TLS (Kubernetes' gRPC probes). The services stay behind TLS on `listen`.
   std::string health_listen;
+  ClusterOptions cluster;
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line
@@ -128,6 +142,15 @@ class ServerCore {
   // The same with a store made elsewhere (tests; the scale-out issue's shared store).
   Result<RecoveryReport> attachStore(std::unique_ptr<MapStore> store);
   [[nodiscard]] MapStore* store() const { return store_.get(); }
+  // Scale-out: joins the replicas of options.cluster (openStore() does it when options.cluster is enabled). The
+  // store is shared and nothing is replayed now: each mission is loaded from it when this replica takes it (an
+  // agent's Hello, or a takeover after another replica's lease lapsed). Starts renewing and taking over.
+  Result<RecoveryReport> joinCluster(std::unique_ptr<MapStore> store, std::unique_ptr<cluster::MissionLeases> leases);
+  // Gives every mission back at once (a clean shutdown; call after writeOutputs()). Nothing to do when alone.
+  Status leaveCluster();
+  // Who serves which mission; nullptr when this server runs alone (it serves every mission).
+  [[nodiscard]] MissionOwnership* ownership() const;
+  [[nodiscard]] cluster::ReplicaCoordinator* replica() const { return replica_.get(); }
 
   // Map reuse: copies mission `from` of `source` (this server's own store when nullptr) into this server as the
   // new mission `as`. Its records, renamed, go into this server's store (when it has one) and are applied as a
@@ -189,6 +212,10 @@ class ServerCore {
   std::unique_ptr<MapStore> store_;
   MissionTokens tokens_;
   RateLimiter limiter_;
+  std::unique_ptr<cluster::ReplicaCoordinator> replica_;  // scale-out only; after store_: it goes first
+
+  // Replays what store_ holds of `mission` (this replica has just taken its lease).
+  Status loadFromStore(const std::string& mission);
 
   [[nodiscard]] AgentSession::StoredListener storedListener() const;
 };

@@ -116,13 +116,14 @@ Status SessionOptions::validate() const {
 
 AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& options,
                            std::function<void()> cancel_stream, StoredListener on_stored, MapStore* store,
-                           SessionCredentials credentials)
+                           SessionCredentials credentials, MissionOwnership* ownership)
     : missions_(missions),
       options_(options),
       cancel_stream_(std::move(cancel_stream)),
       on_stored_(std::move(on_stored)),
       store_(store),
       credentials_(std::move(credentials)),
+      ownership_(ownership),
       covisible_(options.covisible) {}
 
 AgentSession::~AgentSession() {
@@ -171,6 +172,18 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
   if (Status s = checkMissionName(hello.mission()); !s.ok()) return s;
   if (credentials_.tokens != nullptr) {
     if (Status s = credentials_.tokens->authorize(hello.mission(), credentials_.token); !s.ok()) return s;
+  }
+  if (ownership_ != nullptr) {
+    auto owner = ownership_->claim(hello.mission());
+    if (!owner) {
+      return Error{ErrorCode::kUnavailable, "this replica cannot serve mission '" + hello.mission() + "' now (" +
+                                                owner.error().message() + "); connect again"};
+    }
+    if (!owner->here) {
+      redirect_ = owner->address;
+      return Error{ErrorCode::kUnavailable, "mission '" + hello.mission() + "' is served by replica " + owner->holder +
+                                                " at " + owner->address + ": connect there"};
+    }
   }
   if (hello.agent_id() > 0xFFFF) return invalid("agent id " + std::to_string(hello.agent_id()) + " is over 65535");
   auto sensors = sensorsFromHello(hello);

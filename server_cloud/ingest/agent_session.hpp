@@ -21,6 +21,7 @@
 #include "server_cloud/access/mission_tokens.hpp"
 #include "server_cloud/ingest/batch_ingest.hpp"
 #include "server_cloud/ingest/covisible_downlink.hpp"
+#include "server_cloud/ingest/mission_ownership.hpp"
 #include "server_cloud/stack/map_stack.hpp"
 #include "server_cloud/store/map_store.hpp"
 
@@ -66,8 +67,11 @@ class AgentSession {
   // `store`, when set, makes every Hello and batch durable before it takes effect (map_store.hpp); a batch the
   // store refuses is not applied, and the stream ends with UNAVAILABLE so that the agent sends it again.
   // `credentials`: the Hello is refused with UNAUTHENTICATED, before anything is made, unless they open its mission.
+  // `ownership`, when set (scale-out), decides whether this replica serves the Hello's mission: when another one
+  // does, the Hello is refused with UNAVAILABLE and redirect() names where to go.
   AgentSession(MissionRegistry& missions, const SessionOptions& options, std::function<void()> cancel_stream,
-               StoredListener on_stored = {}, MapStore* store = nullptr, SessionCredentials credentials = {});
+               StoredListener on_stored = {}, MapStore* store = nullptr, SessionCredentials credentials = {},
+               MissionOwnership* ownership = nullptr);
   ~AgentSession();
   AgentSession(const AgentSession&) = delete;
   AgentSession& operator=(const AgentSession&) = delete;
@@ -89,6 +93,8 @@ class AgentSession {
   [[nodiscard]] bool greeted() const { return record_ != nullptr; }
   [[nodiscard]] AgentId agent() const { return agent_; }
   [[nodiscard]] const std::string& mission() const { return mission_name_; }
+  // After a refused Hello: the address (host:port) of the replica that serves its mission; "" otherwise.
+  [[nodiscard]] const std::string& redirect() const { return redirect_; }
 
  private:
   Status onHello(const v1::AgentUplink& message, std::size_t wire_bytes, v1::ServerDownlink& reply);
@@ -101,6 +107,8 @@ class AgentSession {
   StoredListener on_stored_;
   MapStore* store_ = nullptr;
   SessionCredentials credentials_;
+  MissionOwnership* ownership_ = nullptr;
+  std::string redirect_;
   std::shared_ptr<Mission> mission_;
   SharedAgentRecord record_;
   std::string mission_name_;

@@ -16,6 +16,7 @@
 #include "common/core/text.hpp"
 #include "cvislam/v1/agent_link.grpc.pb.h"
 #include "cvislam/v1/monitor.grpc.pb.h"
+#include "proto/wire/wire.hpp"
 #include "server_cloud/service/call_access.hpp"
 #include "server_cloud/service/grpc_status.hpp"
 #include "server_cloud/service/map_service.hpp"
@@ -74,7 +75,7 @@ class ReactorRegistry {
 class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer> {
  public:
   LinkReactor(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry)
-      : handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
+      : context_(context), handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
     std::weak_ptr<StreamHandle> weak = handle_;
     const std::string token = presentedToken(*context);
     session_ = core.openSession(
@@ -114,6 +115,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
     bool reply_due = false;
     const Status status = session_->handle(parsed_, wire_bytes, reply_, reply_due);
     if (!status.ok()) {
+      if (!session_->redirect().empty()) context_->AddTrailingMetadata(wire::kOwnerMetadataKey, session_->redirect());
       closing_status_ = status;
       finishLocked(toGrpc(status));
       return;
@@ -187,6 +189,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
     if (auto now = gate_.finish(status)) Finish(std::move(*now));
   }
 
+  grpc::CallbackServerContext* context_;  // valid until OnDone()
   std::shared_ptr<StreamHandle> handle_;
   ReactorRegistry& registry_;
   std::mutex mutex_;

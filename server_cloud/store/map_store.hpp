@@ -10,13 +10,14 @@
 // What the server derives (merges, loop closures, global BA, redundancy removal) is not stored: place recognition
 // and the back-end see the replayed keyframes as they saw the live ones and work it out again.
 //
-// An interface, so that the scale-out issue can put a shared store behind it (server_cloud/store/sqlite_store.hpp
-// is the embedded one).
+// An interface: server_cloud/store/sqlite_store.hpp is the embedded store of one server, and
+// server_cloud/cluster/postgres_store.hpp the store that replicas share.
 #pragma once
 
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "common/core/ids.hpp"
@@ -35,6 +36,17 @@ struct StoreRecord {
 };
 
 std::string_view toString(StoreRecord::Kind kind);
+
+// The checksum a store keeps beside each record: FNV-1a over every field, so that a flipped agent id is caught as
+// surely as a flipped body byte.
+std::uint64_t recordChecksum(StoreRecord::Kind kind, std::string_view mission, AgentId agent, std::uint64_t sequence,
+                             std::string_view body);
+
+// The checks every store makes on a record it reads back: `raw_kind` and `raw_agent` as stored (set into
+// `record` when valid; its other fields are filled already) and the stored checksum. `where` names the record
+// ("<store>: record 12"); the error says what is wrong with it and what to do.
+Status checkStoredRecord(int raw_kind, std::int64_t raw_agent, std::uint64_t stored_checksum, const std::string& where,
+                         StoreRecord& record);
 
 struct StoreCounters {
   std::uint64_t records = 0;

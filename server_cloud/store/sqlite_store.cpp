@@ -8,19 +8,7 @@
 #include <string_view>
 #include <utility>
 
-#include "common/core/hash.hpp"
-
 namespace cvislam::server {
-
-std::string_view toString(StoreRecord::Kind kind) {
-  switch (kind) {
-    case StoreRecord::Kind::kHello:
-      return "hello";
-    case StoreRecord::Kind::kBatch:
-      return "batch";
-  }
-  return "unknown";
-}
 
 Status SqliteStoreOptions::validate() const {
   if (path.empty()) return Error{ErrorCode::kInvalidArgument, "store path is empty"};
@@ -49,25 +37,6 @@ std::string_view toString(SqliteStoreOptions::Sync sync) {
 namespace {
 
 constexpr const char* kFormat = "cvislam map store";
-
-// The checksum covers every field, so that a flipped agent id is caught as surely as a flipped body byte.
-std::uint64_t checksumOf(StoreRecord::Kind kind, std::string_view mission, AgentId agent, std::uint64_t sequence,
-                         std::string_view body) {
-  Fnv1a64 hash;
-  const auto add = [&](std::uint64_t v) {
-    char bytes[8];
-    for (int i = 0; i < 8; ++i) bytes[i] = static_cast<char>((v >> (8 * i)) & 0xFFU);
-    hash.add(std::string_view(bytes, 8));
-  };
-  add(static_cast<std::uint64_t>(kind));
-  add(mission.size());
-  hash.add(mission);
-  add(agent);
-  add(sequence);
-  add(body.size());
-  hash.add(body);
-  return hash.value();
-}
 
 struct DbCloser {
   void operator()(sqlite3* db) const { sqlite3_close_v2(db); }
@@ -101,7 +70,8 @@ class SqliteStore final : public MapStore {
     sqlite3_bind_int64(s, 3, static_cast<sqlite3_int64>(r.agent));
     sqlite3_bind_int64(s, 4, static_cast<sqlite3_int64>(r.sequence));
     sqlite3_bind_blob64(s, 5, r.body.data(), r.body.size(), SQLITE_STATIC);
-    sqlite3_bind_int64(s, 6, static_cast<sqlite3_int64>(checksumOf(r.kind, r.mission, r.agent, r.sequence, r.body)));
+    sqlite3_bind_int64(s, 6,
+                       static_cast<sqlite3_int64>(recordChecksum(r.kind, r.mission, r.agent, r.sequence, r.body)));
     const int rc = sqlite3_step(s);
     sqlite3_reset(s);
     if (rc == SQLITE_CONSTRAINT) {
@@ -140,21 +110,7 @@ class SqliteStore final : public MapStore {
                     static_cast<std::size_t>(sqlite3_column_bytes(s, 5)));
       const auto stored_checksum = static_cast<std::uint64_t>(sqlite3_column_int64(s, 6));
       const std::string where = options_.path.string() + ": record " + std::to_string(r.number);
-      if (kind != static_cast<int>(StoreRecord::Kind::kHello) && kind != static_cast<int>(StoreRecord::Kind::kBatch)) {
-        return Error{ErrorCode::kDataError, where + " has the unknown kind " + std::to_string(kind) +
-                                                ": the store is damaged or was written by another version"};
-      }
-      if (agent < 0 || agent > 0xFFFF) {
-        return Error{ErrorCode::kDataError, where + " names agent " + std::to_string(agent) + ", which is over 65535"};
-      }
-      r.kind = static_cast<StoreRecord::Kind>(kind);
-      r.agent = static_cast<AgentId>(agent);
-      if (checksumOf(r.kind, r.mission, r.agent, r.sequence, r.body) != stored_checksum) {
-        return Error{ErrorCode::kDataError,
-                     where + " (" + std::string(toString(r.kind)) + " " + std::to_string(r.sequence) + " of agent " +
-                         std::to_string(r.agent) + ", mission '" + r.mission +
-                         "') fails its checksum: the store is damaged; restore it from a backup or move it aside"};
-      }
+      if (Status st = checkStoredRecord(kind, agent, stored_checksum, where, r); !st.ok()) return st;
       if (Status st = visit(r); !st.ok()) return st;
     }
     return Status::Ok();
@@ -242,8 +198,11 @@ Result<std::unique_ptr<MapStore>> openSqliteStore(const SqliteStoreOptions& opti
   }
   if (!exists && options.path.has_parent_path()) std::filesystem::create_directories(options.path.parent_path(), ec);
 
+  if (options.read_only && !exists) return Error{ErrorCode::kNotFound, "map store " + path + " does not exist"};
   sqlite3* raw = nullptr;
-  const int flags = SQLITE_OPEN_READWRITE | (exists ? 0 : SQLITE_OPEN_CREATE) | SQLITE_OPEN_NOMUTEX;
+  const int flags =
+      (options.read_only ? SQLITE_OPEN_READONLY : (SQLITE_OPEN_READWRITE | (exists ? 0 : SQLITE_OPEN_CREATE))) |
+      SQLITE_OPEN_NOMUTEX;
   const int rc = sqlite3_open_v2(path.c_str(), &raw, flags, nullptr);
   Db db(raw);
   if (rc != SQLITE_OK) {
@@ -252,8 +211,10 @@ Result<std::unique_ptr<MapStore>> openSqliteStore(const SqliteStoreOptions& opti
   }
   sqlite3_extended_result_codes(raw, 0);
   sqlite3_busy_timeout(raw, 0);
-  // One process holds the store: a second server on the same file is refused at once.
-  if (Status s = exec(raw, path, "PRAGMA locking_mode=EXCLUSIVE", "setting exclusive locking"); !s.ok()) {
+  // One process holds the store: a second server on the same file is refused at once (readers share it).
+  if (Status s = exec(raw, path, options.read_only ? "PRAGMA query_only=1" : "PRAGMA locking_mode=EXCLUSIVE",
+                      "setting the locking mode");
+      !s.ok()) {
     return s.error();
   }
   if (exists) {
@@ -272,13 +233,20 @@ Result<std::unique_ptr<MapStore>> openSqliteStore(const SqliteStoreOptions& opti
                        "file aside"};
     }
   }
-  if (Status s = exec(raw, path, "PRAGMA journal_mode=WAL", "choosing the WAL journal"); !s.ok()) return s.error();
+  if (options.read_only) {
+    // Nothing to set up: a recording is read as it is.
+  } else if (Status s = exec(raw, path, "PRAGMA journal_mode=WAL", "choosing the WAL journal"); !s.ok()) {
+    return s.error();
+  }
   const char* sync = options.sync == SqliteStoreOptions::Sync::kFull     ? "PRAGMA synchronous=FULL"
                      : options.sync == SqliteStoreOptions::Sync::kNormal ? "PRAGMA synchronous=NORMAL"
                                                                          : "PRAGMA synchronous=OFF";
-  if (Status s = exec(raw, path, sync, "setting synchronous"); !s.ok()) return s.error();
+  if (Status s = exec(raw, path, options.read_only ? "SELECT 1" : sync, "setting synchronous"); !s.ok()) {
+    return s.error();
+  }
   // Take the exclusive lock now rather than at the first append.
-  if (Status s = exec(raw, path, "BEGIN IMMEDIATE; COMMIT", "locking (is another cvislam_server using this store?)");
+  if (Status s = exec(raw, path, options.read_only ? "SELECT 1" : "BEGIN IMMEDIATE; COMMIT",
+                      "locking (is another cvislam_server using this store?)");
       !s.ok()) {
     return s.error();
   }

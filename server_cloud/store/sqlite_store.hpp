@@ -28,6 +28,8 @@ struct SqliteStoreOptions {
   Sync sync = Sync::kFull;
   bool create_if_missing = true;
   bool check_on_open = true;                // SQLite's quick_check of the whole file
+  // Read only, shared with other readers (a recording that several replay clients read); append() fails.
+  bool read_only = false;
   std::string software = "cvislam_server";  // written into a new store's meta table
 
   [[nodiscard]] Status validate() const;

@@ -144,6 +144,22 @@ int main(int argc, char** argv) {
   app.add_option("--requests-per-s", requests_per_s,
                  "Requests per second per client (map service and monitor calls, agent streams opened), with a "
                  "burst of twice as many; 0: no limit [50]");
+  std::string postgres;
+  std::string replica;
+  std::string advertise;
+  std::optional<double> lease_ttl_s;
+  app.add_option("--postgres", postgres,
+                 "Scale-out: run as one of several replicas sharing this PostgreSQL store (a libpq connection "
+                 "string, e.g. 'host=db port=5432 user=cvislam dbname=cvislam'). Each mission is served by the "
+                 "replica holding its lease; agents that reach another replica are redirected, and a replica that "
+                 "dies has its missions taken over once its leases lapse. Replaces --store [none]");
+  app.add_option("--replica", replica, "Scale-out: this replica's name in leases and logs [the host name]");
+  app.add_option("--advertise", advertise,
+                 "Scale-out: host:port where agents and clients reach this replica (redirects name it) [--listen, "
+                 "unless it is a wildcard address or port 0]");
+  app.add_option("--lease-ttl", lease_ttl_s,
+                 "Scale-out: seconds a replica that stops renewing keeps its missions; the takeover time after a "
+                 "crash is about this plus a third of it [3]");
   std::vector<std::string> load_missions;
   std::string load_from;
   app.add_option("--load-mission", load_missions,
@@ -181,6 +197,10 @@ int main(int argc, char** argv) {
   if (!tls_cert.empty()) options.tls_certificate = tls_cert;
   if (!tls_key.empty()) options.tls_private_key = tls_key;
   if (!health_listen.empty()) options.health_listen = health_listen;
+  if (!postgres.empty()) options.cluster.postgres = postgres;
+  if (!replica.empty()) options.cluster.replica = replica;
+  if (!advertise.empty()) options.cluster.advertise = advertise;
+  if (lease_ttl_s) options.cluster.lease_ttl_s = *lease_ttl_s;
   if (max_missions) options.session.max_missions = *max_missions;
   if (max_agents) options.session.max_agents_per_mission = *max_agents;
   if (requests_per_s) {
@@ -227,7 +247,15 @@ int main(int argc, char** argv) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 1;
   }
-  if (!options.store.empty()) {
+  if (options.cluster.enabled()) {
+    auto joined = core.openStore();
+    if (!joined) {
+      std::cerr << "cvislam_server: " << joined.error().message() << "\n";
+      return 1;
+    }
+    std::fprintf(stderr, "[server] scale-out: shared store %s; missions are loaded as this replica takes them\n",
+                 joined->store.c_str());
+  } else if (!options.store.empty()) {
     std::fprintf(stderr, "[server] opening the map store %s\n", options.store.string().c_str());
     auto recovered = core.openStore();
     if (!recovered) {
@@ -306,6 +334,11 @@ int main(int argc, char** argv) {
   }
   std::fprintf(stderr, "[server] %s: stopping\n", received == SIGINT ? "SIGINT" : "SIGTERM");
   (*server)->shutdown();
+  // Nothing is appended from here on: the other replicas may take the missions over while this one finishes.
+  if (auto s = core.leaveCluster(); !s.ok()) {
+    std::fprintf(stderr, "[server] could not release the mission leases (they lapse by themselves): %s\n",
+                 s.error().message().c_str());
+  }
   printSummary(core);
   if (!options.output.empty()) {
     if (auto s = core.writeOutputs(options.output); !s.ok()) {

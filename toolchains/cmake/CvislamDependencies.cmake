@@ -13,6 +13,9 @@ find_package(Protobuf REQUIRED)                       # libprotobuf-dev protobuf
 find_package(gRPC REQUIRED CONFIG)                    # libgrpc++-dev protobuf-compiler-grpc
 if(CVISLAM_BUILD_SERVER)
   find_package(SQLite3 REQUIRED)                      # libsqlite3-dev (the server's map store; CMake's FindSQLite3)
+  # libpq-dev: the replicas' shared store and mission leases (server_cloud/cluster). libpq ships no CMake config.
+  find_package(PkgConfig REQUIRED)
+  pkg_check_modules(LIBPQ REQUIRED IMPORTED_TARGET libpq)
 endif()
 
 # OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).

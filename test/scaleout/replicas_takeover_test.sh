@@ -1,0 +1,122 @@
+#!/usr/bin/env bash
+# Scale-out on loopback, every part a real process: PostgreSQL (deploy/local_postgres.sh), three cvislam_server
+# replicas sharing it, and four missions of two agents each, streamed by cvislam_replay from a recording of a real
+# run (two cvislam_agent processes on the EuRoC V1_01 excerpt at real-time pace, recorded by a server with a SQLite store). Each
+# mission's agents first contact a different replica; the owner of one mission is killed with SIGKILL mid-run.
+# Checks: every mission completes (every batch acknowledged), the store holds every batch exactly once, the
+# killed replica's mission was taken over by another replica, whose map holds every keyframe of each agent once.
+# Prints the takeover time (SIGKILL to the new owner's lease, and to the agents' last acknowledgement).
+#
+#   test/scaleout/replicas_takeover_test.sh BIN_DIR      (CTest: scaleout_replicas_takeover)
+set -euo pipefail
+bin=${1:?usage: $0 BIN_DIR}
+repo=$(cd "$(dirname "$0")/../.." && pwd)
+data=${CVISLAM_DATA_DIR:-$repo/../shared/data}
+seq="$data/euroc-v101-excerpt"
+if [ ! -d "$seq/mav0" ]; then echo "SKIPPED: no $seq (set CVISLAM_DATA_DIR)"; exit 77; fi
+work=$(mktemp -d /tmp/cvislam-scaleout.XXXXXX)
+chmod 755 "$work"  # the postgres user runs the database under it
+pids=()
+cleanup() {
+  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null || true; done
+  "$repo/deploy/local_postgres.sh" stop "$work/pg" >/dev/null 2>&1 || true
+  if [ "${keep:-0}" = 0 ]; then rm -rf "$work"; else echo "logs kept in $work"; fi
+}
+trap cleanup EXIT
+fail() { echo "FAILED: $*" >&2; keep=1; exit 1; }
+port() { python3 -c 'import socket;s=socket.socket();s.bind(("127.0.0.1",0));print(s.getsockname()[1])'; }
+now() { date +%s.%N; }
+
+conninfo=$("$repo/deploy/local_postgres.sh" start "$work/pg")
+sql() { psql "$conninfo" -tAq -F ' ' -c "$1"; }
+
+# 1. The recording: one server with a SQLite store, two agents flying the excerpt one after the other.
+rec_port=$(port)
+"$bin/cvislam_server" --listen "127.0.0.1:$rec_port" --store "$work/recording.db" --quiet --no-gba \
+  >"$work/recorder.log" 2>&1 &
+recorder=$!
+pids+=("$recorder")
+for a in 0 1; do
+  for _ in $(seq 50); do grep -q "listening on" "$work/recorder.log" && break; sleep 0.1; done
+  "$bin/cvislam_agent" --dataset "$seq" --output "$work/agent$a" --pace realtime --quiet --server "127.0.0.1:$rec_port" \
+    --mission recorded --agent-id "$a" >"$work/agent$a.log" 2>&1 || fail "recording agent $a (see $work/agent$a.log)"
+done
+kill -INT "$recorder"; wait "$recorder" || fail "the recording server (see $work/recorder.log)"
+recorded_kf=$(( $(grep -vc '^#' "$work/agent0/keyframes.txt" 2>/dev/null || echo 0) ))
+
+# 2. Three replicas.
+ports=()
+for r in 0 1 2; do
+  p=$(port); ports+=("$p")
+  "$bin/cvislam_server" --listen "127.0.0.1:$p" --postgres "$conninfo" --replica "r$r" --lease-ttl 2 --quiet \
+    --no-gba >"$work/replica$r.log" 2>&1 &
+  pids+=("$!")
+done
+for r in 0 1 2; do
+  for _ in $(seq 100); do grep -q "listening on" "$work/replica$r.log" && break; sleep 0.1; done
+  grep -q "listening on" "$work/replica$r.log" || fail "replica $r did not start (see $work/replica$r.log)"
+done
+list() { local first=$1; echo "127.0.0.1:${ports[$first]},127.0.0.1:${ports[$(( (first + 1) % 3 ))]},127.0.0.1:${ports[$(( (first + 2) % 3 ))]}"; }
+
+# 3. Four missions of two agents, at half real time (the excerpt is 4.7 s), each starting at another replica.
+replays=()
+for m in 0 1 2 3; do
+  "$bin/cvislam_replay" --recording "$work/recording.db" --server "$(list $((m % 3)))" --mission "m$m" --rate 0.5 \
+    --flush-timeout 40 --report "$work/m$m.json" >"$work/m$m.log" 2>&1 &
+  replays+=("$!")
+  pids+=("$!")
+done
+for _ in $(seq 100); do [ "$(sql "SELECT count(*) FROM cvislam_leases")" = 4 ] && break; sleep 0.1; done
+sleep 2
+read -r victim_address old_epoch < <(sql "SELECT address, epoch FROM cvislam_leases WHERE mission = 'm1'")
+victim=-1
+for r in 0 1 2; do [ "127.0.0.1:${ports[$r]}" = "$victim_address" ] && victim=$r; done
+[ "$victim" -ge 0 ] || fail "no replica serves m1 ($victim_address)"
+before=$(sql "SELECT count(*) FROM cvislam_records WHERE mission = 'm1' AND kind = 2")
+kill -9 "${pids[$((1 + victim))]}"
+killed=$(now)
+echo "SIGKILL to replica r$victim, owner of m1 ($before batches stored); missions it served: $(sql "SELECT string_agg(mission, ',') FROM cvislam_leases WHERE address = '$victim_address'")"
+taken=""
+for _ in $(seq 300); do
+  row=$(sql "SELECT address, epoch FROM cvislam_leases WHERE mission = 'm1'")
+  if [ "${row#* }" != "$old_epoch" ]; then taken=$(now); break; fi
+  sleep 0.05
+done
+[ -n "$taken" ] || fail "nobody took m1 over within 15 s"
+new_address=${row% *}
+rc=0
+for i in "${!replays[@]}"; do wait "${replays[$i]}" || { echo "mission m$i did not complete (see $work/m$i.log)"; rc=1; }; done
+done_at=$(now)
+[ "$rc" = 0 ] || fail "not every mission completed"
+
+# 4. Exactly once, in the store and in the new owner's map.
+expected=$(python3 -c "import json;print(json.load(open('$work/m0.json'))['agents'][0]['batches'])")
+while read -r mission agent n distinct top; do
+  [ "$n" = "$expected" ] && [ "$distinct" = "$expected" ] && [ "$top" = "$expected" ] ||
+    fail "mission $mission agent $agent: $n batches stored ($distinct distinct, newest $top), expected $expected once each"
+done < <(sql "SELECT mission, agent, count(*), count(DISTINCT sequence), max(sequence) FROM cvislam_records WHERE kind = 2 GROUP BY 1, 2 ORDER BY 1, 2")
+[ "$(sql "SELECT count(*) FROM cvislam_records WHERE kind = 2")" = $((8 * expected)) ] || fail "the store does not hold 8 x $expected batches"
+[ "$new_address" != "$victim_address" ] || fail "m1 is still leased to the killed replica"
+for a in 0 1; do
+  "$bin/cvislam_mapctl" --server "$new_address" trajectory m1 "$a" --out "$work/m1_agent$a.txt" >/dev/null ||
+    fail "reading m1's trajectory of agent $a from its new owner $new_address"
+  n=$(grep -vc '^#' "$work/m1_agent$a.txt")
+  unique=$(grep -v '^#' "$work/m1_agent$a.txt" | awk '{print $1}' | sort -u | wc -l)
+  [ "$n" -gt 0 ] && [ "$n" = "$unique" ] || fail "m1 agent $a on its new owner: $n keyframes, $unique distinct times"
+  [ "$recorded_kf" = 0 ] || [ "$n" -le "$recorded_kf" ] || fail "m1 agent $a: $n keyframes, more than the $recorded_kf the agent made"
+  echo "m1 agent $a: $n keyframes on the new owner, each once"
+done
+python3 - "$work" "$killed" "$taken" "$done_at" <<'PY'
+import json, sys
+work, killed, taken, done_at = sys.argv[1], *map(float, sys.argv[2:])
+for m in range(4):
+    j = json.load(open(f"{work}/m{m}.json"))
+    for a in j["agents"]:
+        print(f"m{m} agent {a['agent']}: {a['acked']}/{a['batches']} acknowledged, {a['streams']} streams, "
+              f"{a['redirects']} redirects, longest gap {a['longest_gap_s']:.2f} s, "
+              f"ack p50 {a.get('ack_ms_p50', 0):.0f} ms")
+print(f"takeover: the new owner held m1's lease {taken - killed:.2f} s after the SIGKILL (lease TTL 2 s)")
+gaps = [a["longest_gap_s"] for a in json.load(open(f"{work}/m1.json"))["agents"]]
+print(f"m1's agents were without a stream for at most {max(gaps):.2f} s")
+PY
+echo "PASSED: 4 missions x 2 agents over 3 replicas, owner of m1 killed, every batch stored once ($((8 * expected)))"
