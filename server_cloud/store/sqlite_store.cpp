@@ -210,7 +210,8 @@ Result<std::unique_ptr<MapStore>> openSqliteStore(const SqliteStoreOptions& opti
                  "map store " + path + ": cannot open: " + (raw != nullptr ? sqlite3_errmsg(raw) : "out of memory")};
   }
   sqlite3_extended_result_codes(raw, 0);
-  sqlite3_busy_timeout(raw, 0);
+  // Readers of one recording share it and may meet each other setting up its WAL index: they wait for that.
+  sqlite3_busy_timeout(raw, options.read_only ? 5000 : 0);
   // One process holds the store: a second server on the same file is refused at once (readers share it).
   if (Status s = exec(raw, path, options.read_only ? "PRAGMA query_only=1" : "PRAGMA locking_mode=EXCLUSIVE",
                       "setting the locking mode");
