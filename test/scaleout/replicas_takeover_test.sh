@@ -18,7 +18,7 @@ work=$(mktemp -d /tmp/cvislam-scaleout.XXXXXX)
 chmod 755 "$work"  # the postgres user runs the database under it
 pids=()
 cleanup() {
-  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null || true; done
+  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null || true; wait "$p" 2>/dev/null || true; done
   "$repo/deploy/local_postgres.sh" stop "$work/pg" >/dev/null 2>&1 || true
   if [ "${keep:-0}" = 0 ]; then rm -rf "$work"; else echo "logs kept in $work"; fi
 }
@@ -75,6 +75,7 @@ for r in 0 1 2; do [ "127.0.0.1:${ports[$r]}" = "$victim_address" ] && victim=$r
 before=$(sql "SELECT count(*) FROM cvislam_records WHERE mission = 'm1' AND kind = 2")
 kill -9 "${pids[$((1 + victim))]}"
 killed=$(now)
+wait "${pids[$((1 + victim))]}" 2>/dev/null || true  # reaped here, so bash does not report "Killed"
 echo "SIGKILL to replica r$victim, owner of m1 ($before batches stored); missions it served: $(sql "SELECT string_agg(mission, ',') FROM cvislam_leases WHERE address = '$victim_address'")"
 taken=""
 for _ in $(seq 300); do
