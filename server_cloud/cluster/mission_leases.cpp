@@ -99,4 +99,14 @@ Result<std::optional<Lease>> MissionLeases::find(const std::string& mission) {
   return std::optional<Lease>(leaseOf(*rows, 0));
 }
 
+Result<std::vector<Lease>> MissionLeases::otherHolders() {
+  auto rows = connection_->exec(std::string("SELECT DISTINCT ON (holder) ") + kLeaseColumns +
+                                    " FROM cvislam_leases WHERE expires_at > now() AND holder <> $1 ORDER BY holder",
+                                PgParams().text(options_.holder));
+  if (!rows) return rows.error().withContext("listing the other replicas");
+  std::vector<Lease> out;
+  for (int i = 0; i < rows->rows(); ++i) out.push_back(leaseOf(*rows, i));
+  return out;
+}
+
 }  // namespace cvislam::server::cluster

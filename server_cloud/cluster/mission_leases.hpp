@@ -54,6 +54,8 @@ class MissionLeases {
   Result<std::vector<std::string>> lapsed();
   // The lease of `mission`, or nothing when it never had one.
   Result<std::optional<Lease>> find(const std::string& mission);
+  // The other holders with a live lease, each once (holder and address; the mission is that of one of them).
+  Result<std::vector<Lease>> otherHolders();
 
   [[nodiscard]] const LeaseOptions& options() const { return options_; }
 

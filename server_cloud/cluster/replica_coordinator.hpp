@@ -52,6 +52,7 @@ class ReplicaCoordinator final : public MissionOwnership {
 
   Result<MissionOwner> claim(const std::string& mission) override;
   Result<MissionOwner> owner(const std::string& mission) override;
+  Result<std::vector<MissionOwner>> others() override;
 
   // One pass of the thread's work (tests call it to avoid waiting): renews, then takes lapsed missions over.
   void tick();

@@ -40,6 +40,9 @@ struct ClusterOptions {
   std::string replica;       // this replica's name in the leases and logs; empty: the host name
   std::string advertise;     // host:port where agents and clients reach this replica; empty: `listen`, when usable
   double lease_ttl_s = 3.0;  // a replica that stops renewing loses its missions this long after
+  // With TLS: the CA (PEM) that the other replicas' certificates chain to, for the map-service reads one replica
+  // passes to a mission's owner. Empty: this replica's own certificate (one certificate for the deployment).
+  std::filesystem::path peer_ca;
 
   [[nodiscard]] bool enabled() const { return !postgres.empty(); }
 };
@@ -77,7 +80,9 @@ struct ServerOptions {
   [[nodiscard]] std::string describe() const;  // every option with its value, one per line
 };
 
-// Reads a YAML config (see deploy/server_config.yaml) over `options`; names unknown keys and bad values.
+// Reads a YAML config (see deploy/server_config.yaml) over `options`; names unknown keys and values of the wrong
+// type. Checking the options as a whole (ServerOptions::validate) is the caller's, after the command line: a
+// replica's config may leave cluster.advertise to --advertise, for one.
 Status loadServerConfig(const std::filesystem::path& file, ServerOptions& options);
 
 // One sample of the timeline: what the server held of an agent, and its traffic so far.

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <string>
+#include <vector>
 
 #include "common/core/result.hpp"
 
@@ -23,6 +24,8 @@ class MissionOwnership {
   virtual Result<MissionOwner> claim(const std::string& mission) = 0;
   // Who serves `mission`, without taking it (map-service reads). kNotFound when no replica ever served it.
   virtual Result<MissionOwner> owner(const std::string& mission) = 0;
+  // The other replicas that serve a mission now, each once (a deployment-wide listing asks each).
+  virtual Result<std::vector<MissionOwner>> others() = 0;
 };
 
 }  // namespace cvislam::server

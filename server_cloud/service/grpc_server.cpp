@@ -20,6 +20,7 @@
 #include "server_cloud/service/call_access.hpp"
 #include "server_cloud/service/grpc_status.hpp"
 #include "server_cloud/service/map_service.hpp"
+#include "server_cloud/service/read_forwarding.hpp"
 #include "server_cloud/service/write_gate.hpp"
 
 namespace cvislam::server {
@@ -315,6 +316,11 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
     grpc::SslServerCredentialsOptions tls;
     tls.pem_key_cert_pairs.push_back({std::move(key).value(), std::move(certificate).value()});
     credentials = grpc::SslServerCredentials(tls);
+  }
+  if (core.ownership() != nullptr) {
+    auto peers = peerCredentials(o);
+    if (!peers) return peers.error();
+    impl->maps.forwardWith(std::move(peers).value());
   }
   grpc::ServerBuilder builder;
   builder.AddListeningPort(o.listen, credentials, &impl->port);

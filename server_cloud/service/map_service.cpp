@@ -14,6 +14,7 @@
 #include "server_cloud/maps/map_reader.hpp"
 #include "server_cloud/service/call_access.hpp"
 #include "server_cloud/service/grpc_status.hpp"
+#include "server_cloud/service/read_forwarding.hpp"
 #include "server_cloud/service/write_gate.hpp"
 
 namespace cvislam::server {
@@ -213,13 +214,58 @@ class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionRespo
   WriteGate gate_;
 };
 
+// ListMissions across the replicas: this replica's missions, then each other replica's answer as it comes; the
+// call finishes with the last one. A replica that does not answer fails the call (a partial list would look
+// complete), naming it.
+class MissionGather {
+ public:
+  MissionGather(grpc::ServerUnaryReactor* reactor, v1::ListMissionsResponse* response, std::size_t pending)
+      : reactor_(reactor), response_(response), pending_(pending) {}
+
+  void add(const grpc::Status& status, const v1::ListMissionsResponse& part, const std::string& address) {
+    std::lock_guard lock(mutex_);
+    if (!status.ok() && failed_.ok()) {
+      failed_ = grpc::Status(status.error_code(),
+                             "listing the missions of the replica at " + address +
+                                 " (ask again shortly if it has just stopped): " + status.error_message());
+    }
+    for (const v1::MissionInfo& info : part.missions()) {
+      auto* missions = response_->mutable_missions();
+      // A mission this replica lost to another is stale here: the owner's entry replaces it.
+      missions->erase(std::remove_if(missions->begin(), missions->end(),
+                                     [&](const v1::MissionInfo& m) { return m.name() == info.name(); }),
+                      missions->end());
+      *missions->Add() = info;
+    }
+    if (--pending_ > 0) return;
+    if (!failed_.ok()) {
+      reactor_->Finish(failed_);
+      return;
+    }
+    auto* missions = response_->mutable_missions();
+    std::sort(missions->begin(), missions->end(),
+              [](const v1::MissionInfo& a, const v1::MissionInfo& b) { return a.name() < b.name(); });
+    reactor_->Finish(grpc::Status::OK);
+  }
+
+ private:
+  std::mutex mutex_;
+  grpc::ServerUnaryReactor* reactor_;
+  v1::ListMissionsResponse* response_;
+  std::size_t pending_;
+  grpc::Status failed_;
+};
+
 class MapServiceImpl final : public v1::MapService::CallbackService {
  public:
   explicit MapServiceImpl(ServerCore& core) : core_(core) {}
 
   WatchRegistry& watches() { return watches_; }
+  void forwardWith(std::shared_ptr<grpc::ChannelCredentials> credentials) {
+    peers_ = std::make_unique<PeerStubs<v1::MapService>>(std::move(credentials));
+  }
 
-  grpc::ServerUnaryReactor* ListMissions(grpc::CallbackServerContext* context, const v1::ListMissionsRequest*,
+  grpc::ServerUnaryReactor* ListMissions(grpc::CallbackServerContext* context, const v1::ListMissionsRequest* request,
                                          v1::ListMissionsResponse* response) override {
     const std::string token = presentedToken(*context);
     if (Status s = admitCall(core_, *context, token, "", "ListMissions"); !s.ok()) return finish(context, s);
@@ -229,12 +275,37 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     missions->erase(std::remove_if(missions->begin(), missions->end(),
                                    [&](const v1::MissionInfo& m) { return !core_.tokens().admits(m.name(), token); }),
                     missions->end());
-    return finish(context, Status{});
+    // Scale-out: the other replicas' missions too (each answers for its own, with the caller's token).
+    MissionOwnership* ownership = core_.ownership();
+    if (ownership == nullptr || peers_ == nullptr || wasForwarded(*context)) return finish(context, Status{});
+    auto others = ownership->others();
+    if (!others) return finish(context, others.error().withContext("listing the other replicas"));
+    if (others->empty()) return finish(context, Status{});
+    grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+    auto gather = std::make_shared<MissionGather>(reactor, response, others->size());
+    for (const MissionOwner& other : *others) {
+      std::shared_ptr<grpc::ClientContext> call = forwardingContext(*context, /*unary=*/true);
+      auto part = std::make_shared<v1::ListMissionsResponse>();
+      peers_->get(other.address)
+          .async()
+          ->ListMissions(call.get(), request, part.get(),
+                         [gather, call, part, address = other.address](const grpc::Status& status) {
+                           gather->add(status, *part, address);
+                         });
+    }
+    return reactor;
   }
 
   grpc::ServerUnaryReactor* ListMaps(grpc::CallbackServerContext* context, const v1::ListMapsRequest* request,
                                      v1::ListMapsResponse* response) override {
     if (Status s = admitCall(core_, *context, request->mission(), "ListMaps"); !s.ok()) return finish(context, s);
+    auto owner = readRoute(*context, request->mission());
+    if (!owner) return finish(context, owner.error());
+    if (!owner->empty()) {
+      return forwardUnary(context, *owner, [&](grpc::ClientContext* call, auto done) {
+        peers_->get(*owner).async()->ListMaps(call, request, response, std::move(done));
+      });
+    }
     return finish(context, maps::listMaps(core_.missions(), request->mission(), *response));
   }
 
@@ -242,6 +313,13 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
                                           v1::GetTrajectoryResponse* response) override {
     if (Status s = admitCall(core_, *context, request->mission(), "GetTrajectory"); !s.ok()) {
       return finish(context, s);
+    }
+    auto owner = readRoute(*context, request->mission());
+    if (!owner) return finish(context, owner.error());
+    if (!owner->empty()) {
+      return forwardUnary(context, *owner, [&](grpc::ClientContext* call, auto done) {
+        peers_->get(*owner).async()->GetTrajectory(call, request, response, std::move(done));
+      });
     }
     if (request->agent() > 0xFFFFU) {
       return finish(context, Error{ErrorCode::kInvalidArgument,
@@ -255,6 +333,14 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
                                                  const v1::GetMapRequest* request) override {
     using Writer = StreamWriter<v1::MapChunk>;
     if (Status s = admitCall(core_, *context, request->mission(), "GetMap"); !s.ok()) return new Writer(toGrpc(s));
+    auto owner = readRoute(*context, request->mission());
+    if (!owner) return new Writer(toGrpc(owner.error()));
+    if (!owner->empty()) {
+      return new StreamRelay<v1::MapChunk>(forwardingContext(*context, /*unary=*/false), *owner,
+                                           [&](grpc::ClientContext* call, grpc::ClientReadReactor<v1::MapChunk>* r) {
+                                             peers_->get(*owner).async()->GetMap(call, request, r);
+                                           });
+    }
     maps::SnapshotOptions options;
     options.observations = request->observations();
     options.descriptors = request->descriptors();
@@ -270,6 +356,15 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
                                                        const v1::ExportMapRequest* request) override {
     using Writer = StreamWriter<v1::ExportChunk>;
     if (Status s = admitCall(core_, *context, request->mission(), "ExportMap"); !s.ok()) return new Writer(toGrpc(s));
+    auto owner = readRoute(*context, request->mission());
+    if (!owner) return new Writer(toGrpc(owner.error()));
+    if (!owner->empty()) {
+      return new StreamRelay<v1::ExportChunk>(
+          forwardingContext(*context, /*unary=*/false), *owner,
+          [&](grpc::ClientContext* call, grpc::ClientReadReactor<v1::ExportChunk>* r) {
+            peers_->get(*owner).async()->ExportMap(call, request, r);
+          });
+    }
     std::vector<maps::MapSnapshot> snapshots;
     if (request->has_map_id()) {
       auto one = maps::snapshotMap(core_.missions(), request->mission(), request->map_id());
@@ -293,6 +388,15 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     if (Status s = admitCall(core_, *context, request->mission(), "WatchMission"); !s.ok()) {
       return new Refusal(toGrpc(s));
     }
+    auto owner = readRoute(*context, request->mission());
+    if (!owner) return new Refusal(toGrpc(owner.error()));
+    if (!owner->empty()) {
+      return new StreamRelay<v1::WatchMissionResponse>(
+          forwardingContext(*context, /*unary=*/false), *owner,
+          [&](grpc::ClientContext* call, grpc::ClientReadReactor<v1::WatchMissionResponse>* r) {
+            peers_->get(*owner).async()->WatchMission(call, request, r);
+          });
+    }
     std::shared_ptr<Mission> mission = core_.missions().find(request->mission());
     if (!mission) {
       return new Refusal(toGrpc(Error{ErrorCode::kNotFound, "no mission '" + request->mission() +
@@ -304,6 +408,24 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
   }
 
  private:
+  // Where a read of `mission` is answered: "" here (one server, this replica serves it, or no replica ever did and
+  // the local answer says so), else the address of the replica that serves it.
+  Result<std::string> readRoute(const grpc::CallbackServerContext& context, const std::string& mission) {
+    MissionOwnership* ownership = core_.ownership();
+    if (ownership == nullptr || peers_ == nullptr || mission.empty()) return std::string();
+    auto owner = ownership->owner(mission);
+    if (!owner) {
+      if (owner.error().code() == ErrorCode::kNotFound) return std::string();
+      return owner.error();
+    }
+    if (owner->here) return std::string();
+    if (wasForwarded(context)) {  // the owner named by the leases has just lost the mission: no second hop
+      return Error{ErrorCode::kUnavailable,
+                   "mission '" + mission + "' is moving between replicas (now " + owner->address + "): ask again"};
+    }
+    return owner->address;
+  }
+
   static grpc::ServerUnaryReactor* finish(grpc::CallbackServerContext* context, const Status& status) {
     auto* reactor = context->DefaultReactor();
     reactor->Finish(toGrpc(status));
@@ -312,6 +434,7 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
 
   ServerCore& core_;
   WatchRegistry watches_;
+  std::unique_ptr<PeerStubs<v1::MapService>> peers_;  // scale-out: set before the server starts
 };
 
 }  // namespace
@@ -326,6 +449,10 @@ MapService::~MapService() = default;
 
 grpc::Service* MapService::service() {
   return &impl_->service;
+}
+
+void MapService::forwardWith(std::shared_ptr<grpc::ChannelCredentials> peer_credentials) {
+  impl_->service.forwardWith(std::move(peer_credentials));
 }
 
 void MapService::tick() {

@@ -9,8 +9,9 @@
 #include "server_cloud/core/server_core.hpp"
 
 namespace grpc {
+class ChannelCredentials;
 class Service;
-}
+}  // namespace grpc
 
 namespace cvislam::server {
 
@@ -22,6 +23,9 @@ class MapService {
   MapService& operator=(const MapService&) = delete;
 
   [[nodiscard]] grpc::Service* service();
+  // Scale-out: reads of a mission that another replica serves are passed to it, over a channel with these
+  // credentials (read_forwarding.hpp). Before the server starts.
+  void forwardWith(std::shared_ptr<grpc::ChannelCredentials> peer_credentials);
   // From the server's periodic thread: each WatchMission stream sends what its mission's log gained.
   void tick();
   // Ends every WatchMission stream with UNAVAILABLE (the server is stopping); later ones are refused.

@@ -148,6 +148,7 @@ int main(int argc, char** argv) {
   std::string replica;
   std::string advertise;
   std::optional<double> lease_ttl_s;
+  std::string peer_ca;
   app.add_option("--postgres", postgres,
                  "Scale-out: run as one of several replicas sharing this PostgreSQL store (a libpq connection "
                  "string, e.g. 'host=db port=5432 user=cvislam dbname=cvislam'). Each mission is served by the "
@@ -160,6 +161,10 @@ int main(int argc, char** argv) {
   app.add_option("--lease-ttl", lease_ttl_s,
                  "Scale-out: seconds a replica that stops renewing keeps its missions; the takeover time after a "
                  "crash is about this plus a third of it [3]");
+  app.add_option("--peer-ca", peer_ca,
+                 "Scale-out with TLS: the CA (PEM) of the other replicas' certificates; a map-service read of a "
+                 "mission another replica serves is passed to it over TLS [the --tls-cert file]")
+      ->check(CLI::ExistingFile);
   std::vector<std::string> load_missions;
   std::string load_from;
   app.add_option("--load-mission", load_missions,
@@ -201,6 +206,7 @@ int main(int argc, char** argv) {
   if (!replica.empty()) options.cluster.replica = replica;
   if (!advertise.empty()) options.cluster.advertise = advertise;
   if (lease_ttl_s) options.cluster.lease_ttl_s = *lease_ttl_s;
+  if (!peer_ca.empty()) options.cluster.peer_ca = peer_ca;
   if (max_missions) options.session.max_missions = *max_missions;
   if (max_agents) options.session.max_agents_per_mission = *max_agents;
   if (requests_per_s) {
