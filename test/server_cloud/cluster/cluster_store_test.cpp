@@ -1,0 +1,284 @@
+// The scale-out store on a real PostgreSQL (deploy/local_postgres.sh starts one for this process; every test gets
+// a database of its own): mission leases (taking, lapsing, epochs, release) and the shared map store (appends
+// fenced by the lease, duplicates refused, replay in order across pages, checksums). Lapses are made by moving a
+// lease's expiry into the past in SQL, so that no test waits for a TTL.
+#include <cstdio>
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include "server_cloud/cluster/mission_leases.hpp"
+#include "server_cloud/cluster/pg_connection.hpp"
+#include "server_cloud/cluster/postgres_store.hpp"
+#include "test/support/run_command.hpp"
+#include "test/support/temp_dir.hpp"
+
+namespace cvislam::server::cluster {
+namespace {
+
+using ::testing::ElementsAre;
+using ::testing::HasSubstr;
+using ::testing::IsEmpty;
+using ::testing::Not;
+
+const std::filesystem::path kSource = CVISLAM_SOURCE_DIR;
+
+// One PostgreSQL for the whole test program.
+class PostgresEnvironment : public ::testing::Environment {
+ public:
+  static std::string& conninfo() {
+    static std::string value;
+    return value;
+  }
+  void SetUp() override {
+    std::filesystem::permissions(dir_.path(), std::filesystem::perms::owner_all | std::filesystem::perms::group_read |
+                                                  std::filesystem::perms::group_exec |
+                                                  std::filesystem::perms::others_read |
+                                                  std::filesystem::perms::others_exec);  // the postgres user's
+    const auto run =
+        test::runCommand((kSource / "deploy" / "local_postgres.sh").string(), "start " + (dir_.path() / "pg").string());
+    ASSERT_EQ(run.exit_code, 0) << "deploy/local_postgres.sh start: " << run.output
+                                << "(deploy/install_deps.sh installs postgresql-15)";
+    std::string line = run.output.substr(0, run.output.find('\n'));
+    conninfo() = line;
+  }
+  void TearDown() override {
+    (void)test::runCommand((kSource / "deploy" / "local_postgres.sh").string(),
+                           "stop " + (dir_.path() / "pg").string());
+  }
+
+ private:
+  test::TempDir dir_;
+};
+
+const auto* const kEnvironment = ::testing::AddGlobalTestEnvironment(new PostgresEnvironment);
+
+class ClusterStoreTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_FALSE(PostgresEnvironment::conninfo().empty()) << "no PostgreSQL";
+    static int next = 0;
+    const std::string db = "cluster_test_" + std::to_string(++next);
+    auto admin = PgConnection::open(PostgresEnvironment::conninfo(), "test admin");
+    ASSERT_TRUE(admin.ok()) << admin.error().toString();
+    ASSERT_TRUE((*admin)->execScript("CREATE DATABASE " + db).ok());
+    conninfo_ = PostgresEnvironment::conninfo();
+    conninfo_.replace(conninfo_.find("dbname=postgres"), std::string("dbname=postgres").size(), "dbname=" + db);
+  }
+
+  std::unique_ptr<MissionLeases> leases(const std::string& holder) {
+    LeaseOptions o;
+    o.conninfo = conninfo_;
+    o.holder = holder;
+    o.address = "127.0.0.1:" + std::to_string(50000 + holder.back());
+    o.ttl_s = 30.0;
+    auto opened = MissionLeases::open(o);
+    EXPECT_TRUE(opened.ok()) << opened.error().toString();
+    return opened.ok() ? std::move(opened).value() : nullptr;
+  }
+  std::unique_ptr<MapStore> store(const std::string& holder) {
+    PostgresStoreOptions o;
+    o.conninfo = conninfo_;
+    o.holder = holder;
+    auto opened = openPostgresStore(o);
+    EXPECT_TRUE(opened.ok()) << opened.error().toString();
+    return opened.ok() ? std::move(opened).value() : nullptr;
+  }
+  // Moves the lease of `mission` into the past, as if its holder had stopped renewing a TTL ago.
+  void lapse(const std::string& mission) {
+    auto c = PgConnection::open(conninfo_, "test");
+    ASSERT_TRUE(c.ok());
+    auto r = (*c)->exec("UPDATE cvislam_leases SET expires_at = now() - interval '1 second' WHERE mission = $1",
+                        PgParams().text(mission));
+    ASSERT_TRUE(r.ok()) << r.error().toString();
+    ASSERT_EQ(r->affected(), 1);
+  }
+  static StoreRecord batch(const std::string& mission, AgentId agent, std::uint64_t sequence) {
+    StoreRecord r;
+    r.kind = StoreRecord::Kind::kBatch;
+    r.mission = mission;
+    r.agent = agent;
+    r.sequence = sequence;
+    r.body = "batch " + std::to_string(agent) + "/" + std::to_string(sequence) + std::string(1, '\0') + "binary";
+    return r;
+  }
+  static std::vector<std::uint64_t> sequences(const MapStore& s, const std::string& mission) {
+    std::vector<std::uint64_t> out;
+    const Status replayed = s.replay(mission, [&](const StoreRecord& r) {
+      out.push_back(r.sequence);
+      return Status::Ok();
+    });
+    EXPECT_TRUE(replayed.ok()) << replayed.error().toString();
+    return out;
+  }
+
+  std::string conninfo_;
+};
+
+TEST_F(ClusterStoreTest, AFreeMissionIsTakenAndAHeldOneNamesItsHolder) {
+  auto a = leases("replica/a");
+  auto b = leases("replica/b");
+  auto taken = a->acquire("m1");
+  ASSERT_TRUE(taken.ok()) << taken.error().toString();
+  EXPECT_EQ(taken->holder, "replica/a");
+  EXPECT_EQ(taken->epoch, 1);
+  EXPECT_GT(taken->remaining_s, 20.0);
+  auto refused = b->acquire("m1");  // held: b learns who serves it, and does not get it
+  ASSERT_TRUE(refused.ok()) << refused.error().toString();
+  EXPECT_EQ(refused->holder, "replica/a");
+  EXPECT_EQ(refused->address, a->options().address);
+  EXPECT_EQ(refused->epoch, 1);
+  auto again = a->acquire("m1");  // the holder's own acquire keeps the epoch
+  ASSERT_TRUE(again.ok());
+  EXPECT_EQ(again->epoch, 1);
+}
+
+TEST_F(ClusterStoreTest, ALapsedLeaseGoesToTheNextHolderWithTheNextEpochAndTheOldHolderLosesIt) {
+  auto a = leases("replica/a");
+  auto b = leases("replica/b");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  ASSERT_TRUE(a->acquire("m2").ok());
+  lapse("m1");
+  auto lapsed = a->lapsed();
+  ASSERT_TRUE(lapsed.ok());
+  EXPECT_THAT(*lapsed, ElementsAre("m1"));
+  auto taken = b->acquire("m1");
+  ASSERT_TRUE(taken.ok());
+  EXPECT_EQ(taken->holder, "replica/b");
+  EXPECT_EQ(taken->epoch, 2);
+  auto renewed = a->renew();  // a still holds m2 only
+  ASSERT_TRUE(renewed.ok());
+  EXPECT_THAT(*renewed, ElementsAre("m2"));
+  auto back = a->acquire("m1");
+  ASSERT_TRUE(back.ok());
+  EXPECT_EQ(back->holder, "replica/b");
+}
+
+TEST_F(ClusterStoreTest, AReleasedLeaseIsFreeAtOnce) {
+  auto a = leases("replica/a");
+  auto b = leases("replica/b");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  ASSERT_TRUE(b->release("m1").ok());  // not b's: nothing changes
+  EXPECT_EQ(b->acquire("m1")->holder, "replica/a");
+  ASSERT_TRUE(a->release("m1").ok());
+  auto taken = b->acquire("m1");
+  ASSERT_TRUE(taken.ok());
+  EXPECT_EQ(taken->holder, "replica/b");
+  EXPECT_EQ(taken->epoch, 2);
+}
+
+TEST_F(ClusterStoreTest, OtherHoldersNamesEachLiveReplicaOnce) {
+  auto a = leases("replica/a");
+  auto b = leases("replica/b");
+  auto c = leases("replica/c");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  ASSERT_TRUE(a->acquire("m2").ok());
+  ASSERT_TRUE(b->acquire("m3").ok());
+  auto seen_by_c = c->otherHolders();
+  ASSERT_TRUE(seen_by_c.ok());
+  ASSERT_EQ(seen_by_c->size(), 2U);
+  EXPECT_EQ((*seen_by_c)[0].holder, "replica/a");
+  EXPECT_EQ((*seen_by_c)[1].holder, "replica/b");
+  lapse("m3");  // b's only lease lapsed: b no longer counts
+  auto seen_by_a = a->otherHolders();
+  ASSERT_TRUE(seen_by_a.ok());
+  EXPECT_THAT(*seen_by_a, IsEmpty());
+}
+
+TEST_F(ClusterStoreTest, AppendsAreFencedByTheMissionsLease) {
+  auto a = leases("replica/a");
+  auto b = leases("replica/b");
+  auto store_a = store("replica/a");
+  auto store_b = store("replica/b");
+  const Status before = store_a->append(batch("m1", 0, 1));  // nobody holds m1 yet
+  ASSERT_FALSE(before.ok());
+  EXPECT_EQ(before.error().code(), ErrorCode::kFailedPrecondition);
+  ASSERT_TRUE(a->acquire("m1").ok());
+  ASSERT_TRUE(store_a->append(batch("m1", 0, 1)).ok());
+  const Status not_b = store_b->append(batch("m1", 0, 2));
+  ASSERT_FALSE(not_b.ok());
+  EXPECT_EQ(not_b.error().code(), ErrorCode::kFailedPrecondition);
+  // a stalls, its lease lapses and b takes over: a's late append must not land behind b's back.
+  lapse("m1");
+  ASSERT_EQ(b->acquire("m1")->holder, "replica/b");
+  const Status late = store_a->append(batch("m1", 0, 2));
+  ASSERT_FALSE(late.ok());
+  EXPECT_EQ(late.error().code(), ErrorCode::kFailedPrecondition);
+  ASSERT_TRUE(store_b->append(batch("m1", 0, 2)).ok());
+  EXPECT_THAT(sequences(*store_b, "m1"), ElementsAre(1, 2));
+}
+
+TEST_F(ClusterStoreTest, ADuplicateBatchIsRefusedAndChangesNothing) {
+  auto a = leases("replica/a");
+  auto s = store("replica/a");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  ASSERT_TRUE(s->append(batch("m1", 3, 1)).ok());
+  ASSERT_TRUE(s->append(batch("m1", 4, 1)).ok());  // another agent's sequence 1
+  StoreRecord changed = batch("m1", 3, 1);
+  changed.body = "something else";
+  const Status dup = s->append(changed);
+  ASSERT_FALSE(dup.ok());
+  EXPECT_EQ(dup.error().code(), ErrorCode::kAlreadyExists);
+  std::vector<std::string> bodies;
+  ASSERT_TRUE(s->replay("m1", [&](const StoreRecord& r) {
+                 bodies.push_back(r.body);
+                 return Status::Ok();
+               }).ok());
+  EXPECT_THAT(bodies, ElementsAre(batch("m1", 3, 1).body, batch("m1", 4, 1).body));
+}
+
+TEST_F(ClusterStoreTest, ReplayKeepsTheOrderOfAcceptanceAcrossPagesAndMissions) {
+  auto a = leases("replica/a");
+  auto s = store("replica/a");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  ASSERT_TRUE(a->acquire("m2").ok());
+  for (std::uint64_t i = 1; i <= 600; ++i) {  // more than one page of the replay's reads
+    ASSERT_TRUE(s->append(batch(i % 3 == 0 ? "m2" : "m1", 1, i)).ok());
+  }
+  const std::vector<std::uint64_t> m1 = sequences(*s, "m1");
+  ASSERT_EQ(m1.size(), 400U);
+  EXPECT_TRUE(std::is_sorted(m1.begin(), m1.end()));
+  EXPECT_EQ(m1.front(), 1U);
+  EXPECT_EQ(m1.back(), 599U);
+  EXPECT_EQ(sequences(*s, "").size(), 600U);  // every mission
+  auto missions = s->missions();
+  ASSERT_TRUE(missions.ok());
+  EXPECT_THAT(*missions, ElementsAre("m1", "m2"));
+}
+
+TEST_F(ClusterStoreTest, ACorruptRecordStopsTheReplayNamingIt) {
+  auto a = leases("replica/a");
+  auto s = store("replica/a");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  for (std::uint64_t i = 1; i <= 3; ++i) ASSERT_TRUE(s->append(batch("m1", 0, i)).ok());
+  auto c = PgConnection::open(conninfo_, "test");
+  ASSERT_TRUE(c.ok());
+  ASSERT_TRUE((*c)->exec("UPDATE cvislam_records SET body = 'flipped' WHERE sequence = 2").ok());
+  std::vector<std::uint64_t> seen;
+  const Status replayed = s->replay("m1", [&](const StoreRecord& r) {
+    seen.push_back(r.sequence);
+    return Status::Ok();
+  });
+  ASSERT_FALSE(replayed.ok());
+  EXPECT_THAT(replayed.error().message(), HasSubstr("record"));
+  EXPECT_THAT(replayed.error().message(), HasSubstr("checksum"));
+  EXPECT_THAT(seen, ElementsAre(1));
+}
+
+TEST_F(ClusterStoreTest, AnUnreachableDatabaseIsNamedWithoutItsPassword) {
+  LeaseOptions o;
+  o.conninfo = "host=127.0.0.1 port=1 user=cvislam password=hunter2 dbname=cvislam connect_timeout=2";
+  o.holder = "replica/a";
+  o.address = "127.0.0.1:50051";
+  auto opened = MissionLeases::open(o);
+  ASSERT_FALSE(opened.ok());
+  EXPECT_THAT(opened.error().toString(), HasSubstr("127.0.0.1"));
+  EXPECT_THAT(opened.error().toString(), Not(HasSubstr("hunter2")));
+}
+
+}  // namespace
+}  // namespace cvislam::server::cluster
