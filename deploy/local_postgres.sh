@@ -4,7 +4,7 @@
 #
 #   deploy/local_postgres.sh start DIR [PORT]   # prints the libpq connection string for --postgres
 #   deploy/local_postgres.sh stop DIR           # stops it and removes DIR
-# In production the deployment runs its own PostgreSQL (deploy/k8s/overlays/scale-out).
+# In production the deployment runs its own PostgreSQL (deploy/k8s/overlays/scaleout).
 set -euo pipefail
 usage() { echo "usage: $0 start DIR [PORT] | stop DIR" >&2; exit 2; }
 [ $# -ge 2 ] || usage

@@ -1,5 +1,6 @@
 // The server's config files as shipped: deploy/server_config.yaml documents the defaults, and the cluster's
-// deploy/k8s/base/server.yaml must load (unknown keys are refused) with the paths the StatefulSet mounts.
+// deploy/k8s/base/server.yaml and overlays/scaleout/server.yaml must load (unknown keys are refused) with the paths
+// the StatefulSet mounts.
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -35,6 +36,21 @@ TEST(ServerConfigFiles, TheClusterConfigLoadsWithThePathsTheStatefulSetMounts) {
   EXPECT_EQ(o.tokens_file, "/etc/cvislam/secrets/tokens");  // the Secret's keys, mounted there
   EXPECT_EQ(o.tls_certificate, "/etc/cvislam/secrets/tls.crt");
   EXPECT_EQ(o.tls_private_key, "/etc/cvislam/secrets/tls.key");
+}
+
+TEST(ServerConfigFiles, TheScaleOutConfigLoadsAndNeedsTheAddressThePodGives) {
+  ServerOptions o;
+  const Status s = loadServerConfig(kSource / "deploy" / "k8s" / "overlays" / "scaleout" / "server.yaml", o);
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  EXPECT_TRUE(o.cluster.enabled());  // PG* variables from the pod fill in the rest of the connection
+  EXPECT_TRUE(o.store.empty());      // the store is PostgreSQL: no file, no volume per replica
+  EXPECT_EQ(o.tls_certificate, "/etc/cvislam/secrets/tls.crt");
+  // Listening on 0.0.0.0, a replica cannot tell the others where it is: server-replicas.yaml passes --advertise.
+  const Status without = o.validate();
+  ASSERT_FALSE(without.ok());
+  EXPECT_THAT(without.error().message(), HasSubstr("advertise"));
+  o.cluster.advertise = "cvislam-server-1.cvislam-server-headless.cvislam.svc:50051";
+  EXPECT_TRUE(o.validate().ok()) << o.validate().error().toString();
 }
 
 TEST(ServerConfigFiles, AnUnknownKeyIsRefusedNamingIt) {
