@@ -297,6 +297,10 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
     commit = [&]() -> Status {
       StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
       if (Status s = store_->append(stored); !s.ok()) {
+        // The store holds this (mission, agent, sequence) already: an earlier append committed but its answer was
+        // lost (the database connection broke), and the agent sent the batch again. A sequence names one batch for
+        // good, so it is durable: apply it. Refusing it would refuse the agent's every resend.
+        if (s.error().code() == ErrorCode::kAlreadyExists) return Status::Ok();
         return Error{ErrorCode::kUnavailable,
                      "the server could not store it (" + s.error().message() + "); it was not applied: send it again"};
       }

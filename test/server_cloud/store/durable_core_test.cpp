@@ -48,6 +48,31 @@ class RefusingStore final : public MapStore {
   int hellos = 0;
 };
 
+// The store's seam for a database connection that breaks after a commit: the first batch is stored by the real
+// store underneath, but its append answers kUnavailable, as a lost reply would.
+class InDoubtStore final : public MapStore {
+ public:
+  explicit InDoubtStore(std::unique_ptr<MapStore> inner) : inner_(std::move(inner)) {}
+  Status append(const StoreRecord& r) override {
+    Status s = inner_->append(r);
+    if (s.ok() && r.kind == StoreRecord::Kind::kBatch && !lost_one_) {
+      lost_one_ = true;
+      return Error{ErrorCode::kUnavailable, "server closed the connection unexpectedly"};
+    }
+    return s;
+  }
+  Status replay(const std::string& m, const std::function<Status(const StoreRecord&)>& v) const override {
+    return inner_->replay(m, v);
+  }
+  [[nodiscard]] Result<std::vector<std::string>> missions() const override { return inner_->missions(); }
+  [[nodiscard]] StoreCounters counters() const override { return inner_->counters(); }
+  [[nodiscard]] std::string describe() const override { return "in doubt over " + inner_->describe(); }
+
+ private:
+  std::unique_ptr<MapStore> inner_;
+  bool lost_one_ = false;
+};
+
 class DurableCoreTest : public ::testing::Test {
  protected:
   ServerOptions options() const {
@@ -174,6 +199,40 @@ TEST_F(DurableCoreTest, ABatchTheStoreRefusesIsNeitherAppliedNorAcknowledgedAndE
   EXPECT_TRUE(record->keyframes.empty());
   EXPECT_TRUE(mission->stack().maps().empty());
   EXPECT_EQ(mission->events().nextNumber(), 2U);  // the connection only
+}
+
+TEST_F(DurableCoreTest, ABatchStoredWhoseCommitAnswerWasLostIsAppliedOnceWhenTheAgentSendsItAgain) {
+  SqliteStoreOptions o;
+  o.path = dir_ / "maps.db";
+  auto sqlite = openSqliteStore(o);
+  ASSERT_TRUE(sqlite.ok()) << sqlite.error().toString();
+  ServerCore core(ServerOptions{});
+  ASSERT_TRUE(core.attachStore(std::make_unique<InDoubtStore>(std::move(sqlite).value())).ok());
+  {
+    auto session = core.openSession({});
+    sendOk(*session, helloMessage(kMission, kAgent, kSession));
+    const Status lost = send(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
+    ASSERT_FALSE(lost.ok());  // in doubt: neither applied nor acknowledged, the stream ends
+    EXPECT_EQ(lost.error().code(), ErrorCode::kUnavailable);
+  }
+  // The agent reconnects, is told nothing is stored, and sends batch 1 again: the store holds it already, so it is
+  // durable; it must be applied now rather than refused for ever.
+  auto session = core.openSession({});
+  sendOk(*session, helloMessage(kMission, kAgent, kSession));
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 0U);
+  sendOk(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
+  sendOk(*session, batchMessage(makeKeyframeBatch(2, 2, 2)));
+  EXPECT_EQ(core.missions().find(kMission)->agent(kAgent)->read()->stored_sequence, 2U);
+  EXPECT_EQ(keyframesInMaps(core).size(), 4U);
+  std::vector<std::uint64_t> stored;
+  ASSERT_TRUE(core.store()
+                  ->replay(kMission,
+                           [&](const StoreRecord& r) {
+                             if (r.kind == StoreRecord::Kind::kBatch) stored.push_back(r.sequence);
+                             return Status::Ok();
+                           })
+                  .ok());
+  EXPECT_EQ(stored, (std::vector<std::uint64_t>{1, 2}));  // each once
 }
 
 TEST_F(DurableCoreTest, AStoreWithAGapInAnAgentsBatchesStopsTheStartNamingTheRecord) {
