@@ -197,6 +197,7 @@ nlohmann::json toJson(const AgentResult& r) {
     j["ack_ms_p99"] = cvislam::nearestRankPercentile(sorted, 0.99);
     j["ack_ms_max"] = sorted.back();
   }
+  j["ack_ms"] = r.ack_ms;  // per batch, in sequence order
   return j;
 }
 
@@ -218,6 +219,10 @@ int main(int argc, char** argv) {
   app.add_option("--mission", options.mission, "The mission name to send [--from-mission]");
   app.add_option("--agents", only_agents, "Replay only these recorded agent ids [all]");
   app.add_option("--rate", options.rate, "Pace as a multiple of real time (batch sensor times); 0: no pacing [1]");
+  double seconds = 0.0;
+  app.add_option("--seconds", seconds,
+                 "Replay only each agent's first S seconds of sensor time (a shorter benchmark step); 0: all [0]")
+      ->check(CLI::NonNegativeNumber);
   app.add_option("--token", options.token, "The mission's token [none]");
   app.add_option("--flush-timeout", options.flush_timeout_s,
                  "Seconds to wait for the last acknowledgements after the last batch was sent [60]");
@@ -279,6 +284,16 @@ int main(int argc, char** argv) {
   if (agents.empty()) {
     std::cerr << "cvislam_replay: mission '" << from_mission << "' of " << recording << " has no agents to replay\n";
     return 2;
+  }
+  if (seconds > 0.0) {
+    for (auto& [id, a] : agents) {
+      if (a.batches.empty()) continue;
+      const std::int64_t t0_ns = a.batches.front().batch().sensor_time_ns();
+      const auto late = std::find_if(a.batches.begin(), a.batches.end(), [&](const cvislam::v1::AgentUplink& b) {
+        return 1e-9 * static_cast<double>(b.batch().sensor_time_ns() - t0_ns) > seconds;
+      });
+      a.batches.erase(late, a.batches.end());
+    }
   }
   std::size_t total = 0;
   for (const auto& [id, a] : agents) total += a.batches.size();
