@@ -15,16 +15,6 @@ MissionOwner elsewhere(const Lease& lease) {
 }
 }  // namespace
 
-Result<std::vector<MissionOwner>> ReplicaCoordinator::others() {
-  std::lock_guard db(db_mutex_);
-  auto holders = leases_->otherHolders();
-  if (!holders) return holders.error();
-  std::vector<MissionOwner> out;
-  out.reserve(holders->size());
-  for (const Lease& lease : *holders) out.push_back(elsewhere(lease));
-  return out;
-}
-
 std::string makeHolderName(const std::string& replica) {
   std::random_device entropy;  // not a simulation: a name that must differ between processes
   const std::uint64_t nonce = (static_cast<std::uint64_t>(entropy()) << 32U) ^ entropy();
@@ -159,6 +149,16 @@ Result<MissionOwner> ReplicaCoordinator::owner(const std::string& mission) {
                  "mission '" + mission + "' is between replicas (its owner's lease lapsed): ask again shortly"};
   }
   return elsewhere(**found);
+}
+
+Result<std::vector<MissionOwner>> ReplicaCoordinator::others() {
+  std::lock_guard db(db_mutex_);
+  auto holders = leases_->otherHolders();
+  if (!holders) return holders.error();
+  std::vector<MissionOwner> out;
+  out.reserve(holders->size());
+  for (const Lease& lease : *holders) out.push_back(elsewhere(lease));
+  return out;
 }
 
 bool ReplicaCoordinator::renewLeases() {

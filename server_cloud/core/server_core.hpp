@@ -47,6 +47,11 @@ struct ClusterOptions {
   [[nodiscard]] bool enabled() const { return !postgres.empty(); }
 };
 
+struct ServerOptions;
+// Where redirected agents and forwarded reads reach this replica: cluster.advertise, or `listen` when it names a
+// host and a port; empty when neither does.
+std::string clusterAddress(const ServerOptions& o);
+
 struct ServerOptions {
   std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
   std::filesystem::path output;            // written at shutdown when set

@@ -336,10 +336,7 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     auto owner = readRoute(*context, request->mission());
     if (!owner) return new Writer(toGrpc(owner.error()));
     if (!owner->empty()) {
-      return new StreamRelay<v1::MapChunk>(forwardingContext(*context, /*unary=*/false), *owner,
-                                           [&](grpc::ClientContext* call, grpc::ClientReadReactor<v1::MapChunk>* r) {
-                                             peers_->get(*owner).async()->GetMap(call, request, r);
-                                           });
+      return relayFromOwner<v1::MapChunk>(*context, *owner, request, &v1::MapService::Stub::async::GetMap);
     }
     maps::SnapshotOptions options;
     options.observations = request->observations();
@@ -359,11 +356,7 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     auto owner = readRoute(*context, request->mission());
     if (!owner) return new Writer(toGrpc(owner.error()));
     if (!owner->empty()) {
-      return new StreamRelay<v1::ExportChunk>(
-          forwardingContext(*context, /*unary=*/false), *owner,
-          [&](grpc::ClientContext* call, grpc::ClientReadReactor<v1::ExportChunk>* r) {
-            peers_->get(*owner).async()->ExportMap(call, request, r);
-          });
+      return relayFromOwner<v1::ExportChunk>(*context, *owner, request, &v1::MapService::Stub::async::ExportMap);
     }
     std::vector<maps::MapSnapshot> snapshots;
     if (request->has_map_id()) {
@@ -391,11 +384,8 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     auto owner = readRoute(*context, request->mission());
     if (!owner) return new Refusal(toGrpc(owner.error()));
     if (!owner->empty()) {
-      return new StreamRelay<v1::WatchMissionResponse>(
-          forwardingContext(*context, /*unary=*/false), *owner,
-          [&](grpc::ClientContext* call, grpc::ClientReadReactor<v1::WatchMissionResponse>* r) {
-            peers_->get(*owner).async()->WatchMission(call, request, r);
-          });
+      return relayFromOwner<v1::WatchMissionResponse>(*context, *owner, request,
+                                                      &v1::MapService::Stub::async::WatchMission);
     }
     std::shared_ptr<Mission> mission = core_.missions().find(request->mission());
     if (!mission) {
@@ -408,6 +398,17 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
   }
 
  private:
+  // Relays the owner's answer to a streaming read: `method` is the stub's callback method for it.
+  template <typename Message, typename Request, typename Method>
+  grpc::ServerWriteReactor<Message>* relayFromOwner(grpc::CallbackServerContext& context, const std::string& owner,
+                                                    const Request* request, Method method) {
+    v1::MapService::Stub& stub = peers_->get(owner);
+    return new StreamRelay<Message>(forwardingContext(context, /*unary=*/false), owner,
+                                    [&](grpc::ClientContext* call, grpc::ClientReadReactor<Message>* r) {
+                                      (stub.async()->*method)(call, request, r);
+                                    });
+  }
+
   // Where a read of `mission` is answered: "" here (one server, this replica serves it, or no replica ever did and
   // the local answer says so), else the address of the replica that serves it.
   Result<std::string> readRoute(const grpc::CallbackServerContext& context, const std::string& mission) {

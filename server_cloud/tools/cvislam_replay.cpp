@@ -9,7 +9,6 @@
 //
 //   cvislam_replay --recording rec.db --server 127.0.0.1:50051,127.0.0.1:50061 --mission m1 --report m1.json
 #include <algorithm>
-#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -66,7 +65,7 @@ struct ReplayOptions {
 };
 
 // Replays one agent; returns when every batch is acknowledged, or the flush timeout after the last one was sent.
-AgentResult replayAgent(const RecordedAgent& recorded, const ReplayOptions& options, const std::atomic<bool>& stop) {
+AgentResult replayAgent(const RecordedAgent& recorded, const ReplayOptions& options) {
   AgentResult result;
   result.agent = recorded.agent;
   result.batches = recorded.batches.size();
@@ -99,7 +98,7 @@ AgentResult replayAgent(const RecordedAgent& recorded, const ReplayOptions& opti
   std::optional<Clock::time_point> all_sent_at;
   cvislam::v1::ServerDownlink down;
 
-  while (!stop.load()) {
+  while (true) {
     const auto now = Clock::now();
     if (!connected) {
       hello.mutable_hello()->set_last_acked_sequence(result.acked);
@@ -301,12 +300,11 @@ int main(int argc, char** argv) {
                from_mission.c_str(), options.mission.c_str(), agents.size(), total, options.rate,
                options.server.c_str());
 
-  std::atomic<bool> stop{false};
   std::vector<AgentResult> results(agents.size());
   std::vector<std::thread> threads;
   std::size_t index = 0;
   for (const auto& [id, a] : agents) {
-    threads.emplace_back([&, i = index++, &recorded = a] { results[i] = replayAgent(recorded, options, stop); });
+    threads.emplace_back([&, i = index++, &recorded = a] { results[i] = replayAgent(recorded, options); });
   }
   for (auto& t : threads) t.join();
 

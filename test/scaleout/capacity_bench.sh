@@ -57,16 +57,8 @@ print(pick[0][0], pick[0][1])
 PY
 )
 
-work=$(mktemp -d /tmp/cvislam-capacity.XXXXXX)
-chmod 755 "$work"  # the postgres user runs the database under it
-pids=()
-cleanup() {
-  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null || true; wait "$p" 2>/dev/null || true; done
-  "$repo/deploy/local_postgres.sh" stop "$work/pg" >/dev/null 2>&1 || true
-  rm -rf "$work"
-}
-trap cleanup EXIT
-port() { python3 -c 'import socket;s=socket.socket();s.bind(("127.0.0.1",0));print(s.getsockname()[1])'; }
+source "$repo/test/scaleout/lib.sh"
+scaleout_work capacity
 cpu_s() { awk -v hz="$(getconf CLK_TCK)" '{print ($14 + $15) / hz}' "/proc/$1/stat" 2>/dev/null || echo 0; }
 
 conninfo=$("$repo/deploy/local_postgres.sh" start "$work/pg")

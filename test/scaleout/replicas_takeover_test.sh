@@ -14,17 +14,9 @@ repo=$(cd "$(dirname "$0")/../.." && pwd)
 data=${CVISLAM_DATA_DIR:-$repo/../shared/data}
 seq="$data/euroc-v101-excerpt"
 if [ ! -d "$seq/mav0" ]; then echo "SKIPPED: no $seq (set CVISLAM_DATA_DIR)"; exit 77; fi
-work=$(mktemp -d /tmp/cvislam-scaleout.XXXXXX)
-chmod 755 "$work"  # the postgres user runs the database under it
-pids=()
-cleanup() {
-  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null || true; wait "$p" 2>/dev/null || true; done
-  "$repo/deploy/local_postgres.sh" stop "$work/pg" >/dev/null 2>&1 || true
-  if [ "${keep:-0}" = 0 ]; then rm -rf "$work"; else echo "logs kept in $work"; fi
-}
-trap cleanup EXIT
+source "$repo/test/scaleout/lib.sh"
+scaleout_work scaleout
 fail() { echo "FAILED: $*" >&2; keep=1; exit 1; }
-port() { python3 -c 'import socket;s=socket.socket();s.bind(("127.0.0.1",0));print(s.getsockname()[1])'; }
 now() { date +%s.%N; }
 
 conninfo=$("$repo/deploy/local_postgres.sh" start "$work/pg")
