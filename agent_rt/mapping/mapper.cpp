@@ -329,6 +329,7 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
   out.epoch_transform = toMsg(s.epoch_transform);
   out.imu_initialised = s.imu_initialised ? 1 : 0;
   out.newest_keyframe = newest;
+  out.keyframes_taken = s.seen_message ? s.expected_sequence : 0;
   out.keyframe_count = 0;
   out.window_count = 0;
   s.keyframe_slot.assign(kMaxKeyframes, -1);

@@ -77,6 +77,7 @@ Status AgentOptions::validate() const {
   if (frame_ring_size < 2 || frame_ring_size > 64) return bad("frame_ring_size must be in [2, 64]");
   if (Status s = tracking.validate(); !s.ok()) return s;
   if (Status s = link.validate(); !s.ok()) return s;
+  if (Status s = threads.validate(); !s.ok()) return s;
   return mapping.validate();
 }
 
@@ -237,7 +238,16 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   std::atomic<bool> tracking_done{false};
   std::atomic<bool> mapping_ready{false};
 
+  // Each thread takes its own scheduling when it starts (tracking last, once the others are started: threads
+  // inherit a real-time policy from the thread that starts them). What the process may not do is said once.
+  const auto schedule_this_thread = [&](const char* name, const ThreadSchedule& schedule) {
+    if (!options.threads.enabled || options.pace != Pace::kRealtime) return;
+    const ScheduleOutcome outcome = applyToThisThread(schedule);
+    if (!outcome.applied) std::fprintf(stderr, "[agent] threads.%s: %s\n", name, outcome.note.c_str());
+  };
+
   std::thread loader([&] {
+    schedule_this_thread("loader", options.threads.loader);
     for (std::size_t i = 0; i < frames.size(); ++i) {
       FrameRing::Slot* slot = nullptr;
       while ((slot = ring.producerSlot()) == nullptr) {
@@ -278,6 +288,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                    options.link.mission.c_str(), static_cast<unsigned>(options.agent));
     }
     link_thread = std::thread([&] {
+      schedule_this_thread("link", options.threads.link);
       iox::popo::SubscriberOptions delta_options;
       delta_options.queueCapacity = 16;
       iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
@@ -291,9 +302,11 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   }
 
   std::thread mapping([&] {
+    schedule_this_thread("mapping", options.threads.mapping);
     mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready);
   });
 
+  schedule_this_thread("tracking", options.threads.tracking);
   {
     iox::popo::PublisherOptions pub_options;
     iox::popo::Publisher<KeyframeMessage> keyframe_pub(service(options.agent, "keyframes"), pub_options);
@@ -387,6 +400,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
           std::fprintf(stderr, "[tracking] t=%.3f s: IMU gap; this frame predicts without it\n", input.t_ns * 1e-9);
       }
       if (r.issue == FrameIssue::kKeyframeDropped) ++summary.dropped_keyframes;
+      if (r.keyframe_deferred) ++summary.deferred_keyframes;
+      if (r.needs_mapping) ++summary.frames_needing_mapping;
+      summary.most_pending_keyframes = std::max(summary.most_pending_keyframes, r.pending_keyframes);
       if (!r.tracked && r.status != TrackingStatus::kWaitingForMap) {
         ++summary.lost_frames;
         if (!options.quiet && r.status == TrackingStatus::kRelocalising) {
@@ -401,6 +417,15 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       }
       previous_status = r.status;
 
+      if (options.pace == Pace::kFast && r.needs_mapping) {
+        // No sensor clock to keep: wait for mapping to answer a pending keyframe rather than run ahead of the map.
+        const auto deadline = Clock::now() + std::chrono::seconds(10);
+        while (tracker.value()->pendingKeyframes() >= r.pending_keyframes && r.pending_keyframes > 0 &&
+               Clock::now() < deadline && !stop.load()) {
+          std::this_thread::sleep_for(std::chrono::microseconds(200));
+          drain_snapshots();
+        }
+      }
       if (options.pace == Pace::kSync && r.keyframe) {
         const auto deadline = Clock::now() + std::chrono::seconds(30);
         while (tracker.value()->awaitingKeyframe(nullptr) && Clock::now() < deadline && !stop.load()) {
@@ -497,6 +522,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                       {"unreadable_frames", summary.unreadable_frames},
                       {"imu_gaps", summary.imu_gaps},
                       {"dropped_keyframes", summary.dropped_keyframes},
+                      {"deferred_keyframes", summary.deferred_keyframes},
+                      {"frames_needing_mapping", summary.frames_needing_mapping},
+                      {"most_pending_keyframes", summary.most_pending_keyframes},
                       {"imu_initialised_at_s", summary.imu_initialised_at_s},
                       {"mean_tracked_points", summary.mean_tracked_points},
                       {"mode", stereo ? "stereo" : "mono"},
@@ -523,13 +551,16 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
 std::string formatSummary(const AgentRunSummary& s) {
   char text[1024];
-  std::snprintf(text, sizeof(text),
-                "frames %zu, tracked %zu (%.1f %%), keyframes %zu, maps %zu, mean tracked points %.0f\n"
-                "IMU initialised at %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, keyframes dropped %zu\n",
-                s.frames, s.tracked_frames, s.frames > 0 ? 100.0 * s.tracked_frames / s.frames : 0.0, s.keyframes,
-                s.new_maps, s.mean_tracked_points,
-                s.imu_initialised_at_s < 0 ? "never" : (std::to_string(s.imu_initialised_at_s) + " s").c_str(),
-                s.unreadable_frames, s.imu_gaps, s.lost_frames, s.dropped_keyframes);
+  std::snprintf(
+      text, sizeof(text),
+      "frames %zu, tracked %zu (%.1f %%), keyframes %zu, maps %zu, mean tracked points %.0f\n"
+      "IMU initialised at %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, keyframes dropped %zu\n"
+      "mapping busy: keyframes deferred %zu, frames that needed mapping's answer %zu, most keyframes pending %d\n",
+      s.frames, s.tracked_frames, s.frames > 0 ? 100.0 * s.tracked_frames / s.frames : 0.0, s.keyframes, s.new_maps,
+      s.mean_tracked_points,
+      s.imu_initialised_at_s < 0 ? "never" : (std::to_string(s.imu_initialised_at_s) + " s").c_str(),
+      s.unreadable_frames, s.imu_gaps, s.lost_frames, s.dropped_keyframes, s.deferred_keyframes,
+      s.frames_needing_mapping, s.most_pending_keyframes);
   return std::string(text) + formatLatencyTable(s.stages);
 }
 

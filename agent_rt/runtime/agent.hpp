@@ -18,6 +18,7 @@
 #include "agent_rt/link/link.hpp"
 #include "agent_rt/mapping/mapper.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
+#include "agent_rt/runtime/thread_schedule.hpp"
 #include "agent_rt/tracking/tracker.hpp"
 #include "common/core/result.hpp"
 
@@ -27,7 +28,7 @@ enum class AgentMode { kAuto, kMono, kStereo };  // auto: stereo when the sequen
 enum class RouDiMode { kEmbedded, kExternal };
 enum class Pace {
   kRealtime,  // frames at the sensor's rate (times `rate`); tracking never waits on mapping
-  kFast,      // as fast as tracking goes; tracking never waits on mapping
+  kFast,      // as fast as tracking goes; waits for mapping only when it cannot go on without its answer
   kSync,      // after each keyframe, tracking waits for mapping's answer: reproducible runs for tests
 };
 
@@ -59,6 +60,7 @@ struct AgentOptions {
   bool trace_mapping = false;  // one line per keyframe on stderr: links, new points, stereo matches, local BA
   std::size_t max_frames = 0;  // 0 = all
   int frame_ring_size = 4;     // frames the loader reads ahead
+  ThreadScheduleOptions threads;  // nice values, real-time priority and CPUs per thread (thread_schedule.hpp)
 
   [[nodiscard]] Status validate() const;
 };
@@ -75,6 +77,9 @@ struct AgentRunSummary {
   std::size_t unreadable_frames = 0;
   std::size_t imu_gaps = 0;
   std::size_t dropped_keyframes = 0;
+  std::size_t deferred_keyframes = 0;      // asked for by the rules, held back while mapping was busy
+  std::size_t frames_needing_mapping = 0;  // lost, or needing a keyframe, while mapping was behind
+  int most_pending_keyframes = 0;
   std::size_t lost_keyframe_messages = 0;
   bool link_enabled = false;
   LinkStatus link;

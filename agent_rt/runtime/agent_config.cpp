@@ -11,7 +11,8 @@ namespace cvislam::agent {
 using config::YamlSection;
 
 Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
-  auto loaded = config::loadSections(file.string(), {"agent", "imu", "orb", "tracking", "mapping", "runtime", "link"});
+  auto loaded =
+      config::loadSections(file.string(), {"agent", "imu", "orb", "tracking", "mapping", "runtime", "link", "threads"});
   if (!loaded) return loaded.error();
   const YAML::Node& root = *loaded;
   auto section = [&](const char* name) { return YamlSection(root[name], name); };
@@ -56,6 +57,9 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   tracking.read("max_lost_frames", o.tracking.max_lost_frames);
   tracking.read("min_inliers", o.tracking.pose.min_inliers);
   tracking.read("motion_ba_keyframes", o.tracking.motion_ba_keyframes);
+  tracking.read("back_off_when_mapping_busy", o.tracking.lag.back_off);
+  tracking.read("max_pending_keyframes", o.tracking.lag.max_pending_keyframes);
+  tracking.read("min_tracked_points_when_busy", o.tracking.lag.min_tracked_points_when_busy);
   if (Status s = tracking.finish(); !s.ok()) return in_file(s);
 
   YamlSection mapping = section("mapping");
@@ -96,7 +100,30 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   link.read("max_anchor_points", o.mapping.downlink.max_anchor_points);
   link.read("apply_corrections", o.mapping.downlink.apply_corrections);
   if (Status s = link.finish(); !s.ok()) return in_file(s);
-  return in_file(o.link.validate());
+  if (Status s = in_file(o.link.validate()); !s.ok()) return s;
+
+  YamlSection threads = section("threads");
+  threads.read("priorities", o.threads.enabled);
+  std::string cpu_text[4];
+  ThreadSchedule* schedules[4] = {&o.threads.tracking, &o.threads.loader, &o.threads.mapping, &o.threads.link};
+  const char* names[4] = {"tracking", "loader", "mapping", "link"};
+  std::string keys[4][3];
+  for (int i = 0; i < 4; ++i) {
+    keys[i][0] = std::string(names[i]) + "_nice";
+    keys[i][1] = std::string(names[i]) + "_realtime_priority";
+    keys[i][2] = std::string(names[i]) + "_cpus";
+    threads.read(keys[i][0].c_str(), schedules[i]->nice);
+    threads.read(keys[i][1].c_str(), schedules[i]->realtime_priority);
+    threads.read(keys[i][2].c_str(), cpu_text[i]);
+  }
+  if (Status s = threads.finish(); !s.ok()) return in_file(s);
+  for (int i = 0; i < 4; ++i) {
+    if (cpu_text[i].empty()) continue;
+    auto cpus = parseCpuList(cpu_text[i]);
+    if (!cpus) return in_file(cpus.error().withContext("threads." + keys[i][2]));
+    schedules[i]->cpus = std::move(cpus).value();
+  }
+  return in_file(o.threads.validate());
 }
 
 }  // namespace cvislam::agent

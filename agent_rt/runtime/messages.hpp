@@ -121,6 +121,9 @@ struct MapSnapshotMessage {
   PoseMsg epoch_transform;  // R, t of the change into this epoch
   std::uint8_t imu_initialised = 0;
   KeyframeId newest_keyframe;  // the newest keyframe mapping has processed
+  // Keyframe messages mapping has taken, as the sequence of the last one + 1: tracking's count of keyframes
+  // published and not yet answered (its back-off while mapping is busy) is its own sequence minus this.
+  std::uint64_t keyframes_taken = 0;
   std::uint16_t keyframe_count = 0;
   std::array<KeyframeStateMsg, kMaxKeyframes> keyframes{};
   std::array<std::uint8_t, kMaxKeyframes> keyframe_is_anchor{};  // the server's keyframes (another agent's, or

@@ -43,6 +43,7 @@ int main(int argc, char** argv) {
   bool no_imu = false;
   bool quiet = false;
   bool trace_mapping = false;
+  bool no_priorities = false;
   std::size_t max_frames = 0;
   app.add_option("--dataset", dataset, "Sequence folder that holds mav0 (EuRoC/ASL layout)")->required();
   app.add_option("--output", output, "Folder for trajectories, latency profile and summary (created)")->required();
@@ -67,6 +68,10 @@ int main(int argc, char** argv) {
   app.add_option("--max-frames", max_frames, "Stop after this many frames (0 = all)");
   app.add_flag("--no-imu", no_imu, "Vision only");
   app.add_flag("--quiet", quiet, "No progress output");
+  app.add_flag("--no-priorities", no_priorities,
+               "Leave every thread at the process's scheduling (default at --pace realtime: tracking SCHED_FIFO 10 "
+               "where allowed, else nice 0; mapping nice 10, the link 5, the frame loader 2; see the threads section "
+               "of deploy/agent_config.yaml)");
   app.add_flag("--trace-mapping", trace_mapping,
                "One line per keyframe on stderr: matches linked, points fused/made/culled, stereo matches, local BA "
                "size, cam1 factors and rejected stereo mismatches, cost");
@@ -121,6 +126,7 @@ int main(int argc, char** argv) {
     options.link.tls_ca_pem = std::move(pem).value();
   }
   options.quiet = quiet;
+  if (no_priorities) options.threads.enabled = false;
   options.trace_mapping = trace_mapping;
   options.max_frames = max_frames;
 

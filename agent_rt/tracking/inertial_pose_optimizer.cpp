@@ -200,9 +200,8 @@ Result<MotionWindowResult> optimizeMotionWindow(std::span<MotionWindowKeyframe> 
   result.v_w = nodes[frame].v_w;
   result.imu_chi2 = imuChi2();
   if (result.inliers < options.min_inliers) {
-    return Error{ErrorCode::kDegenerate, "motion-only BA over " + std::to_string(k_count) + " keyframes kept " +
-                                             std::to_string(result.inliers) + " frame inliers, fewer than the " +
-                                             std::to_string(options.min_inliers) + " required"};
+    // Met by tracking on weak frames: a message short enough for std::string's inline buffer, no allocation.
+    return Error{ErrorCode::kDegenerate, "few inliers"};
   }
   return result;
 }

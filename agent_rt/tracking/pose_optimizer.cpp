@@ -112,9 +112,9 @@ Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observ
                                           is_outlier, &result.final_chi2);
   }
   if (result.inliers < options.min_inliers) {
-    return Error{ErrorCode::kDegenerate, "pose optimisation kept " + std::to_string(result.inliers) +
-                                             " inliers, fewer than the " + std::to_string(options.min_inliers) +
-                                             " required: tracking is lost"};
+    // Tracking meets this every frame it is lost, so the message fits std::string's inline buffer: no allocation
+    // (the inlier count is in the caller's hands anyway).
+    return Error{ErrorCode::kDegenerate, "few inliers"};
   }
   return result;
 }

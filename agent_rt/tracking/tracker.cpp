@@ -29,6 +29,21 @@ constexpr std::size_t kRingSize = 64;  // keyframes published and perhaps not ye
 
 }  // namespace
 
+Status MappingLagOptions::validate() const {
+  if (max_pending_keyframes < 1 || max_pending_keyframes > static_cast<int>(kRingSize) / 2) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "tracker: lag.max_pending_keyframes = " + std::to_string(max_pending_keyframes) + " must be in [1, " +
+                     std::to_string(kRingSize / 2) + "]"};
+  }
+  if (min_tracked_points_when_busy < 0) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: lag.min_tracked_points_when_busy must be >= 0"};
+  }
+  if (!(answer_timeout_s > 0.0) || !std::isfinite(answer_timeout_s)) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: lag.answer_timeout_s must be > 0"};
+  }
+  return Status::Ok();
+}
+
 Status TrackerOptions::validate() const {
   if (Status s = orb.validate(); !s.ok()) return s;
   if (orb.max_features > static_cast<int>(kMaxKeypointsPerKeyframe)) {
@@ -50,6 +65,7 @@ Status TrackerOptions::validate() const {
                                                   "] (raise CVISLAM_MAX_MOTION_BA_KEYFRAMES)"};
   }
   if (Status s = pose.validate(); !s.ok()) return s;
+  if (Status s = lag.validate(); !s.ok()) return s;
   return keyframe.validate();
 }
 
@@ -159,6 +175,21 @@ struct Tracker::State {
   std::int64_t last_imu_t_ns = std::numeric_limits<std::int64_t>::min();
   bool awaiting = false;
   KeyframeId awaiting_id;
+  // Mapping's progress: keyframe messages it has taken (from the snapshots), and when each keyframe tracking
+  // published left (steady clock, by sequence modulo the ring).
+  std::uint64_t keyframes_taken = 0;
+  std::array<std::int64_t, kRingSize> publish_steady_ns{};
+
+  int pendingKeyframes(std::int64_t now_ns) const {
+    const auto timeout_ns = static_cast<std::int64_t>(options.lag.answer_timeout_s * 1e9);
+    const std::uint64_t first =
+        std::max(keyframes_taken, keyframe_sequence > kRingSize ? keyframe_sequence - kRingSize : 0);
+    int pending = 0;
+    for (std::uint64_t q = first; q < keyframe_sequence; ++q) {
+      if (now_ns - publish_steady_ns[q % kRingSize] < timeout_ns) ++pending;
+    }
+    return pending;
+  }
 
   struct Published {
     KeyframeId id;
@@ -242,6 +273,7 @@ struct Tracker::State {
 
   void adopt(const MapSnapshotMessage* s) {
     if (s == nullptr) return;
+    keyframes_taken = std::max(keyframes_taken, s->keyframes_taken);
     if (s->map_id != map_id || new_map_requested) {
       if (s->map_id < map_id || (new_map_requested && s->map_id < requested_map_id)) return;  // an old map's
       if (s->point_count == 0) {
@@ -333,6 +365,9 @@ bool Tracker::imuInitialised() const {
 bool Tracker::awaitingKeyframe(KeyframeId* id) const {
   if (id != nullptr) *id = s_->awaiting_id;
   return s_->awaiting;
+}
+int Tracker::pendingKeyframes() const {
+  return s_->pendingKeyframes(nowNs());
 }
 
 namespace {
@@ -492,6 +527,14 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     }
   }
 
+  // Mapping's lag: while keyframes are pending, keyframes only when tracking would otherwise be lost, none
+  // beyond the backlog's bound, and no new map for lost frames (see MappingLagOptions).
+  const int pending = s.pendingKeyframes(t_start);
+  const bool back_off = o.lag.back_off;
+  const bool mapping_busy = back_off && pending > 0;
+  const bool backlog_full = back_off && pending >= o.lag.max_pending_keyframes;
+  result.pending_keyframes = pending;
+
   // 2. Features.
   const std::int64_t t_orb = nowNs();
   s.keypoint_count = s.orb.extract(frame.left, frame.width, frame.height,
@@ -527,6 +570,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       result.issue = FrameIssue::kKeyframeDropped;
       return false;
     }
+    s.publish_steady_ns[s.keyframe_sequence % kRingSize] = t0;
     m->sequence = s.keyframe_sequence++;
     m->map_epoch = s.epoch;
     m->kind = kind;
@@ -605,7 +649,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     const Vector3d v = keep_frame ? v_pred : Vector3d::Zero();
     ++s.waiting_frames;
     // Stereo maps answer at once; ask again when the first keyframe gave no map (a black frame, say).
-    const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames;
+    const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames && !mapping_busy;
     if (!s.new_map_requested || ask_again) {
       if (s.keypoint_count >= o.pose.min_inliers) {
         s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
@@ -618,8 +662,13 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       }
     } else if (!s.right && s.frames_since_keyframe + 1 >= o.initialisation_max_frames_between &&
                s.keypoint_count >= o.pose.min_inliers) {
-      s.observation_count = 0;
-      publish_keyframe(KeyframeKind::kTracked, T, v);
+      if (backlog_full) {
+        result.keyframe_deferred = true;
+        result.needs_mapping = true;
+      } else {
+        s.observation_count = 0;
+        publish_keyframe(KeyframeKind::kTracked, T, v);
+      }
     }
     finish(T, v);
     return result;
@@ -650,7 +699,13 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   auto lost = [&]() {
     result.issue = s.keypoint_count < o.pose.min_inliers ? FrameIssue::kFewFeatures : FrameIssue::kPoseRefused;
     s.status = TrackingStatus::kRelocalising;
-    ++s.lost_frames;
+    // With keyframes pending, the map tracking searched is behind the camera: the frame is carried by the IMU
+    // and does not count towards a new map.
+    if (mapping_busy) {
+      result.needs_mapping = true;
+    } else {
+      ++s.lost_frames;
+    }
     result.matches = s.observation_count;
     result.times.pose_ns = pose_ns;
     if (s.lost_frames > o.max_lost_frames && s.keypoint_count >= o.pose.min_inliers) {
@@ -755,7 +810,13 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   if (!s.imu_initialised && o.use_imu) decision_options.max_frames_between = o.initialisation_max_frames_between;
   result.keyframe_reason = decideKeyframe(tracking_state, decision_options);
   if (result.keyframe_reason != KeyframeReason::kNone) {
-    if (publish_keyframe(KeyframeKind::kTracked, T, v)) s.keyframe_coverage = tracking_state.coverage;
+    const bool needed = tracking_state.tracked_points < o.lag.min_tracked_points_when_busy;
+    if (backlog_full || (mapping_busy && !needed)) {
+      result.keyframe_deferred = true;
+      result.needs_mapping = needed;
+    } else if (publish_keyframe(KeyframeKind::kTracked, T, v)) {
+      s.keyframe_coverage = tracking_state.coverage;
+    }
   }
   result.tracked = true;
   finish(T, v);

@@ -32,6 +32,20 @@
 
 namespace cvislam::agent {
 
+// What tracking does while mapping is behind (keyframes published and not yet answered by a snapshot).
+struct MappingLagOptions {
+  // While mapping is busy, a keyframe only when tracking would otherwise be lost (fewer than
+  // min_tracked_points_when_busy tracked), and lost frames do not count towards a new map: tracking goes on with
+  // the newest snapshot and the IMU until mapping answers. false: the keyframe rules ignore mapping.
+  bool back_off = true;
+  int min_tracked_points_when_busy = 15;  // the paper's keyframe threshold; ours is 30 with an idle mapper
+  int max_pending_keyframes = 2;          // no keyframe while this many are unanswered: the backlog stays bounded
+  // A keyframe unanswered for this long (wall clock) stops counting: mapping refused it or has stopped.
+  double answer_timeout_s = 5.0;
+
+  [[nodiscard]] Status validate() const;
+};
+
 struct TrackerOptions {
   AgentId agent = 0;
   features::OrbOptions orb;  // max_features <= kMaxKeypointsPerKeyframe
@@ -42,6 +56,7 @@ struct TrackerOptions {
   double sigma_px = 1.0;                   // keypoint noise at level 0; x scale_factor per level
   PoseOptimizerOptions pose;
   KeyframeDecisionOptions keyframe;
+  MappingLagOptions lag;
   int initialisation_max_frames_between = 3;  // keyframe spacing until the IMU is initialised (paper: 3)
   int max_lost_frames = 20;                   // frames of failed relocalisation before a new map
   bool use_imu = true;                        // prediction and motion-only BA with the IMU, once initialised
@@ -108,6 +123,11 @@ struct FrameResult {
   int inliers = 0;
   bool keyframe = false;
   KeyframeReason keyframe_reason = KeyframeReason::kNone;
+  bool keyframe_deferred = false;  // the rules asked for a keyframe; mapping was busy (see MappingLagOptions)
+  int pending_keyframes = 0;       // published and not yet answered by mapping, when the frame was tracked
+  // Tracking needs mapping's answer to go on well: a keyframe it needed was held back by a full backlog, or it
+  // is lost while keyframes are pending. A caller without a clock (--pace fast) waits for mapping here.
+  bool needs_mapping = false;
   FrameIssue issue = FrameIssue::kNone;
   StageTimes times;
 };
@@ -132,6 +152,8 @@ class Tracker {
   // The identity of the newest keyframe published and not yet answered by a snapshot (for a caller that
   // waits on mapping); invalid when none.
   [[nodiscard]] bool awaitingKeyframe(KeyframeId* id) const;
+  // Keyframes published and not yet answered by a snapshot (those older than lag.answer_timeout_s left out).
+  [[nodiscard]] int pendingKeyframes() const;
 
   struct State;  // the implementation's, in tracker.cpp
 

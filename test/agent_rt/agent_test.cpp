@@ -12,6 +12,10 @@
 #include <thread>
 #include <vector>
 
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 #include <gtest/gtest.h>
 
 #include "common/core/diagnostics.hpp"
@@ -223,6 +227,65 @@ TEST_F(AgentTest, RefusesWhatCannotWork) {
   auto refused = runAgent(bad, stop);
   ASSERT_FALSE(refused.ok());
   EXPECT_NE(refused.error().message().find("max_features"), std::string::npos) << refused.error().message();
+}
+
+TEST(AgentConfig, ReadsThreadSchedulesAndNamesBadOnes) {
+  test::TempDir dir;
+  const auto write = [&](const std::string& text) {
+    std::ofstream(dir.path() / "agent.yaml") << text;
+    return dir.path() / "agent.yaml";
+  };
+  AgentOptions o;
+  ASSERT_TRUE(loadAgentConfig(write("threads:\n  mapping_nice: 15\n  tracking_realtime_priority: 0\n"
+                                    "  tracking_cpus: \"0\"\ntracking:\n  max_pending_keyframes: 3\n"),
+                              o)
+                  .ok());
+  EXPECT_EQ(o.threads.mapping.nice, 15);
+  EXPECT_EQ(o.threads.tracking.realtime_priority, 0);
+  EXPECT_EQ(o.threads.tracking.cpus, std::vector<int>{0});
+  EXPECT_EQ(o.tracking.lag.max_pending_keyframes, 3);
+
+  auto bad_list = loadAgentConfig(write("threads:\n  mapping_cpus: \"1-\"\n"), o);
+  ASSERT_FALSE(bad_list.ok());
+  EXPECT_NE(bad_list.error().message().find("threads.mapping_cpus"), std::string::npos) << bad_list.error().message();
+  auto bad_nice = loadAgentConfig(write("threads:\n  link_nice: 30\n"), o);
+  ASSERT_FALSE(bad_nice.ok());
+  EXPECT_NE(bad_nice.error().message().find("threads.link: nice = 30"), std::string::npos)
+      << bad_nice.error().message();
+  auto no_cpu = loadAgentConfig(write("threads:\n  loader_cpus: \"4096\"\n"), o);
+  ASSERT_FALSE(no_cpu.ok());
+  EXPECT_NE(no_cpu.error().message().find("threads.loader"), std::string::npos) << no_cpu.error().message();
+  AgentOptions fresh;
+  auto bad_backlog = loadAgentConfig(write("tracking:\n  max_pending_keyframes: 0\n"), fresh);
+  ASSERT_TRUE(bad_backlog.ok()) << bad_backlog.error().toString();
+  EXPECT_NE(fresh.tracking.validate().error().message().find("max_pending_keyframes = 0"), std::string::npos);
+
+  // The shipped file holds every key with its default.
+  AgentOptions shipped;
+  ASSERT_TRUE(loadAgentConfig(CVISLAM_SOURCE_DIR "/deploy/agent_config.yaml", shipped).ok());
+  const AgentOptions defaults;
+  EXPECT_EQ(shipped.threads.tracking.realtime_priority, defaults.threads.tracking.realtime_priority);
+  EXPECT_EQ(shipped.threads.mapping.nice, defaults.threads.mapping.nice);
+  EXPECT_EQ(shipped.tracking.lag.min_tracked_points_when_busy, defaults.tracking.lag.min_tracked_points_when_busy);
+}
+
+TEST(ThreadSchedule, ParsesCpuListsAndLowersTheCallingThreadOnly) {
+  EXPECT_EQ(*parseCpuList("0,2-3"), (std::vector<int>{0, 2, 3}));
+  EXPECT_EQ(*parseCpuList(""), std::vector<int>{});
+  for (const char* bad : {"a", "1,", "3-1", "1--2", ",1"}) EXPECT_FALSE(parseCpuList(bad).ok()) << bad;
+
+  // A higher nice value needs no privilege; it applies to the thread that asked, not to the process.
+  const int before = getpriority(PRIO_PROCESS, 0);
+  int inside = -100;
+  ScheduleOutcome outcome;
+  std::thread worker([&] {
+    outcome = applyToThisThread(ThreadSchedule{before + 3 > 19 ? 19 : before + 3, 0, {}});
+    inside = getpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)));
+  });
+  worker.join();
+  EXPECT_TRUE(outcome.applied) << outcome.note;
+  EXPECT_EQ(inside, before + 3 > 19 ? 19 : before + 3);
+  EXPECT_EQ(getpriority(PRIO_PROCESS, 0), before);
 }
 
 TEST(AgentConfig, NamesUnknownKeysAndBadValues) {

@@ -44,10 +44,27 @@ Status InlineAgent::load(std::size_t i) {
 }
 
 void InlineAgent::answerKeyframe() {
-  if (!sink_.published) return;
-  sink_.published = false;
+  if (mapping_frames_per_keyframe_ <= 0) {
+    if (!sink_.published) return;
+    sink_.published = false;
+    process(*sink_.message);
+    return;
+  }
+  // The slow mapper: the tracker reuses its message, so the queue keeps copies.
+  if (sink_.published) {
+    sink_.published = false;
+    queue_.push_back(std::make_unique<agent::KeyframeMessage>(*sink_.message));
+  }
+  if (queue_.empty()) return;
+  if (++mapping_busy_frames_ < mapping_frames_per_keyframe_) return;
+  mapping_busy_frames_ = 0;
+  process(*queue_.front());
+  queue_.pop_front();
+}
+
+void InlineAgent::process(const agent::KeyframeMessage& message) {
   if (before_keyframe_) before_keyframe_(*mapper_);
-  const auto report = mapper_->process(*sink_.message, *snapshot_, delta_.get());
+  const auto report = mapper_->process(message, *snapshot_, delta_.get());
   const bool processed = report.ok();
   if (processed && after_keyframe_) after_keyframe_(*report);
   if (delta_ && delta_sink_) {

@@ -1,11 +1,12 @@
 // Tracking and mapping of the agent in one thread, over a EuRoC-format sequence: for tests and benchmarks
 // that look at Tracker::track() alone (allocations, latency). Mapping answers every keyframe at once, as a
-// perfectly fast mapping thread would; images are read before track() is called, as a camera driver would
-// deliver them.
+// perfectly fast mapping thread would, unless it is made slow (setMappingFramesPerKeyframe); images are read
+// before track() is called, as a camera driver would deliver them.
 #pragma once
 
 #include <cstdint>
 #include <cstdio>
+#include <deque>
 #include <functional>
 #include <memory>
 #include <vector>
@@ -36,6 +37,13 @@ class InlineAgent {
     return result;
   }
   [[nodiscard]] bool imuInitialised() const { return tracker_->imuInitialised(); }
+  [[nodiscard]] int pendingKeyframes() const { return tracker_->pendingKeyframes(); }
+
+  // A slow mapper: each keyframe is answered only after mapping has been busy with it for `frames` frames,
+  // one keyframe at a time, in order (a mapping thread that needs that long per keyframe). 0: at once.
+  void setMappingFramesPerKeyframe(int frames) { mapping_frames_per_keyframe_ = frames; }
+  // Keyframes waiting for the slow mapper, the one it is busy with included.
+  [[nodiscard]] std::size_t mappingBacklog() const { return queue_.size(); }
 
   // What countSteadyAllocations() saw once the IMU was initialised.
   struct SteadyAllocations {
@@ -93,6 +101,7 @@ class InlineAgent {
 
   InlineAgent(const dataset::EurocSequence& sequence, bool stereo) : sequence_(sequence), stereo_(stereo) {}
   void answerKeyframe();
+  void process(const agent::KeyframeMessage& message);
 
   const dataset::EurocSequence& sequence_;
   bool stereo_;
@@ -106,6 +115,9 @@ class InlineAgent {
   std::function<void(const agent::MapperReport&)> after_keyframe_;
   std::uint64_t delta_sequence_ = 0;
   Sink sink_;
+  int mapping_frames_per_keyframe_ = 0;
+  int mapping_busy_frames_ = 0;  // frames the slow mapper has spent on the head of the queue
+  std::deque<std::unique_ptr<agent::KeyframeMessage>> queue_;
   std::vector<std::uint8_t> left_;
   std::vector<std::uint8_t> right_;
   agent::FrameInput input_;

@@ -1,0 +1,132 @@
+// Tracking with a mapper that cannot keep up (issue 17): on a board with one free core mapping falls behind,
+// and tracking must keep one map rather than fall apart. The real Tracker and Mapper run in one thread
+// (test/support/inline_agent); the mapper is made slow on purpose by answering each keyframe only after a
+// fixed number of frames, one keyframe at a time. This binary also replaces malloc, so it checks that the
+// back-off keeps track() free of allocations in the steady state.
+#include <algorithm>
+#include <cstdio>
+
+#include <gtest/gtest.h>
+
+#include "test/sim/mission_writer.hpp"
+#include "test/sim/presets.hpp"
+#include "test/support/inline_agent.hpp"
+#include "test/support/malloc_counter.hpp"
+#include "test/support/temp_dir.hpp"
+
+namespace cvislam::agent {
+namespace {
+
+struct LagRun {
+  int frames = 0;
+  int frames_after_start = 0;  // from the first tracked frame on
+  int tracked_after_start = 0;
+  int keyframes = 0;
+  int deferred = 0;
+  std::uint32_t maps = 0;  // the largest map id tracking asked for or tracked on
+  int most_pending = 0;
+  std::size_t most_backlog = 0;
+  int steady_frames = 0;  // frames tracked after the IMU initialisation, allocations counted
+  long steady_allocations = 0;
+};
+
+LagRun runWithMapper(const dataset::EurocSequence& seq, bool stereo, int mapping_frames_per_keyframe, bool back_off) {
+  TrackerOptions options;
+  options.lag.back_off = back_off;
+  auto created = test::InlineAgent::create(seq, stereo, options);
+  EXPECT_TRUE(created.ok()) << created.error().toString();
+  LagRun run;
+  if (!created.ok()) return run;
+  test::InlineAgent& agent = **created;
+  agent.setMappingFramesPerKeyframe(mapping_frames_per_keyframe);
+  bool started = false;
+  for (std::size_t i = 0; i < agent.frameCount(); ++i) {
+    const Status loaded = agent.load(i);
+    EXPECT_TRUE(loaded.ok()) << loaded.error().toString();
+    if (!loaded.ok()) return run;
+    const bool steady = agent.imuInitialised();
+    long before = 0;
+    long after = 0;
+    const FrameResult r = agent.track([&] { before = test::mallocCount(); }, [&] { after = test::mallocCount(); });
+    ++run.frames;
+    started = started || r.tracked;
+    if (started) {
+      ++run.frames_after_start;
+      run.tracked_after_start += r.tracked ? 1 : 0;
+    }
+    run.keyframes += r.keyframe ? 1 : 0;
+    run.deferred += r.keyframe_deferred ? 1 : 0;
+    run.maps = std::max(run.maps, r.map_id);
+    run.most_pending = std::max(run.most_pending, r.pending_keyframes);
+    run.most_backlog = std::max(run.most_backlog, agent.mappingBacklog());
+    if (steady && r.tracked) {
+      ++run.steady_frames;
+      run.steady_allocations += after - before;
+      if (after != before) {
+        std::printf("frame %zu: %ld allocations (%s, %s, keyframe %d, pending %d)\n", i, after - before,
+                    toString(r.status), toString(r.issue), r.keyframe ? 1 : 0, r.pending_keyframes);
+      }
+    }
+  }
+  std::printf(
+      "mapping %d frames per keyframe, back-off %s: %d frames, tracked %d of %d after the start, %d keyframes "
+      "(%d deferred), maps %u, most pending %d, most backlog %zu, %ld allocations in %d steady frames\n",
+      mapping_frames_per_keyframe, back_off ? "on" : "off", run.frames, run.tracked_after_start, run.frames_after_start,
+      run.keyframes, run.deferred, run.maps, run.most_pending, run.most_backlog, run.steady_allocations,
+      run.steady_frames);
+  return run;
+}
+
+class MappingLag : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new test::TempDir();
+    ASSERT_TRUE(sim::renderPreset("loop", 5, 20.0, /*stereo=*/true, dir_->path()).ok());
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  static test::TempDir* dir_;
+};
+test::TempDir* MappingLag::dir_ = nullptr;
+
+// Frames the slow mapper needs per keyframe: 16 (0.8 s of the sequence) is slower than the keyframe rate with an
+// idle mapper (a keyframe every 14 frames on this sequence), so it is starved unless tracking backs off.
+constexpr int kSlow = 16;
+
+// A mapper slower than the keyframe rate: tracking keeps one map and tracks every
+// frame but a few, makes fewer keyframes than with an idle mapper, never has more than the bound pending, and
+// does not allocate.
+TEST_F(MappingLag, AStarvedMapperLeavesTrackingOnOneMapWithFewerKeyframes) {
+  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  ASSERT_TRUE(seq.ok()) << seq.error().toString();
+  const LagRun idle = runWithMapper(*seq, true, 0, true);
+  const LagRun slow = runWithMapper(*seq, true, kSlow, true);
+  ASSERT_GT(idle.frames, 300);
+  EXPECT_EQ(idle.maps, 1U);
+  EXPECT_EQ(slow.maps, 1U) << "a lagging mapper made tracking start a new map";
+  // Starved below the idle keyframe rate, the map lags the camera: a few frames go to the IMU alone.
+  EXPECT_GE(slow.tracked_after_start * 100, slow.frames_after_start * 95);
+  EXPECT_GT(slow.deferred, 0);
+  EXPECT_LT(slow.keyframes, idle.keyframes) << "the keyframe rate did not back off";
+  EXPECT_GE(slow.keyframes * 3, idle.keyframes / 2) << "backed off so far that the map starves";
+  EXPECT_LE(slow.most_pending, TrackerOptions{}.lag.max_pending_keyframes);
+  EXPECT_LE(slow.most_backlog, static_cast<std::size_t>(TrackerOptions{}.lag.max_pending_keyframes));
+  ASSERT_GE(slow.steady_frames, 100);
+  EXPECT_EQ(slow.steady_allocations, 0);
+}
+
+// The same mapper without the back-off, as the agent was before issue 17: the backlog is not bounded, tracking
+// loses most frames and starts new maps.
+TEST_F(MappingLag, WithoutTheBackOffTheBacklogGrows) {
+  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  ASSERT_TRUE(seq.ok()) << seq.error().toString();
+  const LagRun slow = runWithMapper(*seq, true, kSlow, false);
+  EXPECT_GT(slow.most_backlog, 2U * static_cast<std::size_t>(TrackerOptions{}.lag.max_pending_keyframes));
+  EXPECT_GT(slow.maps, 1U);
+  EXPECT_LT(slow.tracked_after_start * 2, slow.frames_after_start);
+}
+
+}  // namespace
+}  // namespace cvislam::agent
