@@ -306,6 +306,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready);
   });
 
+  // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.
+  const ThreadScheduleRestorer restore_caller;
   schedule_this_thread("tracking", options.threads.tracking);
   {
     iox::popo::PublisherOptions pub_options;

@@ -61,7 +61,16 @@ ScheduleOutcome applyToThisThread(const ThreadSchedule& schedule) {
     refused("nice " + std::to_string(schedule.nice) + " refused (" + std::strerror(errno) +
             (schedule.nice < current ? ": a lower nice value needs CAP_SYS_NICE or RLIMIT_NICE)" : ")"));
   }
-  if (schedule.realtime_priority > 0) {
+  if (schedule.realtime_priority == 0) {
+    int policy = SCHED_OTHER;
+    sched_param current_param{};
+    if (pthread_getschedparam(pthread_self(), &policy, &current_param) == 0 && policy != SCHED_OTHER) {
+      sched_param other{};
+      if (int e = pthread_setschedparam(pthread_self(), SCHED_OTHER, &other); e != 0) {
+        refused(std::string("leaving the inherited real-time policy refused (") + std::strerror(e) + ")");
+      }
+    }
+  } else {
     sched_param param{};
     param.sched_priority = schedule.realtime_priority;
     if (int e = pthread_setschedparam(pthread_self(), SCHED_FIFO, &param); e != 0) {
@@ -73,6 +82,36 @@ ScheduleOutcome applyToThisThread(const ThreadSchedule& schedule) {
     }
   }
   return outcome;
+}
+
+static_assert(sizeof(cpu_set_t) <= 128, "ThreadScheduleRestorer keeps a cpu_set_t in 128 bytes");
+
+ThreadScheduleRestorer::ThreadScheduleRestorer() {
+  sched_param param{};
+  if (pthread_getschedparam(pthread_self(), &policy_, &param) == 0) {
+    priority_ = param.sched_priority;
+  } else {
+    policy_ = SCHED_OTHER;
+  }
+  errno = 0;
+  nice_ = getpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)));
+  if (errno != 0) nice_ = 0;
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  have_cpus_ = pthread_getaffinity_np(pthread_self(), sizeof(set), &set) == 0;
+  std::memcpy(cpus_, &set, sizeof(set));
+}
+
+ThreadScheduleRestorer::~ThreadScheduleRestorer() {
+  sched_param param{};
+  param.sched_priority = priority_;
+  (void)pthread_setschedparam(pthread_self(), policy_, &param);
+  (void)setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), nice_);
+  if (have_cpus_) {
+    cpu_set_t set;
+    std::memcpy(&set, cpus_, sizeof(set));
+    (void)pthread_setaffinity_np(pthread_self(), sizeof(set), &set);
+  }
 }
 
 Result<std::vector<int>> parseCpuList(const std::string& text) {

@@ -43,10 +43,28 @@ struct ScheduleOutcome {
   std::string note;     // what did not, and why; empty when applied
 };
 
-// Applies `schedule` to the calling thread. Never fails the caller: what the process may not do is left out
+// Applies `schedule` to the calling thread; realtime_priority 0 also puts a thread that inherited a real-time
+// policy back to SCHED_OTHER. Never fails the caller: what the process may not do is left out
 // and described in the outcome (the thread then runs at the scheduling it had, or at `nice` when only the
 // real-time priority was refused).
 ScheduleOutcome applyToThisThread(const ThreadSchedule& schedule);
+
+// The calling thread's policy, priority, nice value and CPUs while it lives, restored when it goes: runAgent()
+// gives its calling thread tracking's schedule only for the run.
+class ThreadScheduleRestorer {
+ public:
+  ThreadScheduleRestorer();
+  ~ThreadScheduleRestorer();
+  ThreadScheduleRestorer(const ThreadScheduleRestorer&) = delete;
+  ThreadScheduleRestorer& operator=(const ThreadScheduleRestorer&) = delete;
+
+ private:
+  int policy_ = 0;
+  int priority_ = 0;
+  int nice_ = 0;
+  bool have_cpus_ = false;
+  unsigned char cpus_[128] = {};  // a cpu_set_t, kept opaque to keep <sched.h> out of this header
+};
 
 // Parses "0,2-3" into {0, 2, 3}; names the bad part.
 Result<std::vector<int>> parseCpuList(const std::string& text);

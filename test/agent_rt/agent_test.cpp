@@ -12,6 +12,8 @@
 #include <thread>
 #include <vector>
 
+#include <pthread.h>
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -202,10 +204,21 @@ TEST_F(AgentTest, InterruptedRunStillWritesItsOutputs) {
     std::this_thread::sleep_for(std::chrono::seconds(3));
     stop.store(true);
   });
+  int policy_before = -1;
+  sched_param param_before{};
+  ASSERT_EQ(pthread_getschedparam(pthread_self(), &policy_before, &param_before), 0);
+  const int nice_before = getpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)));
   auto summary = runAgent(o, stop);
   stopper.join();
   ASSERT_TRUE(summary.ok()) << summary.error().toString();
   EXPECT_TRUE(summary->interrupted);
+  // The calling thread ran tracking (SCHED_FIFO where allowed) for the run only.
+  int policy_after = -1;
+  sched_param param_after{};
+  ASSERT_EQ(pthread_getschedparam(pthread_self(), &policy_after, &param_after), 0);
+  EXPECT_EQ(policy_after, policy_before);
+  EXPECT_EQ(param_after.sched_priority, param_before.sched_priority);
+  EXPECT_EQ(getpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid))), nice_before);
   EXPECT_LT(summary->frames, 241u);
   EXPECT_GT(summary->tracked_frames, 20u);
   Diagnostics diagnostics;
