@@ -128,8 +128,19 @@ class MissionProcesses : public ::testing::Test {
   void expectTrackedThroughout(int agent) {
     const nlohmann::json summary = readJson(agentOut(agent) / "summary.json");
     ASSERT_TRUE(summary.is_object());
-    EXPECT_EQ(summary["new_maps"].get<int>(), 1);
-    EXPECT_GE(summary["tracked_frames"].get<double>(), 0.95 * summary["frames"].get<double>());
+    // On failure: the run's summary and the agent's log, which says when tracking waited, lost or deferred.
+    std::string why = summary.dump(1) + "\nframes tracked live from";
+    std::int64_t previous_ns = -1;
+    for (const auto& [t_ns, p] : keyframes(agentOut(agent) / "trajectory_online.txt")) {
+      if (previous_ns < 0) why += " " + std::to_string(t_ns * 1e-9) + " s";
+      if (previous_ns >= 0 && t_ns - previous_ns > 60'000'000) {
+        why += "; none from " + std::to_string(previous_ns * 1e-9) + " to " + std::to_string(t_ns * 1e-9) + " s";
+      }
+      previous_ns = t_ns;
+    }
+    why += "\n" + readFile(dir_ / ("agent" + std::to_string(agent) + ".log"));
+    EXPECT_EQ(summary["new_maps"].get<int>(), 1) << why;
+    EXPECT_GE(summary["tracked_frames"].get<double>(), 0.95 * summary["frames"].get<double>()) << why;
   }
 
   static test::TempDir* mission_;
