@@ -240,14 +240,19 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   // Each thread takes its own scheduling when it starts (tracking last, once the others are started: threads
   // inherit a real-time policy from the thread that starts them). What the process may not do is said once.
+  const bool scheduling = options.threads.enabled && options.pace == Pace::kRealtime;
+  const ThreadScheduleOptions threads =
+      scheduling
+          ? options.threads.resolved(mayTakeRealtimePriority(options.threads.tracking.realtime_priority), currentNice())
+          : options.threads;
   const auto schedule_this_thread = [&](const char* name, const ThreadSchedule& schedule) {
-    if (!options.threads.enabled || options.pace != Pace::kRealtime) return;
+    if (!scheduling) return;
     const ScheduleOutcome outcome = applyToThisThread(schedule);
     if (!outcome.applied) std::fprintf(stderr, "[agent] threads.%s: %s\n", name, outcome.note.c_str());
   };
 
   std::thread loader([&] {
-    schedule_this_thread("loader", options.threads.loader);
+    schedule_this_thread("loader", threads.loader);
     for (std::size_t i = 0; i < frames.size(); ++i) {
       FrameRing::Slot* slot = nullptr;
       while ((slot = ring.producerSlot()) == nullptr) {
@@ -288,7 +293,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                    options.link.mission.c_str(), static_cast<unsigned>(options.agent));
     }
     link_thread = std::thread([&] {
-      schedule_this_thread("link", options.threads.link);
+      schedule_this_thread("link", threads.link);
       iox::popo::SubscriberOptions delta_options;
       delta_options.queueCapacity = 16;
       iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
@@ -302,13 +307,13 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   }
 
   std::thread mapping([&] {
-    schedule_this_thread("mapping", options.threads.mapping);
+    schedule_this_thread("mapping", threads.mapping);
     mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready);
   });
 
   // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.
   const ThreadScheduleRestorer restore_caller;
-  schedule_this_thread("tracking", options.threads.tracking);
+  schedule_this_thread("tracking", threads.tracking);
   {
     iox::popo::PublisherOptions pub_options;
     iox::popo::Publisher<KeyframeMessage> keyframe_pub(service(options.agent, "keyframes"), pub_options);

@@ -104,6 +104,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
 
   YamlSection threads = section("threads");
   threads.read("priorities", o.threads.enabled);
+  threads.read("lower_others_with_realtime", o.threads.lower_others_with_realtime);
   std::string cpu_text[4];
   ThreadSchedule* schedules[4] = {&o.threads.tracking, &o.threads.loader, &o.threads.mapping, &o.threads.link};
   const char* names[4] = {"tracking", "loader", "mapping", "link"};

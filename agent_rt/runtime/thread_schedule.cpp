@@ -38,6 +38,32 @@ Status ThreadScheduleOptions::validate() const {
   return Status::Ok();
 }
 
+ThreadScheduleOptions ThreadScheduleOptions::resolved(bool tracking_realtime, int process_nice) const {
+  ThreadScheduleOptions out = *this;
+  if (tracking_realtime && tracking.realtime_priority > 0 && !lower_others_with_realtime) {
+    for (ThreadSchedule* other : {&out.loader, &out.mapping, &out.link}) other->nice = process_nice;
+  }
+  return out;
+}
+
+int currentNice() {
+  errno = 0;
+  const int nice = getpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)));
+  return errno == 0 ? nice : 0;
+}
+
+bool mayTakeRealtimePriority(int priority) {
+  if (priority <= 0) return false;
+  int policy = SCHED_OTHER;
+  sched_param before{};
+  if (pthread_getschedparam(pthread_self(), &policy, &before) != 0) return false;
+  sched_param param{};
+  param.sched_priority = priority;
+  if (pthread_setschedparam(pthread_self(), SCHED_FIFO, &param) != 0) return false;
+  (void)pthread_setschedparam(pthread_self(), policy, &before);
+  return true;
+}
+
 ScheduleOutcome applyToThisThread(const ThreadSchedule& schedule) {
   ScheduleOutcome outcome;
   const auto refused = [&](const std::string& what) {

@@ -2,9 +2,11 @@
 //
 // Linux lets any process lower a thread's priority (a higher nice value) but raising one (a negative nice
 // value, or a real-time SCHED_FIFO priority) needs CAP_SYS_NICE or an rtprio/nice rlimit. So tracking asks for
-// SCHED_FIFO priority 10, and mapping, the link and the frame loader run at positive nice values, which needs
-// no privilege. Where the process may not take the real-time priority, tracking stays SCHED_OTHER at nice 0,
-// still ahead of mapping's nice 10 (CFS weights 1024 against 110), and the agent says so once, naming what to
+// SCHED_FIFO priority 10. With it, tracking preempts every ordinary thread on the machine and the others keep
+// the process's nice value: lowering them too would only make the agent's mapping lose to every other program
+// on the board (a planner, a driver, a test running beside it). Where the process may not take the real-time
+// priority, tracking stays SCHED_OTHER and mapping, the link and the frame loader drop to positive nice values
+// (mapping 10: CFS weights 1024 against 110), which needs no privilege; the agent says so once, naming what to
 // grant. On one core at the sensor rate, nice values alone left tracking's p99 at 1.6x its p99 with mapping on
 // another core, SCHED_FIFO at 1.3x (README, "The agent on a small board").
 //
@@ -29,12 +31,18 @@ struct ThreadSchedule {
 
 struct ThreadScheduleOptions {
   ThreadSchedule tracking{0, 10, {}};
+  // The others' nice values apply when tracking runs without a real-time priority (refused, or 0), unless
+  // lower_others_with_realtime; their CPUs and real-time priorities always apply.
   ThreadSchedule loader{2, 0, {}};  // decodes the dataset's images ahead of tracking (a camera driver's place)
   ThreadSchedule mapping{10, 0, {}};
   ThreadSchedule link{5, 0, {}};
+  bool lower_others_with_realtime = false;
   bool enabled = true;  // false: every thread keeps the scheduling it was started with
 
   [[nodiscard]] Status validate() const;
+  // The schedules to apply, given whether tracking may take its real-time priority: without
+  // lower_others_with_realtime, real-time tracking leaves loader, mapping and link at `process_nice`.
+  [[nodiscard]] ThreadScheduleOptions resolved(bool tracking_realtime, int process_nice) const;
 };
 
 // What applying a schedule to the calling thread did.
@@ -65,6 +73,11 @@ class ThreadScheduleRestorer {
   bool have_cpus_ = false;
   unsigned char cpus_[128] = {};  // a cpu_set_t, kept opaque to keep <sched.h> out of this header
 };
+
+// Whether the calling thread may take SCHED_FIFO at `priority` (tried, then undone).
+bool mayTakeRealtimePriority(int priority);
+// The calling thread's nice value.
+int currentNice();
 
 // Parses "0,2-3" into {0, 2, 3}; names the bad part.
 Result<std::vector<int>> parseCpuList(const std::string& text);

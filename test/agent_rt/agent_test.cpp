@@ -280,6 +280,44 @@ TEST(AgentConfig, ReadsThreadSchedulesAndNamesBadOnes) {
   EXPECT_EQ(shipped.threads.tracking.realtime_priority, defaults.threads.tracking.realtime_priority);
   EXPECT_EQ(shipped.threads.mapping.nice, defaults.threads.mapping.nice);
   EXPECT_EQ(shipped.tracking.lag.min_tracked_points_when_busy, defaults.tracking.lag.min_tracked_points_when_busy);
+  EXPECT_EQ(shipped.threads.lower_others_with_realtime, defaults.threads.lower_others_with_realtime);
+}
+
+TEST(ThreadSchedule, OthersDropTheirNiceOnlyWhenTrackingRunsWithoutRealTimePriority) {
+  ThreadScheduleOptions o;
+  o.mapping.cpus = {0};
+  const ThreadScheduleOptions with_fifo = o.resolved(true, 1);
+  EXPECT_EQ(with_fifo.mapping.nice, 1);
+  EXPECT_EQ(with_fifo.loader.nice, 1);
+  EXPECT_EQ(with_fifo.link.nice, 1);
+  EXPECT_EQ(with_fifo.mapping.cpus, std::vector<int>{0});
+  EXPECT_EQ(with_fifo.tracking.realtime_priority, 10);
+  const ThreadScheduleOptions without = o.resolved(false, 1);
+  EXPECT_EQ(without.mapping.nice, 10);
+  EXPECT_EQ(without.loader.nice, 2);
+  EXPECT_EQ(without.link.nice, 5);
+  o.lower_others_with_realtime = true;
+  EXPECT_EQ(o.resolved(true, 1).mapping.nice, 10);
+  o.lower_others_with_realtime = false;
+  o.tracking.realtime_priority = 0;  // tracking asked for no real-time priority: the others make room
+  EXPECT_EQ(o.resolved(true, 1).mapping.nice, 10);
+
+  // The probe leaves the calling thread as it was, whatever it answers.
+  int policy_before = -1;
+  int policy_after = -1;
+  sched_param param{};
+  bool may = false;
+  ScheduleOutcome taken;
+  std::thread worker([&] {
+    (void)pthread_getschedparam(pthread_self(), &policy_before, &param);
+    may = mayTakeRealtimePriority(10);
+    (void)pthread_getschedparam(pthread_self(), &policy_after, &param);
+    taken = applyToThisThread(ThreadSchedule{0, 10, {}});  // and it answers what applying would do
+  });
+  worker.join();
+  EXPECT_EQ(policy_after, policy_before);
+  EXPECT_EQ(taken.applied, may) << taken.note;
+  EXPECT_FALSE(mayTakeRealtimePriority(0));
 }
 
 TEST(ThreadSchedule, ParsesCpuListsAndLowersTheCallingThreadOnly) {
