@@ -16,6 +16,8 @@ packages=(
   # OpenCV, per module: OpenCVConfig.cmake ships only in libopencv-dev (+330 MB of VTK, dnn, contrib),
   # so we take the modules we use and toolchains/cmake/OpenCVMinimal.cmake makes the targets.
   libopencv-core-dev libopencv-imgproc-dev libopencv-features2d-dev libopencv-calib3d-dev libopencv-imgcodecs-dev
+  # the agent's PNG decoding (common/dataset/png_gray.cpp)
+  libdeflate-dev
   # agent <-> server link and the map service
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   # the server's map store; openssl makes the throwaway certificate of the TLS tests

@@ -18,6 +18,7 @@
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
 #include "common/dataset/euroc.hpp"
+#include "common/dataset/png_gray.hpp"
 #include "common/dataset/trajectory_io.hpp"
 
 namespace cvislam::agent {
@@ -253,6 +254,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   std::thread loader([&] {
     schedule_this_thread("loader", threads.loader);
+    dataset::GrayPngDecoder png;  // its buffers settle at the first frame's size
     for (std::size_t i = 0; i < frames.size(); ++i) {
       FrameRing::Slot* slot = nullptr;
       while ((slot = ring.producerSlot()) == nullptr) {
@@ -266,8 +268,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       slot->frame = i;
       slot->ok = true;
       slot->error.clear();
-      Status st = seq.loadImageInto(0, frames[i].cam0, slot->left);
-      if (st.ok() && stereo) st = seq.loadImageInto(1, *frames[i].cam1, slot->right);
+      Status st = seq.loadImageInto(0, frames[i].cam0, slot->left, png);
+      if (st.ok() && stereo) st = seq.loadImageInto(1, *frames[i].cam1, slot->right, png);
       if (!st.ok()) {
         slot->ok = false;
         slot->error = st.error().toString();

@@ -238,13 +238,32 @@ Result<GrayImage> EurocSequence::loadImage(int camera, std::size_t frame) const 
   return image;
 }
 
-Status EurocSequence::loadImageInto(int camera, std::size_t frame, std::span<std::uint8_t> pixels) const {
-  if (camera < 0 || camera >= cameraCount() || frame >= cameras_[static_cast<std::size_t>(camera)].frames.size()) {
+namespace {
+
+Result<const CameraStream*> frameOf(const std::vector<CameraStream>& cameras, int camera, std::size_t frame) {
+  if (camera < 0 || static_cast<std::size_t>(camera) >= cameras.size() ||
+      frame >= cameras[static_cast<std::size_t>(camera)].frames.size()) {
     return Error{ErrorCode::kInvalidArgument,
                  "loadImageInto: no camera " + std::to_string(camera) + " frame " + std::to_string(frame)};
   }
-  const CameraStream& cam = cameras_[static_cast<std::size_t>(camera)];
-  return readGrayImageInto(cam.imagePath(frame), cam.calibration.width, cam.calibration.height, pixels);
+  return &cameras[static_cast<std::size_t>(camera)];
+}
+
+}  // namespace
+
+Status EurocSequence::loadImageInto(int camera, std::size_t frame, std::span<std::uint8_t> pixels) const {
+  auto cam = frameOf(cameras_, camera, frame);
+  if (!cam) return cam.error();
+  const CameraStream& c = **cam;
+  return readGrayImageInto(c.imagePath(frame), c.calibration.width, c.calibration.height, pixels);
+}
+
+Status EurocSequence::loadImageInto(int camera, std::size_t frame, std::span<std::uint8_t> pixels,
+                                    GrayPngDecoder& png) const {
+  auto cam = frameOf(cameras_, camera, frame);
+  if (!cam) return cam.error();
+  const CameraStream& c = **cam;
+  return readGrayImageInto(c.imagePath(frame), c.calibration.width, c.calibration.height, pixels, png);
 }
 
 std::string EurocSequence::summary() const {

@@ -81,6 +81,9 @@ class EurocSequence {
   [[nodiscard]] Result<GrayImage> loadImage(int camera, std::size_t frame) const;
   // Decodes into caller-owned storage of width*height bytes.
   [[nodiscard]] Status loadImageInto(int camera, std::size_t frame, std::span<std::uint8_t> pixels) const;
+  // The same through the caller's PNG decoder (one per loading thread): 8-bit grey PNGs without OpenCV.
+  [[nodiscard]] Status loadImageInto(int camera, std::size_t frame, std::span<std::uint8_t> pixels,
+                                     GrayPngDecoder& png) const;
 
   // A few lines for humans: streams, rates, spans and findings.
   [[nodiscard]] std::string summary() const;

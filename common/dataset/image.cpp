@@ -1,5 +1,7 @@
 #include "common/dataset/image.hpp"
 
+#include "common/dataset/png_gray.hpp"
+
 #include <cstring>
 #include <string>
 #include <vector>
@@ -73,6 +75,14 @@ Status readGrayImageInto(const std::filesystem::path& path, int width, int heigh
                 static_cast<std::size_t>(width));
   }
   return Status::Ok();
+}
+
+Status readGrayImageInto(const std::filesystem::path& path, int width, int height, std::span<std::uint8_t> pixels,
+                         GrayPngDecoder& png) {
+  auto decoded = png.decodeInto(path, width, height, pixels);
+  if (!decoded) return decoded.error();
+  if (*decoded) return Status::Ok();
+  return readGrayImageInto(path, width, height, pixels);
 }
 
 Status writeGrayPng(const std::filesystem::path& path, const GrayImage& image) {

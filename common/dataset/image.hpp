@@ -37,6 +37,12 @@ Result<GrayImage> readGrayImage(const std::filesystem::path& path);
 // fails if the image does not have that size.
 Status readGrayImageInto(const std::filesystem::path& path, int width, int height, std::span<std::uint8_t> pixels);
 
+class GrayPngDecoder;
+// The same, with `png` decoding 8-bit grey PNGs (png_gray.hpp) and OpenCV everything else: a frame loader keeps
+// one decoder for the run.
+Status readGrayImageInto(const std::filesystem::path& path, int width, int height, std::span<std::uint8_t> pixels,
+                         GrayPngDecoder& png);
+
 // Writes a PNG. The bytes depend only on the pixels (fixed compression settings), so output is reproducible.
 Status writeGrayPng(const std::filesystem::path& path, const GrayImage& image);
 

@@ -1,5 +1,6 @@
 // ORB extraction (500 features, 8x6 grid) and brute-force matching on real EuRoC V1_01 frames, p50/p99,
-// with the heap allocations per frame (this binary counts operator new; extract must make none).
+// with the heap allocations per frame (this binary counts operator new; extract must make none); and the
+// frame loader's PNG decoding of those frames' files, OpenCV (libpng) against the agent's own decoder.
 //
 //   taskset -c 1 build/default/bin/bench_features
 #include <vector>
@@ -7,6 +8,7 @@
 #include <benchmark/benchmark.h>
 
 #include "common/dataset/euroc.hpp"
+#include "common/dataset/png_gray.hpp"
 #include "common/features/orb.hpp"
 #include "test/bench/percentiles.hpp"
 #include "test/support/allocation_counter.hpp"
@@ -76,6 +78,46 @@ void BM_MatchBruteForce500x500(benchmark::State& state) {
 BENCHMARK(BM_MatchBruteForce500x500)->Unit(benchmark::kMillisecond)->Apply([](auto* b) {
   bench::withPercentiles(b, 20);
 });
+
+// Decodes the excerpt's cam0 files in turn into one preallocated frame; `png` null = OpenCV.
+void decodeFrames(benchmark::State& state, dataset::GrayPngDecoder* png) {
+  const auto path = test::findData("euroc-v101-excerpt");
+  auto seq = path.empty() ? Result<dataset::EurocSequence>(Error{ErrorCode::kNotFound, "no data"})
+                          : dataset::EurocSequence::open(path);
+  if (!seq.ok()) {
+    state.SkipWithError("euroc-v101-excerpt not found (set CVISLAM_DATA_DIR)");
+    return;
+  }
+  const auto& cal = seq->cam0().calibration;
+  std::vector<std::uint8_t> pixels(static_cast<std::size_t>(cal.width) * static_cast<std::size_t>(cal.height));
+  const std::size_t n = seq->cam0().frames.size();
+  std::size_t i = 0;
+  long allocations = 0;
+  for (auto _ : state) {
+    const long before = test::allocationCount();
+    const Status st =
+        png != nullptr ? seq->loadImageInto(0, i++ % n, pixels, *png) : seq->loadImageInto(0, i++ % n, pixels);
+    allocations += test::allocationCount() - before;
+    if (!st.ok()) {
+      state.SkipWithError(st.error().message().c_str());
+      return;
+    }
+    benchmark::DoNotOptimize(pixels.data());
+  }
+  state.counters["allocations_per_frame"] =
+      benchmark::Counter(static_cast<double>(allocations), benchmark::Counter::kAvgIterations);
+}
+
+void BM_DecodePngOpenCv(benchmark::State& state) {
+  decodeFrames(state, nullptr);
+}
+BENCHMARK(BM_DecodePngOpenCv)->Unit(benchmark::kMillisecond)->Apply([](auto* b) { bench::withPercentiles(b, 20); });
+
+void BM_DecodePngOwn(benchmark::State& state) {
+  dataset::GrayPngDecoder png;
+  decodeFrames(state, &png);
+}
+BENCHMARK(BM_DecodePngOwn)->Unit(benchmark::kMillisecond)->Apply([](auto* b) { bench::withPercentiles(b, 20); });
 
 }  // namespace
 }  // namespace cvislam

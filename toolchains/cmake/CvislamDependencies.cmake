@@ -18,6 +18,14 @@ if(CVISLAM_BUILD_SERVER)
   pkg_check_modules(LIBPQ REQUIRED IMPORTED_TARGET libpq)
 endif()
 
+# libdeflate-dev: the agent's PNG decoding (common/dataset/png_gray.cpp). Its CMake config came only in 1.15;
+# find_path/find_library look inside the sysroot when cross-compiling.
+find_path(LIBDEFLATE_INCLUDE_DIR libdeflate.h REQUIRED)
+find_library(LIBDEFLATE_LIBRARY NAMES deflate REQUIRED)
+add_library(cvislam::libdeflate UNKNOWN IMPORTED)
+set_target_properties(cvislam::libdeflate PROPERTIES IMPORTED_LOCATION "${LIBDEFLATE_LIBRARY}"
+  INTERFACE_INCLUDE_DIRECTORIES "${LIBDEFLATE_INCLUDE_DIR}")
+
 # OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).
 # We install the per-module -dev packages and fall back to a small find-module; see README "Dependencies".
 find_package(OpenCV 4 QUIET CONFIG COMPONENTS core imgproc imgcodecs features2d calib3d)
