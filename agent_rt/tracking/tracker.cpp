@@ -25,24 +25,9 @@ std::int64_t nowNs() {
       .count();
 }
 
-constexpr std::size_t kRingSize = 64;  // keyframes published and perhaps not yet refined by mapping
+constexpr std::size_t kPublishedRing = 64;  // keyframes published and perhaps not yet refined by mapping
 
 }  // namespace
-
-Status MappingLagOptions::validate() const {
-  if (max_pending_keyframes < 1 || max_pending_keyframes > static_cast<int>(kRingSize) / 2) {
-    return Error{ErrorCode::kInvalidArgument,
-                 "tracker: lag.max_pending_keyframes = " + std::to_string(max_pending_keyframes) + " must be in [1, " +
-                     std::to_string(kRingSize / 2) + "]"};
-  }
-  if (min_tracked_points_when_busy < 0) {
-    return Error{ErrorCode::kInvalidArgument, "tracker: lag.min_tracked_points_when_busy must be >= 0"};
-  }
-  if (!(answer_timeout_s > 0.0) || !std::isfinite(answer_timeout_s)) {
-    return Error{ErrorCode::kInvalidArgument, "tracker: lag.answer_timeout_s must be > 0"};
-  }
-  return Status::Ok();
-}
 
 Status TrackerOptions::validate() const {
   if (Status s = orb.validate(); !s.ok()) return s;
@@ -160,7 +145,6 @@ struct Tracker::State {
 
   // The newest keyframe published.
   IdCounter<KeyframeId> keyframe_ids;
-  std::uint64_t keyframe_sequence = 0;
   bool has_keyframe = false;
   KeyframeId keyframe_id;
   SE3d keyframe_T_w_s;
@@ -175,28 +159,14 @@ struct Tracker::State {
   std::int64_t last_imu_t_ns = std::numeric_limits<std::int64_t>::min();
   bool awaiting = false;
   KeyframeId awaiting_id;
-  // Mapping's progress: keyframe messages it has taken (from the snapshots), and when each keyframe tracking
-  // published left (steady clock, by sequence modulo the ring).
-  std::uint64_t keyframes_taken = 0;
-  std::array<std::int64_t, kRingSize> publish_steady_ns{};
-
-  int pendingKeyframes(std::int64_t now_ns) const {
-    const auto timeout_ns = static_cast<std::int64_t>(options.lag.answer_timeout_s * 1e9);
-    const std::uint64_t first =
-        std::max(keyframes_taken, keyframe_sequence > kRingSize ? keyframe_sequence - kRingSize : 0);
-    int pending = 0;
-    for (std::uint64_t q = first; q < keyframe_sequence; ++q) {
-      if (now_ns - publish_steady_ns[q % kRingSize] < timeout_ns) ++pending;
-    }
-    return pending;
-  }
+  MappingBacklog backlog{options.lag};
 
   struct Published {
     KeyframeId id;
     SE3d T_w_s;
     bool valid = false;
   };
-  std::array<Published, kRingSize> published{};
+  std::array<Published, kPublishedRing> published{};
   std::size_t published_next = 0;
 
   // The IMU between the keyframes tracking published, for motion-only BA over the newest n keyframes.
@@ -273,7 +243,7 @@ struct Tracker::State {
 
   void adopt(const MapSnapshotMessage* s) {
     if (s == nullptr) return;
-    keyframes_taken = std::max(keyframes_taken, s->keyframes_taken);
+    backlog.taken(s->keyframes_taken);
     if (s->map_id != map_id || new_map_requested) {
       if (s->map_id < map_id || (new_map_requested && s->map_id < requested_map_id)) return;  // an old map's
       if (s->point_count == 0) {
@@ -367,7 +337,7 @@ bool Tracker::awaitingKeyframe(KeyframeId* id) const {
   return s_->awaiting;
 }
 int Tracker::pendingKeyframes() const {
-  return s_->pendingKeyframes(nowNs());
+  return s_->backlog.pending(nowNs());
 }
 
 namespace {
@@ -529,11 +499,8 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
 
   // Mapping's lag: while keyframes are pending, keyframes only when tracking would otherwise be lost, none
   // beyond the backlog's bound, and no new map for lost frames (see MappingLagOptions).
-  const int pending = s.pendingKeyframes(t_start);
-  const bool back_off = o.lag.back_off;
-  const bool mapping_busy = back_off && pending > 0;
-  const bool backlog_full = back_off && pending >= o.lag.max_pending_keyframes;
-  result.pending_keyframes = pending;
+  const MappingPressure mapping = s.backlog.pressure(t_start);
+  result.pending_keyframes = mapping.pending;
 
   // 2. Features.
   const std::int64_t t_orb = nowNs();
@@ -570,8 +537,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       result.issue = FrameIssue::kKeyframeDropped;
       return false;
     }
-    s.publish_steady_ns[s.keyframe_sequence % kRingSize] = t0;
-    m->sequence = s.keyframe_sequence++;
+    m->sequence = s.backlog.publish(t0);
     m->map_epoch = s.epoch;
     m->kind = kind;
     m->continues_frame = kind == KeyframeKind::kNewMap && s.imu_initialised && o.use_imu;
@@ -649,7 +615,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     const Vector3d v = keep_frame ? v_pred : Vector3d::Zero();
     ++s.waiting_frames;
     // Stereo maps answer at once; ask again when the first keyframe gave no map (a black frame, say).
-    const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames && !mapping_busy;
+    const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames && !mapping.busy;
     if (!s.new_map_requested || ask_again) {
       if (s.keypoint_count >= o.pose.min_inliers) {
         s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
@@ -662,7 +628,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       }
     } else if (!s.right && s.frames_since_keyframe + 1 >= o.initialisation_max_frames_between &&
                s.keypoint_count >= o.pose.min_inliers) {
-      if (backlog_full) {
+      if (mapping.full) {
         result.keyframe_deferred = true;
         result.needs_mapping = true;
       } else {
@@ -701,7 +667,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     s.status = TrackingStatus::kRelocalising;
     // With keyframes pending, the map tracking searched is behind the camera: the frame is carried by the IMU
     // and does not count towards a new map.
-    if (mapping_busy) {
+    if (mapping.busy) {
       result.needs_mapping = true;
     } else {
       ++s.lost_frames;
@@ -810,10 +776,10 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   if (!s.imu_initialised && o.use_imu) decision_options.max_frames_between = o.initialisation_max_frames_between;
   result.keyframe_reason = decideKeyframe(tracking_state, decision_options);
   if (result.keyframe_reason != KeyframeReason::kNone) {
-    const bool needed = tracking_state.tracked_points < o.lag.min_tracked_points_when_busy;
-    if (backlog_full || (mapping_busy && !needed)) {
+    const KeyframeGate gate = s.backlog.gate(mapping, tracking_state.tracked_points);
+    if (!gate.publish) {
       result.keyframe_deferred = true;
-      result.needs_mapping = needed;
+      result.needs_mapping = gate.needs_mapping;
     } else if (publish_keyframe(KeyframeKind::kTracked, T, v)) {
       s.keyframe_coverage = tracking_state.coverage;
     }

@@ -20,6 +20,7 @@
 
 #include "agent_rt/runtime/messages.hpp"
 #include "agent_rt/tracking/keyframe_decision.hpp"
+#include "agent_rt/tracking/mapping_backlog.hpp"
 #include "agent_rt/tracking/pose_optimizer.hpp"
 #include "agent_rt/tracking/projection_search.hpp"
 #include "common/camera/camera_model.hpp"
@@ -31,20 +32,6 @@
 #include "common/imu/preintegration.hpp"
 
 namespace cvislam::agent {
-
-// What tracking does while mapping is behind (keyframes published and not yet answered by a snapshot).
-struct MappingLagOptions {
-  // While mapping is busy, a keyframe only when tracking would otherwise be lost (fewer than
-  // min_tracked_points_when_busy tracked), and lost frames do not count towards a new map: tracking goes on with
-  // the newest snapshot and the IMU until mapping answers. false: the keyframe rules ignore mapping.
-  bool back_off = true;
-  int min_tracked_points_when_busy = 15;  // the paper's keyframe threshold; ours is 30 with an idle mapper
-  int max_pending_keyframes = 2;          // no keyframe while this many are unanswered: the backlog stays bounded
-  // A keyframe unanswered for this long (wall clock) stops counting: mapping refused it or has stopped.
-  double answer_timeout_s = 5.0;
-
-  [[nodiscard]] Status validate() const;
-};
 
 struct TrackerOptions {
   AgentId agent = 0;
