@@ -1,5 +1,6 @@
 #include "agent_rt/tracking/pose_optimizer.hpp"
 
+#include <array>
 #include <cmath>
 #include <string>
 
@@ -22,6 +23,7 @@ Status PoseOptimizerOptions::validate() const {
   if (rounds < 1 || iterations_per_round < 1) return bad("rounds and iterations_per_round must be >= 1");
   if (!(chi2_threshold > 0.0) || !(huber_delta > 0.0)) return bad("chi2_threshold and huber_delta must be > 0");
   if (min_inliers < 3) return bad("min_inliers must be >= 3 (a pose has 6 degrees of freedom)");
+  if (!(max_leverage >= 0.5 && max_leverage <= 1.0)) return bad("max_leverage must be in [0.5, 1]");
   return Status::Ok();
 }
 
@@ -83,6 +85,66 @@ int classifyObservations(std::span<const PoseObservation> observations, const SE
   return inliers;
 }
 
+namespace {
+
+constexpr std::size_t kMaxHeldOut = 12;  // leverages add up to 6, each held-out one has more than 0.5
+using HeldOut = std::array<std::size_t, kMaxHeldOut>;
+
+// The whitened Jacobian and residual of observation i, and its Huber weight.
+bool whitened(const PoseObservation& o, const SE3d& T_w_s, const SE3d& T_s_c, const factors::PinholeIntrinsics& K,
+              double huber_delta, Vector2d& r, Eigen::Matrix<double, 2, 6>& J, double& w) {
+  if (!poseReprojectionResidual(o, T_w_s, T_s_c, K, r, &J)) return false;
+  r /= o.sigma_px;
+  J /= o.sigma_px;
+  const double e = r.norm();
+  w = e <= huber_delta ? 1.0 : huber_delta / e;
+  return true;
+}
+
+// The inliers whose leverage, trace(w J H^-1 J^T), exceeds max_leverage: marked outliers for the next round and
+// listed in `held`. None when that would leave fewer than min_inliers.
+int holdOutHighLeverage(std::span<const PoseObservation> observations, const SE3d& T_w_s, const SE3d& T_s_c,
+                        const factors::PinholeIntrinsics& K, const PoseOptimizerOptions& options,
+                        std::span<std::uint8_t> is_outlier, HeldOut& held) {
+  if (options.max_leverage >= 1.0) return 0;
+  Mat6 H = Mat6::Zero();
+  Vec6 g = Vec6::Zero();
+  const int used = accumulateReprojection(observations, T_w_s, T_s_c, K, options.huber_delta, is_outlier, H, g);
+  const Eigen::LDLT<Mat6> ldlt(H);
+  if (ldlt.info() != Eigen::Success) return 0;
+  int count = 0;
+  for (std::size_t i = 0; i < observations.size() && count < static_cast<int>(kMaxHeldOut); ++i) {
+    if (is_outlier[i] != 0) continue;
+    Vector2d r;
+    Eigen::Matrix<double, 2, 6> J;
+    double w = 1.0;
+    if (!whitened(observations[i], T_w_s, T_s_c, K, options.huber_delta, r, J, w)) continue;
+    const Eigen::Matrix<double, 6, 2> X = ldlt.solve(J.transpose());
+    if (w * (J * X).trace() > options.max_leverage) held[static_cast<std::size_t>(count++)] = i;
+  }
+  if (used - count < options.min_inliers) return 0;
+  for (int k = 0; k < count; ++k) is_outlier[held[static_cast<std::size_t>(k)]] = 1;
+  return count;
+}
+
+// Whether a held-out observation fits the pose found without it: its residual against the chi-square bound, with
+// the pose's uncertainty (H^-1 of the inliers) carried into its covariance.
+bool fitsWithoutItself(const PoseObservation& o, const SE3d& T_w_s, const SE3d& T_s_c,
+                       const factors::PinholeIntrinsics& K, const Eigen::LDLT<Mat6>& ldlt, double chi2_threshold,
+                       double* e2_out) {
+  Vector2d r;
+  Eigen::Matrix<double, 2, 6> J;
+  if (!poseReprojectionResidual(o, T_w_s, T_s_c, K, r, &J)) return false;
+  r /= o.sigma_px;
+  J /= o.sigma_px;
+  const Eigen::Matrix2d S = Eigen::Matrix2d::Identity() + J * ldlt.solve(J.transpose());
+  const double e2 = r.dot(S.ldlt().solve(r));
+  *e2_out = r.squaredNorm();
+  return e2 <= chi2_threshold;
+}
+
+}  // namespace
+
 Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observations, const SE3d& T_w_s_initial,
                                          const SE3d& T_s_c, const factors::PinholeIntrinsics& intrinsics,
                                          const PoseOptimizerOptions& options, std::span<std::uint8_t> is_outlier) {
@@ -94,6 +156,7 @@ Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observ
 
   PoseOptimizerResult result;
   result.T_w_s = T_w_s_initial;
+  HeldOut held{};
   for (int round = 0; round < options.rounds; ++round) {
     for (int it = 0; it < options.iterations_per_round; ++it) {
       Mat6 H = Mat6::Zero();
@@ -110,6 +173,41 @@ Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observ
     result.final_chi2 = 0.0;
     result.inliers = classifyObservations(observations, result.T_w_s, T_s_c, intrinsics, options.chi2_threshold,
                                           is_outlier, &result.final_chi2);
+    if (round == 1 && result.held_out > 0) {
+      // The held-out ones are judged by the pose found without them, with its uncertainty. classifyObservations()
+      // above judged them by their residual alone: take that back first.
+      for (int k = 0; k < result.held_out; ++k) {
+        const std::size_t i = held[static_cast<std::size_t>(k)];
+        if (is_outlier[i] == 0) {
+          Vector2d r;
+          (void)poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, nullptr);
+          --result.inliers;
+          result.final_chi2 -= r.squaredNorm() / (observations[i].sigma_px * observations[i].sigma_px);
+        }
+        is_outlier[i] = 1;
+      }
+      Mat6 H = Mat6::Zero();
+      Vec6 g = Vec6::Zero();
+      (void)accumulateReprojection(observations, result.T_w_s, T_s_c, intrinsics, options.huber_delta, is_outlier, H,
+                                   g);
+      const Eigen::LDLT<Mat6> ldlt(H);
+      for (int k = 0; k < result.held_out; ++k) {
+        const std::size_t i = held[static_cast<std::size_t>(k)];
+        double e2 = 0.0;
+        const bool fits =
+            ldlt.info() == Eigen::Success &&
+            fitsWithoutItself(observations[i], result.T_w_s, T_s_c, intrinsics, ldlt, options.chi2_threshold, &e2);
+        if (fits) {
+          ++result.inliers;
+          result.final_chi2 += e2;
+        }
+        is_outlier[i] = fits ? 0 : 1;
+      }
+    }
+    if (round == 0 && options.rounds > 1) {
+      result.held_out = holdOutHighLeverage(observations, result.T_w_s, T_s_c, intrinsics, options, is_outlier, held);
+      result.inliers -= result.held_out;
+    }
   }
   if (result.inliers < options.min_inliers) {
     // Tracking meets this every frame it is lost, so the message fits std::string's inline buffer: no allocation

@@ -5,6 +5,16 @@
 // cvislam) with a Huber kernel, in rounds: after each round, observations whose chi-square exceeds the 2-dof
 // 95 % bound (5.991) are marked outliers and left out of the next round, and outliers that fit again come
 // back (as ORB-SLAM does). Fixed-size maths only: nothing allocates, so tracking can call it every frame.
+//
+// A residual test cannot catch a wrong match that the pose fits by itself. Map points a few metres ahead leave the
+// pose a nearly flat valley (a sideways step and a small turn move them alike); one wrong point much nearer the
+// camera can then drag the pose along it until it fits, and every match is an inlier. So after the first round,
+// observations with a leverage (their share of the fit, the hat-matrix diagonal) above max_leverage sit out the
+// second round. The pose found without them then decides whether they come back: by their residual against that
+// pose with its own uncertainty added (a right match of a near point still fits within the valley's width; the
+// wrong one lies far outside it).
+// Seen in tracking after a frame had waited for the first map: no velocity yet, the prediction 4 cm behind, and
+// the frame tracked 4 cm off through a wrong stereo depth (issue 17).
 #pragma once
 
 #include <cstdint>
@@ -31,6 +41,9 @@ struct PoseOptimizerOptions {
   double huber_delta = 2.447;     // sqrt(5.991): the kernel turns linear where outliers begin
   double min_step = 1e-8;         // stop a round when the update is this small
   int min_inliers = 10;           // fewer and the result is refused
+  // An observation that carries more than this share of the fit sits out the second round (see above); 1 never.
+  // At least 0.5, so that at most 11 observations sit out (the leverages add up to 6).
+  double max_leverage = 0.5;
 
   [[nodiscard]] Status validate() const;
 };
@@ -38,6 +51,7 @@ struct PoseOptimizerOptions {
 struct PoseOptimizerResult {
   geometry::SE3d T_w_s;
   int inliers = 0;
+  int held_out = 0;  // observations that sat out the second round for their leverage
   int iterations = 0;
   double final_chi2 = 0.0;  // sum over inliers
 };
