@@ -187,15 +187,15 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   if (options.roudi == RouDiMode::kEmbedded) {
     EmbeddedRouDiOptions roudi_options;
     roudi_options.runtime_name = runtime_name;
-    // A pool per message type, with chunks for what publishers hold loaned plus what subscribers keep queued:
-    // keyframes and snapshots 48 each; the link's deltas 24 (its queue of 16, one written, one read, slack).
-    std::vector<MemPoolSpec> pools = {{128, 64},
-                                      {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), 48},
-                                      {static_cast<std::uint32_t>(sizeof(MapSnapshotMessage)), 48}};
+    // A pool per message type, sized from its channel's queue (see ChannelDepths).
+    const ChannelDepths depths = ChannelDepths::forLag(options.tracking.lag);
+    std::vector<MemPoolSpec> pools = {
+        {128, 64},
+        {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), depths.keyframeChunks()},
+        {static_cast<std::uint32_t>(sizeof(MapSnapshotMessage)), depths.snapshotChunks()}};
     if (!options.link.server.empty()) {
-      pools.push_back({static_cast<std::uint32_t>(sizeof(MapDeltaMessage)), 24});
-      // The downlink to mapping: its queue of 8, one written, one read.
-      pools.push_back({static_cast<std::uint32_t>(sizeof(AnchorMessage)), 10});
+      pools.push_back({static_cast<std::uint32_t>(sizeof(MapDeltaMessage)), depths.deltaChunks()});
+      pools.push_back({static_cast<std::uint32_t>(sizeof(AnchorMessage)), depths.anchorChunks()});
     }
     std::sort(pools.begin(), pools.end(),
               [](const MemPoolSpec& a, const MemPoolSpec& b) { return a.chunk_payload_bytes < b.chunk_payload_bytes; });
@@ -297,7 +297,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     link_thread = std::thread([&] {
       schedule_this_thread("link", threads.link);
       iox::popo::SubscriberOptions delta_options;
-      delta_options.queueCapacity = 16;
+      delta_options.queueCapacity = ChannelDepths::forLag(options.tracking.lag).deltas;
       iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
       IceoryxDeltaSource source(subscriber);
       iox::popo::PublisherOptions anchor_options;
@@ -320,7 +320,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     iox::popo::PublisherOptions pub_options;
     iox::popo::Publisher<KeyframeMessage> keyframe_pub(service(options.agent, "keyframes"), pub_options);
     iox::popo::SubscriberOptions sub_options;
-    sub_options.queueCapacity = 8;
+    sub_options.queueCapacity = ChannelDepths::forLag(options.tracking.lag).snapshots;
     iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub(service(options.agent, "map_snapshot"), sub_options);
     IceoryxKeyframeSink sink(keyframe_pub);
     std::optional<iox::popo::Sample<const MapSnapshotMessage>> held;

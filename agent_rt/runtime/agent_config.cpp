@@ -56,6 +56,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   tracking.read("min_tracked_points", o.tracking.keyframe.min_tracked_points);
   tracking.read("max_lost_frames", o.tracking.max_lost_frames);
   tracking.read("min_inliers", o.tracking.pose.min_inliers);
+  tracking.read("max_pose_leverage", o.tracking.pose.max_leverage);
   tracking.read("motion_ba_keyframes", o.tracking.motion_ba_keyframes);
   tracking.read("back_off_when_mapping_busy", o.tracking.lag.back_off);
   tracking.read("max_pending_keyframes", o.tracking.lag.max_pending_keyframes);

@@ -10,6 +10,7 @@
 #include <string>
 
 #include "agent_rt/link/link.hpp"
+#include "agent_rt/runtime/channel_depths.hpp"
 #include "agent_rt/runtime/messages.hpp"
 #include "agent_rt/tracking/tracker.hpp"
 #include "iceoryx_posh/popo/publisher.hpp"

@@ -40,7 +40,8 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
                    LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready) {
   const bool with_link = !options.link.server.empty();
   iox::popo::SubscriberOptions sub_options;
-  sub_options.queueCapacity = 32;
+  const ChannelDepths depths = ChannelDepths::forLag(options.tracking.lag);
+  sub_options.queueCapacity = depths.keyframes;
   iox::popo::Subscriber<KeyframeMessage> keyframes(service(options.agent, "keyframes"), sub_options);
   iox::popo::PublisherOptions pub_options;
   iox::popo::Publisher<MapSnapshotMessage> snapshots(service(options.agent, "map_snapshot"), pub_options);
@@ -50,7 +51,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
   std::optional<iox::popo::Subscriber<AnchorMessage>> anchors;
   if (with_link) {
     iox::popo::SubscriberOptions anchor_options;
-    anchor_options.queueCapacity = 8;
+    anchor_options.queueCapacity = depths.anchors;
     anchors.emplace(service(options.agent, "anchors"), anchor_options);
   }
   // anchors.txt: after every downlink message that carried a covisible map, the local map's newest own keyframe

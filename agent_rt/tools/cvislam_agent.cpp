@@ -70,8 +70,8 @@ int main(int argc, char** argv) {
   app.add_flag("--quiet", quiet, "No progress output");
   app.add_flag("--no-priorities", no_priorities,
                "Leave every thread at the process's scheduling (default at --pace realtime: tracking SCHED_FIFO 10 "
-               "where allowed, else nice 0; mapping nice 10, the link 5, the frame loader 2; see the threads section "
-               "of deploy/agent_config.yaml)");
+               "where allowed and the others at the process's nice value; without that privilege tracking nice 0, "
+               "mapping 10, the link 5, the frame loader 2; see the threads section of deploy/agent_config.yaml)");
   app.add_flag("--trace-mapping", trace_mapping,
                "One line per keyframe on stderr: matches linked, points fused/made/culled, stereo matches, local BA "
                "size, cam1 factors and rejected stereo mismatches, cost");

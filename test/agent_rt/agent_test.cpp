@@ -2,6 +2,7 @@
 // (in-process RouDi), real threads, real Ceres. Accuracy against the simulator's ground truth, bad input
 // (an IMU gap, a missing image, a black frame, an unreadable image), an interrupted run, and config errors.
 #include "agent_rt/runtime/agent.hpp"
+#include "agent_rt/runtime/channel_depths.hpp"
 
 #include <atomic>
 #include <chrono>
@@ -242,12 +243,31 @@ TEST_F(AgentTest, RefusesWhatCannotWork) {
   EXPECT_NE(refused.error().message().find("max_features"), std::string::npos) << refused.error().message();
 }
 
+// The keyframe pool follows the backlog's bound: with the back-off, twice max_pending_keyframes queued (8 at
+// least), without it 32; every pool holds its queue plus what the reader holds and the writer loans.
+TEST(ChannelDepths, TheKeyframeQueueFollowsTheBacklogsBound) {
+  MappingLagOptions lag;
+  EXPECT_EQ(ChannelDepths::forLag(lag).keyframes, 8U);
+  lag.max_pending_keyframes = 10;
+  EXPECT_EQ(ChannelDepths::forLag(lag).keyframes, 20U);
+  lag.back_off = false;
+  const ChannelDepths unbounded = ChannelDepths::forLag(lag);
+  EXPECT_EQ(unbounded.keyframes, 32U);
+  EXPECT_GE(unbounded.keyframeChunks(), unbounded.keyframes + 2);
+  EXPECT_GE(unbounded.snapshotChunks(), unbounded.snapshots + 3);
+  EXPECT_GE(unbounded.deltaChunks(), unbounded.deltas + 2);
+  EXPECT_GE(unbounded.anchorChunks(), unbounded.anchors + 2);
+}
+
+// Writes `text` as the agent config file agent.yaml in `dir`; returns its path.
+std::filesystem::path writeConfig(const test::TempDir& dir, const std::string& text) {
+  std::ofstream(dir.path() / "agent.yaml") << text;
+  return dir.path() / "agent.yaml";
+}
+
 TEST(AgentConfig, ReadsThreadSchedulesAndNamesBadOnes) {
   test::TempDir dir;
-  const auto write = [&](const std::string& text) {
-    std::ofstream(dir.path() / "agent.yaml") << text;
-    return dir.path() / "agent.yaml";
-  };
+  const auto write = [&](const std::string& text) { return writeConfig(dir, text); };
   AgentOptions o;
   ASSERT_TRUE(loadAgentConfig(write("threads:\n  mapping_nice: 15\n  tracking_realtime_priority: 0\n"
                                     "  tracking_cpus: \"0\"\ntracking:\n  max_pending_keyframes: 3\n"),
@@ -341,10 +361,7 @@ TEST(ThreadSchedule, ParsesCpuListsAndLowersTheCallingThreadOnly) {
 
 TEST(AgentConfig, NamesUnknownKeysAndBadValues) {
   test::TempDir dir;
-  const auto write = [&](const std::string& text) {
-    std::ofstream(dir.path() / "agent.yaml") << text;
-    return dir.path() / "agent.yaml";
-  };
+  const auto write = [&](const std::string& text) { return writeConfig(dir, text); };
   AgentOptions o;
   EXPECT_TRUE(loadAgentConfig(write("orb:\n  max_features: 400\nmapping:\n  max_keyframes: 16\n"), o).ok());
   EXPECT_EQ(o.tracking.orb.max_features, 400);
@@ -375,6 +392,18 @@ TEST(AgentConfig, NamesUnknownKeysAndBadValues) {
   ASSERT_FALSE(too_small.ok());
   EXPECT_NE(too_small.error().message().find("motion_ba_keyframes = 0"), std::string::npos);
   EXPECT_NE(too_small.error().message().find("CVISLAM_MAX_MOTION_BA_KEYFRAMES"), std::string::npos);
+
+  AgentOptions leverage;
+  leverage.dataset = "seq";
+  leverage.output = "out";
+  ASSERT_TRUE(loadAgentConfig(write("tracking:\n  max_pose_leverage: 0.8\n"), leverage).ok());
+  EXPECT_DOUBLE_EQ(leverage.tracking.pose.max_leverage, 0.8);
+  EXPECT_TRUE(leverage.validate().ok());
+  ASSERT_TRUE(loadAgentConfig(write("tracking:\n  max_pose_leverage: 0.2\n"), leverage).ok());
+  const Status low = leverage.validate();
+  ASSERT_FALSE(low.ok());
+  EXPECT_NE(low.error().message().find("max_leverage must be in [0.5, 1]"), std::string::npos)
+      << low.error().toString();
 }
 
 }  // namespace
