@@ -182,13 +182,13 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   // iceoryx: RouDi in this process, or an external iox-roudi.
   std::unique_ptr<EmbeddedRouDi> roudi;
+  const ChannelDepths depths = ChannelDepths::forLag(options.tracking.lag);
   const std::string runtime_name =
       options.runtime_name.empty() ? "cvislam_agent_" + std::to_string(options.agent) : options.runtime_name;
   if (options.roudi == RouDiMode::kEmbedded) {
     EmbeddedRouDiOptions roudi_options;
     roudi_options.runtime_name = runtime_name;
     // A pool per message type, sized from its channel's queue (see ChannelDepths).
-    const ChannelDepths depths = ChannelDepths::forLag(options.tracking.lag);
     std::vector<MemPoolSpec> pools = {
         {128, 64},
         {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), depths.keyframeChunks()},
@@ -297,7 +297,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     link_thread = std::thread([&] {
       schedule_this_thread("link", threads.link);
       iox::popo::SubscriberOptions delta_options;
-      delta_options.queueCapacity = ChannelDepths::forLag(options.tracking.lag).deltas;
+      delta_options.queueCapacity = depths.deltas;
       iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
       IceoryxDeltaSource source(subscriber);
       iox::popo::PublisherOptions anchor_options;
@@ -320,7 +320,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     iox::popo::PublisherOptions pub_options;
     iox::popo::Publisher<KeyframeMessage> keyframe_pub(service(options.agent, "keyframes"), pub_options);
     iox::popo::SubscriberOptions sub_options;
-    sub_options.queueCapacity = ChannelDepths::forLag(options.tracking.lag).snapshots;
+    sub_options.queueCapacity = depths.snapshots;
     iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub(service(options.agent, "map_snapshot"), sub_options);
     IceoryxKeyframeSink sink(keyframe_pub);
     std::optional<iox::popo::Sample<const MapSnapshotMessage>> held;

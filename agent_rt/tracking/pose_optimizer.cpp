@@ -47,6 +47,22 @@ bool poseReprojectionResidual(const PoseObservation& o, const SE3d& T_w_s, const
   return true;
 }
 
+namespace {
+
+// An observation's residual and Jacobian, whitened by its sigma, and its Huber weight.
+bool whitened(const PoseObservation& o, const SE3d& T_w_s, const SE3d& T_s_c, const factors::PinholeIntrinsics& K,
+              double huber_delta, Vector2d& r, Eigen::Matrix<double, 2, 6>& J, double& w) {
+  if (!poseReprojectionResidual(o, T_w_s, T_s_c, K, r, &J)) return false;
+  const double inv_sigma = 1.0 / o.sigma_px;
+  r *= inv_sigma;
+  J *= inv_sigma;
+  const double e = r.norm();
+  w = e <= huber_delta ? 1.0 : huber_delta / e;
+  return true;
+}
+
+}  // namespace
+
 int accumulateReprojection(std::span<const PoseObservation> observations, const SE3d& T_w_s, const SE3d& T_s_c,
                            const factors::PinholeIntrinsics& intrinsics, double huber_delta,
                            std::span<const std::uint8_t> is_outlier, Mat6& H, Vec6& g) {
@@ -55,12 +71,8 @@ int accumulateReprojection(std::span<const PoseObservation> observations, const 
     if (is_outlier[i] != 0) continue;
     Vector2d r;
     Eigen::Matrix<double, 2, 6> J;
-    if (!poseReprojectionResidual(observations[i], T_w_s, T_s_c, intrinsics, r, &J)) continue;
-    const double inv_sigma = 1.0 / observations[i].sigma_px;
-    r *= inv_sigma;
-    J *= inv_sigma;
-    const double e = r.norm();  // Huber weight
-    const double w = e <= huber_delta ? 1.0 : huber_delta / e;
+    double w = 1.0;
+    if (!whitened(observations[i], T_w_s, T_s_c, intrinsics, huber_delta, r, J, w)) continue;
     H.noalias() += w * J.transpose() * J;
     g.noalias() += w * J.transpose() * r;
     ++used;
@@ -90,17 +102,6 @@ namespace {
 constexpr std::size_t kMaxHeldOut = 12;  // leverages add up to 6, each held-out one has more than 0.5
 using HeldOut = std::array<std::size_t, kMaxHeldOut>;
 
-// The whitened Jacobian and residual of observation i, and its Huber weight.
-bool whitened(const PoseObservation& o, const SE3d& T_w_s, const SE3d& T_s_c, const factors::PinholeIntrinsics& K,
-              double huber_delta, Vector2d& r, Eigen::Matrix<double, 2, 6>& J, double& w) {
-  if (!poseReprojectionResidual(o, T_w_s, T_s_c, K, r, &J)) return false;
-  r /= o.sigma_px;
-  J /= o.sigma_px;
-  const double e = r.norm();
-  w = e <= huber_delta ? 1.0 : huber_delta / e;
-  return true;
-}
-
 // The inliers whose leverage, trace(w J H^-1 J^T), exceeds max_leverage: marked outliers for the next round and
 // listed in `held`. None when that would leave fewer than min_inliers.
 int holdOutHighLeverage(std::span<const PoseObservation> observations, const SE3d& T_w_s, const SE3d& T_s_c,
@@ -127,20 +128,30 @@ int holdOutHighLeverage(std::span<const PoseObservation> observations, const SE3
   return count;
 }
 
-// Whether a held-out observation fits the pose found without it: its residual against the chi-square bound, with
-// the pose's uncertainty (H^-1 of the inliers) carried into its covariance.
-bool fitsWithoutItself(const PoseObservation& o, const SE3d& T_w_s, const SE3d& T_s_c,
-                       const factors::PinholeIntrinsics& K, const Eigen::LDLT<Mat6>& ldlt, double chi2_threshold,
-                       double* e2_out) {
-  Vector2d r;
-  Eigen::Matrix<double, 2, 6> J;
-  if (!poseReprojectionResidual(o, T_w_s, T_s_c, K, r, &J)) return false;
-  r /= o.sigma_px;
-  J /= o.sigma_px;
-  const Eigen::Matrix2d S = Eigen::Matrix2d::Identity() + J * ldlt.solve(J.transpose());
-  const double e2 = r.dot(S.ldlt().solve(r));
-  *e2_out = r.squaredNorm();
-  return e2 <= chi2_threshold;
+// Judges the held-out observations by the pose found without them (is_outlier still holds them out): each one's
+// residual against the chi-square bound, with the pose's uncertainty (H^-1 of the others) added to its covariance.
+// fits[k] and e2[k] (its plain chi-square) for held[k].
+void judgeHeldOut(std::span<const PoseObservation> observations, const SE3d& T_w_s, const SE3d& T_s_c,
+                  const factors::PinholeIntrinsics& K, const PoseOptimizerOptions& options,
+                  std::span<const std::uint8_t> is_outlier, const HeldOut& held, int count,
+                  std::array<bool, kMaxHeldOut>& fits, std::array<double, kMaxHeldOut>& e2) {
+  Mat6 H = Mat6::Zero();
+  Vec6 g = Vec6::Zero();
+  (void)accumulateReprojection(observations, T_w_s, T_s_c, K, options.huber_delta, is_outlier, H, g);
+  const Eigen::LDLT<Mat6> ldlt(H);
+  for (std::size_t k = 0; k < static_cast<std::size_t>(count); ++k) {
+    fits[k] = false;
+    Vector2d r;
+    Eigen::Matrix<double, 2, 6> J;
+    double w = 1.0;
+    if (ldlt.info() != Eigen::Success ||
+        !whitened(observations[held[k]], T_w_s, T_s_c, K, options.huber_delta, r, J, w)) {
+      continue;
+    }
+    const Eigen::Matrix2d S = Eigen::Matrix2d::Identity() + J * ldlt.solve(J.transpose());
+    e2[k] = r.squaredNorm();
+    fits[k] = r.dot(S.ldlt().solve(r)) <= options.chi2_threshold;
+  }
 }
 
 }  // namespace
@@ -174,34 +185,23 @@ Result<PoseOptimizerResult> optimizePose(std::span<const PoseObservation> observ
     result.inliers = classifyObservations(observations, result.T_w_s, T_s_c, intrinsics, options.chi2_threshold,
                                           is_outlier, &result.final_chi2);
     if (round == 1 && result.held_out > 0) {
-      // The held-out ones are judged by the pose found without them, with its uncertainty. classifyObservations()
-      // above judged them by their residual alone: take that back first.
-      for (int k = 0; k < result.held_out; ++k) {
-        const std::size_t i = held[static_cast<std::size_t>(k)];
-        if (is_outlier[i] == 0) {
-          Vector2d r;
-          (void)poseReprojectionResidual(observations[i], result.T_w_s, T_s_c, intrinsics, r, nullptr);
-          --result.inliers;
-          result.final_chi2 -= r.squaredNorm() / (observations[i].sigma_px * observations[i].sigma_px);
-        }
-        is_outlier[i] = 1;
+      // classifyObservations() judged the held-out ones by their residual alone; their own judgement wins.
+      const auto count = static_cast<std::size_t>(result.held_out);
+      std::array<bool, kMaxHeldOut> was_inlier{};
+      for (std::size_t k = 0; k < count; ++k) {
+        was_inlier[k] = is_outlier[held[k]] == 0;
+        is_outlier[held[k]] = 1;
       }
-      Mat6 H = Mat6::Zero();
-      Vec6 g = Vec6::Zero();
-      (void)accumulateReprojection(observations, result.T_w_s, T_s_c, intrinsics, options.huber_delta, is_outlier, H,
-                                   g);
-      const Eigen::LDLT<Mat6> ldlt(H);
-      for (int k = 0; k < result.held_out; ++k) {
-        const std::size_t i = held[static_cast<std::size_t>(k)];
-        double e2 = 0.0;
-        const bool fits =
-            ldlt.info() == Eigen::Success &&
-            fitsWithoutItself(observations[i], result.T_w_s, T_s_c, intrinsics, ldlt, options.chi2_threshold, &e2);
-        if (fits) {
-          ++result.inliers;
-          result.final_chi2 += e2;
+      std::array<bool, kMaxHeldOut> fits{};
+      std::array<double, kMaxHeldOut> e2{};
+      judgeHeldOut(observations, result.T_w_s, T_s_c, intrinsics, options, is_outlier, held, result.held_out, fits, e2);
+      for (std::size_t k = 0; k < count; ++k) {
+        if (was_inlier[k] != fits[k]) {
+          const int sign = fits[k] ? 1 : -1;
+          result.inliers += sign;
+          result.final_chi2 += sign * e2[k];
         }
-        is_outlier[i] = fits ? 0 : 1;
+        is_outlier[held[k]] = fits[k] ? 0 : 1;
       }
     }
     if (round == 0 && options.rounds > 1) {
