@@ -5,11 +5,14 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <array>
 #include <cerrno>
 #include <cstdlib>
 #include <cstring>
 #include <new>
 #include <string>
+#include <utility>
 
 namespace cvislam::dataset {
 namespace {
@@ -29,55 +32,85 @@ void reserveBytes(std::vector<std::uint8_t>& v, std::size_t n) {
   if (v.size() < n) v.resize(n);
 }
 
-// The inverse of PNG filter `type` for one row of one-byte pixels: out = filtered + predictor(left, up,
-// up-left). `up` is the previous output row, or nullptr on the first row (PNG treats it as zeros).
-bool unfilterRow(std::uint8_t type, const std::uint8_t* in, const std::uint8_t* up, std::uint8_t* out, std::size_t n) {
-  switch (type) {
-    case 0:
-      std::memcpy(out, in, n);
-      return true;
-    case 1: {
-      std::uint8_t left = 0;
-      for (std::size_t x = 0; x < n; ++x) left = out[x] = static_cast<std::uint8_t>(in[x] + left);
-      return true;
-    }
-    case 2:
-      if (up == nullptr) {
-        std::memcpy(out, in, n);
-      } else {
-        for (std::size_t x = 0; x < n; ++x) out[x] = static_cast<std::uint8_t>(in[x] + up[x]);
-      }
-      return true;
-    case 3: {
-      unsigned left = 0;
-      for (std::size_t x = 0; x < n; ++x) {
-        const unsigned above = up == nullptr ? 0U : up[x];
-        out[x] = static_cast<std::uint8_t>(in[x] + ((left + above) >> 1));
-        left = out[x];
-      }
-      return true;
-    }
-    case 4: {
-      if (up == nullptr) return unfilterRow(1, in, up, out, n);  // b = c = 0: Paeth picks the left pixel
-      int left = 0;
-      int up_left = 0;
-      for (std::size_t x = 0; x < n; ++x) {
-        const int above = up[x];
-        const int p = left + above - up_left;
-        const int pa = std::abs(p - left);
-        const int pb = std::abs(p - above);
-        const int pc = std::abs(p - up_left);
-        const int predictor = (pa <= pb && pa <= pc) ? left : (pb <= pc ? above : up_left);
-        out[x] = static_cast<std::uint8_t>(in[x] + predictor);
-        left = out[x];
-        up_left = above;
-      }
-      return true;
-    }
-    default:
-      return false;
+// Undoing PNG's row filters: out = filtered + predictor(left a, above b, above-left c), one byte per pixel, with
+// the row above the first row and the pixel left of each row's first taken as 0. Filter types: 0 none, 1 left,
+// 2 above, 3 average of left and above, 4 Paeth.
+//
+// Every pixel's predictor needs the pixel just decoded to its left, so a row is one serial chain. Pixel x of a
+// row needs only pixels x-1 and x of the row above, so rows are undone in pairs, one pixel of each per step:
+// two independent chains the CPU runs side by side. Each pair of filter types has its own loop (25 of them),
+// so no step branches on a type, and Paeth's choice is made with masks: on camera images its branches are
+// unpredictable. On this machine (stop 38) a 752x480 frame's rows take 0.86 ms instead of 2.0 ms (simulated,
+// mostly Paeth) and 0.61 ms instead of 1.28 ms (EuRoC, Paeth and average).
+constexpr int kFilterTypes = 5;
+
+inline int paeth(int a, int b, int c) {
+  const int pa = std::abs(b - c);  // |p - a| with p = a + b - c
+  const int pb = std::abs(a - c);
+  const int pc = std::abs(a + b - 2 * c);
+  const int take_b_or_c = -static_cast<int>((pa > pb) | (pa > pc));  // all ones or zero
+  const int take_c = -static_cast<int>(pb > pc);
+  const int b_or_c = (b & ~take_c) | (c & take_c);
+  return (a & ~take_b_or_c) | (b_or_c & take_b_or_c);
+}
+
+template <int Type>
+inline int predictor(int a, int b, int c) {
+  if constexpr (Type == 0) return 0;
+  if constexpr (Type == 1) return a;
+  if constexpr (Type == 2) return b;
+  if constexpr (Type == 3) return (a + b) >> 1;
+  if constexpr (Type == 4) return paeth(a, b, c);
+}
+
+// One row of filter Type; `up` is the row above (zeros above the first row).
+template <int Type>
+void unfilterRow(const std::uint8_t* in, const std::uint8_t* up, std::uint8_t* out, std::size_t n) {
+  int left = 0;
+  int up_left = 0;
+  for (std::size_t x = 0; x < n; ++x) {
+    const int above = up[x];
+    left = out[x] = static_cast<std::uint8_t>(in[x] + predictor<Type>(left, above, up_left));
+    up_left = above;
   }
 }
+
+// Two consecutive rows of filter types Type0 and Type1; row 1's row above is row 0's output.
+template <int Type0, int Type1>
+void unfilterRowPair(const std::uint8_t* in0, const std::uint8_t* in1, const std::uint8_t* up, std::uint8_t* out0,
+                     std::uint8_t* out1, std::size_t n) {
+  int left0 = 0;
+  int left1 = 0;
+  int up_left0 = 0;
+  int up_left1 = 0;
+  for (std::size_t x = 0; x < n; ++x) {
+    const int above0 = up[x];
+    const int v0 = static_cast<std::uint8_t>(in0[x] + predictor<Type0>(left0, above0, up_left0));
+    const int v1 = static_cast<std::uint8_t>(in1[x] + predictor<Type1>(left1, v0, up_left1));
+    out0[x] = static_cast<std::uint8_t>(v0);
+    out1[x] = static_cast<std::uint8_t>(v1);
+    up_left0 = above0;
+    up_left1 = v0;
+    left0 = v0;
+    left1 = v1;
+  }
+}
+
+using RowFn = void (*)(const std::uint8_t*, const std::uint8_t*, std::uint8_t*, std::size_t);
+using RowPairFn = void (*)(const std::uint8_t*, const std::uint8_t*, const std::uint8_t*, std::uint8_t*, std::uint8_t*,
+                           std::size_t);
+
+template <int... Types>
+constexpr std::array<RowFn, kFilterTypes> rowTable(std::integer_sequence<int, Types...> /*types*/) {
+  return {&unfilterRow<Types>...};
+}
+template <int... Pairs>
+constexpr std::array<RowPairFn, kFilterTypes * kFilterTypes> rowPairTable(
+    std::integer_sequence<int, Pairs...> /*pairs*/) {
+  return {&unfilterRowPair<Pairs / kFilterTypes, Pairs % kFilterTypes>...};
+}
+constexpr auto kUnfilterRow = rowTable(std::make_integer_sequence<int, kFilterTypes>{});
+constexpr auto kUnfilterRowPair = rowPairTable(std::make_integer_sequence<int, kFilterTypes * kFilterTypes>{});
 
 }  // namespace
 
@@ -191,13 +224,23 @@ Result<bool> GrayPngDecoder::decodeInto(std::span<const std::uint8_t> file, cons
   if (r != LIBDEFLATE_SUCCESS) return bad("PNG image data is corrupt (does not inflate)");
 
   const auto w = static_cast<std::size_t>(width);
-  for (std::size_t y = 0; y < static_cast<std::size_t>(height); ++y) {
-    const std::uint8_t* row = filtered_.data() + y * row_bytes;
-    std::uint8_t* out = pixels.data() + y * w;
-    if (!unfilterRow(row[0], row + 1, y == 0 ? nullptr : out - w, out, w)) {
-      return bad("PNG row " + std::to_string(y) + " has an unknown filter type " + std::to_string(row[0]));
+  const auto h = static_cast<std::size_t>(height);
+  for (std::size_t y = 0; y < h; ++y) {
+    const std::uint8_t type = filtered_[y * row_bytes];
+    if (type >= kFilterTypes) {
+      return bad("PNG row " + std::to_string(y) + " has an unknown filter type " + std::to_string(type));
     }
   }
+  if (zero_row_.size() < w) zero_row_.assign(w, 0);  // grows like the other buffers, and stays zero
+  const auto row = [&](std::size_t y) { return filtered_.data() + y * row_bytes; };
+  const auto out = [&](std::size_t y) { return pixels.data() + y * w; };
+  std::size_t y = 0;
+  for (; y + 2 <= h; y += 2) {
+    const std::uint8_t* up = y == 0 ? zero_row_.data() : out(y - 1);
+    kUnfilterRowPair[static_cast<std::size_t>(row(y)[0] * kFilterTypes + row(y + 1)[0])](row(y) + 1, row(y + 1) + 1, up,
+                                                                                         out(y), out(y + 1), w);
+  }
+  if (y < h) kUnfilterRow[row(y)[0]](row(y) + 1, y == 0 ? zero_row_.data() : out(y - 1), out(y), w);
   return true;
 }
 

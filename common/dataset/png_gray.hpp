@@ -42,6 +42,7 @@ class GrayPngDecoder {
   std::vector<std::uint8_t> file_;      // the file's bytes
   std::vector<std::uint8_t> deflated_;  // the IDAT chunks' contents, joined
   std::vector<std::uint8_t> filtered_;  // one filter byte and width pixels per row
+  std::vector<std::uint8_t> zero_row_;  // the row of zeros PNG puts above the first row
 };
 
 }  // namespace cvislam::dataset

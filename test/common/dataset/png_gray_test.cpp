@@ -107,6 +107,19 @@ void writeBytes(const std::filesystem::path& path, const Bytes& bytes) {
       .write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
 }
 
+// Writes `file` to `path` and decodes it with `png`: the pixels, or an empty vector (with a test failure) when the
+// decoder refuses it or hands it back.
+std::vector<std::uint8_t> writeAndDecode(GrayPngDecoder& png, const std::filesystem::path& path, const Bytes& file,
+                                         int width, int height) {
+  writeBytes(path, file);
+  std::vector<std::uint8_t> pixels(static_cast<std::size_t>(width) * static_cast<std::size_t>(height), 0xAB);
+  auto decoded = png.decodeInto(path, width, height, pixels);
+  EXPECT_TRUE(decoded.ok()) << decoded.error().toString();
+  if (!decoded.ok()) return {};
+  EXPECT_TRUE(*decoded) << path << " was handed back undecoded";
+  return *decoded ? pixels : std::vector<std::uint8_t>{};
+}
+
 TEST(GrayPngDecoder, UndoesEveryRowFilterExactlyAsLibpngDoes) {
   test::TempDir dir;
   GrayPngDecoder png;
@@ -115,16 +128,34 @@ TEST(GrayPngDecoder, UndoesEveryRowFilterExactlyAsLibpngDoes) {
       const Bytes file = encodePng(
           image, [&](int y) { return (y + first_filter) % 5; }, 3);
       const auto path = dir.path() / ("f" + std::to_string(first_filter) + ".png");
-      writeBytes(path, file);
-      std::vector<std::uint8_t> pixels(image.pixels.size(), 0xAB);
-      auto decoded = png.decodeInto(path, image.width, image.height, pixels);
-      ASSERT_TRUE(decoded.ok()) << decoded.error().toString();
-      ASSERT_TRUE(*decoded);
-      EXPECT_EQ(pixels, image.pixels) << "first row filter " << first_filter;
+      EXPECT_EQ(writeAndDecode(png, path, file, image.width, image.height), image.pixels)
+          << "first row filter " << first_filter;
       auto by_libpng = readGrayImage(path);  // the test's encoder is right too
       ASSERT_TRUE(by_libpng.ok()) << by_libpng.error().toString();
       EXPECT_EQ(by_libpng->pixels, image.pixels);
     }
+  }
+}
+
+// Rows are undone in pairs, with a loop for each pair of filter types: every one of the 25 pairs, the first row
+// of the image in each, and an odd last row.
+TEST(GrayPngDecoder, UndoesEveryPairOfRowFilters) {
+  test::TempDir dir;
+  GrayPngDecoder png;
+  const GrayImage image = smoothImage(67, 2 * 25 + 1);
+  for (int shift = 0; shift < 2; ++shift) {  // the pairs start on even rows; shifted, each pair also starts one
+    const Bytes file = encodePng(image, [&](int y) {
+      const int pair = (y + shift) / 2 % 25;
+      return (y + shift) % 2 == 0 ? pair / 5 : pair % 5;
+    });
+    const auto path = dir.path() / ("pairs" + std::to_string(shift) + ".png");
+    EXPECT_EQ(writeAndDecode(png, path, file, image.width, image.height), image.pixels) << "shift " << shift;
+  }
+  for (int type = 0; type < 5; ++type) {  // the first row alone (a one-row image) with each filter
+    const GrayImage one_row = smoothImage(40, 1);
+    const auto path = dir.path() / ("row" + std::to_string(type) + ".png");
+    const Bytes file = encodePng(one_row, [&](int /*y*/) { return type; });
+    EXPECT_EQ(writeAndDecode(png, path, file, one_row.width, one_row.height), one_row.pixels) << "filter " << type;
   }
 }
 
