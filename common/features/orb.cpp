@@ -4,9 +4,11 @@
 #include <array>
 #include <bit>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <functional>
 #include <limits>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -190,16 +192,25 @@ constexpr int keyX(std::uint64_t key) {
 }
 
 // ---------------------------------------------------------------------------------------------------------------
-// 16-lane byte vectors (GCC/Clang vector extensions: SSE2 on x86-64, NEON on AArch64, no intrinsics).
+// Byte vectors (GCC/Clang vector extensions, no intrinsics): 16 lanes are SSE2 on x86-64 and NEON on AArch64;
+// the corner detector also has a 32-lane form for AVX2 (see detectCorners).
+
+// GCC warns that passing 32-byte vectors by value changes the ABI without AVX. Every function here that does is
+// internal to this file and inlined into its caller, so no call crosses the ABI.
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic ignored "-Wpsabi"
+#endif
 
 using U8x16 = std::uint8_t __attribute__((vector_size(16)));
+using U8x32 = std::uint8_t __attribute__((vector_size(32)));
 using U8x8 = std::uint8_t __attribute__((vector_size(8)));
 using U16x8 = std::uint16_t __attribute__((vector_size(16)));
 using F32x4 = float __attribute__((vector_size(16)));
 using I32x4 = std::int32_t __attribute__((vector_size(16)));
 
-inline U8x16 load16(const std::uint8_t* p) {
-  U8x16 v;
+template <class V>
+[[gnu::always_inline]] inline V load(const std::uint8_t* p) {
+  V v;
   std::memcpy(&v, p, sizeof(v));
   return v;
 }
@@ -213,62 +224,205 @@ inline U16x8 load8x16(const std::uint16_t* p) {
   std::memcpy(&v, p, sizeof(v));
   return v;
 }
-inline U8x16 vmin(U8x16 a, U8x16 b) {
+template <class V>
+[[gnu::always_inline]] inline V vmin(V a, V b) {
   return a < b ? a : b;
 }
-inline U8x16 vmax(U8x16 a, U8x16 b) {
+template <class V>
+[[gnu::always_inline]] inline V vmax(V a, V b) {
   return a > b ? a : b;
 }
-inline U8x16 saturatingSub(U8x16 a, U8x16 b) {
+// As function objects, so that they inline wherever they are passed (also into the AVX2-compiled detector).
+struct Min {
+  template <class V>
+  [[gnu::always_inline]] V operator()(V a, V b) const {
+    return vmin(a, b);
+  }
+};
+struct Max {
+  template <class V>
+  [[gnu::always_inline]] V operator()(V a, V b) const {
+    return vmax(a, b);
+  }
+};
+template <class V>
+[[gnu::always_inline]] inline V saturatingSub(V a, V b) {
   return a - vmin(a, b);
 }
-inline bool anyNonZero(U8x16 v) {
-  std::array<std::uint64_t, 2> words{};
-  std::memcpy(words.data(), &v, sizeof(v));
-  return (words[0] | words[1]) != 0;
+// The vector's bytes as 64-bit words.
+template <class V>
+[[gnu::always_inline]] inline std::array<std::uint64_t, sizeof(V) / 8> words(V v) {
+  std::array<std::uint64_t, sizeof(V) / 8> w{};
+  std::memcpy(w.data(), &v, sizeof(v));
+  return w;
+}
+template <class V>
+[[gnu::always_inline]] inline bool anyNonZero(V v) {
+  std::uint64_t any = 0;
+  for (const std::uint64_t w : words(v)) any |= w;
+  return any != 0;
 }
 
 // The FAST score of 16 consecutive pixels starting at p: the largest t for which 9 contiguous circle pixels are
 // all brighter than the centre + t or all darker than the centre - t, i.e. the best arc's smallest difference.
 // Pixels whose score is <= threshold (not FAST-9 corners at that threshold) get 0.
-inline U8x16 fastScores(const std::uint8_t* p, const std::array<std::ptrdiff_t, 16>& circle, U8x16 threshold) {
-  const U8x16 centre = load16(p);
+//
+// The difference to the centre is monotonic in the circle pixel, so an arc's smallest difference is the
+// difference of its extreme pixel: brighter arcs are scored by max over arcs of the arc's darkest pixel, darker
+// arcs by min over arcs of the arc's brightest pixel, and the centre is subtracted once at the end.
+template <class V>
+[[gnu::always_inline]] inline V fastScores(const std::uint8_t* p, const std::array<std::ptrdiff_t, 16>& circle,
+                                           V threshold) {
+  const V centre = load<V>(p);
   // Filled in stages below, each element before it is read; zeroing them first would cost in the hot loop.
-  std::array<U8x16, 16> ring;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+  std::array<V, 16> ring;  // NOLINT(cppcoreguidelines-pro-type-member-init)
   // A 9-arc covers two neighbouring compass points (0, 4, 8, 12): test them first, as FAST does, and work out
   // the arcs only of the polarity (brighter or darker) that passes in some pixel.
-  for (std::size_t k = 0; k < 16; k += 4) ring[k] = load16(p + circle[k]);
-  const auto compass = [](U8x16 a, U8x16 b, U8x16 c, U8x16 d) {
-    return vmax(vmax(vmin(a, b), vmin(b, c)), vmax(vmin(c, d), vmin(d, a)));
-  };
-  const bool bright = anyNonZero(
-      reinterpret_cast<U8x16>(compass(saturatingSub(ring[0], centre), saturatingSub(ring[4], centre),
-                                      saturatingSub(ring[8], centre), saturatingSub(ring[12], centre)) > threshold));
-  const bool dark = anyNonZero(
-      reinterpret_cast<U8x16>(compass(saturatingSub(centre, ring[0]), saturatingSub(centre, ring[4]),
-                                      saturatingSub(centre, ring[8]), saturatingSub(centre, ring[12])) > threshold));
-  if (!bright && !dark) return U8x16{};
+  for (std::size_t k = 0; k < 16; k += 4) ring[k] = load<V>(p + circle[k]);
+  const V compass_bright = vmax(vmax(vmin(ring[0], ring[4]), vmin(ring[4], ring[8])),
+                                vmax(vmin(ring[8], ring[12]), vmin(ring[12], ring[0])));
+  const V compass_dark = vmin(vmin(vmax(ring[0], ring[4]), vmax(ring[4], ring[8])),
+                              vmin(vmax(ring[8], ring[12]), vmax(ring[12], ring[0])));
+  const bool bright = anyNonZero(reinterpret_cast<V>(saturatingSub(compass_bright, centre) > threshold));
+  const bool dark = anyNonZero(reinterpret_cast<V>(saturatingSub(centre, compass_dark) > threshold));
+  if (!bright && !dark) return V{};
+#pragma GCC unroll 16
   for (std::size_t k = 0; k < 16; ++k) {
-    if (k % 4 != 0) ring[k] = load16(p + circle[k]);
+    if (k % 4 != 0) ring[k] = load<V>(p + circle[k]);
   }
-  // Minimum over every arc of 9 by doubling: arcs of 2, 4, 8, then 9.
-  const auto best_arc = [&ring, centre](bool brighter) {
-    std::array<U8x16, 16> d;   // NOLINT(cppcoreguidelines-pro-type-member-init): filled by the loops below
-    std::array<U8x16, 16> m2;  // NOLINT(cppcoreguidelines-pro-type-member-init)
-    std::array<U8x16, 16> m4;  // NOLINT(cppcoreguidelines-pro-type-member-init)
-    for (std::size_t k = 0; k < 16; ++k) {
-      d[k] = brighter ? saturatingSub(ring[k], centre) : saturatingSub(centre, ring[k]);
-    }
-    for (std::size_t k = 0; k < 16; ++k) m2[k] = vmin(d[k], d[(k + 1) & 15U]);
-    for (std::size_t k = 0; k < 16; ++k) m4[k] = vmin(m2[k], m2[(k + 2) & 15U]);
-    U8x16 best{};
-    for (std::size_t k = 0; k < 16; ++k) best = vmax(best, vmin(vmin(m4[k], m4[(k + 4) & 15U]), d[(k + 8) & 15U]));
+  // The best arc of 9 by doubling: extremes over arcs of 2, 4, 8, then 9. `inner` is min for brighter arcs
+  // (an arc is as bright as its darkest pixel) and `outer` picks the best arc, max; the other way for darker.
+  const auto best_arc = [&ring](auto inner, auto outer, V worst) __attribute__((always_inline)) {
+    std::array<V, 16> m2;  // NOLINT(cppcoreguidelines-pro-type-member-init): filled by the loops below
+    std::array<V, 16> m4;  // NOLINT(cppcoreguidelines-pro-type-member-init)
+#pragma GCC unroll 16
+    for (std::size_t k = 0; k < 16; ++k) m2[k] = inner(ring[k], ring[(k + 1) & 15U]);
+#pragma GCC unroll 16
+    for (std::size_t k = 0; k < 16; ++k) m4[k] = inner(m2[k], m2[(k + 2) & 15U]);
+    V best = worst;
+#pragma GCC unroll 16
+    for (std::size_t k = 0; k < 16; ++k)
+      best = outer(best, inner(inner(m4[k], m4[(k + 4) & 15U]), ring[(k + 8) & 15U]));
     return best;
   };
-  U8x16 score{};
-  if (bright) score = best_arc(true);
-  if (dark) score = vmax(score, best_arc(false));
-  return score & reinterpret_cast<U8x16>(score > threshold);
+  V score{};
+  if (bright) score = saturatingSub(best_arc(Min{}, Max{}, V{}), centre);
+  if (dark) score = vmax(score, saturatingSub(centre, best_arc(Max{}, Min{}, V{} + 255)));
+  return score & reinterpret_cast<V>(score > threshold);
+}
+
+// One pyramid level to scan for corners, and three rows of scratch for the scores.
+struct CornerScan {
+  const std::uint8_t* image = nullptr;
+  int width = 0;
+  int height = 0;
+  int edge = 0;  // corners at least this far from the border
+  std::uint8_t threshold = 0;
+  int level = 0;
+  std::array<std::ptrdiff_t, 16> circle{};  // offsets of the circle's pixels from the centre
+  std::array<std::uint8_t*, 3> score_rows{};
+};
+
+// FAST-9 corners of a level with 3x3 non-maximum suppression, sizeof(V) pixels at a time, into `corners`;
+// returns their number. Scores are computed one row ahead of the suppression, in a ring of three rows, over one
+// pixel more than the corners' range so that corners at its edge see all their neighbours. The same corners
+// for any lane count (integer arithmetic; the last block of a row overlaps the one before it).
+template <class V>
+[[gnu::always_inline]] inline int detectCorners(const CornerScan& scan, std::span<std::uint64_t> corners) {
+  constexpr int kLanes = sizeof(V);
+  const int w = scan.width;
+  const int h = scan.height;
+  const int edge = scan.edge;
+  const int x_begin = edge - 1;
+  const int x_end = w - edge + 1;     // scores over [x_begin, x_end), corners over [edge, w - edge)
+  const int corner_x_end = w - edge;  // corners over [edge, corner_x_end)
+  if (corner_x_end - edge < kLanes || h - 2 * edge < 1) return 0;  // too small for a row of kLanes corners
+  const V threshold = V{} + scan.threshold;
+
+  const auto score_row = [&](int y, std::uint8_t* out) __attribute__((always_inline)) {
+    // Only [x_begin, x_end) is written, and only that is read.
+    const std::uint8_t* r = scan.image + static_cast<std::ptrdiff_t>(y) * w;
+    for (int x = x_begin; x < x_end; x += kLanes) {
+      const int x0 = std::min(x, x_end - kLanes);  // the last block overlaps the one before: same scores
+      const V s = fastScores(r + x0, scan.circle, threshold);
+      std::memcpy(out + x0, &s, sizeof(s));
+    }
+  };
+
+  std::size_t count = 0;
+  std::uint8_t* above = scan.score_rows[0];
+  std::uint8_t* centre = scan.score_rows[1];
+  std::uint8_t* below = scan.score_rows[2];
+  score_row(edge - 1, above);
+  score_row(edge, centre);
+  for (int y = edge; y < h - edge; ++y) {
+    score_row(y + 1, below);
+    // Ties: a corner must beat its right and lower neighbours and equal at least those left and above, so
+    // that exactly one of two equal neighbours survives. The last block overlaps the one before it, whose
+    // pixels it skips.
+    for (int x = edge; x < corner_x_end; x += kLanes) {
+      const int x0 = std::min(x, corner_x_end - kLanes);
+      const V c = load<V>(centre + x0);
+      if (!anyNonZero(c)) continue;
+      const auto at_least = [&c](const std::uint8_t* q) __attribute__((always_inline)) {
+        return vmax(c, load<V>(q)) == c;
+      };
+      const auto beats = [&c](const std::uint8_t* q) __attribute__((always_inline)) {
+        return vmax(c, load<V>(q)) != load<V>(q);
+      };
+      const auto keep = reinterpret_cast<V>(at_least(above + x0 - 1) & at_least(above + x0) & at_least(above + x0 + 1) &
+                                            at_least(centre + x0 - 1) & beats(centre + x0 + 1) & beats(below + x0 - 1) &
+                                            beats(below + x0) & beats(below + x0 + 1));
+      const auto keep_words = words(keep);
+      for (std::size_t word = 0; word < keep_words.size(); ++word) {
+        std::uint64_t bits = keep_words[word] & 0x8080808080808080ULL;
+        while (bits != 0) {
+          const int lane = static_cast<int>(word) * 8 + std::countr_zero(bits) / 8;
+          bits &= bits - 1;
+          const int xx = x0 + lane;
+          if (xx < x || count >= corners.size()) continue;
+          corners[count++] = packKey(centre[xx], scan.level, xx, y);
+        }
+      }
+    }
+    std::uint8_t* recycled = above;
+    above = centre;
+    centre = below;
+    below = recycled;
+  }
+  return static_cast<int>(count);
+}
+
+// The 32-lane detector. Where the compiler targets AVX2 anyway (the board-x86-64-v3 preset) it is plain code;
+// in a generic x86-64 build it is compiled for AVX2 on its own and used only when the CPU has AVX2
+// (wideVectorsAvailable). Elsewhere (AArch64: NEON has 16 lanes) there is none.
+#if defined(__x86_64__) && !defined(__AVX2__)
+#define CVISLAM_ORB_WIDE_BY_CPU_CHECK 1
+__attribute__((target("avx2"))) int detectCornersWide(const CornerScan& scan, std::span<std::uint64_t> corners) {
+  return detectCorners<U8x32>(scan, corners);
+}
+#elif defined(__AVX2__)
+int detectCornersWide(const CornerScan& scan, std::span<std::uint64_t> corners) {
+  return detectCorners<U8x32>(scan, corners);
+}
+#else
+int detectCornersWide(const CornerScan& scan, std::span<std::uint64_t> corners) {
+  return detectCorners<U8x16>(scan, corners);
+}
+#endif
+
+// Whether detectCornersWide runs 32 lanes on this CPU. CVISLAM_ORB_NARROW=1 in the environment turns it off
+// (the corners are the same either way; it is there to compare, and as a way out should a CPU misreport).
+bool wideVectorsAvailable() {
+  const char* narrow = std::getenv("CVISLAM_ORB_NARROW");
+  if (narrow != nullptr && std::strcmp(narrow, "1") == 0) return false;
+#if defined(CVISLAM_ORB_WIDE_BY_CPU_CHECK)
+  return __builtin_cpu_supports("avx2") != 0;
+#elif defined(__AVX2__)
+  return true;
+#else
+  return false;
+#endif
 }
 
 struct LevelSize {
@@ -344,6 +498,7 @@ struct OrbExtractor::Impl {
   // Scratch rows.
   std::vector<std::uint16_t> blur_row;                  // a row blended or blurred vertically
   std::array<std::vector<std::uint8_t>, 3> score_rows;  // FAST scores of three consecutive rows
+  bool wide_vectors = false;                            // 32-lane corner detection (wideVectorsAvailable)
 
   // Corners of the level being detected, then the candidates kept from all levels, then the selection.
   std::vector<std::uint64_t> level_corners;
@@ -358,7 +513,7 @@ struct OrbExtractor::Impl {
   [[nodiscard]] std::size_t cellOf(std::uint64_t key) const;
   void setImageSize(int w, int h);
   void buildLevel(int level);
-  int detectLevel(int level);
+  int detectLevel(int level);  // FAST corners and their suppression
   void smoothRows(int level, int y_begin, int y_end);
   void describe(std::uint64_t key, Keypoint& keypoint, Descriptor& descriptor) const;
 };
@@ -370,6 +525,10 @@ OrbExtractor::~OrbExtractor() = default;
 
 const OrbOptions& OrbExtractor::options() const {
   return impl_->options;
+}
+
+int OrbExtractor::cornerLanes() const {
+  return impl_->wide_vectors ? 32 : 16;
 }
 
 Status OrbExtractor::checkImageSize(int width, int height) const {
@@ -388,6 +547,7 @@ Result<OrbExtractor> OrbExtractor::create(const OrbOptions& options) {
   auto impl = std::make_unique<Impl>();
   Impl& m = *impl;
   m.options = options;
+  m.wide_vectors = wideVectorsAvailable();
   const int levels = options.pyramid_levels;
 
   // Budget of candidates per level, in proportion to 1/scale_factor^level (ORB's share-out).
@@ -506,74 +666,23 @@ void OrbExtractor::Impl::buildLevel(int level) {
 }
 
 // FAST-9 corners of one level with 3x3 non-maximum suppression, at least edge_threshold pixels from the border,
-// into level_corners; returns their number. Scores are computed one row ahead of the suppression, in a ring of
-// three rows, over one pixel more than the corners' range so that corners at its edge see all their neighbours.
+// into level_corners; returns their number.
 int OrbExtractor::Impl::detectLevel(int level) {
   const auto L = static_cast<std::size_t>(level);
-  const int w = size[L].width;
-  const int h = size[L].height;
-  const int edge = options.edge_threshold;
-  const int x_begin = edge - 1;
-  const int x_end = w - edge + 1;     // scores over [x_begin, x_end), corners over [edge, w - edge)
-  const int corner_x_end = w - edge;  // corners over [edge, corner_x_end)
-  if (corner_x_end - edge < 16 || h - 2 * edge < 1) return 0;  // too small for a row of 16 corners
-  const std::uint8_t* img = image[L];
-  std::array<std::ptrdiff_t, 16> circle{};
+  CornerScan scan;
+  scan.image = image[L];
+  scan.width = size[L].width;
+  scan.height = size[L].height;
+  scan.edge = options.edge_threshold;
+  scan.threshold = static_cast<std::uint8_t>(options.fast_threshold);
+  scan.level = level;
   for (std::size_t k = 0; k < 16; ++k) {
-    circle[k] = static_cast<std::ptrdiff_t>(kFastCircle[k][1]) * w + kFastCircle[k][0];
+    scan.circle[k] = static_cast<std::ptrdiff_t>(kFastCircle[k][1]) * scan.width + kFastCircle[k][0];
   }
-  const U8x16 threshold = U8x16{} + static_cast<std::uint8_t>(options.fast_threshold);
-
-  const auto score_row = [&](int y, std::uint8_t* out) {
-    // Only [x_begin, x_end) is written, and only that is read.
-    const std::uint8_t* r = img + static_cast<std::ptrdiff_t>(y) * w;
-    for (int x = x_begin; x < x_end; x += 16) {
-      const int x0 = std::min(x, x_end - 16);  // the last block overlaps the one before: same scores
-      const U8x16 s = fastScores(r + x0, circle, threshold);
-      std::memcpy(out + x0, &s, sizeof(s));
-    }
-  };
-
-  const std::size_t capacity = level_corners.size();
-  std::size_t count = 0;
-  std::uint8_t* above = score_rows[0].data();
-  std::uint8_t* centre = score_rows[1].data();
-  std::uint8_t* below = score_rows[2].data();
-  score_row(edge - 1, above);
-  score_row(edge, centre);
-  for (int y = edge; y < h - edge; ++y) {
-    score_row(y + 1, below);
-    // Ties: a corner must beat its right and lower neighbours and equal at least those left and above, so
-    // that exactly one of two equal neighbours survives. 16 pixels at a time; the last block overlaps the one
-    // before it, whose pixels it skips.
-    for (int x = edge; x < corner_x_end; x += 16) {
-      const int x0 = std::min(x, corner_x_end - 16);
-      const U8x16 c = load16(centre + x0);
-      if (!anyNonZero(c)) continue;
-      const auto at_least = [&c](const std::uint8_t* q) { return vmax(c, load16(q)) == c; };
-      const auto beats = [&c](const std::uint8_t* q) { return vmax(c, load16(q)) != load16(q); };
-      const auto keep = reinterpret_cast<U8x16>(
-          at_least(above + x0 - 1) & at_least(above + x0) & at_least(above + x0 + 1) & at_least(centre + x0 - 1) &
-          beats(centre + x0 + 1) & beats(below + x0 - 1) & beats(below + x0) & beats(below + x0 + 1));
-      std::array<std::uint64_t, 2> words{};
-      std::memcpy(words.data(), &keep, sizeof(keep));
-      for (std::size_t half = 0; half < 2; ++half) {
-        std::uint64_t bits = words[half] & 0x8080808080808080ULL;
-        while (bits != 0) {
-          const int lane = static_cast<int>(half) * 8 + std::countr_zero(bits) / 8;
-          bits &= bits - 1;
-          const int xx = x0 + lane;
-          if (xx < x || count >= capacity) continue;
-          level_corners[count++] = packKey(centre[xx], level, xx, y);
-        }
-      }
-    }
-    std::uint8_t* recycled = above;
-    above = centre;
-    centre = below;
-    below = recycled;
-  }
-  return static_cast<int>(count);
+  for (std::size_t r = 0; r < score_rows.size(); ++r) scan.score_rows[r] = score_rows[r].data();
+  const std::span<std::uint64_t> corners(level_corners);
+  if (wide_vectors && scan.width - 2 * scan.edge >= 32) return detectCornersWide(scan, corners);
+  return detectCorners<U8x16>(scan, corners);
 }
 
 // Rows [y_begin, y_end) of the level smoothed by the separable 7-tap Gaussian; the border is replicated.

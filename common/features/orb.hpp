@@ -85,6 +85,10 @@ class OrbExtractor {
 
   [[nodiscard]] const OrbOptions& options() const;
 
+  // Pixels the corner detector scores at a time: 32 where the CPU has AVX2, 16 otherwise (SSE2, NEON). The
+  // output is the same either way; CVISLAM_ORB_NARROW=1 in the environment at create() forces 16.
+  [[nodiscard]] int cornerLanes() const;
+
  private:
   struct Impl;
   explicit OrbExtractor(std::unique_ptr<Impl> impl);

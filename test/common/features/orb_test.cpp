@@ -5,8 +5,10 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <numbers>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -264,6 +266,31 @@ TEST_F(OrbRealData, SameImageGivesIdenticalOutput) {
       EXPECT_EQ(f->keypoints[i].angle_deg, first.keypoints[i].angle_deg) << i;
       EXPECT_EQ(f->keypoints[i].octave, first.keypoints[i].octave) << i;
       EXPECT_EQ(f->descriptors[i], first.descriptors[i]) << i;
+    }
+  }
+}
+
+// The corner detector runs 32 lanes with AVX2 and 16 without; both must give the same features, bit for bit.
+TEST_F(OrbRealData, TheWideAndTheNarrowCornerDetectorsAgree) {
+  ASSERT_EQ(setenv("CVISLAM_ORB_NARROW", "1", 1), 0);
+  auto narrow = OrbExtractor::create({});
+  ASSERT_EQ(unsetenv("CVISLAM_ORB_NARROW"), 0);
+  auto wide = OrbExtractor::create({});
+  ASSERT_TRUE(narrow.ok() && wide.ok());
+  EXPECT_EQ(narrow->cornerLanes(), 16);
+  if (wide->cornerLanes() != 32) GTEST_SKIP() << "this CPU has no AVX2: only the 16-lane detector runs here";
+  for (const auto& [camera, frame] : {std::pair{0, 0}, std::pair{0, 33}, std::pair{1, 60}}) {
+    auto image = sequence_->loadImage(camera, static_cast<std::size_t>(frame));
+    ASSERT_TRUE(image.ok()) << image.error().toString();
+    const Frame a = extractFrom(*narrow, *image);
+    const Frame b = extractFrom(*wide, *image);
+    ASSERT_EQ(a.keypoints.size(), 500U);
+    ASSERT_EQ(b.keypoints.size(), a.keypoints.size());
+    for (std::size_t i = 0; i < a.keypoints.size(); ++i) {
+      EXPECT_EQ(b.keypoints[i].px, a.keypoints[i].px) << "camera " << camera << " frame " << frame << " feature " << i;
+      EXPECT_EQ(b.keypoints[i].response, a.keypoints[i].response) << i;
+      EXPECT_EQ(b.keypoints[i].octave, a.keypoints[i].octave) << i;
+      EXPECT_EQ(b.descriptors[i], a.descriptors[i]) << i;
     }
   }
 }
