@@ -4,6 +4,7 @@
 
 #include "common/core/text.hpp"
 #include "common/dataset/calibration.hpp"
+#include "common/dataset/image_codecs.hpp"
 
 namespace cvislam::dataset {
 

@@ -1,106 +1,89 @@
 #include "common/dataset/image.hpp"
 
-#include "common/dataset/png_gray.hpp"
-
+#include <array>
 #include <cstring>
+#include <fstream>
+#include <iterator>
 #include <string>
 #include <vector>
 
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
+#include "common/dataset/png_gray.hpp"
 
 namespace cvislam::dataset {
 namespace {
 
-Result<cv::Mat> decode(const std::filesystem::path& path) {
-  std::error_code ec;
-  if (!std::filesystem::is_regular_file(path, ec)) {
-    return Error{ErrorCode::kNotFound, path.string() + ": image file does not exist"};
+constexpr std::array<std::uint8_t, 8> kPngSignature = {137, 'P', 'N', 'G', '\r', '\n', 26, '\n'};
+
+std::uint32_t bigEndian32(const std::uint8_t* p) {
+  return (std::uint32_t{p[0]} << 24) | (std::uint32_t{p[1]} << 16) | (std::uint32_t{p[2]} << 8) | std::uint32_t{p[3]};
+}
+
+// What a file that the grey PNG decoder handed back is, from its first bytes, and what to do about it.
+Error unsupportedImage(const std::filesystem::path& path) {
+  std::array<std::uint8_t, 32> head{};
+  std::ifstream in(path, std::ios::binary);
+  in.read(reinterpret_cast<char*>(head.data()), static_cast<std::streamsize>(head.size()));
+  const auto got = static_cast<std::size_t>(in.gcount());
+  std::string what = "not a PNG file";
+  if (got >= 29 && std::memcmp(head.data(), kPngSignature.data(), kPngSignature.size()) == 0) {
+    static constexpr std::array<const char*, 7> kColour = {"grey", "", "RGB", "palette", "grey+alpha", "", "RGBA"};
+    const int depth = head[24];
+    const int colour = head[25];
+    const char* colour_name =
+        colour < static_cast<int>(kColour.size()) ? kColour[static_cast<std::size_t>(colour)] : "";
+    what = "a PNG with " + std::to_string(depth) + "-bit " +
+           (colour_name[0] != '\0' ? std::string(colour_name) : "colour type " + std::to_string(colour)) + " pixels" +
+           (head[28] != 0 ? ", interlaced" : "");
+  } else if (got >= 2 && head[0] == 0xFF && head[1] == 0xD8) {
+    what = "a JPEG file";
+  } else if (got >= 2 && head[0] == 'P' && head[1] >= '1' && head[1] <= '6') {
+    what = "a PGM/PNM file";
   }
-  const auto size = std::filesystem::file_size(path, ec);
-  if (ec || size == 0) return Error{ErrorCode::kDataError, path.string() + ": image file is empty"};
-  cv::Mat image;
-  try {
-    image = cv::imread(path.string(), cv::IMREAD_UNCHANGED);
-  } catch (const cv::Exception& e) {
-    return Error{ErrorCode::kDataError, path.string() + ": cannot decode image: " + e.what()};
-  }
-  if (image.empty()) {
-    return Error{ErrorCode::kDataError, path.string() + ": cannot decode image (corrupt or not an image file)"};
-  }
-  if (image.depth() != CV_8U) {
-    return Error{ErrorCode::kDataError, path.string() + ": unsupported pixel format (" +
-                                            std::to_string(8 * image.elemSize1()) + "-bit), expected 8-bit grey"};
-  }
-  if (image.channels() == 3) {
-    cv::cvtColor(image, image, cv::COLOR_BGR2GRAY);
-  } else if (image.channels() == 4) {
-    cv::cvtColor(image, image, cv::COLOR_BGRA2GRAY);
-  } else if (image.channels() != 1) {
-    return Error{ErrorCode::kDataError,
-                 path.string() + ": unsupported channel count " + std::to_string(image.channels())};
-  }
-  return image;
+  return Error{ErrorCode::kDataError, path.string() + ": " + what +
+                                          "; cvislam reads 8-bit greyscale PNG, not interlaced (the EuRoC format). "
+                                          "Convert the images, e.g. ImageMagick's `mogrify -format png -colorspace "
+                                          "Gray -depth 8 -interlace none <files>`"};
 }
 
 }  // namespace
 
 Result<GrayImage> readGrayImage(const std::filesystem::path& path) {
-  auto decoded = decode(path);
-  if (!decoded) return decoded.error();
-  const cv::Mat& m = *decoded;
-  GrayImage out(m.cols, m.rows);
-  for (int y = 0; y < m.rows; ++y) {
-    std::memcpy(out.pixels.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(m.cols),
-                m.ptr<std::uint8_t>(y), static_cast<std::size_t>(m.cols));
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) {
+    return Error{ErrorCode::kNotFound, path.string() + ": image file does not exist"};
   }
-  return out;
+  std::ifstream in(path, std::ios::binary);
+  const std::vector<std::uint8_t> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (!in.good() && !in.eof()) return Error{ErrorCode::kIoError, path.string() + ": cannot read image file"};
+  if (bytes.empty()) return Error{ErrorCode::kDataError, path.string() + ": image file is empty"};
+  // The size from the header chunk, which a PNG starts with; the decoder checks the rest.
+  if (bytes.size() < 24 || std::memcmp(bytes.data(), kPngSignature.data(), kPngSignature.size()) != 0) {
+    return unsupportedImage(path);
+  }
+  const std::uint32_t width = bigEndian32(bytes.data() + 16);
+  const std::uint32_t height = bigEndian32(bytes.data() + 20);
+  if (width == 0 || height == 0 || width > 65535 || height > 65535) {
+    return Error{ErrorCode::kDataError, path.string() + ": PNG header gives an image of " + std::to_string(width) +
+                                            "x" + std::to_string(height) + " px"};
+  }
+  GrayImage image(static_cast<int>(width), static_cast<int>(height));
+  GrayPngDecoder png;
+  auto decoded = png.decodeInto(bytes, path.string(), image.width, image.height, image.pixels);
+  if (!decoded) return decoded.error();
+  if (!*decoded) return unsupportedImage(path);
+  return image;
 }
 
 Status readGrayImageInto(const std::filesystem::path& path, int width, int height, std::span<std::uint8_t> pixels) {
-  if (pixels.size() != static_cast<std::size_t>(width) * static_cast<std::size_t>(height)) {
-    return Error{ErrorCode::kInvalidArgument, "readGrayImageInto: buffer size does not match width*height"};
-  }
-  auto decoded = decode(path);
-  if (!decoded) return decoded.error();
-  const cv::Mat& m = *decoded;
-  if (m.cols != width || m.rows != height) {
-    return Error{ErrorCode::kDataError, path.string() + ": image is " + std::to_string(m.cols) + "x" +
-                                            std::to_string(m.rows) + ", the calibration says " + std::to_string(width) +
-                                            "x" + std::to_string(height)};
-  }
-  for (int y = 0; y < m.rows; ++y) {
-    std::memcpy(pixels.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(width), m.ptr<std::uint8_t>(y),
-                static_cast<std::size_t>(width));
-  }
-  return Status::Ok();
+  GrayPngDecoder png;
+  return readGrayImageInto(path, width, height, pixels, png);
 }
 
 Status readGrayImageInto(const std::filesystem::path& path, int width, int height, std::span<std::uint8_t> pixels,
                          GrayPngDecoder& png) {
   auto decoded = png.decodeInto(path, width, height, pixels);
   if (!decoded) return decoded.error();
-  if (*decoded) return Status::Ok();
-  return readGrayImageInto(path, width, height, pixels);
-}
-
-Status writeGrayPng(const std::filesystem::path& path, const GrayImage& image) {
-  if (image.width <= 0 || image.height <= 0 ||
-      image.pixels.size() != static_cast<std::size_t>(image.width) * static_cast<std::size_t>(image.height)) {
-    return Error{ErrorCode::kInvalidArgument, path.string() + ": image has no pixels or a wrong pixel count"};
-  }
-  // cv::Mat over our buffer without copying; imwrite only reads it.
-  const cv::Mat view(image.height, image.width, CV_8UC1, const_cast<std::uint8_t*>(image.pixels.data()));
-  const std::vector<int> params = {cv::IMWRITE_PNG_COMPRESSION, 3, cv::IMWRITE_PNG_STRATEGY,
-                                   cv::IMWRITE_PNG_STRATEGY_DEFAULT};
-  bool ok = false;
-  try {
-    ok = cv::imwrite(path.string(), view, params);
-  } catch (const cv::Exception& e) {
-    return Error{ErrorCode::kIoError, path.string() + ": cannot write PNG: " + e.what()};
-  }
-  if (!ok) return Error{ErrorCode::kIoError, path.string() + ": cannot write PNG"};
+  if (!*decoded) return unsupportedImage(path);
   return Status::Ok();
 }
 

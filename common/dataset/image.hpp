@@ -1,4 +1,7 @@
-// 8-bit grey images, and reading/writing them as files. OpenCV stays inside image.cpp.
+// 8-bit grey images, and reading them from files: 8-bit greyscale PNG (not interlaced), the format of EuRoC-layout
+// datasets, decoded by png_gray.hpp without OpenCV. Other formats (colour PNG, JPEG, PGM) and writing PNG are in
+// image_codecs.hpp, through OpenCV's imgcodecs, for the tools; the agent does not link imgcodecs, which with the
+// GDAL, GDCM and poppler libraries it loads costs about 40 MB of resident memory.
 #pragma once
 
 #include <cstdint>
@@ -29,8 +32,8 @@ struct GrayImage {
   [[nodiscard]] bool empty() const { return pixels.empty(); }
 };
 
-// Reads PNG/JPEG/PGM; colour images are converted to grey. Errors name the file and say what is wrong
-// (missing, empty, not decodable, unsupported bit depth).
+// Reads an 8-bit greyscale PNG. Errors name the file and say what is wrong (missing, empty, corrupt, or another
+// format: which one, and how to convert it).
 Result<GrayImage> readGrayImage(const std::filesystem::path& path);
 
 // Reads into caller-owned storage of exactly width*height bytes (the agent's preallocated frame buffers);
@@ -38,12 +41,8 @@ Result<GrayImage> readGrayImage(const std::filesystem::path& path);
 Status readGrayImageInto(const std::filesystem::path& path, int width, int height, std::span<std::uint8_t> pixels);
 
 class GrayPngDecoder;
-// The same, with `png` decoding 8-bit grey PNGs (png_gray.hpp) and OpenCV everything else: a frame loader keeps
-// one decoder for the run.
+// The same with a decoder that keeps its buffers from file to file: a frame loader keeps one for the run.
 Status readGrayImageInto(const std::filesystem::path& path, int width, int height, std::span<std::uint8_t> pixels,
                          GrayPngDecoder& png);
-
-// Writes a PNG. The bytes depend only on the pixels (fixed compression settings), so output is reproducible.
-Status writeGrayPng(const std::filesystem::path& path, const GrayImage& image);
 
 }  // namespace cvislam::dataset

@@ -30,6 +30,7 @@
 
 #include "common/dataset/euroc.hpp"
 #include "common/dataset/image.hpp"
+#include "common/dataset/image_codecs.hpp"
 #include "common/features/orb.hpp"
 #include "common/features/vocabulary.hpp"
 
@@ -249,7 +250,7 @@ int runTrain(const TrainArgs& args, const std::string& command) {
     const std::size_t count = listed->names.size();
     for (std::size_t i = 0; i < count; ++i) {
       auto image = listed->sequence ? listed->sequence->loadImage(listed->frames[i].first, listed->frames[i].second)
-                                    : cvislam::dataset::readGrayImage(listed->files[i]);
+                                    : cvislam::dataset::readImageAsGray(listed->files[i]);
       if (!image) {
         std::cerr << "cvislam_vocab train: " << image.error().message() << "\n";
         return 1;
@@ -334,7 +335,7 @@ int runScore(const std::string& vocabulary_path, const std::string& json_path, i
   Extractor extractor(500);
   std::vector<Scored> scored;
   for (const std::string& path : image_paths) {
-    auto image = cvislam::dataset::readGrayImage(path);
+    auto image = cvislam::dataset::readImageAsGray(path);
     if (!image) {
       std::cerr << "cvislam_vocab score: " << image.error().message() << "\n";
       return 1;

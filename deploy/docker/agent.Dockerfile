@@ -20,7 +20,7 @@ RUN cmake --preset release \
 FROM debian:12.8-slim
 ARG RUNTIME_PACKAGES="libabsl20220623 libatlas3-base libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
 libgrpc29 libiceoryx-hoofs2 libiceoryx-posh-roudi2 libiceoryx-posh2 libopencv-calib3d406 libopencv-core406 \
-libopencv-imgcodecs406 libopencv-imgproc406 libprotobuf32 libyaml-cpp0.7"
+libprotobuf32 libyaml-cpp0.7"
 RUN apt-get update \
  && apt-get install -y --no-install-recommends ${RUNTIME_PACKAGES} \
  && rm -rf /var/lib/apt/lists/* \

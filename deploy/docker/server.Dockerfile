@@ -17,7 +17,7 @@ RUN cmake --preset release \
 
 FROM debian:12.8-slim
 ARG RUNTIME_PACKAGES="libabsl20220623 libpq5 libatlas3-base libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
-libgrpc29 libopencv-calib3d406 libopencv-core406 libopencv-imgcodecs406 libopencv-imgproc406 libprotobuf32 \
+libgrpc29 libopencv-calib3d406 libopencv-core406 libprotobuf32 \
 libsqlite3-0 libyaml-cpp0.7"
 RUN apt-get update \
  && apt-get install -y --no-install-recommends ${RUNTIME_PACKAGES} \

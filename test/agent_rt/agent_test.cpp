@@ -23,6 +23,7 @@
 
 #include "common/core/diagnostics.hpp"
 #include "common/dataset/image.hpp"
+#include "common/dataset/image_codecs.hpp"
 #include "common/dataset/trajectory_io.hpp"
 #include "common/eval/trajectory_eval.hpp"
 #include "test/sim/mission_writer.hpp"

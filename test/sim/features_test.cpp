@@ -13,6 +13,7 @@
 #include "common/camera/camera_model.hpp"
 #include "common/dataset/euroc_calibration.hpp"
 #include "common/dataset/image.hpp"
+#include "common/dataset/image_codecs.hpp"
 #include "test/sim/presets.hpp"
 #include "test/sim/renderer.hpp"
 #include "test/support/test_data.hpp"

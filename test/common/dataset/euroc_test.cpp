@@ -10,6 +10,7 @@
 
 #include "common/dataset/calibration.hpp"
 #include "common/dataset/euroc_writer.hpp"
+#include "common/dataset/image_codecs.hpp"
 #include "test/common/dataset/sequence_fixture.hpp"
 #include "test/support/temp_dir.hpp"
 #include "test/support/test_data.hpp"
@@ -297,11 +298,21 @@ TEST(EurocBrokenInput, AnUnreadableImageGivesAnErrorNamingTheFile) {
   ASSERT_TRUE(seq.ok());
   auto garbage = seq->loadImage(0, 1);
   ASSERT_FALSE(garbage.ok());
-  EXPECT_THAT(garbage.error().message(), HasSubstr("1050000000.png: cannot decode image"));
+  EXPECT_THAT(garbage.error().message(), HasSubstr("1050000000.png: not a PNG file"));
+  EXPECT_THAT(garbage.error().message(), HasSubstr("Convert the images"));
   auto empty = seq->loadImage(0, 2);
   ASSERT_FALSE(empty.ok());
   EXPECT_THAT(empty.error().message(), HasSubstr("1100000000.png: image file is empty"));
   EXPECT_TRUE(seq->loadImage(0, 3).ok());  // the rest of the sequence is still usable
+  // A PNG cut short after its header.
+  const auto good = dir / "seq/mav0/cam0/data/1150000000.png";
+  std::ifstream in(good, std::ios::binary);
+  std::string head(60, '\0');
+  in.read(head.data(), static_cast<std::streamsize>(head.size()));
+  test::writeTextFile(dir / "seq/mav0/cam0/data/1050000000.png", head);
+  auto truncated = seq->loadImage(0, 1);
+  ASSERT_FALSE(truncated.ok());
+  EXPECT_THAT(truncated.error().message(), HasSubstr("1050000000.png: PNG truncated"));
 }
 
 TEST(EurocBrokenInput, AnImageOfTheWrongSizeIsNamed) {

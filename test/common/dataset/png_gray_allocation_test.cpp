@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include "common/dataset/image.hpp"
+#include "common/dataset/image_codecs.hpp"
 #include "common/dataset/png_gray.hpp"
 #include "test/support/malloc_counter.hpp"
 #include "test/support/temp_dir.hpp"

@@ -1,5 +1,6 @@
 // The agent's own PNG decoder against OpenCV's (libpng), on PNGs written here with every row filter, on files
-// libpng wrote, on the real EuRoC excerpt, and on broken and foreign files.
+// libpng wrote, on the real EuRoC excerpt, and on broken and foreign files (which the agent's loader names and
+// says how to convert; OpenCV's reader in image_codecs.hpp reads them for the tools).
 #include "common/dataset/png_gray.hpp"
 
 #include <libdeflate.h>
@@ -8,6 +9,7 @@
 #include <fstream>
 #include <random>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -16,6 +18,7 @@
 
 #include "common/dataset/euroc.hpp"
 #include "common/dataset/image.hpp"
+#include "common/dataset/image_codecs.hpp"
 #include "test/support/temp_dir.hpp"
 #include "test/support/test_data.hpp"
 
@@ -130,7 +133,7 @@ TEST(GrayPngDecoder, UndoesEveryRowFilterExactlyAsLibpngDoes) {
       const auto path = dir.path() / ("f" + std::to_string(first_filter) + ".png");
       EXPECT_EQ(writeAndDecode(png, path, file, image.width, image.height), image.pixels)
           << "first row filter " << first_filter;
-      auto by_libpng = readGrayImage(path);  // the test's encoder is right too
+      auto by_libpng = readImageAsGray(path);  // the test's encoder is right too
       ASSERT_TRUE(by_libpng.ok()) << by_libpng.error().toString();
       EXPECT_EQ(by_libpng->pixels, image.pixels);
     }
@@ -181,17 +184,21 @@ TEST(GrayPngDecoder, ReadsTheRealEurocImagesAsOpenCvDoes) {
   GrayPngDecoder png;
   for (int camera = 0; camera < seq->cameraCount(); ++camera) {
     const auto& cal = camera == 0 ? seq->cam0().calibration : seq->cam1()->calibration;
+    const CameraStream& stream = camera == 0 ? seq->cam0() : *seq->cam1();
     std::vector<std::uint8_t> ours(static_cast<std::size_t>(cal.width) * static_cast<std::size_t>(cal.height));
-    std::vector<std::uint8_t> opencv(ours.size());
     for (std::size_t frame = 0; frame < 10; ++frame) {
       ASSERT_TRUE(seq->loadImageInto(camera, frame, ours, png).ok());
-      ASSERT_TRUE(seq->loadImageInto(camera, frame, opencv).ok());
-      EXPECT_EQ(ours, opencv) << "camera " << camera << " frame " << frame;
+      auto opencv = readImageAsGray(stream.imagePath(frame));
+      ASSERT_TRUE(opencv.ok()) << opencv.error().toString();
+      EXPECT_EQ(ours, opencv->pixels) << "camera " << camera << " frame " << frame;
+      auto one_off = readGrayImage(stream.imagePath(frame));  // the loader without a kept decoder
+      ASSERT_TRUE(one_off.ok()) << one_off.error().toString();
+      EXPECT_EQ(one_off->pixels, opencv->pixels);
     }
   }
 }
 
-TEST(GrayPngDecoder, HandsOtherFormatsBackForOpenCv) {
+TEST(GrayPngDecoder, HandsOtherFormatsBackAndTheLoaderSaysWhatTheyAre) {
   test::TempDir dir;
   GrayPngDecoder png;
   cv::Mat deep(20, 30, CV_16UC1, cv::Scalar(1000));
@@ -206,13 +213,25 @@ TEST(GrayPngDecoder, HandsOtherFormatsBackForOpenCv) {
     ASSERT_TRUE(decoded.ok()) << name << ": " << decoded.error().toString();
     EXPECT_FALSE(*decoded) << name;
   }
-  // Through the loader's entry point OpenCV reads them, or names why not.
-  ASSERT_TRUE(readGrayImageInto(dir.path() / "grey.jpg", 30, 20, pixels, png).ok());
-  EXPECT_NEAR(pixels[0], 77, 2);
-  ASSERT_TRUE(readGrayImageInto(dir.path() / "colour.png", 30, 20, pixels, png).ok());
-  const Status deep_status = readGrayImageInto(dir.path() / "deep.png", 30, 20, pixels, png);
-  ASSERT_FALSE(deep_status.ok());
-  EXPECT_NE(deep_status.error().message().find("16-bit"), std::string::npos) << deep_status.error().message();
+  // The loader (no OpenCV) names the format and says how to convert it; both of its entry points.
+  for (const auto& [name, what] : {std::pair{"grey.jpg", "a JPEG file"}, std::pair{"colour.png", "8-bit RGB"},
+                                   std::pair{"deep.png", "16-bit grey"}}) {
+    const Status into = readGrayImageInto(dir.path() / name, 30, 20, pixels, png);
+    ASSERT_FALSE(into.ok()) << name;
+    EXPECT_NE(into.error().message().find(what), std::string::npos) << into.error().message();
+    EXPECT_NE(into.error().message().find("mogrify -format png"), std::string::npos) << into.error().message();
+    auto whole = readGrayImage(dir.path() / name);
+    ASSERT_FALSE(whole.ok()) << name;
+    EXPECT_NE(whole.error().message().find(what), std::string::npos) << whole.error().message();
+  }
+  // OpenCV's reader, for the tools, reads them or names why not.
+  auto jpeg = readImageAsGray(dir.path() / "grey.jpg");
+  ASSERT_TRUE(jpeg.ok()) << jpeg.error().toString();
+  EXPECT_NEAR(jpeg->pixels[0], 77, 2);
+  ASSERT_TRUE(readImageAsGray(dir.path() / "colour.png").ok());
+  auto deep_image = readImageAsGray(dir.path() / "deep.png");
+  ASSERT_FALSE(deep_image.ok());
+  EXPECT_NE(deep_image.error().message().find("16-bit"), std::string::npos) << deep_image.error().message();
 }
 
 TEST(GrayPngDecoder, NamesWhatIsWrongWithABrokenFileAndNeverReadsPastIt) {
