@@ -64,7 +64,7 @@ Result<std::unique_ptr<Mapper>> Mapper::create(const MapperOptions& options, con
   if (Status status = options.validate(); !status.ok()) return status.error();
   auto state = std::make_unique<State>(options, left, right, T_s_c, T_c0_c1);
   if (right != nullptr) {
-    auto orb = features::OrbExtractor::create(options.orb);
+    auto orb = features::OrbExtractor::create(options.orb.forImageSize(right->width(), right->height()));
     if (!orb) return orb.error();
     state->right_orb.emplace(std::move(orb.value()));
     state->right_keypoints.resize(static_cast<std::size_t>(options.orb.max_features));

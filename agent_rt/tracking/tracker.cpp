@@ -317,7 +317,7 @@ Result<std::unique_ptr<Tracker>> Tracker::create(const TrackerOptions& options, 
                  "tracker: " + std::to_string(left.width()) + "x" + std::to_string(left.height()) +
                      " images exceed CVISLAM_MAX_IMAGE_PIXELS = " + std::to_string(kMaxImagePixels)};
   }
-  auto orb = features::OrbExtractor::create(options.orb);
+  auto orb = features::OrbExtractor::create(options.orb.forImageSize(left.width(), left.height()));
   if (!orb) return orb.error();
   return std::unique_ptr<Tracker>(
       new Tracker(std::make_unique<State>(options, std::move(orb.value()), left, right, T_s_c)));

@@ -64,6 +64,15 @@ struct OrbOptions {
 
   // Names the bad field.
   [[nodiscard]] Status validate() const;
+
+  // These options with the buffers sized for one camera's images (max_width x max_height = width x height):
+  // create() fills its buffers, so they are resident whether used or not.
+  [[nodiscard]] OrbOptions forImageSize(int width, int height) const {
+    OrbOptions sized = *this;
+    sized.max_width = width;
+    sized.max_height = height;
+    return sized;
+  }
 };
 
 class OrbExtractor {
