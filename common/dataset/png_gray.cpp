@@ -161,7 +161,7 @@ Result<bool> GrayPngDecoder::decodeInto(std::span<const std::uint8_t> file, cons
     return Error{ErrorCode::kInvalidArgument, "GrayPngDecoder: buffer size does not match width*height"};
   }
   if (file.size() < sizeof(kSignature) || std::memcmp(file.data(), kSignature, sizeof(kSignature)) != 0) {
-    return false;  // not a PNG: JPEG, PGM, ... for OpenCV
+    return false;  // not a PNG: JPEG, PGM, ...; the loader says which
   }
   const std::uint8_t* const begin = file.data();
   const std::size_t end = file.size();

@@ -2,7 +2,7 @@
 // simulator's images). It reads the file, inflates the image data with libdeflate and undoes the row filters
 // straight into the caller's buffer, reusing its own buffers from file to file: once they have grown to the
 // largest file seen it allocates nothing. Anything else (colour, 16-bit, interlaced, JPEG, PGM) it hands back
-// undecoded, for OpenCV to read.
+// undecoded: the loader (image.hpp) then names the format and how to convert it.
 //
 // The frame loader is a quarter to a third of the agent's CPU on one core (README, "On a small board"); most of
 // it was libpng's inflate and OpenCV's buffers around it.
