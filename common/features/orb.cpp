@@ -12,37 +12,34 @@
 #include <string>
 #include <vector>
 
+#include "common/features/byte_vectors.hpp"
+#include "common/features/fast_corners.hpp"
+
 namespace cvislam::features {
 
 namespace {
+
+using detail::CornerScan;
+using detail::F32x4;
+using detail::I32x4;
+using detail::keyLevel;
+using detail::keyScore;
+using detail::keyX;
+using detail::keyY;
+using detail::kMaxImageSide;
+using detail::load8x16;
+using detail::U16x8;
+using detail::U8x8;
+using detail::widen8;
 
 // ---------------------------------------------------------------------------------------------------------------
 // Constants and the test pattern.
 
 constexpr int kMaxLevels = 16;
-constexpr int kMaxImageSide = 4096;  // x and y are packed into 12 bits each in a candidate key
 constexpr int kPatchRadius = 15;     // orientation disc and descriptor test points
 constexpr int kBlurRadius = 3;
 // Gaussian of sigma 2 sampled at -3..3, scaled to sum to 256.
 constexpr std::array<std::uint16_t, 7> kBlurWeights = {18, 33, 49, 56, 49, 33, 18};
-
-// The 16 pixels of the Bresenham circle of radius 3, in order around the circle.
-constexpr std::array<std::array<int, 2>, 16> kFastCircle = {{{0, -3},
-                                                             {1, -3},
-                                                             {2, -2},
-                                                             {3, -1},
-                                                             {3, 0},
-                                                             {3, 1},
-                                                             {2, 2},
-                                                             {1, 3},
-                                                             {0, 3},
-                                                             {-1, 3},
-                                                             {-2, 2},
-                                                             {-3, 1},
-                                                             {-3, 0},
-                                                             {-3, -1},
-                                                             {-2, -2},
-                                                             {-1, -3}}};
 
 struct TestPair {
   std::int8_t x1 = 0;
@@ -161,269 +158,6 @@ constexpr std::array<int, kPatchRadius + 1> makeDiscHalfWidths() {
   return half;
 }
 constexpr std::array<int, kPatchRadius + 1> kDiscHalfWidths = makeDiscHalfWidths();
-
-// ---------------------------------------------------------------------------------------------------------------
-// Candidate keys: one 64-bit word per corner, so that sorting them orders by score and then by a hash of the
-// position (ties between equal FAST scores are frequent; a position hash breaks them without favouring any part
-// of the image, and deterministically).
-//   bits 56-63 score, 28-55 tie-break hash, 24-27 level, 12-23 y, 0-11 x
-
-constexpr std::uint64_t packKey(int score, int level, int x, int y) {
-  std::uint32_t h = static_cast<std::uint32_t>(x) * 0x9E3779B1U ^ static_cast<std::uint32_t>(y) * 0x85EBCA77U ^
-                    static_cast<std::uint32_t>(level) * 0xC2B2AE3DU;
-  h ^= h >> 15U;
-  h *= 0x2C1B3C6DU;
-  h ^= h >> 12U;
-  return (static_cast<std::uint64_t>(score) << 56U) | (static_cast<std::uint64_t>(h & 0x0FFFFFFFU) << 28U) |
-         (static_cast<std::uint64_t>(level) << 24U) | (static_cast<std::uint64_t>(y) << 12U) |
-         static_cast<std::uint64_t>(x);
-}
-constexpr int keyScore(std::uint64_t key) {
-  return static_cast<int>(key >> 56U);
-}
-constexpr int keyLevel(std::uint64_t key) {
-  return static_cast<int>((key >> 24U) & 0xFU);
-}
-constexpr int keyY(std::uint64_t key) {
-  return static_cast<int>((key >> 12U) & 0xFFFU);
-}
-constexpr int keyX(std::uint64_t key) {
-  return static_cast<int>(key & 0xFFFU);
-}
-
-// ---------------------------------------------------------------------------------------------------------------
-// Byte vectors (GCC/Clang vector extensions, no intrinsics): 16 lanes are SSE2 on x86-64 and NEON on AArch64;
-// the corner detector also has a 32-lane form for AVX2 (see detectCorners).
-
-// GCC warns that passing 32-byte vectors by value changes the ABI without AVX. Every function here that does is
-// internal to this file and inlined into its caller, so no call crosses the ABI.
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic ignored "-Wpsabi"
-#endif
-
-using U8x16 = std::uint8_t __attribute__((vector_size(16)));
-using U8x32 = std::uint8_t __attribute__((vector_size(32)));
-using U8x8 = std::uint8_t __attribute__((vector_size(8)));
-using U16x8 = std::uint16_t __attribute__((vector_size(16)));
-using F32x4 = float __attribute__((vector_size(16)));
-using I32x4 = std::int32_t __attribute__((vector_size(16)));
-
-template <class V>
-[[gnu::always_inline]] inline V load(const std::uint8_t* p) {
-  V v;
-  std::memcpy(&v, p, sizeof(v));
-  return v;
-}
-inline U16x8 widen8(const std::uint8_t* p) {
-  U8x8 v;
-  std::memcpy(&v, p, sizeof(v));
-  return __builtin_convertvector(v, U16x8);
-}
-inline U16x8 load8x16(const std::uint16_t* p) {
-  U16x8 v;
-  std::memcpy(&v, p, sizeof(v));
-  return v;
-}
-template <class V>
-[[gnu::always_inline]] inline V vmin(V a, V b) {
-  return a < b ? a : b;
-}
-template <class V>
-[[gnu::always_inline]] inline V vmax(V a, V b) {
-  return a > b ? a : b;
-}
-// As function objects, so that they inline wherever they are passed (also into the AVX2-compiled detector).
-struct Min {
-  template <class V>
-  [[gnu::always_inline]] V operator()(V a, V b) const {
-    return vmin(a, b);
-  }
-};
-struct Max {
-  template <class V>
-  [[gnu::always_inline]] V operator()(V a, V b) const {
-    return vmax(a, b);
-  }
-};
-template <class V>
-[[gnu::always_inline]] inline V saturatingSub(V a, V b) {
-  return a - vmin(a, b);
-}
-// The vector's bytes as 64-bit words.
-template <class V>
-[[gnu::always_inline]] inline std::array<std::uint64_t, sizeof(V) / 8> words(V v) {
-  std::array<std::uint64_t, sizeof(V) / 8> w{};
-  std::memcpy(w.data(), &v, sizeof(v));
-  return w;
-}
-template <class V>
-[[gnu::always_inline]] inline bool anyNonZero(V v) {
-  std::uint64_t any = 0;
-  for (const std::uint64_t w : words(v)) any |= w;
-  return any != 0;
-}
-
-// The FAST score of 16 consecutive pixels starting at p: the largest t for which 9 contiguous circle pixels are
-// all brighter than the centre + t or all darker than the centre - t, i.e. the best arc's smallest difference.
-// Pixels whose score is <= threshold (not FAST-9 corners at that threshold) get 0.
-//
-// The difference to the centre is monotonic in the circle pixel, so an arc's smallest difference is the
-// difference of its extreme pixel: brighter arcs are scored by max over arcs of the arc's darkest pixel, darker
-// arcs by min over arcs of the arc's brightest pixel, and the centre is subtracted once at the end.
-template <class V>
-[[gnu::always_inline]] inline V fastScores(const std::uint8_t* p, const std::array<std::ptrdiff_t, 16>& circle,
-                                           V threshold) {
-  const V centre = load<V>(p);
-  // Filled in stages below, each element before it is read; zeroing them first would cost in the hot loop.
-  std::array<V, 16> ring;  // NOLINT(cppcoreguidelines-pro-type-member-init)
-  // A 9-arc covers two neighbouring compass points (0, 4, 8, 12): test them first, as FAST does, and work out
-  // the arcs only of the polarity (brighter or darker) that passes in some pixel.
-  for (std::size_t k = 0; k < 16; k += 4) ring[k] = load<V>(p + circle[k]);
-  const V compass_bright = vmax(vmax(vmin(ring[0], ring[4]), vmin(ring[4], ring[8])),
-                                vmax(vmin(ring[8], ring[12]), vmin(ring[12], ring[0])));
-  const V compass_dark = vmin(vmin(vmax(ring[0], ring[4]), vmax(ring[4], ring[8])),
-                              vmin(vmax(ring[8], ring[12]), vmax(ring[12], ring[0])));
-  const bool bright = anyNonZero(reinterpret_cast<V>(saturatingSub(compass_bright, centre) > threshold));
-  const bool dark = anyNonZero(reinterpret_cast<V>(saturatingSub(centre, compass_dark) > threshold));
-  if (!bright && !dark) return V{};
-#pragma GCC unroll 16
-  for (std::size_t k = 0; k < 16; ++k) {
-    if (k % 4 != 0) ring[k] = load<V>(p + circle[k]);
-  }
-  // The best arc of 9 by doubling: extremes over arcs of 2, 4, 8, then 9. `inner` is min for brighter arcs
-  // (an arc is as bright as its darkest pixel) and `outer` picks the best arc, max; the other way for darker.
-  const auto best_arc = [&ring](auto inner, auto outer, V worst) __attribute__((always_inline)) {
-    std::array<V, 16> m2;  // NOLINT(cppcoreguidelines-pro-type-member-init): filled by the loops below
-    std::array<V, 16> m4;  // NOLINT(cppcoreguidelines-pro-type-member-init)
-#pragma GCC unroll 16
-    for (std::size_t k = 0; k < 16; ++k) m2[k] = inner(ring[k], ring[(k + 1) & 15U]);
-#pragma GCC unroll 16
-    for (std::size_t k = 0; k < 16; ++k) m4[k] = inner(m2[k], m2[(k + 2) & 15U]);
-    V best = worst;
-#pragma GCC unroll 16
-    for (std::size_t k = 0; k < 16; ++k)
-      best = outer(best, inner(inner(m4[k], m4[(k + 4) & 15U]), ring[(k + 8) & 15U]));
-    return best;
-  };
-  V score{};
-  if (bright) score = saturatingSub(best_arc(Min{}, Max{}, V{}), centre);
-  if (dark) score = vmax(score, saturatingSub(centre, best_arc(Max{}, Min{}, V{} + 255)));
-  return score & reinterpret_cast<V>(score > threshold);
-}
-
-// One pyramid level to scan for corners, and three rows of scratch for the scores.
-struct CornerScan {
-  const std::uint8_t* image = nullptr;
-  int width = 0;
-  int height = 0;
-  int edge = 0;  // corners at least this far from the border
-  std::uint8_t threshold = 0;
-  int level = 0;
-  std::array<std::ptrdiff_t, 16> circle{};  // offsets of the circle's pixels from the centre
-  std::array<std::uint8_t*, 3> score_rows{};
-};
-
-// FAST-9 corners of a level with 3x3 non-maximum suppression, sizeof(V) pixels at a time, into `corners`;
-// returns their number. Scores are computed one row ahead of the suppression, in a ring of three rows, over one
-// pixel more than the corners' range so that corners at its edge see all their neighbours. The same corners
-// for any lane count (integer arithmetic; the last block of a row overlaps the one before it).
-template <class V>
-[[gnu::always_inline]] inline int detectCorners(const CornerScan& scan, std::span<std::uint64_t> corners) {
-  constexpr int kLanes = sizeof(V);
-  const int w = scan.width;
-  const int h = scan.height;
-  const int edge = scan.edge;
-  const int x_begin = edge - 1;
-  const int x_end = w - edge + 1;     // scores over [x_begin, x_end), corners over [edge, w - edge)
-  const int corner_x_end = w - edge;  // corners over [edge, corner_x_end)
-  if (corner_x_end - edge < kLanes || h - 2 * edge < 1) return 0;  // too small for a row of kLanes corners
-  const V threshold = V{} + scan.threshold;
-
-  const auto score_row = [&](int y, std::uint8_t* out) __attribute__((always_inline)) {
-    // Only [x_begin, x_end) is written, and only that is read.
-    const std::uint8_t* r = scan.image + static_cast<std::ptrdiff_t>(y) * w;
-    for (int x = x_begin; x < x_end; x += kLanes) {
-      const int x0 = std::min(x, x_end - kLanes);  // the last block overlaps the one before: same scores
-      const V s = fastScores(r + x0, scan.circle, threshold);
-      std::memcpy(out + x0, &s, sizeof(s));
-    }
-  };
-
-  std::size_t count = 0;
-  std::uint8_t* above = scan.score_rows[0];
-  std::uint8_t* centre = scan.score_rows[1];
-  std::uint8_t* below = scan.score_rows[2];
-  score_row(edge - 1, above);
-  score_row(edge, centre);
-  for (int y = edge; y < h - edge; ++y) {
-    score_row(y + 1, below);
-    // Ties: a corner must beat its right and lower neighbours and equal at least those left and above, so
-    // that exactly one of two equal neighbours survives. The last block overlaps the one before it, whose
-    // pixels it skips.
-    for (int x = edge; x < corner_x_end; x += kLanes) {
-      const int x0 = std::min(x, corner_x_end - kLanes);
-      const V c = load<V>(centre + x0);
-      if (!anyNonZero(c)) continue;
-      const auto at_least = [&c](const std::uint8_t* q) __attribute__((always_inline)) {
-        return vmax(c, load<V>(q)) == c;
-      };
-      const auto beats = [&c](const std::uint8_t* q) __attribute__((always_inline)) {
-        return vmax(c, load<V>(q)) != load<V>(q);
-      };
-      const auto keep = reinterpret_cast<V>(at_least(above + x0 - 1) & at_least(above + x0) & at_least(above + x0 + 1) &
-                                            at_least(centre + x0 - 1) & beats(centre + x0 + 1) & beats(below + x0 - 1) &
-                                            beats(below + x0) & beats(below + x0 + 1));
-      const auto keep_words = words(keep);
-      for (std::size_t word = 0; word < keep_words.size(); ++word) {
-        std::uint64_t bits = keep_words[word] & 0x8080808080808080ULL;
-        while (bits != 0) {
-          const int lane = static_cast<int>(word) * 8 + std::countr_zero(bits) / 8;
-          bits &= bits - 1;
-          const int xx = x0 + lane;
-          if (xx < x || count >= corners.size()) continue;
-          corners[count++] = packKey(centre[xx], scan.level, xx, y);
-        }
-      }
-    }
-    std::uint8_t* recycled = above;
-    above = centre;
-    centre = below;
-    below = recycled;
-  }
-  return static_cast<int>(count);
-}
-
-// The 32-lane detector. Where the compiler targets AVX2 anyway (the board-x86-64-v3 preset) it is plain code;
-// in a generic x86-64 build it is compiled for AVX2 on its own and used only when the CPU has AVX2
-// (wideVectorsAvailable). Elsewhere (AArch64: NEON has 16 lanes) there is none.
-#if defined(__x86_64__) && !defined(__AVX2__)
-#define CVISLAM_ORB_WIDE_BY_CPU_CHECK 1
-__attribute__((target("avx2"))) int detectCornersWide(const CornerScan& scan, std::span<std::uint64_t> corners) {
-  return detectCorners<U8x32>(scan, corners);
-}
-#elif defined(__AVX2__)
-int detectCornersWide(const CornerScan& scan, std::span<std::uint64_t> corners) {
-  return detectCorners<U8x32>(scan, corners);
-}
-#else
-int detectCornersWide(const CornerScan& scan, std::span<std::uint64_t> corners) {
-  return detectCorners<U8x16>(scan, corners);
-}
-#endif
-
-// Whether detectCornersWide runs 32 lanes on this CPU. CVISLAM_ORB_NARROW=1 in the environment turns it off
-// (the corners are the same either way; it is there to compare, and as a way out should a CPU misreport).
-bool wideVectorsAvailable() {
-  const char* narrow = std::getenv("CVISLAM_ORB_NARROW");
-  if (narrow != nullptr && std::strcmp(narrow, "1") == 0) return false;
-#if defined(CVISLAM_ORB_WIDE_BY_CPU_CHECK)
-  return __builtin_cpu_supports("avx2") != 0;
-#elif defined(__AVX2__)
-  return true;
-#else
-  return false;
-#endif
-}
 
 struct LevelSize {
   int width = 0;
@@ -547,7 +281,7 @@ Result<OrbExtractor> OrbExtractor::create(const OrbOptions& options) {
   auto impl = std::make_unique<Impl>();
   Impl& m = *impl;
   m.options = options;
-  m.wide_vectors = wideVectorsAvailable();
+  m.wide_vectors = detail::wideVectorsAvailable();
   const int levels = options.pyramid_levels;
 
   // Budget of candidates per level, in proportion to 1/scale_factor^level (ORB's share-out).
@@ -676,13 +410,10 @@ int OrbExtractor::Impl::detectLevel(int level) {
   scan.edge = options.edge_threshold;
   scan.threshold = static_cast<std::uint8_t>(options.fast_threshold);
   scan.level = level;
-  for (std::size_t k = 0; k < 16; ++k) {
-    scan.circle[k] = static_cast<std::ptrdiff_t>(kFastCircle[k][1]) * scan.width + kFastCircle[k][0];
-  }
   for (std::size_t r = 0; r < score_rows.size(); ++r) scan.score_rows[r] = score_rows[r].data();
   const std::span<std::uint64_t> corners(level_corners);
-  if (wide_vectors && scan.width - 2 * scan.edge >= 32) return detectCornersWide(scan, corners);
-  return detectCorners<U8x16>(scan, corners);
+  if (wide_vectors && scan.width - 2 * scan.edge >= 32) return detail::detectCornersWide(scan, corners);
+  return detail::detectCornersNarrow(scan, corners);
 }
 
 // Rows [y_begin, y_end) of the level smoothed by the separable 7-tap Gaussian; the border is replicated.
@@ -887,52 +618,6 @@ int OrbExtractor::extract(std::span<const std::uint8_t> pixels, int width, int h
                descriptors[static_cast<std::size_t>(i)]);
   }
   return n;
-}
-
-int hammingDistance(const Descriptor& a, const Descriptor& b) {
-  int bits = 0;
-  for (std::size_t i = 0; i < a.size(); i += 8) {
-    std::uint64_t x = 0;
-    std::uint64_t y = 0;
-    std::memcpy(&x, a.data() + i, 8);
-    std::memcpy(&y, b.data() + i, 8);
-    bits += std::popcount(x ^ y);
-  }
-  return bits;
-}
-
-int matchDescriptors(std::span<const Descriptor> query, std::span<const Descriptor> train, const MatchOptions& options,
-                     std::span<DescriptorMatch> matches) {
-  int count = 0;
-  for (std::size_t q = 0; q < query.size() && static_cast<std::size_t>(count) < matches.size(); ++q) {
-    int best = std::numeric_limits<int>::max();
-    int second = std::numeric_limits<int>::max();
-    std::size_t best_train = 0;
-    for (std::size_t t = 0; t < train.size(); ++t) {
-      const int d = hammingDistance(query[q], train[t]);
-      if (d < best) {
-        second = best;
-        best = d;
-        best_train = t;
-      } else if (d < second) {
-        second = d;
-      }
-    }
-    if (best > options.max_distance) continue;
-    if (second != std::numeric_limits<int>::max() &&
-        static_cast<float>(best) > options.ratio * static_cast<float>(second)) {
-      continue;
-    }
-    if (options.mutual) {
-      bool is_mutual = true;
-      for (std::size_t other = 0; other < query.size() && is_mutual; ++other) {
-        if (other != q && hammingDistance(query[other], train[best_train]) < best) is_mutual = false;
-      }
-      if (!is_mutual) continue;
-    }
-    matches[static_cast<std::size_t>(count++)] = {static_cast<int>(q), static_cast<int>(best_train), best};
-  }
-  return count;
 }
 
 }  // namespace cvislam::features
