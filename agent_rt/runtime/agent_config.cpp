@@ -55,6 +55,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   tracking.read("min_coverage_ratio", o.tracking.keyframe.min_coverage_ratio);
   tracking.read("min_tracked_points", o.tracking.keyframe.min_tracked_points);
   tracking.read("max_lost_frames", o.tracking.max_lost_frames);
+  tracking.read("max_dead_reckoning_s", o.tracking.max_dead_reckoning_s);
   tracking.read("min_inliers", o.tracking.pose.min_inliers);
   tracking.read("max_pose_leverage", o.tracking.pose.max_leverage);
   tracking.read("motion_ba_keyframes", o.tracking.motion_ba_keyframes);

@@ -44,6 +44,9 @@ Status TrackerOptions::validate() const {
     return Error{ErrorCode::kInvalidArgument, "tracker: initialisation_max_frames_between must be >= 1"};
   }
   if (max_lost_frames < 1) return Error{ErrorCode::kInvalidArgument, "tracker: max_lost_frames must be >= 1"};
+  if (!(max_dead_reckoning_s > 0.0)) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: max_dead_reckoning_s must be > 0"};
+  }
   if (motion_ba_keyframes < 1 || motion_ba_keyframes > static_cast<int>(kMaxMotionBaKeyframes)) {
     return Error{ErrorCode::kInvalidArgument, "tracker: motion_ba_keyframes = " + std::to_string(motion_ba_keyframes) +
                                                   " must be in [1, " + std::to_string(kMaxMotionBaKeyframes) +
@@ -141,6 +144,9 @@ struct Tracker::State {
   imu::ImuBias bias;
   int lost_frames = 0;
   int waiting_frames = 0;  // frames since the new map was asked for
+  // The last frame tracked against a map, and its velocity (for predictions once dead reckoning is too long).
+  std::int64_t last_tracked_t_ns = -1;
+  Vector3d last_tracked_v_w = Vector3d::Zero();
   imu::Preintegration pre_frame;
 
   // The newest keyframe published.
@@ -216,6 +222,7 @@ struct Tracker::State {
   void applyToTrackedStates(const SE3d& delta_left) {
     T_w_s = delta_left * T_w_s;
     v_w = delta_left.so3() * v_w;
+    last_tracked_v_w = delta_left.so3() * last_tracked_v_w;
   }
 
   // Moves every stored state from the previous epoch into the snapshot's: p' = s R p + t, v' = s R v.
@@ -227,6 +234,7 @@ struct Tracker::State {
     };
     apply(T_w_s);
     v_w = scale * (T.so3() * v_w);
+    last_tracked_v_w = scale * (T.so3() * last_tracked_v_w);
     apply(keyframe_T_w_s);
     keyframe_v_w = scale * (T.so3() * keyframe_v_w);
     for (Published& p : published) {
@@ -486,8 +494,15 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   s.appendImu(frame.imu);
   SE3d T_pred = s.T_w_s;
   Vector3d v_pred = s.v_w;
+  // Lost for longer than the IMU can be trusted with the position (TrackerOptions::max_dead_reckoning_s): the
+  // prediction holds the position, and the search is as wide as while relocalising.
+  const bool dead_reckoning_too_long =
+      s.last_tracked_t_ns >= 0 && static_cast<double>(frame.t_ns - s.last_tracked_t_ns) * 1e-9 > o.max_dead_reckoning_s;
   if (s.started) {
-    if (s.imu_initialised && o.use_imu && imu_frame_ok) {
+    if (s.imu_initialised && o.use_imu && imu_frame_ok && dead_reckoning_too_long) {
+      T_pred = SE3d(s.T_w_s.so3() * s.pre_frame.correctedDeltaR(s.bias), s.T_w_s.translation());
+      v_pred = Vector3d::Zero();
+    } else if (s.imu_initialised && o.use_imu && imu_frame_ok) {
       const imu::NavState next = s.pre_frame.predict(imu::NavState{s.T_w_s, s.v_w}, s.bias);
       T_pred = next.T_w_s;
       v_pred = next.v_w;
@@ -641,7 +656,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   }
 
   // 4. Guided search with the prediction, pose, second search, pose again.
-  const bool relocalising = s.status == TrackingStatus::kRelocalising;
+  const bool relocalising = s.status == TrackingStatus::kRelocalising || dead_reckoning_too_long;
   s.observation_count = 0;
   std::fill_n(s.keypoint_taken.begin(), n, std::uint8_t{0});
   std::fill_n(s.point_matched.begin(), s.snapshot->point_count, std::uint8_t{0});
@@ -785,6 +800,8 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     }
   }
   result.tracked = true;
+  s.last_tracked_t_ns = frame.t_ns;
+  s.last_tracked_v_w = v;
   finish(T, v);
   return result;
 }

@@ -46,6 +46,12 @@ struct TrackerOptions {
   MappingLagOptions lag;
   int initialisation_max_frames_between = 3;  // keyframe spacing until the IMU is initialised (paper: 3)
   int max_lost_frames = 20;                   // frames of failed relocalisation before a new map
+  // How long after the last tracked frame the IMU alone may carry the position. IMU-only velocity drifts with
+  // every error in gravity and bias (right after the IMU initialisation: metres per second within seconds, and a
+  // new map started at that velocity was lost again at once, map after map). Beyond this the prediction holds
+  // the position and takes only the rotation from the gyro, a new map starts at rest, and the search is as wide
+  // as while relocalising until a frame is tracked again.
+  double max_dead_reckoning_s = 1.0;
   bool use_imu = true;                        // prediction and motion-only BA with the IMU, once initialised
   // n: the newest keyframes in motion-only BA with the frame (paper IV-C), 1 to kMaxMotionBaKeyframes
   // (CVISLAM_MAX_MOTION_BA_KEYFRAMES). The oldest of them is held; the others' poses and velocities are

@@ -1,5 +1,7 @@
 #include "test/support/inline_agent.hpp"
 
+#include <algorithm>
+
 #include "agent_rt/runtime/sensor_setup.hpp"
 
 namespace cvislam::test {
@@ -41,6 +43,17 @@ Status InlineAgent::load(std::size_t i) {
   input_.imu = agent::imuCovering(sequence_.imu(), previous_t_ns_ < 0 ? frame.t_ns : previous_t_ns_, frame.t_ns);
   previous_t_ns_ = frame.t_ns;
   return Status::Ok();
+}
+
+void InlineAgent::coverCamera() {
+  std::fill(left_.begin(), left_.end(), std::uint8_t{0});
+  std::fill(right_.begin(), right_.end(), std::uint8_t{0});
+}
+
+void InlineAgent::offsetAccelerometer(const Eigen::Vector3d& offset_s) {
+  disturbed_imu_.assign(input_.imu.begin(), input_.imu.end());
+  for (dataset::ImuSample& sample : disturbed_imu_) sample.accel_s += offset_s;
+  input_.imu = disturbed_imu_;
 }
 
 void InlineAgent::answerKeyframe() {

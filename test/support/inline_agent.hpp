@@ -36,6 +36,10 @@ class InlineAgent {
     answerKeyframe();
     return result;
   }
+  // Disturbances of the loaded frame, for tests: the camera covered (black images), and an offset added to its
+  // accelerometer samples (as an error the IMU initialisation left would act).
+  void coverCamera();
+  void offsetAccelerometer(const Eigen::Vector3d& offset_s);
   [[nodiscard]] bool imuInitialised() const { return tracker_->imuInitialised(); }
   [[nodiscard]] int pendingKeyframes() const { return tracker_->pendingKeyframes(); }
 
@@ -120,6 +124,7 @@ class InlineAgent {
   std::deque<std::unique_ptr<agent::KeyframeMessage>> queue_;
   std::vector<std::uint8_t> left_;
   std::vector<std::uint8_t> right_;
+  std::vector<dataset::ImuSample> disturbed_imu_;
   agent::FrameInput input_;
   std::int64_t previous_t_ns_ = -1;
 };

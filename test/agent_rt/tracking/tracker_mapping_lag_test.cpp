@@ -5,6 +5,8 @@
 // back-off keeps track() free of allocations in the steady state.
 #include <algorithm>
 #include <cstdio>
+#include <limits>
+#include <string>
 
 #include <gtest/gtest.h>
 
@@ -126,6 +128,78 @@ TEST_F(MappingLag, WithoutTheBackOffTheBacklogGrows) {
   EXPECT_GT(slow.most_backlog, 2U * static_cast<std::size_t>(TrackerOptions{}.lag.max_pending_keyframes));
   EXPECT_GT(slow.maps, 1U);
   EXPECT_LT(slow.tracked_after_start * 2, slow.frames_after_start);
+}
+
+// A long loss with the IMU initialised (tracking lost for seconds, as at --rate 3 when mapping lagged): the
+// camera is covered for 2.5 s while the accelerometer reads 1 m/s^2 off (an error the IMU initialisation can leave).
+// Dead reckoning all along, the velocity was 2.5 m/s off when the camera came back; the new map started at that
+// velocity and was lost again at once, map after map (45 maps in a 60 s run). With max_dead_reckoning_s the
+// position is held once the IMU has carried it for a second, and the new map is tracked from its first frames.
+// The mapper answers late, as a lagging one does: by the new map's answer the wrong velocity has moved the
+// prediction far from the camera.
+// A mapper that answers each keyframe 5 frames (0.25 s) later: the new map comes while the camera moves on.
+constexpr int kMappingFrames = 5;
+
+struct LossRun {
+  std::uint32_t maps = 0;
+  int frames_after = 0;  // frames after the camera came back
+  int tracked_after = 0;
+};
+
+LossRun runWithALongLoss(const dataset::EurocSequence& seq, double max_dead_reckoning_s) {
+  TrackerOptions options;
+  options.max_dead_reckoning_s = max_dead_reckoning_s;
+  auto created = test::InlineAgent::create(seq, true, options);
+  EXPECT_TRUE(created.ok()) << created.error().toString();
+  LossRun run;
+  if (!created.ok()) return run;
+  test::InlineAgent& agent = **created;
+  agent.setMappingFramesPerKeyframe(kMappingFrames);
+  constexpr int kTrackedFirst = 60;  // frames tracked with the IMU before the camera is covered
+  constexpr int kCovered = 50;       // 2.5 s
+  int covered_from = -1;
+  for (std::size_t i = 0; i < agent.frameCount(); ++i) {
+    EXPECT_TRUE(agent.load(i).ok());
+    const int n = static_cast<int>(i);
+    if (covered_from < 0 && agent.imuInitialised()) covered_from = n + kTrackedFirst;
+    const bool covered = covered_from >= 0 && n >= covered_from && n < covered_from + kCovered;
+    if (covered) {
+      agent.coverCamera();
+      agent.offsetAccelerometer(Eigen::Vector3d(1.0, 0.0, 0.0));
+    }
+    const FrameResult r = agent.track([] {}, [] {});
+    run.maps = std::max(run.maps, r.map_id);
+    if (covered_from >= 0 && n >= covered_from + kCovered) {
+      ++run.frames_after;
+      run.tracked_after += r.tracked ? 1 : 0;
+    }
+  }
+  std::printf("max_dead_reckoning_s %.0f: %u maps, %d of %d frames tracked after the camera came back\n",
+              max_dead_reckoning_s, run.maps, run.tracked_after, run.frames_after);
+  return run;
+}
+
+TEST_F(MappingLag, AfterALongLossTheNewMapIsTrackedAtOnce) {
+  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  ASSERT_TRUE(seq.ok()) << seq.error().toString();
+  const LossRun bounded = runWithALongLoss(*seq, TrackerOptions{}.max_dead_reckoning_s);
+  ASSERT_GE(bounded.frames_after, 100);
+  EXPECT_LE(bounded.maps, 2U) << "the map started after the loss was lost again";
+  EXPECT_GE(bounded.tracked_after * 100, bounded.frames_after * 90);
+  // Dead reckoning without the bound (as before) shows the failure, else this test no longer tests it.
+  const LossRun unbounded = runWithALongLoss(*seq, 1e9);
+  EXPECT_GT(unbounded.maps, 2U);
+}
+
+TEST(TrackerOptions, ADeadReckoningBoundThatIsNotPositiveIsNamed) {
+  TrackerOptions options;
+  EXPECT_TRUE(options.validate().ok());
+  for (const double bad : {0.0, -1.0, std::numeric_limits<double>::quiet_NaN()}) {
+    options.max_dead_reckoning_s = bad;
+    const Status status = options.validate();
+    ASSERT_FALSE(status.ok()) << bad;
+    EXPECT_NE(status.error().message().find("max_dead_reckoning_s"), std::string::npos);
+  }
 }
 
 // Frames that come before the first map are carried without a velocity (there is none yet), so the first frame
