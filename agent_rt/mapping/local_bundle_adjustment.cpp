@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <memory>
+#include <optional>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
@@ -62,10 +63,27 @@ struct PointState {
 // Lower bound of rho = 1/z: in front of the reference camera, and finite.
 constexpr double kMinInverseDepth = 1e-8;
 
+// Ends the solve after the current iteration when the caller's predicate says so.
+class StopWhenAsked final : public ceres::IterationCallback {
+ public:
+  explicit StopWhenAsked(const std::function<bool()>& stop) : stop_(stop) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary& /*summary*/) override {
+    if (!stop_()) return ceres::SOLVER_CONTINUE;
+    stopped_ = true;
+    return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
+  }
+  [[nodiscard]] bool stopped() const { return stopped_; }
+
+ private:
+  const std::function<bool()>& stop_;
+  bool stopped_ = false;
+};
+
 }  // namespace
 
 Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
-                                                              const LocalBundleAdjustmentOptions& options) {
+                                                              const LocalBundleAdjustmentOptions& options,
+                                                              const std::function<bool()>& stop) {
   if (Status status = options.validate(); !status.ok()) return status.error();
   LocalBundleAdjustmentSummary summary;
 
@@ -255,8 +273,14 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   }
   solver_options.max_num_iterations = options.max_iterations;
   solver_options.num_threads = 1;
+  std::optional<StopWhenAsked> stop_when_asked;
+  if (stop) {
+    stop_when_asked.emplace(stop);
+    solver_options.callbacks.push_back(&*stop_when_asked);
+  }
   ceres::Solver::Summary ceres_summary;
   ceres::Solve(solver_options, &problem, &ceres_summary);
+  summary.stopped_early = stop_when_asked && stop_when_asked->stopped();
   if (!ceres_summary.IsSolutionUsable()) {
     return Error{ErrorCode::kDegenerate, "local BA failed: " + ceres_summary.message};
   }

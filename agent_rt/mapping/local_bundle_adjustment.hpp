@@ -14,8 +14,11 @@
 // remains is over the keyframes only. A point with no inverse-depth point (corrupt: its bearing nearly in the
 // reference image plane) is left out, unchanged.
 //
-// Runs in the mapping thread and allocates (Ceres does); tracking never waits for it.
+// Runs in the mapping thread and allocates (Ceres does); tracking never waits for it. A caller that has newer
+// work waiting (the next keyframe) can stop it after any iteration: what the finished iterations gave is kept.
 #pragma once
+
+#include <functional>
 
 #include "agent_rt/map/local_map.hpp"
 #include "common/core/result.hpp"
@@ -55,11 +58,15 @@ struct LocalBundleAdjustmentSummary {
   int second_camera_rejected = 0;  // stereo mismatches left out
   int imu_factors = 0;
   int iterations = 0;
+  bool stopped_early = false;  // `stop` asked for it before max_iterations or convergence
   double initial_cost = 0.0;
   double final_cost = 0.0;
 };
 
+// `stop`, when given, is asked after every iteration; true ends the solve there (the result so far is written
+// back, as after the last iteration).
 Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
-                                                              const LocalBundleAdjustmentOptions& options);
+                                                              const LocalBundleAdjustmentOptions& options,
+                                                              const std::function<bool()>& stop = {});
 
 }  // namespace cvislam::agent

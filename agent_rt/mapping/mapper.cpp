@@ -513,7 +513,8 @@ Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& re
 
 }  // namespace
 
-Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta) {
+Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta,
+                                     const std::function<bool()>& keyframe_waiting) {
   State& s = *s_;
   MapperReport report;
   if (delta != nullptr) {
@@ -648,11 +649,15 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
 
   // Local BA, then the IMU initialisation when due.
   const bool map_ready = stereo || s.mono_initialised;
-  if (map_ready && s.map.keyframes().size() >= 2) {
+  const std::function<bool()> yield =
+      s.options.yield_to_waiting_keyframes && keyframe_waiting ? keyframe_waiting : std::function<bool()>{};
+  if (map_ready && s.map.keyframes().size() >= 2 && yield && yield()) {
+    report.ba_skipped = true;
+  } else if (map_ready && s.map.keyframes().size() >= 2) {
     LocalBundleAdjustmentOptions ba = s.options.ba;
     ba.use_imu = s.imu_initialised && s.options.use_imu;
     const auto t0 = std::chrono::steady_clock::now();
-    auto summary = runLocalBundleAdjustment(s.map, ba);
+    auto summary = runLocalBundleAdjustment(s.map, ba, yield);
     report.ba_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - t0).count();
     if (summary) {
       report.ba_ran = true;

@@ -12,6 +12,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 
 #include "agent_rt/map/local_map.hpp"
@@ -71,6 +72,11 @@ struct MapperOptions {
   int mono_init_min_matches = 80;
   double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
   DownlinkOptions downlink;
+  // Mapping behind tracking (ORB-SLAM's local mapping does the same): when the next keyframe is already waiting,
+  // this keyframe's local BA is skipped, and a running one stops after its current iteration. The next keyframe's
+  // BA refines the same window, so the map stays consistent; tracking gets the keyframe's points sooner. At
+  // `--pace sync` tracking waits for every answer, so nothing ever waits and nothing changes.
+  bool yield_to_waiting_keyframes = true;
 
   [[nodiscard]] Status validate() const;
 };
@@ -90,6 +96,7 @@ struct MapperReport {
   int culled = 0;
   int evicted = 0;
   bool ba_ran = false;
+  bool ba_skipped = false;  // the next keyframe was waiting (MapperOptions::yield_to_waiting_keyframes)
   LocalBundleAdjustmentSummary ba;
   std::int64_t ba_ns = 0;
   std::uint64_t lost_messages = 0;  // keyframe messages missing before this one
@@ -133,9 +140,10 @@ class Mapper {
   Mapper& operator=(const Mapper&) = delete;
 
   // Processes one keyframe and writes the resulting local map into `snapshot` and, when given, what changed
-  // into `delta` (for the link to the server).
+  // into `delta` (for the link to the server). `keyframe_waiting`, when given, says whether the next keyframe
+  // has arrived (see MapperOptions::yield_to_waiting_keyframes).
   Result<MapperReport> process(const KeyframeMessage& keyframe, MapSnapshotMessage& snapshot,
-                               MapDeltaMessage* delta = nullptr);
+                               MapDeltaMessage* delta = nullptr, const std::function<bool()>& keyframe_waiting = {});
 
   // Applies one downlink message (link -> mapping) between keyframes. Messages of a stream apply in sequence;
   // one older than the newest applied is ignored (stale), one that repeats what the map holds changes nothing.

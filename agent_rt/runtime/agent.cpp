@@ -492,6 +492,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   }
 
   summary.new_maps = mapping_stats.new_maps;
+  summary.local_ba_skipped = mapping_stats.ba_skipped;
+  summary.local_ba_stopped_early = mapping_stats.ba_stopped_early;
   summary.lost_keyframe_messages = mapping_stats.lost_messages;
   summary.imu_initialised_at_s =
       mapping_stats.imu_initialised_at_s < 0
@@ -534,6 +536,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                       {"deferred_keyframes", summary.deferred_keyframes},
                       {"frames_needing_mapping", summary.frames_needing_mapping},
                       {"most_pending_keyframes", summary.most_pending_keyframes},
+                      {"local_ba_skipped", summary.local_ba_skipped},
+                      {"local_ba_stopped_early", summary.local_ba_stopped_early},
                       {"imu_initialised_at_s", summary.imu_initialised_at_s},
                       {"mean_tracked_points", summary.mean_tracked_points},
                       {"mode", stereo ? "stereo" : "mono"},

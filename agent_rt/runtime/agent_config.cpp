@@ -68,6 +68,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   mapping.read("max_keyframes", o.mapping.max_keyframes);
   mapping.read("ba_window", o.mapping.ba.window);
   mapping.read("ba_iterations", o.mapping.ba.max_iterations);
+  mapping.read("yield_to_waiting_keyframes", o.mapping.yield_to_waiting_keyframes);
   mapping.read("min_covisible", o.mapping.ba.min_covisible);
   mapping.read("triangulation_neighbours", o.mapping.triangulation_neighbours);
   mapping.read("stereo_max_depth_m", o.mapping.stereo.max_depth_m);

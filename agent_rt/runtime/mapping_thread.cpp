@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <cstdio>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <thread>
@@ -126,6 +127,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     std::this_thread::sleep_for(std::chrono::milliseconds(2));
   }
   ready.store(true);
+  const std::function<bool()> keyframe_waiting = [&keyframes] { return keyframes.hasData(); };
   std::unique_ptr<MapSnapshotMessage> fallback;  // only if no chunk can be loaned
   std::unique_ptr<MapDeltaMessage> delta_fallback;
   std::uint64_t sequence = 0;
@@ -170,7 +172,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
         std::fprintf(stderr, "[mapping] no free delta chunk: the link misses this keyframe's changes\n");
       }
     }
-    auto report = mapper.process(msg, *out, delta);
+    auto report = mapper.process(msg, *out, delta, keyframe_waiting);
     if (delta_sample) {
       // Published whatever happened to the keyframe: the link counts deltas by sequence.
       delta->sequence = delta_sequence;
@@ -191,18 +193,23 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     stats.lost_messages += report->lost_messages;
     if (report->ba_ran) local_ba.add(report->ba_ns);
     if (report->ba_ran && report->ba.anchor_factors > 0) ++stats.ba_with_anchors;
+    stats.ba_skipped += report->ba_skipped ? 1 : 0;
+    stats.ba_stopped_early += report->ba_ran && report->ba.stopped_early ? 1 : 0;
     if (options.trace_mapping) {
       std::fprintf(
           stderr,
           "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
           "triangulated %d, culled %d; BA %d keyframes + %d fixed (%d anchors), %d points (%d left out), %d factors "
-          "(%d cam1, %d mismatches left out, %d by anchors), cost %.1f -> %.1f in %d iterations, %.1f ms\n",
+          "(%d cam1, %d mismatches left out, %d by anchors), cost %.1f -> %.1f in %d iterations, %.1f ms%s\n",
           t_s, msg.state.id.toString().c_str(), report->linked, report->fused, report->merged, report->stereo_matches,
           report->stereo_points, report->triangulated, report->culled, report->ba.window_keyframes,
           report->ba.fixed_keyframes, report->ba.anchor_keyframes, report->ba.map_points,
           report->ba.map_points_left_out, report->ba.reprojection_factors, report->ba.second_camera_factors,
           report->ba.second_camera_rejected, report->ba.anchor_factors, report->ba.initial_cost, report->ba.final_cost,
-          report->ba.iterations, static_cast<double>(report->ba_ns) * 1e-6);
+          report->ba.iterations, static_cast<double>(report->ba_ns) * 1e-6,
+          report->ba_skipped         ? " (BA skipped: the next keyframe is waiting)"
+          : report->ba.stopped_early ? " (BA cut short: the next keyframe is waiting)"
+                                     : "");
     }
     if (report->new_map) ++stats.new_maps;
     if (report->imu_initialised_now && stats.imu_initialised_at_s < 0) stats.imu_initialised_at_s = t_s;

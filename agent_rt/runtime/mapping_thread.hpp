@@ -42,6 +42,9 @@ struct MappingStats {
   double largest_correction_m = 0.0;
   double largest_correction_deg = 0.0;
   std::size_t ba_with_anchors = 0;  // local BAs in which anchors' observations took part
+  // Mapping behind (MapperOptions::yield_to_waiting_keyframes): local BAs left out, and cut short.
+  std::size_t ba_skipped = 0;
+  std::size_t ba_stopped_early = 0;
 
   void add(const DownlinkReport& r) {
     ++downlink_messages;

@@ -271,6 +271,34 @@ TEST(LocalBundleAdjustment, AStereoMismatchIsLeftOut) {
   EXPECT_EQ(summary->second_camera_factors, static_cast<int>(f.scenario.observations.size()) - 1);
 }
 
+// Mapping stops a local BA when the next keyframe arrives (MapperOptions::yield_to_waiting_keyframes): the solve
+// ends after the iteration in which it was asked to, and what the iterations so far gained is written back.
+TEST(LocalBundleAdjustment, AStopRequestEndsTheSolveAndKeepsWhatItGained) {
+  Fixture full_map = makeMap(true);
+  auto full = runLocalBundleAdjustment(*full_map.map, baOptions(full_map.scenario, 8), [] { return false; });
+  ASSERT_TRUE(full.ok()) << full.error().toString();
+  EXPECT_FALSE(full->stopped_early);
+  ASSERT_GE(full->iterations, 3) << "too easy a problem to see a stop";
+
+  Fixture f = makeMap(true);
+  const KeyframeData& last = *f.map->keyframes().get(f.keyframes.back());
+  const SE3d before = last.T_w_s;
+  int asked = 0;
+  auto stopped = runLocalBundleAdjustment(*f.map, baOptions(f.scenario, 8), [&asked] { return ++asked >= 2; });
+  ASSERT_TRUE(stopped.ok()) << stopped.error().toString();
+  std::printf("full: %d iterations, cost %.3e; stopped when asked the 2nd time: %d iterations, cost %.3e -> %.3e\n",
+              full->iterations, full->final_cost, stopped->iterations, stopped->initial_cost, stopped->final_cost);
+  EXPECT_TRUE(stopped->stopped_early);
+  EXPECT_EQ(asked, 2) << "the solve went on after it was asked to stop";
+  EXPECT_LT(stopped->iterations, full->iterations);
+  EXPECT_LT(stopped->final_cost, stopped->initial_cost);
+  EXPECT_GT(stopped->final_cost, full->final_cost);
+  // Written back: the newest keyframe moved towards the truth.
+  const SE3d& truth = f.scenario.keyframe_states.back().T_w_s;
+  const SE3d after = f.map->keyframes().get(f.keyframes.back())->T_w_s;
+  EXPECT_LT((after.translation() - truth.translation()).norm(), (before.translation() - truth.translation()).norm());
+}
+
 TEST(LocalBundleAdjustmentOptions, ValidateNamesTheBadField) {
   LocalBundleAdjustmentOptions options;
   EXPECT_TRUE(options.validate().ok());

@@ -193,6 +193,64 @@ TEST_F(MapperTest, MonocularStartLinkFuseTriangulateAndBound) {
   EXPECT_EQ(snapshot_->keyframe_count, 6u);
 }
 
+// Mapping behind tracking: with the next keyframe waiting, a keyframe's local BA is skipped, and one that is
+// running stops when the next keyframe arrives; the keyframe itself is still taken into the map. Without the
+// option, the waiting keyframe changes nothing.
+TEST_F(MapperTest, AWaitingKeyframeSkipsOrCutsShortLocalBa) {
+  ASSERT_TRUE(mapper_->process(keyframe(0, KeyframeKind::kNewMap, truePose(0)), *snapshot_).ok());
+  auto r2 = mapper_->process(keyframe(2, KeyframeKind::kTracked, truePose(0)), *snapshot_);
+  ASSERT_TRUE(r2.ok());
+  ASSERT_TRUE(r2->mono_initialised_now) << r2->note;
+  double scale = 0.0;  // the map's, from the distance of keyframes 0 and 2 (0.25 m apart per step in truth)
+  {
+    std::vector<geometry::SE3d> poses;
+    mapper_->map().keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { poses.push_back(kf.T_w_s); });
+    ASSERT_EQ(poses.size(), 2U);
+    scale = (poses[0].translation() - poses[1].translation()).norm() /
+            (truePose(0).translation() - truePose(2).translation()).norm();
+  }
+  const std::uint32_t points_before = snapshot_->point_count;
+
+  const auto waiting = [] { return true; };
+  auto r3 = mapper_->process(keyframe(3, KeyframeKind::kTracked, truePose(3, scale)), *snapshot_, nullptr, waiting);
+  ASSERT_TRUE(r3.ok()) << r3.error().toString();
+  EXPECT_TRUE(r3->ba_skipped);
+  EXPECT_FALSE(r3->ba_ran);
+  EXPECT_EQ(mapper_->map().keyframes().size(), 3U) << "the keyframe itself must still be taken";
+  EXPECT_GE(snapshot_->point_count, points_before);
+
+  // Arrives during the BA: asked once per iteration, the second time it says yes.
+  int asked = 0;
+  const auto arrives = [&asked] { return ++asked >= 3; };  // the first ask is the skip check
+  auto r4 = mapper_->process(keyframe(4, KeyframeKind::kTracked, truePose(4, scale)), *snapshot_, nullptr, arrives);
+  ASSERT_TRUE(r4.ok()) << r4.error().toString();
+  EXPECT_FALSE(r4->ba_skipped);
+  ASSERT_TRUE(r4->ba_ran);
+  EXPECT_TRUE(r4->ba.stopped_early);
+  EXPECT_EQ(asked, 3);
+  EXPECT_LE(r4->ba.iterations, 1);
+}
+
+TEST_F(MapperTest, AWaitingKeyframeChangesNothingWithTheOptionOff) {
+  options_.yield_to_waiting_keyframes = false;
+  auto mapper = Mapper::create(options_, *camera_, nullptr, T_s_c_, SE3d());
+  ASSERT_TRUE(mapper.ok()) << mapper.error().toString();
+  mapper_ = std::move(mapper.value());
+  ASSERT_TRUE(mapper_->process(keyframe(0, KeyframeKind::kNewMap, truePose(0)), *snapshot_).ok());
+  int asked = 0;
+  const auto waiting = [&asked] {
+    ++asked;
+    return true;
+  };
+  auto r2 = mapper_->process(keyframe(2, KeyframeKind::kTracked, truePose(0)), *snapshot_, nullptr, waiting);
+  ASSERT_TRUE(r2.ok());
+  ASSERT_TRUE(r2->mono_initialised_now) << r2->note;
+  EXPECT_FALSE(r2->ba_skipped);
+  EXPECT_TRUE(r2->ba_ran);
+  EXPECT_FALSE(r2->ba.stopped_early);
+  EXPECT_EQ(asked, 0);
+}
+
 TEST_F(MapperTest, RefusesAnOversizedMessage) {
   KeyframeMessage& m = *message_;
   m = KeyframeMessage{};
