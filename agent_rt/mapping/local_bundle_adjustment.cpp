@@ -63,19 +63,21 @@ struct PointState {
 // Lower bound of rho = 1/z: in front of the reference camera, and finite.
 constexpr double kMinInverseDepth = 1e-8;
 
-// Ends the solve after the current iteration when the caller's predicate says so.
+// Ends the solve after the current iteration when the caller's predicate says so. Asked from the first
+// iteration on (not after the initial evaluation: at least one step is taken) and not after the last one.
 class StopWhenAsked final : public ceres::IterationCallback {
  public:
-  explicit StopWhenAsked(const std::function<bool()>& stop) : stop_(stop) {}
-  ceres::CallbackReturnType operator()(const ceres::IterationSummary& /*summary*/) override {
-    if (!stop_()) return ceres::SOLVER_CONTINUE;
+  StopWhenAsked(const std::function<bool()>& stop, int max_iterations) : stop_(stop), max_iterations_(max_iterations) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary& summary) override {
+    if (summary.iteration < 1 || summary.iteration >= max_iterations_ || !stop_()) return ceres::SOLVER_CONTINUE;
     stopped_ = true;
     return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
   }
   [[nodiscard]] bool stopped() const { return stopped_; }
 
  private:
-  const std::function<bool()>& stop_;
+  const std::function<bool()>& stop_;  // the caller's, which outlives the solve
+  int max_iterations_ = 0;
   bool stopped_ = false;
 };
 
@@ -275,7 +277,7 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   solver_options.num_threads = 1;
   std::optional<StopWhenAsked> stop_when_asked;
   if (stop) {
-    stop_when_asked.emplace(stop);
+    stop_when_asked.emplace(stop, options.max_iterations);
     solver_options.callbacks.push_back(&*stop_when_asked);
   }
   ceres::Solver::Summary ceres_summary;

@@ -58,13 +58,13 @@ struct LocalBundleAdjustmentSummary {
   int second_camera_rejected = 0;  // stereo mismatches left out
   int imu_factors = 0;
   int iterations = 0;
-  bool stopped_early = false;  // `stop` asked for it before max_iterations or convergence
+  bool stopped_early = false;  // `stop` ended the solve before its last iteration
   double initial_cost = 0.0;
   double final_cost = 0.0;
 };
 
-// `stop`, when given, is asked after every iteration; true ends the solve there (the result so far is written
-// back, as after the last iteration).
+// `stop`, when given, is asked after every iteration but the last (not before the first: at least one step is
+// taken); true ends the solve there, and the result so far is written back as after the last iteration.
 Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
                                                               const LocalBundleAdjustmentOptions& options,
                                                               const std::function<bool()>& stop = {});

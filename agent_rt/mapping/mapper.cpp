@@ -511,6 +511,9 @@ Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& re
   return Status::Ok();
 }
 
+// No keyframe ever waits (the default of process()).
+const std::function<bool()> kNeverYield;
+
 }  // namespace
 
 Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta,
@@ -649,10 +652,14 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
 
   // Local BA, then the IMU initialisation when due.
   const bool map_ready = stereo || s.mono_initialised;
-  const std::function<bool()> yield =
-      s.options.yield_to_waiting_keyframes && keyframe_waiting ? keyframe_waiting : std::function<bool()>{};
-  if (map_ready && s.map.keyframes().size() >= 2 && yield && yield()) {
+  const std::function<bool()>& yield =
+      s.options.yield_to_waiting_keyframes && keyframe_waiting ? keyframe_waiting : kNeverYield;
+  // Skipped at most every other keyframe, and never for the keyframe that made the monocular map.
+  const bool may_skip = yield && !s.ba_skipped_last && !report.mono_initialised_now;
+  s.ba_skipped_last = false;
+  if (map_ready && s.map.keyframes().size() >= 2 && may_skip && yield()) {
     report.ba_skipped = true;
+    s.ba_skipped_last = true;
   } else if (map_ready && s.map.keyframes().size() >= 2) {
     LocalBundleAdjustmentOptions ba = s.options.ba;
     ba.use_imu = s.imu_initialised && s.options.use_imu;

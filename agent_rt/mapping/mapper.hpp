@@ -73,7 +73,8 @@ struct MapperOptions {
   double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
   DownlinkOptions downlink;
   // Mapping behind tracking (ORB-SLAM's local mapping does the same): when the next keyframe is already waiting,
-  // this keyframe's local BA is skipped, and a running one stops after its current iteration. The next keyframe's
+  // this keyframe's local BA is skipped (never two in a row, nor the one of the keyframe that makes the monocular
+  // map), and a running one stops after its current iteration (after one iteration at least). The next keyframe's
   // BA refines the same window, so the map stays consistent; tracking gets the keyframe's points sooner. At
   // `--pace sync` tracking waits for every answer, so nothing ever waits and nothing changes.
   bool yield_to_waiting_keyframes = true;

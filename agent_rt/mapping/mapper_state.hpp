@@ -42,6 +42,7 @@ struct Mapper::State {
   geometry::SE3d epoch_transform;
   bool imu_initialised = false;
   bool mono_initialised = false;
+  bool ba_skipped_last = false;  // the previous keyframe's local BA was skipped (the next one is not)
   std::optional<PoolHandle> mono_reference;
   std::uint64_t expected_sequence = 0;
   bool seen_message = false;

@@ -144,9 +144,9 @@ struct Tracker::State {
   imu::ImuBias bias;
   int lost_frames = 0;
   int waiting_frames = 0;  // frames since the new map was asked for
-  // The last frame tracked against a map, and its velocity (for predictions once dead reckoning is too long).
-  std::int64_t last_tracked_t_ns = -1;
-  Vector3d last_tracked_v_w = Vector3d::Zero();
+  // Sequence time the frames since the last tracked one spanned, when none of them was tracked (lost, or waiting
+  // for a new map); 0 after a tracked frame. A gap in the images between two tracked frames does not count.
+  double untracked_s = 0.0;
   imu::Preintegration pre_frame;
 
   // The newest keyframe published.
@@ -222,7 +222,6 @@ struct Tracker::State {
   void applyToTrackedStates(const SE3d& delta_left) {
     T_w_s = delta_left * T_w_s;
     v_w = delta_left.so3() * v_w;
-    last_tracked_v_w = delta_left.so3() * last_tracked_v_w;
   }
 
   // Moves every stored state from the previous epoch into the snapshot's: p' = s R p + t, v' = s R v.
@@ -234,7 +233,6 @@ struct Tracker::State {
     };
     apply(T_w_s);
     v_w = scale * (T.so3() * v_w);
-    last_tracked_v_w = scale * (T.so3() * last_tracked_v_w);
     apply(keyframe_T_w_s);
     keyframe_v_w = scale * (T.so3() * keyframe_v_w);
     for (Published& p : published) {
@@ -494,13 +492,14 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   s.appendImu(frame.imu);
   SE3d T_pred = s.T_w_s;
   Vector3d v_pred = s.v_w;
-  // Lost for longer than the IMU can be trusted with the position (TrackerOptions::max_dead_reckoning_s): the
-  // prediction holds the position, and the search is as wide as while relocalising.
-  const bool dead_reckoning_too_long =
-      s.last_tracked_t_ns >= 0 && static_cast<double>(frame.t_ns - s.last_tracked_t_ns) * 1e-9 > o.max_dead_reckoning_s;
+  // With the IMU initialised, lost (or waiting for a new map) for longer than the IMU can be trusted with the
+  // position (TrackerOptions::max_dead_reckoning_s): the prediction holds the position, with or without this
+  // frame's IMU, and the search is as wide as while relocalising until a frame is tracked.
+  const bool dead_reckoning_too_long = s.imu_initialised && o.use_imu && s.untracked_s > o.max_dead_reckoning_s;
   if (s.started) {
-    if (s.imu_initialised && o.use_imu && imu_frame_ok && dead_reckoning_too_long) {
-      T_pred = SE3d(s.T_w_s.so3() * s.pre_frame.correctedDeltaR(s.bias), s.T_w_s.translation());
+    if (dead_reckoning_too_long) {
+      const SO3d dR = imu_frame_ok ? s.pre_frame.correctedDeltaR(s.bias) : SO3d();
+      T_pred = SE3d(s.T_w_s.so3() * dR, s.T_w_s.translation());
       v_pred = Vector3d::Zero();
     } else if (s.imu_initialised && o.use_imu && imu_frame_ok) {
       const imu::NavState next = s.pre_frame.predict(imu::NavState{s.T_w_s, s.v_w}, s.bias);
@@ -531,6 +530,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   auto finish = [&](const SE3d& T, const Vector3d& v) {
     s.T_w_s = T;
     s.v_w = v;
+    s.untracked_s = result.tracked || !s.started ? 0.0 : s.untracked_s + dt_s;
     s.last_t_ns = frame.t_ns;
     s.started = true;
     ++s.frames_since_keyframe;
@@ -800,8 +800,6 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     }
   }
   result.tracked = true;
-  s.last_tracked_t_ns = frame.t_ns;
-  s.last_tracked_v_w = v;
   finish(T, v);
   return result;
 }

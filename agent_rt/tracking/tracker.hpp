@@ -46,7 +46,8 @@ struct TrackerOptions {
   MappingLagOptions lag;
   int initialisation_max_frames_between = 3;  // keyframe spacing until the IMU is initialised (paper: 3)
   int max_lost_frames = 20;                   // frames of failed relocalisation before a new map
-  // How long after the last tracked frame the IMU alone may carry the position. IMU-only velocity drifts with
+  // How long the IMU alone may carry the position while tracking is lost or waits for a new map (once the IMU is
+  // initialised; a gap in the images between two tracked frames does not count). IMU-only velocity drifts with
   // every error in gravity and bias (right after the IMU initialisation: metres per second within seconds, and a
   // new map started at that velocity was lost again at once, map after map). Beyond this the prediction holds
   // the position and takes only the rotation from the gyro, a new map starts at rest, and the search is as wide

@@ -290,6 +290,7 @@ TEST(LocalBundleAdjustment, AStopRequestEndsTheSolveAndKeepsWhatItGained) {
               full->iterations, full->final_cost, stopped->iterations, stopped->initial_cost, stopped->final_cost);
   EXPECT_TRUE(stopped->stopped_early);
   EXPECT_EQ(asked, 2) << "the solve went on after it was asked to stop";
+  EXPECT_EQ(stopped->iterations, 2) << "asked after iterations 1 and 2, not after the initial evaluation";
   EXPECT_LT(stopped->iterations, full->iterations);
   EXPECT_LT(stopped->final_cost, stopped->initial_cost);
   EXPECT_GT(stopped->final_cost, full->final_cost);

@@ -133,7 +133,7 @@ TEST_F(MappingLag, WithoutTheBackOffTheBacklogGrows) {
 // A long loss with the IMU initialised (tracking lost for seconds, as at --rate 3 when mapping lagged): the
 // camera is covered for 2.5 s while the accelerometer reads 1 m/s^2 off (an error the IMU initialisation can leave).
 // Dead reckoning all along, the velocity was 2.5 m/s off when the camera came back; the new map started at that
-// velocity and was lost again at once, map after map (45 maps in a 60 s run). With max_dead_reckoning_s the
+// velocity and was lost again at once, map after map (41-45 maps in a 60 s run). With max_dead_reckoning_s the
 // position is held once the IMU has carried it for a second, and the new map is tracked from its first frames.
 // The mapper answers late, as a lagging one does: by the new map's answer the wrong velocity has moved the
 // prediction far from the camera.
