@@ -72,11 +72,12 @@ struct MapperOptions {
   int mono_init_min_matches = 80;
   double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
   DownlinkOptions downlink;
-  // Mapping behind tracking (ORB-SLAM's local mapping does the same): when the next keyframe is already waiting,
-  // this keyframe's local BA is skipped (never two in a row, nor the one of the keyframe that makes the monocular
-  // map), and a running one stops after its current iteration (after one iteration at least). The next keyframe's
-  // BA refines the same window, so the map stays consistent; tracking gets the keyframe's points sooner. At
-  // `--pace sync` tracking waits for every answer, so nothing ever waits and nothing changes.
+  // Mapping behind tracking (ORB-SLAM's local mapping does the same): when the next keyframe is already waiting
+  // (or tracking has asked, its keyframe overdue: the agent's YieldRequests), this keyframe's local BA is skipped
+  // (never two in a row, nor the one of the keyframe that makes the monocular map), and a running one stops after
+  // its current iteration (after one iteration at least). The next keyframe's BA refines the same window, so the
+  // map stays consistent; tracking gets the keyframe's points sooner. At `--pace sync` tracking waits for every
+  // answer, so nothing ever waits, tracking never asks, and nothing changes.
   bool yield_to_waiting_keyframes = true;
 
   [[nodiscard]] Status validate() const;
@@ -97,7 +98,7 @@ struct MapperReport {
   int culled = 0;
   int evicted = 0;
   bool ba_ran = false;
-  bool ba_skipped = false;  // the next keyframe was waiting (MapperOptions::yield_to_waiting_keyframes)
+  bool ba_skipped = false;  // the next keyframe was waiting, or tracking asked (yield_to_waiting_keyframes)
   LocalBundleAdjustmentSummary ba;
   std::int64_t ba_ns = 0;
   std::uint64_t lost_messages = 0;  // keyframe messages missing before this one
@@ -142,7 +143,7 @@ class Mapper {
 
   // Processes one keyframe and writes the resulting local map into `snapshot` and, when given, what changed
   // into `delta` (for the link to the server). `keyframe_waiting`, when given, says whether the next keyframe
-  // has arrived (see MapperOptions::yield_to_waiting_keyframes).
+  // has arrived or tracking has asked mapping to yield (see MapperOptions::yield_to_waiting_keyframes).
   Result<MapperReport> process(const KeyframeMessage& keyframe, MapSnapshotMessage& snapshot,
                                MapDeltaMessage* delta = nullptr, const std::function<bool()>& keyframe_waiting = {});
 

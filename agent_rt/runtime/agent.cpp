@@ -238,6 +238,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   std::atomic<bool> loader_stop{false};
   std::atomic<bool> tracking_done{false};
   std::atomic<bool> mapping_ready{false};
+  YieldRequests yield_requests;  // tracking -> mapping: cut the local BA short (FrameResult::keyframe_overdue)
 
   // Each thread takes its own scheduling when it starts (tracking last, once the others are started: threads
   // inherit a real-time policy from the thread that starts them). What the process may not do is said once.
@@ -310,7 +311,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   std::thread mapping([&] {
     schedule_this_thread("mapping", threads.mapping);
-    mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready);
+    mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready,
+                 yield_requests);
   });
 
   // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.
@@ -410,6 +412,10 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       }
       if (r.issue == FrameIssue::kKeyframeDropped) ++summary.dropped_keyframes;
       if (r.keyframe_deferred) ++summary.deferred_keyframes;
+      if (r.keyframe_overdue) {
+        ++summary.mapping_yield_requests;
+        yield_requests.request();
+      }
       if (r.needs_mapping) ++summary.frames_needing_mapping;
       summary.most_pending_keyframes = std::max(summary.most_pending_keyframes, r.pending_keyframes);
       if (!r.tracked && r.status != TrackingStatus::kWaitingForMap) {
@@ -494,6 +500,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   summary.new_maps = mapping_stats.new_maps;
   summary.local_ba_skipped = mapping_stats.ba_skipped;
   summary.local_ba_stopped_early = mapping_stats.ba_stopped_early;
+  summary.local_ba_yielded_to_tracking = mapping_stats.ba_yielded_to_tracking;
   summary.lost_keyframe_messages = mapping_stats.lost_messages;
   summary.imu_initialised_at_s =
       mapping_stats.imu_initialised_at_s < 0
@@ -536,8 +543,10 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                       {"deferred_keyframes", summary.deferred_keyframes},
                       {"frames_needing_mapping", summary.frames_needing_mapping},
                       {"most_pending_keyframes", summary.most_pending_keyframes},
+                      {"mapping_yield_requests", summary.mapping_yield_requests},
                       {"local_ba_skipped", summary.local_ba_skipped},
                       {"local_ba_stopped_early", summary.local_ba_stopped_early},
+                      {"local_ba_yielded_to_tracking", summary.local_ba_yielded_to_tracking},
                       {"imu_initialised_at_s", summary.imu_initialised_at_s},
                       {"mean_tracked_points", summary.mean_tracked_points},
                       {"mode", stereo ? "stereo" : "mono"},
@@ -568,12 +577,14 @@ std::string formatSummary(const AgentRunSummary& s) {
       text, sizeof(text),
       "frames %zu, tracked %zu (%.1f %%), keyframes %zu, maps %zu, mean tracked points %.0f\n"
       "IMU initialised at %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, keyframes dropped %zu\n"
-      "mapping busy: keyframes deferred %zu, frames that needed mapping's answer %zu, most keyframes pending %d\n",
+      "mapping busy: keyframes deferred %zu, frames that needed mapping's answer %zu, most keyframes pending %d\n"
+      "mapping asked to yield on %zu frames; local BAs skipped %zu, cut short %zu (for tracking's request %zu)\n",
       s.frames, s.tracked_frames, s.frames > 0 ? 100.0 * s.tracked_frames / s.frames : 0.0, s.keyframes, s.new_maps,
       s.mean_tracked_points,
       s.imu_initialised_at_s < 0 ? "never" : (std::to_string(s.imu_initialised_at_s) + " s").c_str(),
       s.unreadable_frames, s.imu_gaps, s.lost_frames, s.dropped_keyframes, s.deferred_keyframes,
-      s.frames_needing_mapping, s.most_pending_keyframes);
+      s.frames_needing_mapping, s.most_pending_keyframes, s.mapping_yield_requests, s.local_ba_skipped,
+      s.local_ba_stopped_early, s.local_ba_yielded_to_tracking);
   return std::string(text) + formatLatencyTable(s.stages);
 }
 

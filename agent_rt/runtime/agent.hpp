@@ -80,8 +80,11 @@ struct AgentRunSummary {
   std::size_t deferred_keyframes = 0;      // asked for by the rules, held back while mapping was busy
   std::size_t frames_needing_mapping = 0;  // lost, or needing a keyframe, while mapping was behind
   int most_pending_keyframes = 0;
-  std::size_t local_ba_skipped = 0;        // the next keyframe was waiting (MapperOptions::yield_to_waiting_keyframes)
-  std::size_t local_ba_stopped_early = 0;  // cut short for the same reason
+  std::size_t mapping_yield_requests = 0;  // frames whose keyframe was overdue: mapping was asked to yield
+  // The next keyframe was waiting, or tracking asked (MapperOptions::yield_to_waiting_keyframes, YieldRequests).
+  std::size_t local_ba_skipped = 0;
+  std::size_t local_ba_stopped_early = 0;  // cut short for the same reasons
+  std::size_t local_ba_yielded_to_tracking = 0;  // of those skipped or cut short, because tracking asked
   std::size_t lost_keyframe_messages = 0;
   bool link_enabled = false;
   LinkStatus link;

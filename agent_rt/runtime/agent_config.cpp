@@ -62,6 +62,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   tracking.read("back_off_when_mapping_busy", o.tracking.lag.back_off);
   tracking.read("max_pending_keyframes", o.tracking.lag.max_pending_keyframes);
   tracking.read("min_tracked_points_when_busy", o.tracking.lag.min_tracked_points_when_busy);
+  tracking.read("yield_request_after_s", o.tracking.lag.yield_request_after_s);
   if (Status s = tracking.finish(); !s.ok()) return in_file(s);
 
   YamlSection mapping = section("mapping");

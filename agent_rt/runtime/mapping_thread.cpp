@@ -38,7 +38,8 @@ nlohmann::json MappingStats::downlinkJson() const {
 
 void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool>& tracking_done,
                    const std::atomic<bool>& stop, LatencyRecorder& receive, LatencyRecorder& local_ba,
-                   LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready) {
+                   LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready,
+                   YieldRequests& yield_requests) {
   const bool with_link = !options.link.server.empty();
   iox::popo::SubscriberOptions sub_options;
   const ChannelDepths depths = ChannelDepths::forLag(options.tracking.lag);
@@ -127,7 +128,13 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     std::this_thread::sleep_for(std::chrono::milliseconds(2));
   }
   ready.store(true);
-  const std::function<bool()> keyframe_waiting = [&keyframes] { return keyframes.hasData(); };
+  bool yielded_to_tracking = false;  // this keyframe's BA yielded to a request rather than to a queued keyframe
+  const std::function<bool()> keyframe_waiting = [&] {
+    if (keyframes.hasData()) return true;
+    if (!yield_requests.askedSinceKeyframeTaken()) return false;
+    yielded_to_tracking = true;
+    return true;
+  };
   std::unique_ptr<MapSnapshotMessage> fallback;  // only if no chunk can be loaned
   std::unique_ptr<MapDeltaMessage> delta_fallback;
   std::uint64_t sequence = 0;
@@ -144,6 +151,8 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
       continue;
     }
     const KeyframeMessage& msg = *taken.value();
+    yield_requests.keyframeTaken();
+    yielded_to_tracking = false;
     tsanAcquire(&msg);
     const ChunkReleaseOnExit release_keyframe{&msg};
     const std::int64_t t0 = steadyNs();
@@ -195,6 +204,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
     if (report->ba_ran && report->ba.anchor_factors > 0) ++stats.ba_with_anchors;
     stats.ba_skipped += report->ba_skipped ? 1 : 0;
     stats.ba_stopped_early += report->ba_ran && report->ba.stopped_early ? 1 : 0;
+    stats.ba_yielded_to_tracking += yielded_to_tracking ? 1 : 0;
     if (options.trace_mapping) {
       std::fprintf(
           stderr,
@@ -207,8 +217,10 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
           report->ba.map_points_left_out, report->ba.reprojection_factors, report->ba.second_camera_factors,
           report->ba.second_camera_rejected, report->ba.anchor_factors, report->ba.initial_cost, report->ba.final_cost,
           report->ba.iterations, static_cast<double>(report->ba_ns) * 1e-6,
-          report->ba_skipped         ? " (BA skipped: the next keyframe is waiting)"
-          : report->ba.stopped_early ? " (BA cut short: the next keyframe is waiting)"
+          report->ba_skipped && yielded_to_tracking           ? " (BA skipped: tracking asked)"
+          : report->ba_skipped                                ? " (BA skipped: the next keyframe is waiting)"
+          : report->ba.stopped_early && yielded_to_tracking ? " (BA cut short: tracking asked)"
+          : report->ba.stopped_early                          ? " (BA cut short: the next keyframe is waiting)"
                                      : "");
     }
     if (report->new_map) ++stats.new_maps;

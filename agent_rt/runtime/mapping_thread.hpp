@@ -14,6 +14,7 @@
 #include "agent_rt/mapping/mapper.hpp"
 #include "agent_rt/runtime/agent.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
+#include "agent_rt/runtime/yield_requests.hpp"
 
 namespace cvislam::agent {
 
@@ -45,6 +46,7 @@ struct MappingStats {
   // Mapping behind (MapperOptions::yield_to_waiting_keyframes): local BAs left out, and cut short.
   std::size_t ba_skipped = 0;
   std::size_t ba_stopped_early = 0;
+  std::size_t ba_yielded_to_tracking = 0;  // of those skipped or cut short: tracking had asked (YieldRequests)
 
   void add(const DownlinkReport& r) {
     ++downlink_messages;
@@ -72,9 +74,11 @@ struct MappingStats {
 };
 
 // Runs until tracking is done (or `stop`) and every keyframe it sent is processed. `ready` is set once the
-// snapshot (and delta) topics have their subscribers.
+// snapshot (and delta) topics have their subscribers. Local BA yields (MapperOptions::yield_to_waiting_keyframes)
+// to a keyframe already queued, and to tracking's requests since the keyframe was taken (`yield_requests`).
 void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool>& tracking_done,
                    const std::atomic<bool>& stop, LatencyRecorder& receive, LatencyRecorder& local_ba,
-                   LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready);
+                   LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready,
+                   YieldRequests& yield_requests);
 
 }  // namespace cvislam::agent

@@ -19,11 +19,16 @@ Status MappingLagOptions::validate() const {
   if (!(answer_timeout_s > 0.0) || !std::isfinite(answer_timeout_s)) {
     return Error{ErrorCode::kInvalidArgument, "tracker: lag.answer_timeout_s must be > 0"};
   }
+  if (!(yield_request_after_s >= 0.0) || !std::isfinite(yield_request_after_s)) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "tracker: lag.yield_request_after_s must be a finite number of seconds >= 0 (0: ask at once)"};
+  }
   return Status::Ok();
 }
 
 std::uint64_t MappingBacklog::publish(std::int64_t steady_ns) {
   publish_steady_ns_[next_sequence_ % kCapacity] = steady_ns;
+  holding_back_ = false;
   return next_sequence_++;
 }
 
@@ -58,6 +63,14 @@ KeyframeGate MappingBacklog::gate(const MappingPressure& pressure, int tracked_p
     g.needs_mapping = needed;
   }
   return g;
+}
+
+bool MappingBacklog::heldBack(std::int64_t t_ns) {
+  if (!holding_back_) {
+    holding_back_ = true;
+    held_back_since_ns_ = t_ns;
+  }
+  return t_ns - held_back_since_ns_ >= std::llround(options_.yield_request_after_s * 1e9);
 }
 
 }  // namespace cvislam::agent

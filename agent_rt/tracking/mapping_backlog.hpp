@@ -7,6 +7,10 @@
 // A keyframe is pending from its publication until a snapshot counts it, or until answer_timeout_s has passed
 // (mapping refused it, or has stopped): a lost answer must not stop keyframes for good.
 //
+// A keyframe held back for long is overdue: the map tracking searches falls behind the camera, and tracking asks
+// mapping to cut its local BA short (ORB-SLAM's local mapping aborts its BA the same way). Only once it has been
+// held back for yield_request_after_s of sequence time, so that a mapper that keeps up is never interrupted.
+//
 // Plain state on the stack of the tracker: no allocation, no clock of its own (callers pass steady-clock times).
 #pragma once
 
@@ -28,6 +32,10 @@ struct MappingLagOptions {
   int max_pending_keyframes = 2;          // no keyframe while this many are unanswered: the backlog stays bounded
   // A keyframe unanswered for this long (wall clock) stops counting: mapping refused it or has stopped.
   double answer_timeout_s = 5.0;
+  // Keyframes held back without a break for this long (sequence time, from the first one held back since the last
+  // keyframe published) ask mapping to cut its local BA short. 0: at once, as ORB-SLAM does; a mapper that keeps
+  // up would then be interrupted too, and realtime runs would no longer repeat --pace sync.
+  double yield_request_after_s = 0.1;
 
   [[nodiscard]] Status validate() const;
 };
@@ -62,12 +70,17 @@ class MappingBacklog {
   [[nodiscard]] MappingPressure pressure(std::int64_t now_ns) const;
   // The rule for a keyframe the rules asked for, given how many map points the frame tracked.
   [[nodiscard]] KeyframeGate gate(const MappingPressure& pressure, int tracked_points) const;
+  // A keyframe the rules asked for was held back at sequence time t_ns. True when keyframes have been held back
+  // since at least yield_request_after_s before it (with no keyframe published in between): mapping should yield.
+  bool heldBack(std::int64_t t_ns);
 
  private:
   MappingLagOptions options_;
   std::uint64_t next_sequence_ = 0;
   std::uint64_t taken_ = 0;
   std::array<std::int64_t, kCapacity> publish_steady_ns_{};  // by sequence modulo kCapacity
+  bool holding_back_ = false;           // a keyframe was held back since the last one published
+  std::int64_t held_back_since_ns_ = 0;  // sequence time of the first of them
 };
 
 }  // namespace cvislam::agent

@@ -645,6 +645,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
                s.keypoint_count >= o.pose.min_inliers) {
       if (mapping.full) {
         result.keyframe_deferred = true;
+        result.keyframe_overdue = s.backlog.heldBack(frame.t_ns);
         result.needs_mapping = true;
       } else {
         s.observation_count = 0;
@@ -794,6 +795,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     const KeyframeGate gate = s.backlog.gate(mapping, tracking_state.tracked_points);
     if (!gate.publish) {
       result.keyframe_deferred = true;
+      result.keyframe_overdue = s.backlog.heldBack(frame.t_ns);
       result.needs_mapping = gate.needs_mapping;
     } else if (publish_keyframe(KeyframeKind::kTracked, T, v)) {
       s.keyframe_coverage = tracking_state.coverage;

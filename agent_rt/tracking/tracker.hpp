@@ -118,6 +118,9 @@ struct FrameResult {
   bool keyframe = false;
   KeyframeReason keyframe_reason = KeyframeReason::kNone;
   bool keyframe_deferred = false;  // the rules asked for a keyframe; mapping was busy (see MappingLagOptions)
+  // Keyframes have been held back for MappingLagOptions::yield_request_after_s: the caller should ask mapping to
+  // cut its local BA short (the agent does, through MappingYieldRequests).
+  bool keyframe_overdue = false;
   int pending_keyframes = 0;       // published and not yet answered by mapping, when the frame was tracked
   // Tracking needs mapping's answer to go on well: a keyframe it needed was held back by a full backlog, or it
   // is lost while keyframes are pending. A caller without a clock (--pace fast) waits for mapping here.

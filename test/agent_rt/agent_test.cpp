@@ -3,6 +3,7 @@
 // (an IMU gap, a missing image, a black frame, an unreadable image), an interrupted run, and config errors.
 #include "agent_rt/runtime/agent.hpp"
 #include "agent_rt/runtime/channel_depths.hpp"
+#include "agent_rt/runtime/yield_requests.hpp"
 
 #include <atomic>
 #include <chrono>
@@ -242,6 +243,74 @@ TEST_F(AgentTest, RefusesWhatCannotWork) {
   auto refused = runAgent(bad, stop);
   ASSERT_FALSE(refused.ok());
   EXPECT_NE(refused.error().message().find("max_features"), std::string::npos) << refused.error().message();
+}
+
+// At --pace fast with the whole agent on one core, tracking outruns mapping: keyframes are held back, and once one
+// is overdue tracking asks mapping to yield, which cuts its local BAs short (issue 17). The wiring with real threads
+// and iceoryx: requests counted on tracking's side, BAs cut short on mapping's, one map throughout. With the request
+// delay beyond the sequence's length, tracking never asks.
+TEST_F(AgentTest, OnOneCoreAtFastPaceTrackingAsksTheLaggingMapperToYield) {
+  cpu_set_t saved;
+  ASSERT_EQ(sched_getaffinity(0, sizeof(saved), &saved), 0);
+  int cpu = 0;
+  while (cpu < CPU_SETSIZE && !CPU_ISSET(cpu, &saved)) ++cpu;
+  ASSERT_LT(cpu, CPU_SETSIZE);
+  cpu_set_t one;
+  CPU_ZERO(&one);
+  CPU_SET(cpu, &one);
+  // This thread only; the agent's threads, started from it, inherit the one core.
+  ASSERT_EQ(sched_setaffinity(0, sizeof(one), &one), 0);
+  struct RestoreAffinity {
+    cpu_set_t set;
+    ~RestoreAffinity() { (void)sched_setaffinity(0, sizeof(set), &set); }
+  } const restore{saved};
+
+  const std::atomic<bool> stop{false};
+  AgentOptions o = options(sequence(), "fast_one_core");
+  o.mode = AgentMode::kStereo;
+  o.pace = Pace::kFast;
+  auto asked = runAgent(o, stop);
+  ASSERT_TRUE(asked.ok()) << asked.error().toString();
+  std::printf("asked to yield:\n%s", formatSummary(*asked).c_str());
+  EXPECT_EQ(asked->new_maps, 1u);
+  // Frames lost once tracking has started (the first few wait for the first map, longer when mapping lags).
+  EXPECT_LE(asked->lost_frames * 100, asked->frames) << asked->tracked_frames << " of " << asked->frames << " tracked";
+  EXPECT_GT(asked->deferred_keyframes, 0u) << "mapping kept up on one core: the test no longer starves it";
+  EXPECT_GT(asked->mapping_yield_requests, 0u);
+  EXPECT_LT(asked->mapping_yield_requests, asked->deferred_keyframes) << "asked at once, not after the delay";
+  EXPECT_GT(asked->local_ba_yielded_to_tracking, 0u) << "mapping did not see tracking's requests";
+  EXPECT_LE(asked->local_ba_yielded_to_tracking, asked->local_ba_stopped_early + asked->local_ba_skipped);
+  const auto [ate_m, scale_error] = evaluate(asked->trajectory, sequence());
+  std::printf("fast pace on one core, asking mapping to yield: ATE %.3f m, scale error %.2f %%\n", ate_m, scale_error);
+  EXPECT_LT(ate_m, 0.05);
+
+  o.output = dir_->path() / "fast_one_core_never_asks";
+  o.tracking.lag.yield_request_after_s = 1e6;
+  auto never = runAgent(o, stop);
+  ASSERT_TRUE(never.ok()) << never.error().toString();
+  std::printf("never asked:\n%s", formatSummary(*never).c_str());
+  EXPECT_GT(never->deferred_keyframes, 0u);
+  EXPECT_EQ(never->mapping_yield_requests, 0u);
+  EXPECT_EQ(never->local_ba_yielded_to_tracking, 0u);
+}
+
+// Mapping sees tracking's requests to yield only from the keyframe it took last on; requests from another thread
+// are seen without a lock.
+TEST(YieldRequests, MappingSeesTheRequestsSinceItTookAKeyframe) {
+  YieldRequests requests;
+  EXPECT_FALSE(requests.askedSinceKeyframeTaken());
+  requests.request();
+  EXPECT_TRUE(requests.askedSinceKeyframeTaken());
+  requests.keyframeTaken();
+  EXPECT_FALSE(requests.askedSinceKeyframeTaken());
+  std::thread tracking([&requests] {
+    for (int i = 0; i < 1000; ++i) requests.request();
+  });
+  tracking.join();
+  EXPECT_TRUE(requests.askedSinceKeyframeTaken());
+  EXPECT_EQ(requests.requests(), 1001u);
+  requests.keyframeTaken();
+  EXPECT_FALSE(requests.askedSinceKeyframeTaken());
 }
 
 // The keyframe pool follows the backlog's bound: with the back-off, twice max_pending_keyframes queued (8 at

@@ -101,6 +101,34 @@ TEST(MappingBacklog, WhileBusyAKeyframeOnlyWhenTrackingWouldOtherwiseBeLost) {
   EXPECT_FALSE(g.needs_mapping);
 }
 
+constexpr std::int64_t kFrame = 50 * kMs;  // 20 Hz, sequence time
+
+// A keyframe held back is overdue once keyframes have been held back for yield_request_after_s of sequence time,
+// counted from the first one held back since the last keyframe published; publishing one starts the count again.
+TEST(MappingBacklog, KeyframesHeldBackForLongAreOverdueUntilOneIsPublished) {
+  MappingLagOptions options;
+  options.yield_request_after_s = 0.1;
+  MappingBacklog backlog{options};
+  const std::int64_t t0 = 1'000'000 * kMs;
+  EXPECT_FALSE(backlog.heldBack(t0));
+  EXPECT_FALSE(backlog.heldBack(t0 + kFrame));
+  EXPECT_TRUE(backlog.heldBack(t0 + 2 * kFrame));  // 0.1 s since the first
+  EXPECT_TRUE(backlog.heldBack(t0 + 5 * kFrame));
+  (void)backlog.publish(0);  // a keyframe went out: the next one held back starts a new count
+  EXPECT_FALSE(backlog.heldBack(t0 + 6 * kFrame));
+  EXPECT_FALSE(backlog.heldBack(t0 + 7 * kFrame));
+  EXPECT_TRUE(backlog.heldBack(t0 + 8 * kFrame));
+}
+
+TEST(MappingBacklog, WithNoDelayTheFirstKeyframeHeldBackIsOverdue) {
+  MappingLagOptions options;
+  options.yield_request_after_s = 0.0;
+  MappingBacklog backlog{options};
+  EXPECT_TRUE(backlog.heldBack(7 * kFrame));
+  (void)backlog.publish(0);
+  EXPECT_TRUE(backlog.heldBack(9 * kFrame));
+}
+
 TEST(MappingLagOptions, RefusesValuesThatWouldBreakTheBoundOrTheTimeout) {
   EXPECT_TRUE(MappingLagOptions{}.validate().ok());
   MappingLagOptions o;
@@ -123,6 +151,16 @@ TEST(MappingLagOptions, RefusesValuesThatWouldBreakTheBoundOrTheTimeout) {
   EXPECT_FALSE(o.validate().ok());
   o.answer_timeout_s = 0.0;
   EXPECT_FALSE(o.validate().ok());
+
+  o = MappingLagOptions{};
+  o.yield_request_after_s = 0.0;
+  EXPECT_TRUE(o.validate().ok());
+  for (const double bad : {-0.1, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity()}) {
+    o.yield_request_after_s = bad;
+    s = o.validate();
+    ASSERT_FALSE(s.ok()) << bad;
+    EXPECT_NE(s.error().message().find("lag.yield_request_after_s"), std::string::npos) << s.error().toString();
+  }
 }
 
 }  // namespace

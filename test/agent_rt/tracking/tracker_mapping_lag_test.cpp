@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -128,6 +129,66 @@ TEST_F(MappingLag, WithoutTheBackOffTheBacklogGrows) {
   EXPECT_GT(slow.most_backlog, 2U * static_cast<std::size_t>(TrackerOptions{}.lag.max_pending_keyframes));
   EXPECT_GT(slow.maps, 1U);
   EXPECT_LT(slow.tracked_after_start * 2, slow.frames_after_start);
+}
+
+// What the tracker says of each frame's keyframe: asked for and published, held back, overdue.
+struct KeyframeTrace {
+  bool published = false;
+  bool deferred = false;
+  bool overdue = false;
+};
+
+std::vector<KeyframeTrace> traceKeyframes(const dataset::EurocSequence& seq, double yield_request_after_s) {
+  TrackerOptions options;
+  options.lag.yield_request_after_s = yield_request_after_s;
+  auto created = test::InlineAgent::create(seq, true, options);
+  EXPECT_TRUE(created.ok()) << created.error().toString();
+  std::vector<KeyframeTrace> trace;
+  if (!created.ok()) return trace;
+  test::InlineAgent& agent = **created;
+  agent.setMappingFramesPerKeyframe(kSlow);
+  for (std::size_t i = 0; i < agent.frameCount(); ++i) {
+    EXPECT_TRUE(agent.load(i).ok());
+    const FrameResult r = agent.track([] {}, [] {});
+    trace.push_back({r.keyframe, r.keyframe_deferred, r.keyframe_overdue});
+  }
+  return trace;
+}
+
+// With a starved mapper, keyframes are held back; a frame's keyframe is overdue exactly when keyframes have been
+// held back since yield_request_after_s before it, counted from the first one held back after the last keyframe
+// published (MappingLagOptions). That is what the agent turns into a request that mapping yield (YieldRequests).
+TEST_F(MappingLag, AKeyframeHeldBackForLongIsOverdue) {
+  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  ASSERT_TRUE(seq.ok()) << seq.error().toString();
+  constexpr double kFramePeriodS = 0.05;
+  for (const double after_s : {0.1, 0.0}) {
+    const std::vector<KeyframeTrace> trace = traceKeyframes(*seq, after_s);  // one entry per frame, 20 Hz
+    ASSERT_GT(trace.size(), 300U);
+    int deferred = 0;
+    int overdue = 0;
+    long first_held_back = -1;  // frame index, since the last keyframe published
+    for (std::size_t i = 0; i < trace.size(); ++i) {
+      const KeyframeTrace& f = trace[i];
+      if (f.published) first_held_back = -1;
+      bool expected = false;
+      if (f.deferred) {
+        if (first_held_back < 0) first_held_back = static_cast<long>(i);
+        expected = static_cast<double>(static_cast<long>(i) - first_held_back) * kFramePeriodS >= after_s - 1e-9;
+      }
+      EXPECT_EQ(f.overdue, expected) << "frame " << i << ", yield_request_after_s " << after_s;
+      deferred += f.deferred ? 1 : 0;
+      overdue += f.overdue ? 1 : 0;
+    }
+    std::printf("yield_request_after_s %.1f: %d frames held a keyframe back, %d of them overdue\n", after_s, deferred,
+                overdue);
+    EXPECT_GT(overdue, 0);
+    if (after_s > 0.0) {
+      EXPECT_LT(overdue, deferred) << "every keyframe held back was overdue at once";
+    } else {
+      EXPECT_EQ(overdue, deferred);
+    }
+  }
 }
 
 // A long loss with the IMU initialised (tracking lost for seconds, as at --rate 3 when mapping lagged): the
