@@ -13,6 +13,7 @@
 
 #include "common/features/byte_vectors.hpp"
 #include "common/features/fast_corners.hpp"
+#include "common/features/pyramid_filters.hpp"
 
 namespace cvislam::features {
 
@@ -26,19 +27,12 @@ using detail::keyScore;
 using detail::keyX;
 using detail::keyY;
 using detail::kMaxImageSide;
-using detail::load8x16;
-using detail::U16x8;
-using detail::U8x8;
-using detail::widen8;
 
 // ---------------------------------------------------------------------------------------------------------------
 // Constants and the test pattern.
 
 constexpr int kMaxLevels = 16;
 constexpr int kPatchRadius = 15;     // orientation disc and descriptor test points
-constexpr int kBlurRadius = 3;
-// Gaussian of sigma 2 sampled at -3..3, scaled to sum to 256.
-constexpr std::array<std::uint16_t, 7> kBlurWeights = {18, 33, 49, 56, 49, 33, 18};
 
 struct TestPair {
   std::int8_t x1 = 0;
@@ -231,7 +225,7 @@ struct OrbExtractor::Impl {
   // Scratch rows.
   std::vector<std::uint16_t> blur_row;                  // a row blended or blurred vertically
   std::array<std::vector<std::uint8_t>, 3> score_rows;  // FAST scores of three consecutive rows
-  bool wide_vectors = false;                            // 32-lane corner detection (wideVectorsAvailable)
+  bool wide_vectors = false;  // AVX2: 32-lane corners, 16-lane pyramid filters (wideVectorsAvailable)
 
   // Corners of the level being detected, then the candidates kept from all levels, then the selection.
   std::vector<std::uint64_t> level_corners;
@@ -239,12 +233,21 @@ struct OrbExtractor::Impl {
   std::vector<char> taken;
   std::vector<int> per_cell;
   std::vector<std::uint64_t> cell_best;  // strongest corner of each cell that its level's budget left out
+  // Grid column of each pixel column and row of each pixel row, per level (from cell_x_offset / cell_y_offset): the
+  // cell of a corner is two lookups, since every corner a level's budget leaves out is binned.
+  std::array<std::size_t, kMaxLevels> cell_x_offset{};
+  std::array<std::size_t, kMaxLevels> cell_y_offset{};
+  std::vector<std::uint16_t> cell_x;
+  std::vector<std::uint16_t> cell_y;
   std::vector<std::uint64_t> selected;
   std::array<int, kMaxLevels> selected_min_y{};
   std::array<int, kMaxLevels> selected_max_y{};
 
   [[nodiscard]] std::size_t cellOf(std::uint64_t key) const;
   void setImageSize(int w, int h);
+  // The level's `found` corners (in level_corners): its `keep` strongest go to candidates from `candidate_count` on
+  // (in no particular order); the others are binned into cell_best. Returns the new candidate count.
+  std::size_t keepStrongest(int found, int keep, std::size_t candidate_count);
   void buildLevel(int level);
   int detectLevel(int level);  // FAST corners and their suppression
   void smoothRows(int level, int y_begin, int y_end);
@@ -327,18 +330,24 @@ Result<OrbExtractor> OrbExtractor::create(const OrbOptions& options) {
   m.taken.resize(m.candidates.size());
   m.per_cell.resize(cells);
   m.cell_best.resize(cells);
+  std::size_t columns = 0;
+  std::size_t rows = 0;
+  for (int l = 0; l < levels; ++l) {
+    columns += static_cast<std::size_t>(max_size[static_cast<std::size_t>(l)].width);
+    rows += static_cast<std::size_t>(max_size[static_cast<std::size_t>(l)].height);
+  }
+  m.cell_x.resize(columns);
+  m.cell_y.resize(rows);
   m.selected.resize(static_cast<std::size_t>(options.max_features));
   return OrbExtractor(std::move(impl));
 }
 
-// Grid cell of a corner's level-0 position (its pixel centre scaled up).
+// Grid cell of a corner's level-0 position (its pixel centre scaled up), from the tables setImageSize fills.
 std::size_t OrbExtractor::Impl::cellOf(std::uint64_t key) const {
   const auto L = static_cast<std::size_t>(keyLevel(key));
-  const float px = (static_cast<float>(keyX(key)) + 0.5F) / static_cast<float>(size[L].width);  // in [0, 1)
-  const float py = (static_cast<float>(keyY(key)) + 0.5F) / static_cast<float>(size[L].height);
-  const int cx = std::min(static_cast<int>(px * static_cast<float>(options.grid_columns)), options.grid_columns - 1);
-  const int cy = std::min(static_cast<int>(py * static_cast<float>(options.grid_rows)), options.grid_rows - 1);
-  return static_cast<std::size_t>(cy) * static_cast<std::size_t>(options.grid_columns) + static_cast<std::size_t>(cx);
+  const std::size_t cx = cell_x[cell_x_offset[L] + static_cast<std::size_t>(keyX(key))];
+  const std::size_t cy = cell_y[cell_y_offset[L] + static_cast<std::size_t>(keyY(key))];
+  return cy * static_cast<std::size_t>(options.grid_columns) + cx;
 }
 
 void OrbExtractor::Impl::setImageSize(int w, int h) {
@@ -346,6 +355,20 @@ void OrbExtractor::Impl::setImageSize(int w, int h) {
   width = w;
   height = h;
   pyramidSizes(w, h, options.pyramid_levels, options.scale_factor, size);
+  // A pixel's cell: its centre's share of the level's side, times the cells along it (the last cell closed).
+  const auto cell = [](int pixel, int side, int cells) {
+    const float share = (static_cast<float>(pixel) + 0.5F) / static_cast<float>(side);  // in [0, 1)
+    return static_cast<std::uint16_t>(std::min(static_cast<int>(share * static_cast<float>(cells)), cells - 1));
+  };
+  std::size_t columns = 0;
+  std::size_t rows = 0;
+  for (int l = 0; l < options.pyramid_levels; ++l) {
+    const auto L = static_cast<std::size_t>(l);
+    cell_x_offset[L] = columns;
+    cell_y_offset[L] = rows;
+    for (int x = 0; x < size[L].width; ++x) cell_x[columns++] = cell(x, size[L].width, options.grid_columns);
+    for (int y = 0; y < size[L].height; ++y) cell_y[rows++] = cell(y, size[L].height, options.grid_rows);
+  }
   std::size_t taps = 0;
   for (int l = 1; l < options.pyramid_levels; ++l) {
     const auto L = static_cast<std::size_t>(l);
@@ -355,8 +378,8 @@ void OrbExtractor::Impl::setImageSize(int w, int h) {
   }
 }
 
-// Bilinear downsampling of the previous level: the two source rows are blended vertically (8 pixels at a time),
-// then the blended row is sampled horizontally.
+// Bilinear downsampling of the previous level: the two source rows are blended vertically, then the blended row is
+// sampled horizontally (pyramid_filters.hpp).
 void OrbExtractor::Impl::buildLevel(int level) {
   const auto L = static_cast<std::size_t>(level);
   const LevelSize src_size = size[L - 1];
@@ -379,21 +402,16 @@ void OrbExtractor::Impl::buildLevel(int level) {
     const auto wy0 = static_cast<std::uint16_t>(256 - wy);
     const std::uint8_t* r0 = src + static_cast<std::ptrdiff_t>(y0) * src_size.width;
     const std::uint8_t* r1 = src + static_cast<std::ptrdiff_t>(y1) * src_size.width;
-    int x = 0;
-    for (; x + 8 <= src_size.width; x += 8) {
-      // 255 x 256 fits 16 bits; wrap-around at 256 x 256 cannot happen since the weights sum to 256.
-      const U16x8 v = widen8(r0 + x) * wy0 + widen8(r1 + x) * wy;
-      std::memcpy(blended + x, &v, sizeof(v));
+    if (wide_vectors) {
+      detail::blendRowsWide(r0, r1, wy0, wy, src_size.width, blended);
+    } else {
+      detail::blendRowsNarrow(r0, r1, wy0, wy, src_size.width, blended);
     }
-    for (; x < src_size.width; ++x) blended[x] = static_cast<std::uint16_t>(r0[x] * wy0 + r1[x] * wy);
     std::uint8_t* d = dst + static_cast<std::ptrdiff_t>(y) * dst_size.width;
-    for (int xx = 0; xx < dst_size.width; ++xx) {
-      const std::int32_t i = xi[xx];
-      const std::int32_t w = xw[xx];
-      d[xx] = static_cast<std::uint8_t>((static_cast<std::uint32_t>(blended[i]) * static_cast<std::uint32_t>(256 - w) +
-                                         static_cast<std::uint32_t>(blended[i + step]) * static_cast<std::uint32_t>(w) +
-                                         32768U) >>
-                                        16U);
+    if (wide_vectors) {
+      detail::resampleRowWide(blended, xi, xw, step, dst_size.width, d);
+    } else {
+      detail::resampleRowNarrow(blended, xi, xw, step, dst_size.width, d);
     }
   }
 }
@@ -418,51 +436,51 @@ int OrbExtractor::Impl::detectLevel(int level) {
 // Rows [y_begin, y_end) of the level smoothed by the separable 7-tap Gaussian; the border is replicated.
 void OrbExtractor::Impl::smoothRows(int level, int y_begin, int y_end) {
   const auto L = static_cast<std::size_t>(level);
-  const int w = size[L].width;
-  const int h = size[L].height;
-  const std::uint8_t* img = image[L];
   std::uint8_t* out = smoothed.data() + level_offset[L];
-  std::uint16_t* v = blur_row.data();
-  for (int y = std::max(0, y_begin); y < std::min(h, y_end); ++y) {
-    std::array<const std::uint8_t*, 7> rows{};
-    for (int i = 0; i < 7; ++i) {
-      rows[static_cast<std::size_t>(i)] =
-          img + static_cast<std::ptrdiff_t>(std::clamp(y + i - kBlurRadius, 0, h - 1)) * w;
-    }
-    // Vertical pass: the weights sum to 256, so 255 x 256 fits 16 bits; rounded back to 8 bits of range.
-    int x = 0;
-    for (; x + 8 <= w; x += 8) {  // symmetric weights: pairs of rows share a multiplication
-      U16x8 acc = (widen8(rows[0] + x) + widen8(rows[6] + x)) * kBlurWeights[0] +
-                  (widen8(rows[1] + x) + widen8(rows[5] + x)) * kBlurWeights[1] +
-                  (widen8(rows[2] + x) + widen8(rows[4] + x)) * kBlurWeights[2] + widen8(rows[3] + x) * kBlurWeights[3];
-      acc = (acc + 128) >> 8;
-      std::memcpy(v + x, &acc, sizeof(acc));
-    }
-    for (; x < w; ++x) {
-      unsigned acc = 0;
-      for (std::size_t i = 0; i < 7; ++i) acc += rows[i][x] * kBlurWeights[i];
-      v[x] = static_cast<std::uint16_t>((acc + 128) >> 8);
-    }
-    // Horizontal pass.
-    std::uint8_t* o = out + static_cast<std::ptrdiff_t>(y) * w;
-    const auto scalar = [&](int xx) {
-      unsigned acc = 0;
-      for (int i = 0; i < 7; ++i)
-        acc += v[std::clamp(xx + i - kBlurRadius, 0, w - 1)] * kBlurWeights[static_cast<std::size_t>(i)];
-      o[xx] = static_cast<std::uint8_t>((acc + 128) >> 8);
-    };
-    x = 0;
-    for (; x < std::min(kBlurRadius, w); ++x) scalar(x);
-    for (; x + 8 + kBlurRadius <= w; x += 8) {
-      U16x8 acc = (load8x16(v + x - 3) + load8x16(v + x + 3)) * kBlurWeights[0] +
-                  (load8x16(v + x - 2) + load8x16(v + x + 2)) * kBlurWeights[1] +
-                  (load8x16(v + x - 1) + load8x16(v + x + 1)) * kBlurWeights[2] + load8x16(v + x) * kBlurWeights[3];
-      acc = (acc + 128) >> 8;
-      const U8x8 narrow = __builtin_convertvector(acc, U8x8);
-      std::memcpy(o + x, &narrow, sizeof(narrow));
-    }
-    for (; x < w; ++x) scalar(x);
+  if (wide_vectors) {
+    detail::blurRowsWide(image[L], size[L].width, size[L].height, y_begin, y_end, out, blur_row.data());
+  } else {
+    detail::blurRowsNarrow(image[L], size[L].width, size[L].height, y_begin, y_end, out, blur_row.data());
   }
+}
+
+std::size_t OrbExtractor::Impl::keepStrongest(int found, int keep, std::size_t candidate_count) {
+  const auto bin = [this](std::uint64_t key) {
+    std::uint64_t& best = cell_best[cellOf(key)];
+    best = std::max(best, key);
+  };
+  const auto n = static_cast<std::size_t>(found);
+  if (keep >= found) {
+    std::copy_n(level_corners.begin(), n, candidates.begin() + static_cast<std::ptrdiff_t>(candidate_count));
+    return candidate_count + n;
+  }
+  // Keys order by score first (their top byte), and a level has thousands of corners for a budget of a few hundred:
+  // the score at the cut comes from a histogram, every corner above it is kept, and only the corners at the cut
+  // score are ordered (by the rest of their key) to fill the budget. The same corners as ordering them all.
+  std::array<int, 256> per_score{};
+  for (std::size_t i = 0; i < n; ++i) ++per_score[static_cast<std::size_t>(keyScore(level_corners[i]))];
+  int cut = 255;
+  int above = 0;  // corners scoring more than `cut`
+  while (above + per_score[static_cast<std::size_t>(cut)] < keep) above += per_score[static_cast<std::size_t>(cut--)];
+  std::size_t at_cut = 0;  // moved to the front of level_corners
+  for (std::size_t i = 0; i < n; ++i) {
+    const std::uint64_t key = level_corners[i];
+    const int score = keyScore(key);
+    if (score > cut) {
+      candidates[candidate_count++] = key;
+    } else if (score == cut) {
+      level_corners[at_cut++] = key;
+    } else {
+      bin(key);
+    }
+  }
+  const auto wanted = static_cast<std::size_t>(keep - above);
+  const auto first = level_corners.begin();
+  std::nth_element(first, first + static_cast<std::ptrdiff_t>(wanted), first + static_cast<std::ptrdiff_t>(at_cut),
+                   std::greater<>());
+  std::copy_n(first, wanted, candidates.begin() + static_cast<std::ptrdiff_t>(candidate_count));
+  for (std::size_t i = wanted; i < at_cut; ++i) bin(level_corners[i]);
+  return candidate_count + wanted;
 }
 
 // Orientation (intensity centroid) and steered BRIEF of one selected corner.
@@ -554,16 +572,8 @@ int OrbExtractor::extract(std::span<const std::uint8_t> pixels, int width, int h
   for (int l = 0; l < o.pyramid_levels; ++l) {
     if (l > 0) m.buildLevel(l);
     const int found = m.detectLevel(l);
-    const int keep = std::min(found, m.level_budget[static_cast<std::size_t>(l)]);
-    const auto first = m.level_corners.begin();
-    if (keep < found) std::nth_element(first, first + keep, first + found, std::greater<>());
-    std::copy(first, first + keep, m.candidates.begin() + static_cast<std::ptrdiff_t>(candidate_count));
-    candidate_count += static_cast<std::size_t>(keep);
-    for (int i = keep; i < found; ++i) {
-      const std::uint64_t key = m.level_corners[static_cast<std::size_t>(i)];
-      std::uint64_t& best = m.cell_best[m.cellOf(key)];
-      best = std::max(best, key);
-    }
+    candidate_count = m.keepStrongest(found, std::min(found, m.level_budget[static_cast<std::size_t>(l)]),
+                                      candidate_count);
   }
   // A cell without candidates (the budgets go to the strongest corners, which texture-rich regions have) gets
   // the strongest corner it has, so that the grid can cover dark and weakly textured regions too; only one per
