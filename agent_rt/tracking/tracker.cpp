@@ -697,7 +697,11 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       s.new_map_requested = true;
       s.status = TrackingStatus::kWaitingForMap;
       s.observation_count = 0;
-      const bool keep_frame = s.imu_initialised && o.use_imu;
+      // A stereo map starts from this one keyframe, so it may keep the frame whatever the IMU carried. A monocular
+      // one triangulates its first points between keyframes whose poses the IMU carries: after more dead reckoning
+      // than max_dead_reckoning_s that state is wrong (the new map would be, and lost again, map after map), so it
+      // starts again from two views and initialises the IMU again.
+      const bool keep_frame = s.imu_initialised && o.use_imu && (s.right.has_value() || !dead_reckoning_too_long);
       s.imu_initialised = keep_frame;
       publish_keyframe(KeyframeKind::kNewMap, T_pred, keep_frame ? v_pred : Vector3d::Zero());
     }

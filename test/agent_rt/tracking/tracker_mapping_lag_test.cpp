@@ -207,10 +207,10 @@ struct LossRun {
   int tracked_after = 0;
 };
 
-LossRun runWithALongLoss(const dataset::EurocSequence& seq, double max_dead_reckoning_s) {
+LossRun runWithALongLoss(const dataset::EurocSequence& seq, double max_dead_reckoning_s, bool stereo = true) {
   TrackerOptions options;
   options.max_dead_reckoning_s = max_dead_reckoning_s;
-  auto created = test::InlineAgent::create(seq, true, options);
+  auto created = test::InlineAgent::create(seq, stereo, options);
   EXPECT_TRUE(created.ok()) << created.error().toString();
   LossRun run;
   if (!created.ok()) return run;
@@ -235,8 +235,8 @@ LossRun runWithALongLoss(const dataset::EurocSequence& seq, double max_dead_reck
       run.tracked_after += r.tracked ? 1 : 0;
     }
   }
-  std::printf("max_dead_reckoning_s %.0f: %u maps, %d of %d frames tracked after the camera came back\n",
-              max_dead_reckoning_s, run.maps, run.tracked_after, run.frames_after);
+  std::printf("%s, max_dead_reckoning_s %.0f: %u maps, %d of %d frames tracked after the camera came back\n",
+              stereo ? "stereo" : "mono", max_dead_reckoning_s, run.maps, run.tracked_after, run.frames_after);
   return run;
 }
 
@@ -250,6 +250,19 @@ TEST_F(MappingLag, AfterALongLossTheNewMapIsTrackedAtOnce) {
   // Dead reckoning without the bound (as before) shows the failure, else this test no longer tests it.
   const LossRun unbounded = runWithALongLoss(*seq, 1e9);
   EXPECT_GT(unbounded.maps, 2U);
+}
+
+// The same loss in mono. A monocular map cannot start from one keyframe: its first points are triangulated
+// between keyframes whose poses, with the frame kept, the IMU carries. After seconds of dead reckoning that IMU
+// state is wrong, so the new map must start again from two views (and initialise the IMU again) rather than
+// triangulate from it.
+TEST_F(MappingLag, AfterALongLossAMonocularMapStartsAgainFromTwoViews) {
+  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  ASSERT_TRUE(seq.ok()) << seq.error().toString();
+  const LossRun mono = runWithALongLoss(*seq, TrackerOptions{}.max_dead_reckoning_s, /*stereo=*/false);
+  ASSERT_GE(mono.frames_after, 100);
+  EXPECT_LE(mono.maps, 2U) << "the map started after the loss was lost again";
+  EXPECT_GE(mono.tracked_after * 100, mono.frames_after * 80);
 }
 
 TEST(TrackerOptions, ADeadReckoningBoundThatIsNotPositiveIsNamed) {
