@@ -10,6 +10,7 @@
 
 #include "agent_rt/runtime/message_conversions.hpp"
 #include "agent_rt/tracking/inertial_pose_optimizer.hpp"
+#include "agent_rt/tracking/motion_window.hpp"
 
 namespace cvislam::agent {
 
@@ -152,10 +153,7 @@ struct Tracker::State {
   // The newest keyframe published.
   IdCounter<KeyframeId> keyframe_ids;
   bool has_keyframe = false;
-  KeyframeId keyframe_id;
-  SE3d keyframe_T_w_s;
-  Vector3d keyframe_v_w = Vector3d::Zero();
-  imu::ImuBias keyframe_bias;
+  NewestPublishedKeyframe keyframe;
   int frames_since_keyframe = 0;
   double keyframe_coverage = 0.0;
   imu::Preintegration pre_keyframe;
@@ -176,25 +174,7 @@ struct Tracker::State {
   std::size_t published_next = 0;
 
   // The IMU between the keyframes tracking published, for motion-only BA over the newest n keyframes.
-  struct ImuLink {
-    KeyframeId from;
-    KeyframeId to;
-    imu::Preintegration preintegration;
-    bool valid = false;
-  };
-  std::array<ImuLink, kMaxMotionWindowKeyframes + 1> links{};
-  std::size_t links_next = 0;
-  // The window's keyframes, their observations of the snapshot's points, and their outlier flags.
-  std::array<MotionWindowKeyframe, kMaxMotionWindowKeyframes> window{};
-  std::array<std::array<PoseObservation, kMaxKeypointsPerKeyframe>, kMaxMotionBaKeyframes> window_observations{};
-  std::array<std::array<std::uint8_t, kMaxKeypointsPerKeyframe>, kMaxMotionBaKeyframes> window_outliers{};
-
-  const ImuLink* findLink(const KeyframeId& from, const KeyframeId& to) const {
-    for (const ImuLink& l : links) {
-      if (l.valid && l.from == from && l.to == to) return &l;
-    }
-    return nullptr;
-  }
+  MotionWindowBuilder motion_window;
 
   void appendImu(std::span<const dataset::ImuSample> samples) {
     for (const dataset::ImuSample& s : samples) {
@@ -233,8 +213,8 @@ struct Tracker::State {
     };
     apply(T_w_s);
     v_w = scale * (T.so3() * v_w);
-    apply(keyframe_T_w_s);
-    keyframe_v_w = scale * (T.so3() * keyframe_v_w);
+    apply(keyframe.T_w_s);
+    keyframe.v_w = scale * (T.so3() * keyframe.v_w);
     for (Published& p : published) {
       if (p.valid) apply(p.T_w_s);
     }
@@ -298,13 +278,13 @@ struct Tracker::State {
         if (p.valid && p.id.counter > newest->id.counter) p.T_w_s = delta * p.T_w_s;
       }
       entry->T_w_s = T_new;
-      if (has_keyframe && keyframe_id == newest->id) {
-        keyframe_T_w_s = T_new;
-        keyframe_v_w = toVector3(newest->v_w);
-        keyframe_bias = bias_new;
+      if (has_keyframe && keyframe.id == newest->id) {
+        keyframe.T_w_s = T_new;
+        keyframe.v_w = toVector3(newest->v_w);
+        keyframe.bias = bias_new;
       } else if (has_keyframe) {
-        keyframe_T_w_s = delta * keyframe_T_w_s;
-        keyframe_v_w = delta.so3() * keyframe_v_w;
+        keyframe.T_w_s = delta * keyframe.T_w_s;
+        keyframe.v_w = delta.so3() * keyframe.v_w;
       }
     }
     bias = bias_new;
@@ -347,71 +327,6 @@ int Tracker::pendingKeyframes() const {
 }
 
 namespace {
-
-// The motion-only BA window (paper IV-C), oldest first: the newest n keyframes, that is the snapshot's newest
-// keyframes whose IMU links tracking still holds, chained, and then the keyframe tracking published last if
-// mapping has not returned it yet (no observations: its IMU links carry it). Each gets its IMU to the next,
-// the last the IMU to this frame. Returns the window's size; below 2 (n = 1, or a broken chain) the caller
-// holds the newest keyframe alone.
-std::size_t buildMotionWindow(Tracker::State& s, int n) {
-  const MapSnapshotMessage* map = s.snapshot;
-  if (n <= 1 || map == nullptr || map->window_count == 0 || !s.has_keyframe) return 0;
-  const KeyframeId& newest_mapped = map->keyframes[map->window[map->window_count - 1].keyframe].id;
-  const bool unmapped = !(newest_mapped == s.keyframe_id);
-  const auto wanted = std::min<std::size_t>(static_cast<std::size_t>(n) - (unmapped ? 1 : 0), map->window_count);
-  if (wanted == 0) return 0;
-  const std::size_t first = map->window_count - wanted;
-  // Walk back from the newest window keyframe while the IMU links chain.
-  std::size_t start = map->window_count - 1;
-  while (start > first) {
-    const KeyframeId& older = map->keyframes[map->window[start - 1].keyframe].id;
-    const KeyframeId& newer = map->keyframes[map->window[start].keyframe].id;
-    if (s.findLink(older, newer) == nullptr) break;
-    --start;
-  }
-  const Tracker::State::ImuLink* to_unmapped = nullptr;
-  if (unmapped) {
-    to_unmapped = s.findLink(newest_mapped, s.keyframe_id);
-    if (to_unmapped == nullptr) return 0;
-  }
-  std::size_t count = 0;
-  for (std::size_t w = start; w < map->window_count; ++w) {
-    const WindowKeyframeMsg& wk = map->window[w];
-    const KeyframeStateMsg& state = map->keyframes[wk.keyframe];
-    std::array<PoseObservation, kMaxKeypointsPerKeyframe>& obs = s.window_observations[count];
-    // The first keyframe is held: its observations would not be used.
-    const std::uint16_t observation_count = w == start ? 0 : wk.observation_count;
-    for (std::uint16_t i = 0; i < observation_count; ++i) {
-      const KeyframeObservationMsg& m = wk.observations[i];
-      const MapPointMsg& p = map->points[m.point];
-      obs[i].p_w = Vector3d(p.p_w[0], p.p_w[1], p.p_w[2]);
-      obs[i].keypoint_px = Vector2d(m.u, m.v);
-      obs[i].sigma_px = m.sigma_px;
-    }
-    MotionWindowKeyframe& k = s.window[count];
-    k.T_w_s = fromMsg(state.T_w_s);
-    k.v_w = toVector3(state.v_w);
-    k.bias = biasFromMsg(state.bias);
-    k.observations = std::span<const PoseObservation>(obs.data(), observation_count);
-    k.is_outlier = std::span(s.window_outliers[count].data(), observation_count);
-    if (w + 1 < map->window_count) {
-      k.to_next = &s.findLink(state.id, map->keyframes[map->window[w + 1].keyframe].id)->preintegration;
-    } else {
-      k.to_next = to_unmapped != nullptr ? &to_unmapped->preintegration : &s.pre_keyframe;
-    }
-    ++count;
-  }
-  if (to_unmapped != nullptr) {
-    MotionWindowKeyframe& k = s.window[count++];
-    k.T_w_s = s.keyframe_T_w_s;
-    k.v_w = s.keyframe_v_w;
-    k.bias = s.keyframe_bias;
-    k.observations = {};
-    k.is_outlier = {};
-    k.to_next = &s.pre_keyframe;
-  }
-  return count;
-}
 
 // Projects the snapshot's points with the pose into `projected`; returns how many landed in the image.
 int projectPoints(Tracker::State& s, const SE3d& T_w_s, double radius_px, bool skip_matched) {
@@ -540,8 +455,8 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     result.map_id = s.new_map_requested ? s.requested_map_id : s.map_id;
     result.map_epoch = s.epoch;
     result.has_reference = s.has_keyframe;
-    result.reference = s.keyframe_id;
-    result.T_ref_s = s.keyframe_T_w_s.inverse() * T;
+    result.reference = s.keyframe.id;
+    result.T_ref_s = s.keyframe.T_w_s.inverse() * T;
     result.times.total_ns = nowNs() - t_start;
   };
 
@@ -591,21 +506,14 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
     const KeyframeId id = m->state.id;
     keyframes.publish();
 
-    if (imu_link && s.pre_keyframe.dt() > 0.0) {
-      State::ImuLink& link = s.links[s.links_next];
-      link.from = s.keyframe_id;
-      link.to = id;
-      link.preintegration = s.pre_keyframe;
-      link.valid = true;
-      s.links_next = (s.links_next + 1) % s.links.size();
-    }
+    if (imu_link && s.pre_keyframe.dt() > 0.0) s.motion_window.addLink(s.keyframe.id, id, s.pre_keyframe);
     s.published[s.published_next] = State::Published{id, T, true};
     s.published_next = (s.published_next + 1) % s.published.size();
     s.has_keyframe = true;
-    s.keyframe_id = id;
-    s.keyframe_T_w_s = T;
-    s.keyframe_v_w = v;
-    s.keyframe_bias = s.bias;
+    s.keyframe.id = id;
+    s.keyframe.T_w_s = T;
+    s.keyframe.v_w = v;
+    s.keyframe.bias = s.bias;
     s.frames_since_keyframe = -1;  // finish() counts this frame
     s.pre_keyframe.reset(s.bias);
     s.imu_ok_since_keyframe = true;
@@ -748,11 +656,12 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   // 5. Motion-only visual-inertial BA against the newest keyframe.
   if (s.imu_initialised && o.use_imu && s.has_keyframe && s.imu_ok_since_keyframe && s.pre_keyframe.dt() > 0.0) {
     const std::int64_t t_ba = nowNs();
-    const std::size_t window_size = buildMotionWindow(s, o.motion_ba_keyframes);
+    const std::span<MotionWindowKeyframe> window =
+        s.motion_window.build(s.snapshot, o.motion_ba_keyframes, s.keyframe, s.pre_keyframe);
     Result<InertialPoseResult> inertial = Error{ErrorCode::kNotFound, "no window"};
-    if (window_size >= 2) {
-      auto windowed = optimizeMotionWindow(std::span(s.window.data(), window_size), observations(), T, v_pred, s.T_s_c,
-                                           s.intrinsics, o.pose, outliers());
+    if (window.size() >= 2) {
+      auto windowed =
+          optimizeMotionWindow(window, observations(), T, v_pred, s.T_s_c, s.intrinsics, o.pose, outliers());
       if (windowed) {
         InertialPoseResult r;
         r.T_w_s = windowed->T_w_s;
@@ -762,7 +671,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
       }
     }
     if (!inertial) {  // n = 1, a broken chain, or a window that failed: the newest keyframe alone, held
-      const InertialAnchor anchor{s.keyframe_T_w_s, s.keyframe_v_w, s.keyframe_bias, &s.pre_keyframe};
+      const InertialAnchor anchor{s.keyframe.T_w_s, s.keyframe.v_w, s.keyframe.bias, &s.pre_keyframe};
       inertial = optimizePoseInertial(observations(), T, v_pred, anchor, s.T_s_c, s.intrinsics, o.pose, outliers());
     }
     if (inertial) {
