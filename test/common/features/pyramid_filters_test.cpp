@@ -20,29 +20,29 @@ std::vector<std::uint8_t> randomImage(int width, int height, std::mt19937& rng) 
   return image;
 }
 
-// The blur pixel by pixel: vertical pass rounded to 8 bits of range, then horizontal, borders replicated.
+// One 7-tap pass at `centre` along an axis of `length` pixels, borders replicated, rounded to 8 bits of range;
+// `at(i)` reads pixel i of the axis.
+template <typename At>
+unsigned blurTaps(int centre, int length, At at) {
+  unsigned acc = 0;
+  for (int i = 0; i < 7; ++i) {
+    acc += at(std::clamp(centre + i - kBlurRadius, 0, length - 1)) * kBlurWeights[static_cast<std::size_t>(i)];
+  }
+  return (acc + 128) >> 8;
+}
+
+// The blur pixel by pixel: vertical pass, then horizontal.
 std::vector<std::uint8_t> referenceBlur(const std::vector<std::uint8_t>& img, int w, int h) {
+  const auto at = [w](int x, int y) { return static_cast<std::size_t>(y * w + x); };
   std::vector<std::uint16_t> vertical(img.size());
   for (int y = 0; y < h; ++y) {
-    for (int x = 0; x < w; ++x) {
-      unsigned acc = 0;
-      for (int i = 0; i < 7; ++i) {
-        const int yy = std::clamp(y + i - kBlurRadius, 0, h - 1);
-        acc += img[static_cast<std::size_t>(yy * w + x)] * kBlurWeights[static_cast<std::size_t>(i)];
-      }
-      vertical[static_cast<std::size_t>(y * w + x)] = static_cast<std::uint16_t>((acc + 128) >> 8);
-    }
+    for (int x = 0; x < w; ++x)
+      vertical[at(x, y)] = static_cast<std::uint16_t>(blurTaps(y, h, [&](int yy) { return img[at(x, yy)]; }));
   }
   std::vector<std::uint8_t> out(img.size());
   for (int y = 0; y < h; ++y) {
-    for (int x = 0; x < w; ++x) {
-      unsigned acc = 0;
-      for (int i = 0; i < 7; ++i) {
-        const int xx = std::clamp(x + i - kBlurRadius, 0, w - 1);
-        acc += vertical[static_cast<std::size_t>(y * w + xx)] * kBlurWeights[static_cast<std::size_t>(i)];
-      }
-      out[static_cast<std::size_t>(y * w + x)] = static_cast<std::uint8_t>((acc + 128) >> 8);
-    }
+    for (int x = 0; x < w; ++x)
+      out[at(x, y)] = static_cast<std::uint8_t>(blurTaps(x, w, [&](int xx) { return vertical[at(xx, y)]; }));
   }
   return out;
 }
