@@ -412,10 +412,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       }
       if (r.issue == FrameIssue::kKeyframeDropped) ++summary.dropped_keyframes;
       if (r.keyframe_deferred) ++summary.deferred_keyframes;
-      if (r.keyframe_overdue) {
-        ++summary.mapping_yield_requests;
-        yield_requests.request();
-      }
+      if (r.keyframe_overdue) yield_requests.request();
       if (r.needs_mapping) ++summary.frames_needing_mapping;
       summary.most_pending_keyframes = std::max(summary.most_pending_keyframes, r.pending_keyframes);
       if (!r.tracked && r.status != TrackingStatus::kWaitingForMap) {
@@ -501,6 +498,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   summary.local_ba_skipped = mapping_stats.ba_skipped;
   summary.local_ba_stopped_early = mapping_stats.ba_stopped_early;
   summary.local_ba_yielded_to_tracking = mapping_stats.ba_yielded_to_tracking;
+  summary.mapping_yield_requests = yield_requests.requests();
   summary.lost_keyframe_messages = mapping_stats.lost_messages;
   summary.imu_initialised_at_s =
       mapping_stats.imu_initialised_at_s < 0
