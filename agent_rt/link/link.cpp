@@ -250,7 +250,7 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
         connected = true;
         ++s.streams;
         const std::uint64_t stored = (*welcome)->welcome().stored_sequence();
-        s.store.onWelcome(stored);
+        s.store.onWelcome(stored, (*welcome)->welcome().resend_from_sequence());
         next_sequence = stored + 1;
         last_sent = std::min(last_sent, stored);
         backoff = backoff_min;
@@ -400,6 +400,7 @@ Status Link::writeReport(const std::filesystem::path& dir) const {
                       {"delta_events_lost", st.store.delta_events_lost},
                       {"corrections_received", st.store.corrections_received},
                       {"acked_batches_lost", st.store.acked_batches_lost},
+                      {"welcomes_asking_resend", st.store.batches_to_resend},
                       {"covisible_maps_accepted", st.covisible_accepted},
                       {"covisible_maps_refused", st.covisible_refused},
                       {"covisible_last_refusal", st.covisible_last_refusal},

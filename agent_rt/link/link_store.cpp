@@ -400,9 +400,13 @@ void LinkStore::onDelta(const MapDeltaMessage& d) {
   forgetAcknowledged();
 }
 
-void LinkStore::onWelcome(std::uint64_t stored) {
+void LinkStore::onWelcome(std::uint64_t stored, std::uint64_t resend_from) {
   if (stored < acked_) counters_.acked_batches_lost += acked_ - stored;
   acked_ = stored;
+  if (resend_from != 0 && resend_from <= stored) {
+    ++counters_.batches_to_resend;
+    stored = resend_from - 1;  // what was sent from there on is not known to be held: it goes again
+  }
   keyframes_->forEach([&](PoolHandle, Keyframe& kf) {
     if (kf.full_sent > stored) {
       kf.full_sent = 0;

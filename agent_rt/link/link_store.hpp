@@ -59,6 +59,8 @@ struct LinkStoreCounters {
   // Batches the server had acknowledged and then, in a Welcome, said it does not hold (a server that restarted
   // without its store): their content was sent again, but the acknowledgement had been wrong.
   std::uint64_t acked_batches_lost = 0;
+  // Welcomes that asked for content to be sent again (see onWelcome).
+  std::uint64_t batches_to_resend = 0;
 };
 
 // What is waiting, for the progress line and the end of a run.
@@ -81,8 +83,10 @@ class LinkStore {
   // Mapping's delta for one keyframe, in order.
   void onDelta(const MapDeltaMessage& delta);
 
-  // The server holds every batch up to `stored` (a Welcome): anything sent in a later batch is sent again.
-  void onWelcome(std::uint64_t stored);
+  // The server holds every batch up to `stored` (a Welcome): anything sent in a later batch is sent again, and so
+  // is anything sent from batch `resend_from` on when it is nonzero (the server holds other content under those
+  // numbers than this agent last sent: an earlier attempt had committed unseen).
+  void onWelcome(std::uint64_t stored, std::uint64_t resend_from = 0);
   // The server acknowledged every batch up to `acked`.
   void onAck(std::uint64_t acked);
   void onCorrections(int count) { counters_.corrections_received += static_cast<std::uint64_t>(count); }

@@ -30,6 +30,8 @@ std::string_view toString(ErrorCode code) noexcept {
       return "unavailable";
     case ErrorCode::kUnauthenticated:
       return "unauthenticated";
+    case ErrorCode::kAborted:
+      return "aborted";
   }
   return "unknown error";
 }

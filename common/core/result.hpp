@@ -28,6 +28,7 @@ enum class ErrorCode {
   kResourceExhausted,   // a limit was reached (message size, agents per mission)
   kUnavailable,         // the peer cannot be reached now; trying again later may work
   kUnauthenticated,     // the caller presented no credentials, or the wrong ones, for what it asked
+  kAborted,             // a conflict with what another attempt did (a resent batch unlike the stored one): retry
 };
 
 std::string_view toString(ErrorCode code) noexcept;

@@ -32,7 +32,7 @@ Status LeaseOptions::validate() const {
 
 Result<std::unique_ptr<MissionLeases>> MissionLeases::open(const LeaseOptions& options) {
   if (Status s = options.validate(); !s.ok()) return s.error();
-  auto connection = PgConnection::open(options.conninfo, "mission leases");
+  auto connection = PgConnection::open(options.conninfo, "mission leases", options.timeouts);
   if (!connection) return connection.error();
   if (Status s = ensureClusterSchema(**connection, "cvislam_server"); !s.ok()) return s.error();
   return std::unique_ptr<MissionLeases>(new MissionLeases(std::move(connection).value(), options));

@@ -14,16 +14,16 @@
 #include <vector>
 
 #include "common/core/result.hpp"
+#include "server_cloud/cluster/pg_connection.hpp"
 
 namespace cvislam::server::cluster {
-
-class PgConnection;
 
 struct LeaseOptions {
   std::string conninfo;  // libpq connection string
   std::string holder;    // this process; see above
   std::string address;   // host:port where agents and clients reach this replica (what a redirect names)
   double ttl_s = 3.0;    // a lease not renewed for this long lapses
+  PgTimeouts timeouts;
 
   [[nodiscard]] Status validate() const;
 };

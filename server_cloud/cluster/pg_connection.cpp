@@ -108,7 +108,8 @@ std::string redactConninfo(const std::string& conninfo) {
   return std::regex_replace(conninfo, kPassword, "$1***");
 }
 
-Result<std::unique_ptr<PgConnection>> PgConnection::open(const std::string& conninfo, const std::string& what) {
+Result<std::unique_ptr<PgConnection>> PgConnection::open(const std::string& conninfo, const std::string& what,
+                                                         const PgTimeouts& timeouts) {
   if (conninfo.empty()) return Error{ErrorCode::kInvalidArgument, what + ": no PostgreSQL connection string given"};
   char* parse_error = nullptr;
   PQconninfoOption* parsed = PQconninfoParse(conninfo.c_str(), &parse_error);
@@ -119,7 +120,17 @@ Result<std::unique_ptr<PgConnection>> PgConnection::open(const std::string& conn
                                                   "' does not parse: " + reason};
   }
   PQconninfoFree(parsed);
-  PGconn* connection = PQconnectdb(conninfo.c_str());
+  // Our bounds first, then the connection string expanded over them: what it says wins.
+  const std::string connect = std::to_string(timeouts.connect_s);
+  const std::string unacked = std::to_string(timeouts.unacked_ms);
+  const std::string idle = std::to_string(timeouts.keepalive_idle_s);
+  const std::string interval = std::to_string(timeouts.keepalive_interval_s);
+  const std::string count = std::to_string(timeouts.keepalive_count);
+  const char* const keys[] = {"connect_timeout",    "keepalives",       "keepalives_idle", "keepalives_interval",
+                              "keepalives_count",   "tcp_user_timeout", "dbname",          nullptr};
+  const char* const values[] = {connect.c_str(), "1",           idle.c_str(),     interval.c_str(),
+                                count.c_str(),   unacked.c_str(), conninfo.c_str(), nullptr};
+  PGconn* connection = PQconnectdbParams(keys, values, /*expand_dbname=*/1);
   if (connection == nullptr) return Error{ErrorCode::kInternal, what + ": libpq could not allocate a connection"};
   if (PQstatus(connection) != CONNECTION_OK) {
     const std::string reason = trimmed(PQerrorMessage(connection));
@@ -132,18 +143,38 @@ Result<std::unique_ptr<PgConnection>> PgConnection::open(const std::string& conn
       connection, [](void*, const char*) {}, nullptr);
   std::string description =
       std::string("postgresql ") + PQhost(connection) + ":" + PQport(connection) + "/" + PQdb(connection);
-  return std::unique_ptr<PgConnection>(new PgConnection(connection, std::move(description), what));
+  std::unique_ptr<PgConnection> out(new PgConnection(connection, std::move(description), what, timeouts));
+  if (!out->configureSession()) {
+    return Error{ErrorCode::kUnavailable,
+                 what + ": " + out->describe() + ": cannot set the statement timeout: " +
+                     trimmed(PQerrorMessage(connection))};
+  }
+  return out;
 }
 
-PgConnection::PgConnection(pg_conn* connection, std::string description, std::string what)
-    : connection_(connection), description_(std::move(description)), what_(std::move(what)) {}
+PgConnection::PgConnection(pg_conn* connection, std::string description, std::string what, PgTimeouts timeouts)
+    : connection_(connection),
+      timeouts_(timeouts),
+      description_(std::move(description)),
+      what_(std::move(what)) {}
+
+bool PgConnection::configureSession() {
+  const std::string sql = "SET statement_timeout = " + std::to_string(timeouts_.statement_ms);
+  PgResult result(PQexec(connection_, sql.c_str()));
+  return result.raw() != nullptr && PQresultStatus(result.raw()) == PGRES_COMMAND_OK;
+}
+
+bool PgConnection::reconnect() {
+  PQreset(connection_);
+  return PQstatus(connection_) == CONNECTION_OK && configureSession();
+}
 
 PgConnection::~PgConnection() {
   PQfinish(connection_);
 }
 
 Status PgConnection::execScript(const std::string& sql) {
-  if (PQstatus(connection_) != CONNECTION_OK) PQreset(connection_);
+  if (PQstatus(connection_) != CONNECTION_OK) (void)reconnect();
   PgResult result(PQexec(connection_, sql.c_str()));
   pg_result* raw = result.raw();
   if (raw != nullptr && PQresultStatus(raw) == PGRES_COMMAND_OK) return Status::Ok();
@@ -153,8 +184,7 @@ Status PgConnection::execScript(const std::string& sql) {
 
 Result<PgResult> PgConnection::exec(const std::string& sql, const PgParams& params) {
   if (PQstatus(connection_) != CONNECTION_OK) {
-    PQreset(connection_);
-    if (PQstatus(connection_) != CONNECTION_OK) {
+    if (!reconnect()) {
       return Error{ErrorCode::kUnavailable,
                    what_ + ": " + description_ + " is unreachable: " + trimmed(PQerrorMessage(connection_))};
     }

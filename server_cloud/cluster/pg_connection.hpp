@@ -64,11 +64,25 @@ class PgResult {
   pg_result* result_;
 };
 
+// How long a call may wait on the database. Without bounds a statement blocks for as long as TCP keeps a dead
+// connection open (minutes), and the replica's appends and lease renewals wait behind it. Each is a default that
+// the connection string may override (connect_timeout, keepalives_*, tcp_user_timeout), except the statement
+// timeout, which is set on the session.
+struct PgTimeouts {
+  int connect_s = 5;
+  int statement_ms = 10000;      // the server cancels a statement that runs longer (waiting on a lock included)
+  int unacked_ms = 10000;        // tcp_user_timeout: sent data unacknowledged this long breaks the connection
+  int keepalive_idle_s = 5;      // a silent connection is probed after this long ...
+  int keepalive_interval_s = 2;  // ... every this long ...
+  int keepalive_count = 3;       // ... and given up after this many unanswered probes
+};
+
 class PgConnection {
  public:
   // Connects with a libpq connection string ("host=127.0.0.1 port=5432 user=cvislam dbname=cvislam"). The error
   // names the server and libpq's reason; `what` says what the connection is for.
-  static Result<std::unique_ptr<PgConnection>> open(const std::string& conninfo, const std::string& what);
+  static Result<std::unique_ptr<PgConnection>> open(const std::string& conninfo, const std::string& what,
+                                                    const PgTimeouts& timeouts = {});
   ~PgConnection();
   PgConnection(const PgConnection&) = delete;
   PgConnection& operator=(const PgConnection&) = delete;
@@ -82,8 +96,13 @@ class PgConnection {
   [[nodiscard]] const std::string& describe() const { return description_; }  // "postgresql host:port/db"
 
  private:
-  PgConnection(pg_conn* connection, std::string description, std::string what);
+  PgConnection(pg_conn* connection, std::string description, std::string what, PgTimeouts timeouts);
+  // Sets the session's statement timeout (after connecting, and after every reconnection).
+  bool configureSession();
+  // Reconnects a broken connection; false when the database stays unreachable.
+  bool reconnect();
   pg_conn* connection_;
+  PgTimeouts timeouts_;
   std::string description_;
   std::string what_;
 };

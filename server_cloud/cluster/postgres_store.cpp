@@ -19,22 +19,8 @@ class PostgresStore final : public MapStore {
       : connection_(std::move(connection)), options_(std::move(options)), counters_(counters) {}
 
   Status append(const StoreRecord& r) override {
-    PgParams params;
-    params.i16(static_cast<std::int16_t>(r.kind))
-        .text(r.mission)
-        .i32(static_cast<std::int32_t>(r.agent))
-        .i64(static_cast<std::int64_t>(r.sequence))
-        .bytes(r.body)
-        .i64(static_cast<std::int64_t>(recordChecksum(r.kind, r.mission, r.agent, r.sequence, r.body)));
-    std::string sql =
-        "INSERT INTO cvislam_records (kind, mission, agent, sequence, body, checksum) "
-        "SELECT $1, $2, $3, $4, $5, $6";
-    if (!options_.holder.empty()) {
-      params.text(options_.holder);
-      sql += " WHERE EXISTS (SELECT 1 FROM cvislam_leases WHERE mission = $2 AND holder = $7 AND expires_at > now())";
-    }
     std::lock_guard lock(mutex_);
-    auto result = connection_->exec(sql, params);
+    auto result = execAppend(*connection_, r, options_.holder);
     if (!result) {
       if (result.error().code() == ErrorCode::kAlreadyExists) {
         return Error{ErrorCode::kAlreadyExists, "the store holds batch " + std::to_string(r.sequence) + " of agent " +
@@ -72,21 +58,29 @@ class PostgresStore final : public MapStore {
       lock.unlock();
       if (!rows) return rows.error().withContext("reading the records");
       for (int i = 0; i < rows->rows(); ++i) {
-        r.number = static_cast<std::uint64_t>(rows->i64(i, 0));
-        r.mission.assign(rows->bytes(i, 2));
-        r.sequence = static_cast<std::uint64_t>(rows->i64(i, 4));
-        r.body.assign(rows->bytes(i, 5));
-        const std::string where = connection_->describe() + ": record " + std::to_string(r.number);
-        if (Status s = checkStoredRecord(rows->i16(i, 1), rows->i32(i, 3), static_cast<std::uint64_t>(rows->i64(i, 6)),
-                                         where, r);
-            !s.ok()) {
-          return s;
-        }
+        if (Status s = readRow(*rows, i, r); !s.ok()) return s;
         if (Status s = visit(r); !s.ok()) return s;
         after = static_cast<std::int64_t>(r.number);
       }
       if (rows->rows() < kPage) return Status::Ok();
     }
+  }
+
+  [[nodiscard]] Result<std::optional<StoreRecord>> findBatch(const std::string& mission, AgentId agent,
+                                                             std::uint64_t sequence) const override {
+    PgParams params;
+    params.text(mission).i32(static_cast<std::int32_t>(agent)).i64(static_cast<std::int64_t>(sequence));
+    std::unique_lock lock(mutex_);
+    auto rows = connection_->exec(
+        "SELECT number, kind, mission, agent, sequence, body, checksum FROM cvislam_records "
+        "WHERE kind = 2 AND mission = $1 AND agent = $2 AND sequence = $3",
+        params);
+    lock.unlock();
+    if (!rows) return rows.error().withContext("looking up a batch");
+    if (rows->rows() == 0) return std::optional<StoreRecord>();
+    StoreRecord r;
+    if (Status s = readRow(*rows, 0, r); !s.ok()) return s.error();
+    return std::optional<StoreRecord>(std::move(r));
   }
 
   [[nodiscard]] Result<std::vector<std::string>> missions() const override {
@@ -110,6 +104,16 @@ class PostgresStore final : public MapStore {
   }
 
  private:
+  // Row `i` of "SELECT number, kind, mission, agent, sequence, body, checksum", checked.
+  Status readRow(const PgResult& rows, int i, StoreRecord& r) const {
+    r.number = static_cast<std::uint64_t>(rows.i64(i, 0));
+    r.mission.assign(rows.bytes(i, 2));
+    r.sequence = static_cast<std::uint64_t>(rows.i64(i, 4));
+    r.body.assign(rows.bytes(i, 5));
+    const std::string where = connection_->describe() + ": record " + std::to_string(r.number);
+    return checkStoredRecord(rows.i16(i, 1), rows.i32(i, 3), static_cast<std::uint64_t>(rows.i64(i, 6)), where, r);
+  }
+
   std::unique_ptr<PgConnection> connection_;
   PostgresStoreOptions options_;
   mutable std::mutex mutex_;  // one connection: one statement at a time
@@ -117,6 +121,28 @@ class PostgresStore final : public MapStore {
 };
 
 }  // namespace
+
+Result<PgResult> execAppend(PgConnection& connection, const StoreRecord& r, const std::string& holder) {
+  PgParams params;
+  params.i16(static_cast<std::int16_t>(r.kind))
+      .text(r.mission)
+      .i32(static_cast<std::int32_t>(r.agent))
+      .i64(static_cast<std::int64_t>(r.sequence))
+      .bytes(r.body)
+      .i64(static_cast<std::int64_t>(recordChecksum(r.kind, r.mission, r.agent, r.sequence, r.body)));
+  std::string sql =
+      "INSERT INTO cvislam_records (kind, mission, agent, sequence, body, checksum) "
+      "SELECT $1, $2, $3, $4, $5, $6";
+  if (!holder.empty()) {
+    params.text(holder);
+    // FOR SHARE: a concurrent takeover's update of the row waits for this statement's transaction; one that
+    // committed first is seen here (READ COMMITTED re-reads a locked row) and the holder no longer matches.
+    sql +=
+        " FROM (SELECT 1 FROM cvislam_leases WHERE mission = $2 AND holder = $7 AND expires_at > now() FOR SHARE) "
+        "AS fence";
+  }
+  return connection.exec(sql, params);
+}
 
 Status PostgresStoreOptions::validate() const {
   if (conninfo.empty())
@@ -173,7 +199,7 @@ Status ensureClusterSchema(PgConnection& connection, const std::string& software
 
 Result<std::unique_ptr<MapStore>> openPostgresStore(const PostgresStoreOptions& options) {
   if (Status s = options.validate(); !s.ok()) return s.error();
-  auto connection = PgConnection::open(options.conninfo, "map store");
+  auto connection = PgConnection::open(options.conninfo, "map store", options.timeouts);
   if (!connection) return connection.error();
   if (Status s = ensureClusterSchema(**connection, options.software); !s.ok()) return s.error();
   return std::unique_ptr<MapStore>(

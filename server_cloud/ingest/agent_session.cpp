@@ -4,6 +4,7 @@
 #include <cctype>
 #include <cmath>
 #include <functional>
+#include <optional>
 #include <vector>
 
 #include "cvislam/v1/agent_link.pb.h"
@@ -92,6 +93,31 @@ std::vector<KeyframeId> newestKeyframes(const AgentRecord& record, int n, MapId&
     if (held.agent_map == agent_map && held.map == map) out.push_back(KeyframeId{record.id, counter});
   }
   return out;
+}
+
+// Applies the batches the store holds of the agent beyond record.stored_sequence, in order. They are appends
+// whose outcome was in doubt: the store refused or lost the answer, but the database had committed them. A Welcome
+// that left them out would tell the agent those numbers are free, and the agent would build new batches under
+// them that the store then refuses as held. Returns how many it applied.
+Result<std::uint64_t> applyStoredBeyond(Mission& mission, AgentRecord& record, const MapStore& store,
+                                        const SessionOptions& options, const AgentSession::StoredListener& on_stored) {
+  std::uint64_t applied = 0;
+  for (;;) {
+    const std::uint64_t next = record.stored_sequence + 1;
+    auto held = store.findBatch(mission.name(), record.id, next);
+    if (!held) return held.error();
+    if (!*held) return applied;
+    v1::MapBatch batch;
+    if (!batch.ParseFromString((*held)->body) || batch.sequence() != next) {
+      return Error{ErrorCode::kDataError, "store record " + std::to_string((*held)->number) + " (batch " +
+                                              std::to_string(next) + " of agent " + std::to_string(record.id) +
+                                              ") does not parse as that batch"};
+    }
+    auto report = applyBatch(mission, record, batch, options.ingest, {});
+    if (!report) return report.error().withContext("applying the stored batch " + std::to_string(next));
+    if (on_stored) on_stored(mission.name(), *report);
+    ++applied;
+  }
 }
 
 }  // namespace
@@ -225,6 +251,14 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
                      "the server could not store the Hello (" + s.error().message() + "); connect again later"};
       }
     }
+    if (store_ != nullptr) {
+      auto caught_up = applyStoredBeyond(*mission, *record, *store_, options_, on_stored_);
+      if (!caught_up) {
+        return Error{ErrorCode::kUnavailable, "the server could not read what its store holds of this agent (" +
+                                                  caught_up.error().message() + "); connect again later"};
+      }
+      record->caught_up_batches += *caught_up;
+    }
     if (record->connected) {
       // The same process again: its old stream is stale (it broke without the server noticing yet).
       replace_old = std::move(record->cancel_stream);
@@ -234,7 +268,7 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
     ++record->connections;
     stream_ = record->connections;
     record->finished = false;
-    applyHello(*record, hello, std::move(sensors).value());
+    applyHello(*mission, *record, hello, std::move(sensors).value());
     record->up["message"].add(1, wire_bytes);
     record->up["hello"].add(1, wire_bytes);
 
@@ -244,6 +278,8 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
     welcome->set_points_held(record->points.size());
     welcome->set_server(options_.server_name);
     welcome->set_downlink_rate_hz(options_.downlink_rate_hz);
+    welcome->set_resend_from_sequence(record->resend_from);
+    resend_told_ = record->resend_from;
     reply.set_sequence(++down_sequence_);
     reply.set_acked_sequence(record->stored_sequence);
     acked_sent_ = record->stored_sequence;
@@ -293,22 +329,34 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
                    std::to_string(record->stored_sequence + 1));
   }
   std::function<Status()> commit;
+  std::optional<StoreRecord> held;  // set when the store holds other content under this number
   if (store_ != nullptr) {
     commit = [&]() -> Status {
       StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
-      if (Status s = store_->append(stored); !s.ok()) {
-        // The store holds this (mission, agent, sequence) already: an earlier append committed but its answer was
-        // lost (the database connection broke), and the agent sent the batch again. A sequence names one batch for
-        // good, so it is durable: apply it. Refusing it would refuse the agent's every resend.
-        if (s.error().code() == ErrorCode::kAlreadyExists) return Status::Ok();
-        return Error{ErrorCode::kUnavailable,
-                     "the server could not store it (" + s.error().message() + "); it was not applied: send it again"};
+      Status appended = store_->append(stored);
+      if (appended.ok()) return Status::Ok();
+      if (appended.error().code() != ErrorCode::kAlreadyExists) {
+        return Error{ErrorCode::kUnavailable, "the server could not store it (" + appended.error().message() +
+                                                  "); it was not applied: send it again"};
       }
-      return Status::Ok();
+      // The store holds this number already, though memory does not: an earlier attempt committed unseen. The
+      // stored body is what a restart will replay, so it decides: the same bytes are applied as received; other
+      // bytes are not, and the stored batch is applied in their place below.
+      auto found = store_->findBatch(mission_name_, agent_, sequence);
+      if (!found || !*found) {
+        return Error{ErrorCode::kUnavailable, "the store says it holds it but could not give it back (" +
+                                                  (found ? std::string("not found") : found.error().message()) +
+                                                  "); it was not applied: send it again"};
+      }
+      if ((*found)->body == stored.body) return Status::Ok();
+      held = std::move(*found);
+      return Error{ErrorCode::kAborted, "the store holds other content under this number"};
     };
   }
   auto report = applyBatch(*mission_, *record, batch, options_.ingest, commit);
+  if (!report && held) return applyHeldInstead(*record, *held);
   if (!report) return report.error();
+  if (resend_told_ != 0 && record->resend_from == resend_told_) record->resend_from = 0;  // the agent was told
   const double ingest_ms = std::chrono::duration<double, std::milli>(Clock::now() - arrived).count();
   record->ingest_ms.add(ingest_ms);
   if (gba_at_arrival || mission_->gbaRunning()) record->ingest_during_gba_ms.add(ingest_ms);
@@ -319,7 +367,30 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   return Status::Ok();
 }
 
-void applyHello(AgentRecord& record, const v1::Hello& hello, AgentSensors sensors) {
+Status AgentSession::applyHeldInstead(AgentRecord& record, const StoreRecord& held) {
+  const std::uint64_t sequence = held.sequence;
+  v1::MapBatch stored;
+  if (!stored.ParseFromString(held.body) || stored.sequence() != sequence) {
+    return Error{ErrorCode::kDataError, "batch " + std::to_string(sequence) + ": store record " +
+                                            std::to_string(held.number) + " under its number does not parse"};
+  }
+  auto report = applyBatch(*mission_, record, stored, options_.ingest, {});
+  if (!report) {
+    return Error{ErrorCode::kDataError, "batch " + std::to_string(sequence) + ": the batch the store holds under its "
+                                            "number does not apply (" + report.error().message() + ")"};
+  }
+  if (on_stored_) on_stored_(mission_name_, *report);
+  ++record.resend_conflicts;
+  if (record.resend_from == 0 || sequence < record.resend_from) record.resend_from = sequence;
+  // Not acknowledged: the stream ends, and the next Welcome asks the agent to send its batch's content again.
+  return Error{ErrorCode::kAborted,
+               "batch " + std::to_string(sequence) + " differs from the batch " + std::to_string(sequence) +
+                   " the server had stored (an earlier attempt committed): the stored one was applied; connect "
+                   "again and send what yours carried after the Welcome's stored sequence"};
+}
+
+void applyHello(Mission& mission, AgentRecord& record, const v1::Hello& hello, AgentSensors sensors) {
+  mission.setSensors(record.id, sensors);
   record.session = hello.session();
   record.software = hello.software();
   record.local_map_keyframes = hello.local_map_keyframes();
@@ -373,7 +444,7 @@ Status replayStored(MissionRegistry& missions, const SessionOptions& options, co
     auto sensors = sensorsFromHello(hello);
     if (!sensors) return damaged(sensors.error().message());
     auto record = shared_record->write();
-    applyHello(*record, hello, std::move(sensors).value());
+    applyHello(*mission, *record, hello, std::move(sensors).value());
     return Status::Ok();
   }
   v1::MapBatch batch;

@@ -100,6 +100,9 @@ class AgentSession {
   Status onHello(const v1::AgentUplink& message, std::size_t wire_bytes, v1::ServerDownlink& reply);
   Status onBatch(const v1::AgentUplink& message, std::size_t wire_bytes);
   void countDown(AgentRecord& record, const v1::ServerDownlink& message, int corrections);
+  // The store holds `held` under the number of a batch just received, with other content: applies the stored one
+  // and returns the error that ends the stream.
+  Status applyHeldInstead(AgentRecord& record, const StoreRecord& held);
 
   MissionRegistry& missions_;
   SessionOptions options_;
@@ -116,14 +119,15 @@ class AgentSession {
   std::uint64_t stream_ = 0;         // this stream's number among the agent's streams
   std::uint64_t last_sequence_ = 0;  // the newest batch sequence seen on this stream
   std::uint64_t acked_sent_ = 0;     // the newest acknowledgement sent on this stream
+  std::uint64_t resend_told_ = 0;    // the Welcome's resend_from_sequence
   std::uint64_t down_sequence_ = 0;
   CovisibleSender covisible_;  // what this stream has sent of the covisible map
   Clock::time_point last_down_{};
   bool closed_ = false;
 };
 
-// What a Hello sets in the agent's record (live and when the store is replayed).
-void applyHello(AgentRecord& record, const v1::Hello& hello, AgentSensors sensors);
+// What a Hello sets in the agent's record and its mission (live and when the store is replayed).
+void applyHello(Mission& mission, AgentRecord& record, const v1::Hello& hello, AgentSensors sensors);
 
 // Stores the next batch of the agent (record.stored_sequence + 1; the caller checked that): ingest, the stored
 // sequence, the counters and the mission's events. `commit`, when set, runs after ingest's checks and before

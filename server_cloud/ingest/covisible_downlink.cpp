@@ -47,11 +47,9 @@ Status CovisibleOptions::validate() const {
 
 CovisibleCameras covisibleCameras(const Mission& mission) {
   CovisibleCameras out;
-  for (const SharedAgentRecord& shared : mission.agents()) {
-    const auto record = shared->read();
-    if (!record->sensors) continue;
-    const dataset::CameraCalibration& c = record->sensors->cam0.calibration();
-    out.emplace(record->id, CovisibleCamera{c.fx, c.fy, c.cx, c.cy, record->sensors->T_s_c0});
+  for (const auto& [id, sensors] : mission.sensors()) {
+    const dataset::CameraCalibration& c = sensors->cam0.calibration();
+    out.emplace(id, CovisibleCamera{c.fx, c.fy, c.cx, c.cy, sensors->T_s_c0});
   }
   return out;
 }

@@ -21,6 +21,8 @@ grpc::StatusCode toGrpcCode(ErrorCode code) {
       return grpc::StatusCode::UNAVAILABLE;
     case ErrorCode::kUnauthenticated:
       return grpc::StatusCode::UNAUTHENTICATED;
+    case ErrorCode::kAborted:
+      return grpc::StatusCode::ABORTED;
     case ErrorCode::kIoError:
     case ErrorCode::kDegenerate:
     case ErrorCode::kInternal:

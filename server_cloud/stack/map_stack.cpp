@@ -37,6 +37,15 @@ std::vector<std::shared_ptr<ServerMap>> MapStack::maps() const {
   return out;
 }
 
+void Mission::setSensors(AgentId id, const AgentSensors& sensors) {
+  auto shared = std::make_shared<const AgentSensors>(sensors);
+  sensors_.write()->insert_or_assign(id, std::move(shared));
+}
+
+std::map<AgentId, std::shared_ptr<const AgentSensors>> Mission::sensors() const {
+  return *sensors_.read();
+}
+
 SharedAgentRecord Mission::agent(AgentId id) {
   return admitAgent(id, std::numeric_limits<std::size_t>::max()).value();  // no limit: never fails
 }

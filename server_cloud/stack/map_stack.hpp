@@ -136,6 +136,12 @@ struct AgentRecord {
   std::uint32_t local_map_keyframes = 0;  // the own keyframes its local map keeps (Hello; 0: not said)
   // The newest batch stored; the next must be stored_sequence + 1.
   std::uint64_t stored_sequence = 0;
+  // Nonzero when the store turned out to hold another batch under a number the agent sent (an earlier attempt of
+  // it committed unseen): from this batch on, what the agent last sent may not be what the server holds, and the
+  // next Welcome asks it to send that content again.
+  std::uint64_t resend_from = 0;
+  std::uint64_t resend_conflicts = 0;  // how often that happened
+  std::uint64_t caught_up_batches = 0;  // batches a Hello found in the store beyond what memory held
   // Which server map holds each agent map, keyframe and point of the agent (by counter).
   struct AgentMap {
     MapId map = 0;
@@ -203,11 +209,17 @@ class Mission {
   [[nodiscard]] MissionEventLog& events() { return events_; }
   [[nodiscard]] const MissionEventLog& events() const { return events_; }
 
+  // Every agent's sensors as its newest Hello gave them, apart from the agents' records: whoever needs another
+  // agent's cameras (the covisible downlink) must not wait while that agent's record is locked for a slow commit.
+  void setSensors(AgentId id, const AgentSensors& sensors);
+  [[nodiscard]] std::map<AgentId, std::shared_ptr<const AgentSensors>> sensors() const;
+
  private:
   std::string name_;
   MapStack stack_;
   MissionEventLog events_;
   Synchronized<std::map<AgentId, SharedAgentRecord>> agents_;
+  Synchronized<std::map<AgentId, std::shared_ptr<const AgentSensors>>> sensors_;
   std::atomic<int> gba_running_{0};
 };
 

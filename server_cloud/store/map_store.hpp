@@ -16,6 +16,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -65,6 +66,13 @@ class MapStore {
   // Calls `visit` for every record of `mission` (of every mission when empty) in the order they were appended,
   // after checking each one's checksum. Stops at the first error, its own or the one `visit` returns.
   virtual Status replay(const std::string& mission, const std::function<Status(const StoreRecord&)>& visit) const = 0;
+
+  // The batch `sequence` of `agent` of `mission` as stored (checked like a replayed record), or nullopt when the
+  // store does not hold it. What a session asks when an append's outcome is in doubt: an append that failed may
+  // still have committed (the answer from the database was lost), so the store, not memory, says what that
+  // sequence number holds.
+  [[nodiscard]] virtual Result<std::optional<StoreRecord>> findBatch(const std::string& mission, AgentId agent,
+                                                                     std::uint64_t sequence) const = 0;
 
   // The missions with records, by name.
   [[nodiscard]] virtual Result<std::vector<std::string>> missions() const = 0;

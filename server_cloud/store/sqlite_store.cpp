@@ -99,21 +99,29 @@ class SqliteStore final : public MapStore {
       const int rc = sqlite3_step(s);
       if (rc == SQLITE_DONE) break;
       if (rc != SQLITE_ROW) return sqliteError("reading the records");
-      r.number = static_cast<std::uint64_t>(sqlite3_column_int64(s, 0));
-      const int kind = sqlite3_column_int(s, 1);
-      const auto* text = reinterpret_cast<const char*>(sqlite3_column_text(s, 2));
-      r.mission.assign(text != nullptr ? text : "", static_cast<std::size_t>(sqlite3_column_bytes(s, 2)));
-      const sqlite3_int64 agent = sqlite3_column_int64(s, 3);
-      r.sequence = static_cast<std::uint64_t>(sqlite3_column_int64(s, 4));
-      const void* body = sqlite3_column_blob(s, 5);
-      r.body.assign(body != nullptr ? static_cast<const char*>(body) : "",
-                    static_cast<std::size_t>(sqlite3_column_bytes(s, 5)));
-      const auto stored_checksum = static_cast<std::uint64_t>(sqlite3_column_int64(s, 6));
-      const std::string where = options_.path.string() + ": record " + std::to_string(r.number);
-      if (Status st = checkStoredRecord(kind, agent, stored_checksum, where, r); !st.ok()) return st;
+      if (Status st = readRow(s, r); !st.ok()) return st;
       if (Status st = visit(r); !st.ok()) return st;
     }
     return Status::Ok();
+  }
+
+  [[nodiscard]] Result<std::optional<StoreRecord>> findBatch(const std::string& mission, AgentId agent,
+                                                             std::uint64_t sequence) const override {
+    std::lock_guard lock(mutex_);
+    auto select = compile(
+        "SELECT number, kind, mission, agent, sequence, body, checksum FROM records WHERE kind = 2 AND mission = ?1 "
+        "AND agent = ?2 AND sequence = ?3");
+    if (!select) return select.error();
+    sqlite3_stmt* s = select->get();
+    sqlite3_bind_text(s, 1, mission.data(), static_cast<int>(mission.size()), SQLITE_STATIC);
+    sqlite3_bind_int64(s, 2, static_cast<sqlite3_int64>(agent));
+    sqlite3_bind_int64(s, 3, static_cast<sqlite3_int64>(sequence));
+    const int rc = sqlite3_step(s);
+    if (rc == SQLITE_DONE) return std::optional<StoreRecord>();
+    if (rc != SQLITE_ROW) return sqliteError("looking up a batch");
+    StoreRecord r;
+    if (Status st = readRow(s, r); !st.ok()) return st.error();
+    return std::optional<StoreRecord>(std::move(r));
   }
 
   [[nodiscard]] Result<std::vector<std::string>> missions() const override {
@@ -148,6 +156,21 @@ class SqliteStore final : public MapStore {
       return sqliteError("preparing a statement");
     }
     return Stmt(s);
+  }
+  // One row of "SELECT number, kind, mission, agent, sequence, body, checksum", checked.
+  Status readRow(sqlite3_stmt* s, StoreRecord& r) const {
+    r.number = static_cast<std::uint64_t>(sqlite3_column_int64(s, 0));
+    const int kind = sqlite3_column_int(s, 1);
+    const auto* text = reinterpret_cast<const char*>(sqlite3_column_text(s, 2));
+    r.mission.assign(text != nullptr ? text : "", static_cast<std::size_t>(sqlite3_column_bytes(s, 2)));
+    const sqlite3_int64 agent = sqlite3_column_int64(s, 3);
+    r.sequence = static_cast<std::uint64_t>(sqlite3_column_int64(s, 4));
+    const void* body = sqlite3_column_blob(s, 5);
+    r.body.assign(body != nullptr ? static_cast<const char*>(body) : "",
+                  static_cast<std::size_t>(sqlite3_column_bytes(s, 5)));
+    const auto stored_checksum = static_cast<std::uint64_t>(sqlite3_column_int64(s, 6));
+    const std::string where = options_.path.string() + ": record " + std::to_string(r.number);
+    return checkStoredRecord(kind, agent, stored_checksum, where, r);
   }
   [[nodiscard]] Error sqliteError(const std::string& what) const {
     return Error{ErrorCode::kIoError,

@@ -3,10 +3,14 @@
 // clean link and to a faulty one (batches lost with the stream, reconnections, late acknowledgements);
 // the two servers must end up holding the same map, and it must be the agent's.
 #include <map>
+#include <optional>
+#include <set>
 
 #include <gtest/gtest.h>
 
 #include "agent_rt/link/link_store.hpp"
+#include "server_cloud/store/sqlite_store.hpp"
+#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/agent_rt/link/link_test_support.hpp"
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
@@ -22,8 +26,9 @@ struct LinkUnderTest {
       : store(test::kAgent, LinkStoreOptions{}), server(mission, /*stereo=*/true) {}
 
   void connect() {
-    const std::uint64_t stored = server.connect(store.acked());
-    store.onWelcome(stored);
+    std::uint64_t resend_from = 0;
+    const std::uint64_t stored = server.connect(store.acked(), &resend_from);
+    store.onWelcome(stored, resend_from);
     next = stored + 1;
   }
   // Builds a batch; delivers it unless `lose`. Returns whether one was built.
@@ -37,6 +42,13 @@ struct LinkUnderTest {
       refused += s.ok() ? 0 : 1;
     }
     return true;
+  }
+  // The same where the server may end the stream: its answer, or nullopt when nothing was due.
+  std::optional<Status> trySend() {
+    if (!store.buildBatch(next, 0, 512U << 10U, batch)) return std::nullopt;
+    ++next;
+    ++built;
+    return server.deliver(batch);
   }
   void ack() { store.onAck(server.stored()); }
   void flush() {
@@ -193,6 +205,84 @@ TEST_F(LinkRoundTrip, AfterAServerRestartTheServerGetsTheAgentsCurrentMapAndNoth
   EXPECT_TRUE(link.store.allAcknowledged());
   std::printf("held at the restart: %zu keyframes; the restarted server ends with %zu keyframes, %zu points\n",
               held_at_restart, link.server.keyframes(), link.server.points());
+}
+
+
+// A batch whose append committed but whose answer was lost ends the stream; the agent reconnects and builds its
+// next batch from its current map. Every keyframe the server acknowledged must still be held after a restart
+// that replays the store, and the replay must go through.
+TEST_F(LinkRoundTrip, ABatchCommittedUnseenAndTheBatchesAfterItAreHeldOnceAfterARestart) {
+  cvislam::test::TempDir store_dir;
+  const std::filesystem::path db = store_dir.path() / "maps.db";
+  constexpr std::uint64_t kLostSequence = 6;
+  bool first_open = true;
+  server::test::InDoubtStore* in_doubt = nullptr;
+  LinkUnderTest link("in-doubt");
+  link.server.useStore([&]() -> Result<std::unique_ptr<server::MapStore>> {
+    server::SqliteStoreOptions o;
+    o.path = db;
+    o.sync = server::SqliteStoreOptions::Sync::kNormal;
+    auto sqlite = server::openSqliteStore(o);
+    if (!sqlite || !first_open) return sqlite;
+    first_open = false;  // only the first process's connection loses an answer
+    auto wrapped = std::make_unique<server::test::InDoubtStore>(std::move(sqlite).value(), kLostSequence);
+    in_doubt = wrapped.get();
+    return std::unique_ptr<server::MapStore>(std::move(wrapped));
+  });
+  ASSERT_TRUE(link.server.recovery().ok());
+  link.connect();
+  bool stream_down = false;
+  int keyframes_while_down = 0;
+  int refused = 0;
+  runAgent(
+      [&](std::size_t frame) {
+        if (frame % 4 != 0) return;
+        // Down until mapping made a keyframe more, so that the rebuilt batch carries something new.
+        if (stream_down) {
+          if (keyframes_while_down == 0) return;
+          link.connect();
+          stream_down = false;
+        }
+        const std::optional<Status> s = link.trySend();
+        if (!s) return;
+        if (s->ok()) {
+          link.ack();
+          return;
+        }
+        ++refused;
+        EXPECT_EQ(s->error().code(), ErrorCode::kUnavailable) << s->error().toString();
+        stream_down = true;
+        keyframes_while_down = 0;
+      },
+      [&](const MapDeltaMessage& d) {
+        link.store.onDelta(d);
+        if (stream_down && d.has_keyframe != 0) ++keyframes_while_down;
+      });
+  if (stream_down) link.connect();
+  link.flush();
+  ASSERT_NE(in_doubt, nullptr);
+  ASSERT_TRUE(in_doubt->lostOne()) << "the run made fewer than " << kLostSequence << " batches";
+  EXPECT_EQ(refused, 1);
+  EXPECT_TRUE(link.store.allAcknowledged());
+  ASSERT_TRUE(link.server.consistent().ok()) << link.server.consistent().error().toString();
+  std::set<std::uint32_t> acknowledged;
+  link.server.forEachMap([&](const server::MapContent& m) {
+    for (const auto& [id, kf] : m.keyframes()) acknowledged.insert(id.counter);
+  });
+  const std::size_t points = link.server.points();
+  ASSERT_GT(acknowledged.size(), 10U);
+
+  link.server.restart();  // the same file, replayed by a new process
+  ASSERT_TRUE(link.server.recovery().ok()) << link.server.recovery().error().toString();
+  std::set<std::uint32_t> replayed;
+  link.server.forEachMap([&](const server::MapContent& m) {
+    for (const auto& [id, kf] : m.keyframes()) replayed.insert(id.counter);
+  });
+  EXPECT_EQ(replayed, acknowledged);
+  EXPECT_EQ(link.server.points(), points);
+  EXPECT_TRUE(link.server.consistent().ok());
+  std::printf("%zu keyframes and %zu points acknowledged; after the restart %zu keyframes, %zu points\n",
+              acknowledged.size(), points, replayed.size(), link.server.points());
 }
 
 }  // namespace

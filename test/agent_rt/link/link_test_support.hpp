@@ -170,14 +170,29 @@ class ServerSide {
     restart();
   }
 
-  // A server that lost everything (a restart without persistence).
+  // A restarted server: it lost everything unless it keeps a store (useStore), which it then replays.
   void restart() {
     session_.reset();
     core_ = std::make_unique<server::ServerCore>(server::ServerOptions{});
+    if (open_store_) {
+      auto store = open_store_();
+      ASSERT_TRUE(store.ok()) << store.error().toString();
+      auto recovered = core_->attachStore(std::move(store).value());
+      recovery_ = recovered.ok() ? Status::Ok() : Status(recovered.error());
+    }
   }
+  // From now on the server keeps a map store that `open` opens, again at every restart (as a restarted process
+  // opens its file again); the server restarts now.
+  using StoreOpener = std::function<Result<std::unique_ptr<server::MapStore>>()>;
+  void useStore(StoreOpener open) {
+    open_store_ = std::move(open);
+    restart();
+  }
+  // What replaying the store at the last restart gave.
+  [[nodiscard]] const Status& recovery() const { return recovery_; }
 
-  // A new stream: Hello -> the Welcome's stored sequence.
-  std::uint64_t connect(std::uint64_t last_acked) {
+  // A new stream: Hello -> the Welcome's stored sequence (and its resend_from_sequence into *resend_from).
+  std::uint64_t connect(std::uint64_t last_acked, std::uint64_t* resend_from = nullptr) {
     session_ = core_->openSession({});
     v1::AgentUplink hello;
     *hello.mutable_hello() = server::test::makeHello(mission_, kAgent, 42, stereo_);
@@ -187,6 +202,7 @@ class ServerSide {
     const Status s = session_->handle(hello, hello.ByteSizeLong(), welcome, due);
     EXPECT_TRUE(s.ok()) << s.error().toString();
     EXPECT_TRUE(due);
+    if (resend_from != nullptr) *resend_from = welcome.welcome().resend_from_sequence();
     return welcome.welcome().stored_sequence();
   }
 
@@ -248,6 +264,8 @@ class ServerSide {
   bool stereo_ = false;
   std::unique_ptr<server::ServerCore> core_;
   std::unique_ptr<server::AgentSession> session_;
+  StoreOpener open_store_;
+  Status recovery_;
 };
 
 }  // namespace cvislam::agent::test

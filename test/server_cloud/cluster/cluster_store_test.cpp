@@ -2,10 +2,14 @@
 // a database of its own): mission leases (taking, lapsing, epochs, release) and the shared map store (appends
 // fenced by the lease, duplicates refused, replay in order across pages, checksums). Lapses are made by moving a
 // lease's expiry into the past in SQL, so that no test waits for a TTL.
+#include <chrono>
 #include <cstdio>
+#include <future>
+#include <thread>
 #include <filesystem>
 #include <memory>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include <gmock/gmock.h>
@@ -210,6 +214,82 @@ TEST_F(ClusterStoreTest, AppendsAreFencedByTheMissionsLease) {
   EXPECT_EQ(late.error().code(), ErrorCode::kFailedPrecondition);
   ASSERT_TRUE(store_b->append(batch("m1", 0, 2)).ok());
   EXPECT_THAT(sequences(*store_b, "m1"), ElementsAre(1, 2));
+}
+
+
+// An append that is still in flight when its holder's lease lapses and another replica takes the mission over
+// (the statement started in time, its commit comes late). The new owner's replay, which follows its acquire, must
+// see the appended row; otherwise it would hold the agent's sequence N-1 while the store holds N.
+TEST_F(ClusterStoreTest, AnAppendInFlightAcrossATakeoverIsSeenByTheNewOwnersReplay) {
+  auto a = leases("replica/a");
+  auto b = leases("replica/b");
+  auto store_b = store("replica/b");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  // The old owner's append, in a transaction held open as a slow commit would hold it.
+  auto in_flight = PgConnection::open(conninfo_, "in-flight append");
+  ASSERT_TRUE(in_flight.ok());
+  ASSERT_TRUE((*in_flight)->execScript("BEGIN").ok());
+  auto appended = execAppend(**in_flight, batch("m1", 0, 1), "replica/a");
+  ASSERT_TRUE(appended.ok()) << appended.error().toString();
+  ASSERT_EQ(appended->affected(), 1);
+  // Meanwhile: the lease lapses, b takes the mission and replays it at once, as a takeover does.
+  auto takeover = std::async(std::launch::async, [&] {
+    lapse("m1");
+    auto taken = b->acquire("m1");
+    EXPECT_TRUE(taken.ok());
+    EXPECT_EQ(taken.ok() ? taken->holder : "", "replica/b");
+    return sequences(*store_b, "m1");
+  });
+  const bool waited = takeover.wait_for(std::chrono::milliseconds(500)) == std::future_status::timeout;
+  ASSERT_TRUE((*in_flight)->execScript("COMMIT").ok());
+  const std::vector<std::uint64_t> replayed = takeover.get();
+  EXPECT_TRUE(waited) << "the takeover did not wait for the append in flight";
+  EXPECT_THAT(replayed, ElementsAre(1)) << "the new owner's replay missed an append that then committed";
+  EXPECT_THAT(sequences(*store_b, "m1"), ElementsAre(1));
+}
+
+TEST_F(ClusterStoreTest, FindBatchGivesTheStoredBodyOrNothing) {
+  auto a = leases("replica/a");
+  auto s = store("replica/a");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  ASSERT_TRUE(s->append(batch("m1", 3, 1)).ok());
+  ASSERT_TRUE(s->append(batch("m1", 3, 2)).ok());
+  auto found = s->findBatch("m1", 3, 2);
+  ASSERT_TRUE(found.ok()) << found.error().toString();
+  ASSERT_TRUE(found->has_value());
+  EXPECT_EQ((*found)->body, batch("m1", 3, 2).body);
+  EXPECT_EQ((*found)->agent, 3U);
+  for (const auto& [mission, agent, sequence] :
+       std::vector<std::tuple<std::string, AgentId, std::uint64_t>>{{"m1", 3, 3}, {"m1", 4, 1}, {"m2", 3, 1}}) {
+    auto none = s->findBatch(mission, agent, sequence);
+    ASSERT_TRUE(none.ok());
+    EXPECT_FALSE(none->has_value()) << mission << " " << agent << " " << sequence;
+  }
+}
+
+// A statement that waits on the database (here a lock another session holds, as a hung or partitioned database
+// would make it wait) fails within the statement timeout instead of blocking the replica's appends for ever.
+TEST_F(ClusterStoreTest, AnAppendBlockedInTheDatabaseFailsWithinTheStatementTimeout) {
+  auto a = leases("replica/a");
+  ASSERT_TRUE(a->acquire("m1").ok());
+  PostgresStoreOptions o;
+  o.conninfo = conninfo_;
+  o.holder = "replica/a";
+  o.timeouts.statement_ms = 1000;
+  auto s = openPostgresStore(o);
+  ASSERT_TRUE(s.ok()) << s.error().toString();
+  auto blocker = PgConnection::open(conninfo_, "blocker");
+  ASSERT_TRUE(blocker.ok());
+  ASSERT_TRUE((*blocker)->execScript("BEGIN; LOCK TABLE cvislam_records IN ACCESS EXCLUSIVE MODE").ok());
+  const auto start = std::chrono::steady_clock::now();
+  const Status blocked = (*s)->append(batch("m1", 0, 1));
+  const double waited_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_TRUE((*blocker)->execScript("ROLLBACK").ok());
+  ASSERT_FALSE(blocked.ok());
+  EXPECT_THAT(blocked.error().message(), HasSubstr("statement timeout"));
+  EXPECT_LT(waited_s, 5.0);
+  EXPECT_GE(waited_s, 0.9);
+  ASSERT_TRUE((*s)->append(batch("m1", 0, 1)).ok());  // the connection still works
 }
 
 TEST_F(ClusterStoreTest, ADuplicateBatchIsRefusedAndChangesNothing) {

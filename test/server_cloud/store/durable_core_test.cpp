@@ -16,6 +16,7 @@
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
 #include "test/server_cloud/link_messages.hpp"
+#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/server_cloud/session_driver.hpp"
 #include "test/support/temp_dir.hpp"
 
@@ -23,6 +24,7 @@ namespace cvislam::server {
 namespace {
 
 using test::batchMessage;
+using test::InDoubtStore;
 using test::helloMessage;
 using test::makeKeyframeBatch;
 using ::testing::HasSubstr;
@@ -42,35 +44,14 @@ class RefusingStore final : public MapStore {
   Status replay(const std::string&, const std::function<Status(const StoreRecord&)>&) const override {
     return Status::Ok();
   }
+  [[nodiscard]] Result<std::optional<StoreRecord>> findBatch(const std::string&, AgentId,
+                                                             std::uint64_t) const override {
+    return std::optional<StoreRecord>();
+  }
   [[nodiscard]] Result<std::vector<std::string>> missions() const override { return std::vector<std::string>{}; }
   [[nodiscard]] StoreCounters counters() const override { return {}; }
   [[nodiscard]] std::string describe() const override { return "refusing"; }
   int hellos = 0;
-};
-
-// The store's seam for a database connection that breaks after a commit: the first batch is stored by the real
-// store underneath, but its append answers kUnavailable, as a lost reply would.
-class InDoubtStore final : public MapStore {
- public:
-  explicit InDoubtStore(std::unique_ptr<MapStore> inner) : inner_(std::move(inner)) {}
-  Status append(const StoreRecord& r) override {
-    Status s = inner_->append(r);
-    if (s.ok() && r.kind == StoreRecord::Kind::kBatch && !lost_one_) {
-      lost_one_ = true;
-      return Error{ErrorCode::kUnavailable, "server closed the connection unexpectedly"};
-    }
-    return s;
-  }
-  Status replay(const std::string& m, const std::function<Status(const StoreRecord&)>& v) const override {
-    return inner_->replay(m, v);
-  }
-  [[nodiscard]] Result<std::vector<std::string>> missions() const override { return inner_->missions(); }
-  [[nodiscard]] StoreCounters counters() const override { return inner_->counters(); }
-  [[nodiscard]] std::string describe() const override { return "in doubt over " + inner_->describe(); }
-
- private:
-  std::unique_ptr<MapStore> inner_;
-  bool lost_one_ = false;
 };
 
 class DurableCoreTest : public ::testing::Test {
@@ -201,28 +182,35 @@ TEST_F(DurableCoreTest, ABatchTheStoreRefusesIsNeitherAppliedNorAcknowledgedAndE
   EXPECT_EQ(mission->events().nextNumber(), 2U);  // the connection only
 }
 
-TEST_F(DurableCoreTest, ABatchStoredWhoseCommitAnswerWasLostIsAppliedOnceWhenTheAgentSendsItAgain) {
+TEST_F(DurableCoreTest, ABatchStoredWhoseCommitAnswerWasLostCountsAsStoredAtTheAgentsNextHello) {
   SqliteStoreOptions o;
   o.path = dir_ / "maps.db";
   auto sqlite = openSqliteStore(o);
   ASSERT_TRUE(sqlite.ok()) << sqlite.error().toString();
   ServerCore core(ServerOptions{});
-  ASSERT_TRUE(core.attachStore(std::make_unique<InDoubtStore>(std::move(sqlite).value())).ok());
+  ASSERT_TRUE(core.attachStore(std::make_unique<InDoubtStore>(std::move(sqlite).value(), 1)).ok());
   {
     auto session = core.openSession({});
     sendOk(*session, helloMessage(kMission, kAgent, kSession));
     const Status lost = send(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
     ASSERT_FALSE(lost.ok());  // in doubt: neither applied nor acknowledged, the stream ends
     EXPECT_EQ(lost.error().code(), ErrorCode::kUnavailable);
+    EXPECT_EQ(core.missions().find(kMission)->agent(kAgent)->read()->stored_sequence, 0U);
   }
-  // The agent reconnects, is told nothing is stored, and sends batch 1 again: the store holds it already, so it is
-  // durable; it must be applied now rather than refused for ever.
+  // The agent reconnects. The store holds batch 1: the Welcome says so, so that the agent never builds another
+  // batch 1 from what it holds now. A resend of the same batch 1 is a duplicate.
   auto session = core.openSession({});
   sendOk(*session, helloMessage(kMission, kAgent, kSession));
-  EXPECT_EQ(reply_.welcome().stored_sequence(), 0U);
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 1U);
+  EXPECT_EQ(reply_.welcome().resend_from_sequence(), 0U);
   sendOk(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
   sendOk(*session, batchMessage(makeKeyframeBatch(2, 2, 2)));
-  EXPECT_EQ(core.missions().find(kMission)->agent(kAgent)->read()->stored_sequence, 2U);
+  {
+    auto record = core.missions().find(kMission)->agent(kAgent)->read();
+    EXPECT_EQ(record->stored_sequence, 2U);
+    EXPECT_EQ(record->caught_up_batches, 1U);
+    EXPECT_EQ(record->duplicate_batches, 1U);
+  }
   EXPECT_EQ(keyframesInMaps(core).size(), 4U);
   std::vector<std::uint64_t> stored;
   ASSERT_TRUE(core.store()
@@ -233,6 +221,55 @@ TEST_F(DurableCoreTest, ABatchStoredWhoseCommitAnswerWasLostIsAppliedOnceWhenThe
                            })
                   .ok());
   EXPECT_EQ(stored, (std::vector<std::uint64_t>{1, 2}));  // each once
+}
+
+// The store may still hold a number that memory does not, if an append commits after the Hello looked (another
+// replica's late commit). A batch under that number with other content is not applied: the stored one is, the
+// stream ends, and the next Welcome asks the agent to send its content again.
+TEST_F(DurableCoreTest, ABatchThatDiffersFromTheOneStoredUnderItsNumberGivesWayToTheStoredOne) {
+  SqliteStoreOptions o;
+  o.path = dir_ / "maps.db";
+  auto sqlite = openSqliteStore(o);
+  ASSERT_TRUE(sqlite.ok()) << sqlite.error().toString();
+  MapStore* raw = sqlite->get();
+  auto owned = std::make_unique<ServerCore>(ServerOptions{});
+  ServerCore& core = *owned;
+  ASSERT_TRUE(core.attachStore(std::move(sqlite).value()).ok());
+  auto session = core.openSession({});
+  sendOk(*session, helloMessage(kMission, kAgent, kSession));
+  sendOk(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
+  // Batch 2 with keyframes 2 and 3 lands in the store behind the session's back.
+  const std::string first_attempt = makeKeyframeBatch(2, 2, 2).SerializeAsString();
+  ASSERT_TRUE(raw->append({0, StoreRecord::Kind::kBatch, kMission, kAgent, 2, first_attempt}).ok());
+  // The agent's batch 2 is another: keyframes 2 to 4.
+  const Status conflict = send(*session, batchMessage(makeKeyframeBatch(2, 2, 3)));
+  ASSERT_FALSE(conflict.ok());
+  EXPECT_EQ(conflict.error().code(), ErrorCode::kAborted);
+  EXPECT_THAT(conflict.error().message(), HasSubstr("differs from the batch 2 the server had stored"));
+  {
+    auto record = core.missions().find(kMission)->agent(kAgent)->read();
+    EXPECT_EQ(record->stored_sequence, 2U);
+    EXPECT_EQ(record->resend_conflicts, 1U);
+  }
+  EXPECT_EQ(keyframesInMaps(core), (std::multiset<std::uint32_t>{0, 1, 2, 3}));  // what the store holds
+
+  auto again = core.openSession({});
+  sendOk(*again, helloMessage(kMission, kAgent, kSession));
+  EXPECT_EQ(reply_.welcome().stored_sequence(), 2U);
+  EXPECT_EQ(reply_.welcome().resend_from_sequence(), 2U);
+  // The agent sends batch 2's content again as batch 3: keyframe 4 comes, 2 and 3 are duplicates.
+  v1::MapBatch resent = makeKeyframeBatch(3, 2, 3);
+  sendOk(*again, batchMessage(resent));
+  EXPECT_EQ(keyframesInMaps(core), (std::multiset<std::uint32_t>{0, 1, 2, 3, 4}));
+  EXPECT_EQ(core.missions().find(kMission)->agent(kAgent)->read()->resend_from, 0U);  // told, and it answered
+
+  // What memory holds is what a restart replays.
+  const auto before = keyframesInMaps(core);
+  again.reset();
+  session.reset();
+  owned.reset();
+  auto restarted = startCore();
+  EXPECT_EQ(keyframesInMaps(*restarted), before);
 }
 
 TEST_F(DurableCoreTest, AStoreWithAGapInAnAgentsBatchesStopsTheStartNamingTheRecord) {
