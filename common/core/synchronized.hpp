@@ -11,6 +11,7 @@
 #pragma once
 
 #include <mutex>
+#include <optional>
 #include <shared_mutex>
 #include <utility>
 
@@ -41,6 +42,12 @@ class Synchronized {
 
   [[nodiscard]] WriteLocked write() { return WriteLocked(&value_, std::unique_lock(mutex_)); }
   [[nodiscard]] ReadLocked read() const { return ReadLocked(&value_, std::shared_lock(mutex_)); }
+  // The same when it can be had at once, else nothing: for a reader that must never wait on a slow writer.
+  [[nodiscard]] std::optional<ReadLocked> tryRead() const {
+    std::shared_lock lock(mutex_, std::try_to_lock);
+    if (!lock.owns_lock()) return std::nullopt;
+    return ReadLocked(&value_, std::move(lock));
+  }
 
   template <typename F>
   decltype(auto) withWrite(F&& f) {

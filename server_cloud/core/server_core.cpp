@@ -331,7 +331,11 @@ void ServerCore::sampleTimeline() {
   std::vector<TimelineSample> samples;
   for (const auto& mission : missions_.missions()) {
     for (const auto& shared : mission->agents()) {
-      auto record = shared->read();
+      // An agent whose record is busy (a batch being committed) misses this sample rather than delay every other
+      // agent's, and the downlinks that share this thread.
+      auto locked = shared->tryRead();
+      if (!locked) continue;
+      const auto& record = *locked;
       TimelineSample s;
       s.t_s = t_s;
       s.mission = mission->name();

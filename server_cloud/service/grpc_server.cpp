@@ -4,9 +4,12 @@
 #include <condition_variable>
 #include <cstdio>
 #include <deque>
+#include <map>
+#include <memory>
 #include <mutex>
 #include <set>
 #include <thread>
+#include <vector>
 
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
@@ -47,52 +50,54 @@ class StreamHandle {
 
 class LinkReactor;
 
-// The open link streams, for the periodic downlink. Lock order: the registry before a reactor.
+// The open link streams, for the periodic downlink. It holds them weakly and hands out strong references, so that
+// the periodic thread ticks streams without holding its lock: a stream opening or closing never waits for a tick.
 class ReactorRegistry {
  public:
-  void add(LinkReactor* r) {
+  void add(const std::shared_ptr<LinkReactor>& r) {
     std::lock_guard lock(mutex_);
-    reactors_.insert(r);
+    reactors_[r.get()] = r;
   }
   void remove(LinkReactor* r) {
     std::lock_guard lock(mutex_);
     reactors_.erase(r);
   }
-  template <typename F>
-  void forEach(F&& f) {
+  // The streams open now, each kept alive by the copy.
+  std::vector<std::shared_ptr<LinkReactor>> snapshot() {
+    std::vector<std::shared_ptr<LinkReactor>> out;
     std::lock_guard lock(mutex_);
-    for (LinkReactor* r : reactors_) f(*r);
+    out.reserve(reactors_.size());
+    for (const auto& [raw, weak] : reactors_) {
+      if (auto r = weak.lock()) out.push_back(std::move(r));
+    }
+    return out;
+  }
+  [[nodiscard]] std::size_t size() {
+    std::lock_guard lock(mutex_);
+    return reactors_.size();
   }
 
  private:
   std::mutex mutex_;
-  std::set<LinkReactor*> reactors_;
+  std::map<LinkReactor*, std::weak_ptr<LinkReactor>> reactors_;
 };
 
 // One agent's stream: reads the agent's messages into its AgentSession and writes what the session returns,
-// one write at a time. Every callback and the periodic tick lock `mutex_`, so the session sees one caller.
+// one write at a time. Every callback and the periodic tick lock `mutex_`, so the session sees one caller; the
+// tick only tries the lock, so a stream busy with a slow message (a store commit, a mission load) delays its own
+// downlink and nobody else's. It owns itself (self_) from creation to OnDone; the periodic thread's references
+// may keep the object a little longer, and a tick after OnDone does nothing.
 // It works on raw bytes and parses them itself: a typed reactor hears a message that does not parse exactly
 // like the agent closing its side, and could not refuse it with INVALID_ARGUMENT.
 class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer> {
  public:
-  LinkReactor(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry)
-      : context_(context), handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
-    std::weak_ptr<StreamHandle> weak = handle_;
-    const std::string token = presentedToken(*context);
-    session_ = core.openSession(
-        [weak] {
-          if (auto h = weak.lock()) h->cancel();
-        },
-        token);
-    registry_.add(this);
-    // The mission's token is checked at the Hello (it names the mission); the rate of streams opened here.
-    if (Status admitted = core.admitRequest(clientKey(*context, token), "opening an agent stream"); !admitted.ok()) {
-      std::lock_guard lock(mutex_);
-      closing_status_ = admitted;
-      finishLocked(toGrpc(admitted));
-      return;
-    }
-    StartRead(&in_);
+  // Makes a stream's reactor, which deletes itself once the stream is done.
+  static LinkReactor* open(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry) {
+    std::shared_ptr<LinkReactor> reactor(new LinkReactor(context, core, registry));
+    reactor->self_ = reactor;
+    registry.add(reactor);
+    reactor->start(core);
+    return reactor.get();
   }
 
   void OnReadDone(bool ok) override {
@@ -157,14 +162,17 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
     handle_->ended();
     {
       std::lock_guard lock(mutex_);
+      done_ = true;
       session_->close(closing_status_);
     }
-    delete this;
+    const std::shared_ptr<LinkReactor> last = std::move(self_);  // may be the last reference: deletes this
   }
 
-  // From the periodic thread: the session's acknowledgement and corrections, when due.
+  // From the periodic thread: the session's acknowledgement and corrections, when due. Skipped while the stream's
+  // own callback holds the lock; the next tick comes 20 ms later.
   void tick(AgentSession::Clock::time_point now) {
-    std::lock_guard lock(mutex_);
+    std::unique_lock lock(mutex_, std::try_to_lock);
+    if (!lock.owns_lock() || done_) return;
     // One message in flight and none waiting: an agent that does not read gets no queue that grows (its
     // acknowledgements are cumulative and its corrections wait in its record).
     if (!gate_.writable() || !queue_.empty()) return;
@@ -172,6 +180,27 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   }
 
  private:
+  LinkReactor(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry)
+      : context_(context), handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
+    std::weak_ptr<StreamHandle> weak = handle_;
+    session_ = core.openSession(
+        [weak] {
+          if (auto h = weak.lock()) h->cancel();
+        },
+        presentedToken(*context));
+  }
+  void start(ServerCore& core) {
+    // The mission's token is checked at the Hello (it names the mission); the rate of streams opened here.
+    if (Status admitted = core.admitRequest(clientKey(*context_, presentedToken(*context_)), "opening an agent stream");
+        !admitted.ok()) {
+      std::lock_guard lock(mutex_);
+      closing_status_ = admitted;
+      finishLocked(toGrpc(admitted));
+      return;
+    }
+    StartRead(&in_);
+  }
+
   void enqueueLocked(const v1::ServerDownlink& message) {
     grpc::ByteBuffer bytes;
     bool own = false;
@@ -203,13 +232,15 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   std::deque<grpc::ByteBuffer> queue_;
   WriteGate gate_;
   Status closing_status_;
+  bool done_ = false;                 // OnDone ran: nothing may start on the stream any more
+  std::shared_ptr<LinkReactor> self_;  // from open() to OnDone()
 };
 
 class AgentLinkService final : public v1::AgentLink::WithRawCallbackMethod_Connect<v1::AgentLink::Service> {
  public:
   explicit AgentLinkService(ServerCore& core) : core_(core) {}
   grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* Connect(grpc::CallbackServerContext* context) override {
-    return new LinkReactor(context, core_, registry_);  // deletes itself in OnDone()
+    return LinkReactor::open(context, core_, registry_);  // deletes itself after OnDone()
   }
   ReactorRegistry& registry() { return registry_; }
 
@@ -285,7 +316,7 @@ struct GrpcServer::Impl {
       if (stopping) break;
       lock.unlock();
       const auto now = Clock::now();
-      link.registry().forEach([&](LinkReactor& r) { r.tick(now); });
+      for (const auto& reactor : link.registry().snapshot()) reactor->tick(now);
       maps.tick();
       if (now >= next_sample) {
         core.sampleTimeline();

@@ -58,6 +58,12 @@ grpc::Status relayedStatus(const grpc::Status& status, const std::string& owner_
 // the previous write to the client completed, so a slow client slows the owner's stream rather than filling memory
 // here). The client going away cancels the owner's call; the owner's status ends the client's. Deletes itself
 // once both sides are done.
+//
+// The next read from the owner starts in the client side's OnWriteDone, outside the owner's reactions, so the
+// owner's call is held (AddHold) from the start: without the hold gRPC may end that call, and free it, as soon as
+// its status arrives with no read outstanding, while the relay's write is still in flight. The hold goes when no
+// read will follow: the owner's stream ended (a read came back empty), or the client left. Its OnDone, and so
+// Finish, therefore never comes while a write is in flight.
 template <typename Message>
 class StreamRelay final : public grpc::ServerWriteReactor<Message> {
  public:
@@ -66,6 +72,7 @@ class StreamRelay final : public grpc::ServerWriteReactor<Message> {
   StreamRelay(std::unique_ptr<grpc::ClientContext> context, std::string owner_address, Start&& start)
       : context_(std::move(context)), owner_address_(std::move(owner_address)), upstream_(*this) {
     start(context_.get(), &upstream_);
+    upstream_.AddHold();
     upstream_.StartRead(&message_);
     upstream_.StartCall();
   }
@@ -73,9 +80,10 @@ class StreamRelay final : public grpc::ServerWriteReactor<Message> {
   void OnWriteDone(bool ok) override {
     if (!ok) {
       context_->TryCancel();  // the client left: the owner's call ends, and its OnDone finishes this one
+      releaseUpstream();
       return;
     }
-    upstream_.StartRead(&message_);
+    upstream_.StartRead(&message_);  // under the hold, which is still there: reads stop only after this one
   }
   void OnCancel() override { context_->TryCancel(); }
   void OnDone() override { sideDone(); }
@@ -85,7 +93,11 @@ class StreamRelay final : public grpc::ServerWriteReactor<Message> {
    public:
     explicit Upstream(StreamRelay& relay) : relay_(relay) {}
     void OnReadDone(bool ok) override {
-      if (ok) relay_.StartWrite(&relay_.message_);  // else the owner's stream ended: OnDone brings its status
+      if (ok) {
+        relay_.StartWrite(&relay_.message_);
+      } else {
+        relay_.releaseUpstream();  // the owner's stream ended (or was cancelled): OnDone brings its status
+      }
     }
     void OnDone(const grpc::Status& status) override {
       relay_.Finish(relayedStatus(status, relay_.owner_address_));
@@ -96,6 +108,10 @@ class StreamRelay final : public grpc::ServerWriteReactor<Message> {
     StreamRelay& relay_;
   };
 
+  // Once: no read of the owner's stream follows.
+  void releaseUpstream() {
+    if (!hold_released_.exchange(true)) upstream_.RemoveHold();
+  }
   void sideDone() {
     if (done_.fetch_add(1) == 1) delete this;  // the second of the two sides to finish
   }
@@ -104,6 +120,7 @@ class StreamRelay final : public grpc::ServerWriteReactor<Message> {
   std::string owner_address_;
   Upstream upstream_;
   Message message_;
+  std::atomic<bool> hold_released_{false};
   std::atomic<int> done_{0};
 };
 

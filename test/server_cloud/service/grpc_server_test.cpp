@@ -26,6 +26,8 @@
 #include "cvislam/v1/monitor.grpc.pb.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "server_cloud/core/server_core.hpp"
+#include "server_cloud/store/sqlite_store.hpp"
+#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/server_cloud/link_messages.hpp"
 #include "test/support/temp_dir.hpp"
 
@@ -109,8 +111,11 @@ class GrpcServerTest : public ::testing::Test {
     return o;
   }
 
-  void start(const ServerOptions& options = defaultOptions()) {
+  void start(const ServerOptions& options = defaultOptions(), std::unique_ptr<MapStore> store = nullptr) {
     core_ = std::make_unique<ServerCore>(options);
+    if (store) {
+      ASSERT_TRUE(core_->attachStore(std::move(store)).ok());
+    }
     auto started = GrpcServer::start(*core_);
     ASSERT_TRUE(started.ok()) << started.error().toString();
     server_ = std::move(started).value();
@@ -579,6 +584,51 @@ TEST_F(GrpcServerTest, AgentVanishingAfterARefusalWhileADownlinkIsInFlightIsDisc
   AgentClient restarted(channel_);
   EXPECT_FALSE(restarted.greet(kHostileAgent, kHostileSession + 1).has_value());
   EXPECT_EQ(restarted.awaitEnd().error_code(), grpc::StatusCode::FAILED_PRECONDITION);  // not ALREADY_EXISTS
+}
+
+
+// A store whose appends of one agent take 2 s (its disk or database connection stalls): that agent's stream waits,
+// and nobody else does. The other agent's batches are acknowledged as usual, and a new stream is welcomed.
+class SlowAgentStore final : public test::ForwardingStore {
+ public:
+  SlowAgentStore(std::unique_ptr<MapStore> inner, std::uint32_t slow_agent)
+      : ForwardingStore(std::move(inner)), slow_agent_(slow_agent) {}
+  Status append(const StoreRecord& r) override {
+    if (r.kind == StoreRecord::Kind::kBatch && r.agent == slow_agent_) {
+      std::this_thread::sleep_for(std::chrono::seconds(2));
+    }
+    return ForwardingStore::append(r);
+  }
+
+ private:
+  std::uint32_t slow_agent_;
+};
+
+TEST_F(GrpcServerTest, ASlowAppendOfOneAgentDelaysNoOtherAgentsAcknowledgementsNorNewStreams) {
+  cvislam::test::TempDir dir;
+  SqliteStoreOptions o;
+  o.path = dir.path() / "maps.db";
+  o.sync = SqliteStoreOptions::Sync::kOff;
+  auto sqlite = openSqliteStore(o);
+  ASSERT_TRUE(sqlite.ok()) << sqlite.error().toString();
+  start(defaultOptions(), std::make_unique<SlowAgentStore>(std::move(sqlite).value(), kHostileAgent));
+  AgentClient good(channel_);
+  AgentClient slow(channel_);
+  ASSERT_TRUE(good.greet(kGoodAgent, kGoodSession).has_value());
+  ASSERT_TRUE(slow.greet(kHostileAgent, kHostileSession).has_value());
+  ASSERT_TRUE(good.sendAndAwaitAck(makeKeyframeBatch(1, 0, 2)));
+
+  ASSERT_TRUE(slow.write(batchMessage(makeKeyframeBatch(1, 0, 2))));  // its append now takes 2 s
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  const auto start = std::chrono::steady_clock::now();
+  ASSERT_TRUE(good.sendAndAwaitAck(makeKeyframeBatch(2, 2, 2)));
+  const double acked_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  AgentClient newcomer(channel_);
+  ASSERT_TRUE(newcomer.greet(7, 0x7777).has_value());
+  const double welcomed_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  EXPECT_LT(acked_s, 1.0) << "the good agent's acknowledgement waited for the slow agent's append";
+  EXPECT_LT(welcomed_s, 1.0) << "a new stream waited for the slow agent's append";
+  EXPECT_TRUE(slow.sendAndAwaitAck(makeKeyframeBatch(2, 2, 2)));  // the slow agent is served in the end
 }
 
 TEST_F(GrpcServerTest, StartOnAPortInUseFailsNamingTheAddress) {
