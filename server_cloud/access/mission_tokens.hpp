@@ -43,6 +43,8 @@ class MissionTokens {
   [[nodiscard]] bool admits(std::string_view mission, std::string_view presented) const {
     return authorize(mission, presented).ok();
   }
+  // Whether `presented` opens at least one mission (false when tokens are off).
+  [[nodiscard]] bool opensAny(std::string_view presented) const;
 
  private:
   bool enabled_ = false;

@@ -27,7 +27,7 @@ std::string hostName() {
 }  // namespace
 
 ServerCore::ServerCore(const ServerOptions& options)
-    : options_(options), start_(Clock::now()), limiter_(options.rate_limit) {}
+    : options_(options), start_(Clock::now()), limiter_(options.rate_limit), streams_(options.stream_limits) {}
 
 ServerCore::~ServerCore() = default;
 

@@ -14,6 +14,7 @@
 #include "common/core/synchronized.hpp"
 #include "server_cloud/access/mission_tokens.hpp"
 #include "server_cloud/access/rate_limiter.hpp"
+#include "server_cloud/access/stream_limits.hpp"
 #include "server_cloud/backend/backend_worker.hpp"
 #include "server_cloud/cluster/mission_leases.hpp"
 #include "server_cloud/cluster/replica_coordinator.hpp"
@@ -56,6 +57,7 @@ struct ServerOptions {
   std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
   std::filesystem::path output;            // written at shutdown when set
   std::size_t max_message_bytes = 16U << 20U;
+  std::size_t memory_quota_mb = 4096;  // what gRPC's buffers may hold in all (grpc::ResourceQuota)
   int keepalive_time_ms = 2000;  // pings on idle streams, to notice a vanished agent
   int keepalive_timeout_ms = 5000;
   double timeline_interval_s = 1.0;  // keyframes and traffic per agent, sampled for timeline.csv
@@ -73,6 +75,7 @@ struct ServerOptions {
   // requests per second per client (map service and monitor calls, agent streams opened).
   std::filesystem::path tokens_file;
   RateLimitOptions rate_limit;
+  StreamLimitOptions stream_limits;  // agent streams open at once, per address and in all
   // TLS on the port (agent link, map service, monitor, health): PEM files; both empty: plaintext.
   std::filesystem::path tls_certificate;
   std::filesystem::path tls_private_key;
@@ -184,6 +187,9 @@ class ServerCore {
   // RESOURCE_EXHAUSTED naming `what` and the limit when the client is over it.
   Status admitRequest(const std::string& client, const std::string& what) { return limiter_.admit(client, what); }
   [[nodiscard]] const RateLimiter& rateLimiter() const { return limiter_; }
+  // A new agent stream from `address` (the peer without its port): its slot, or RESOURCE_EXHAUSTED.
+  Result<StreamLimits::Slot> openStreamSlot(const std::string& address) { return streams_.open(address); }
+  [[nodiscard]] const StreamLimits& streamLimits() const { return streams_; }
 
   // A session for a new agent stream (see AgentSession for `cancel_stream`); `token` is what the stream
   // presented, checked against the tokens when its Hello names the mission.
@@ -222,6 +228,7 @@ class ServerCore {
   std::unique_ptr<MapStore> store_;
   MissionTokens tokens_;
   RateLimiter limiter_;
+  StreamLimits streams_;
   std::unique_ptr<cluster::ReplicaCoordinator> replica_;  // scale-out only; after store_: it goes first
 
   // Replays what store_ holds of `mission` (this replica has just taken its lease).

@@ -35,11 +35,16 @@ Status ServerOptions::validate() const {
     return invalid("max_message_bytes must be in [64 KiB, 1 GiB]");
   }
   if (keepalive_time_ms < 100 || keepalive_timeout_ms < 100) return invalid("keepalive times must be >= 100 ms");
+  if (memory_quota_mb < 64 || memory_quota_mb > (1U << 20U)) return invalid("limits.memory_quota_mb must be in [64, 1048576]");
+  if (memory_quota_mb * (1U << 20U) < 4 * max_message_bytes) {
+    return invalid("limits.memory_quota_mb must hold at least four messages of max_message_bytes");
+  }
   if (!std::isfinite(timeline_interval_s) || !(timeline_interval_s >= 0.05)) {
     return invalid("timeline_interval_s must be >= 0.05");
   }
   if (Status s = session.validate(); !s.ok()) return s;
   if (Status s = rate_limit.validate(); !s.ok()) return s;
+  if (Status s = stream_limits.validate(); !s.ok()) return s;
   if (!health_listen.empty() && health_listen.find(':') == std::string::npos) {
     return invalid("health_listen address '" + health_listen + "': give host:port, e.g. 0.0.0.0:50052, or \"\"");
   }
@@ -80,6 +85,7 @@ std::string ServerOptions::describe() const {
       << "  health_listen:                " << (health_listen.empty() ? "(none)" : health_listen) << "\n"
       << "  output:                       " << (output.empty() ? "(none)" : output.string()) << "\n"
       << "  max_message_bytes:            " << max_message_bytes << "\n"
+      << "  memory_quota_mb:              " << memory_quota_mb << "\n"
       << "  keepalive_time_ms:            " << keepalive_time_ms << "\n"
       << "  keepalive_timeout_ms:         " << keepalive_timeout_ms << "\n"
       << "  timeline_interval_s:          " << timeline_interval_s << "\n"
@@ -109,6 +115,8 @@ std::string ServerOptions::describe() const {
       << "  max_agents_per_mission:       " << session.max_agents_per_mission << "\n"
       << "  requests_per_s:               " << rate_limit.rate_per_s << " per client (burst " << rate_limit.burst
       << ")\n"
+      << "  max_streams:                  " << stream_limits.total << " (" << stream_limits.per_address
+      << " per address; a stream without a Hello within " << session.hello_timeout_s << " s is ended)\n"
       << "  cluster:                      "
       << (cluster.enabled()
               ? "replica " + (cluster.replica.empty() ? std::string("(host name)") : cluster.replica) + " at " +
@@ -176,6 +184,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
 
   config::YamlSection limits(root["limits"], "limits");
   limits.read("max_message_bytes", o.max_message_bytes);
+  limits.read("memory_quota_mb", o.memory_quota_mb);
   limits.read("max_keypoints_per_keyframe", o.session.ingest.max_keypoints_per_keyframe);
   limits.read("max_imu_samples_per_keyframe", o.session.ingest.max_imu_samples_per_keyframe);
   limits.read("max_maps_per_agent", o.session.ingest.max_maps_per_agent);
@@ -183,6 +192,9 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   limits.read("max_agents_per_mission", o.session.max_agents_per_mission);
   limits.read("requests_per_s", o.rate_limit.rate_per_s);
   limits.read("request_burst", o.rate_limit.burst);
+  limits.read("max_streams", o.stream_limits.total);
+  limits.read("max_streams_per_address", o.stream_limits.per_address);
+  limits.read("hello_timeout_s", o.session.hello_timeout_s);
   if (Status s = limits.finish(); !s.ok()) return in_file(s);
 
   config::YamlSection recognition(root["recognition"], "recognition");

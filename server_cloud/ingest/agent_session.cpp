@@ -7,6 +7,7 @@
 #include <optional>
 #include <vector>
 
+#include "common/core/text.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 
@@ -127,6 +128,7 @@ Status SessionOptions::validate() const {
     return invalid("downlink_rate_hz must be in (0, 100]");
   }
   if (max_corrections_per_message < 1) return invalid("max_corrections_per_message must be >= 1");
+  if (!std::isfinite(hello_timeout_s) || !(hello_timeout_s > 0.0)) return invalid("limits.hello_timeout_s must be > 0");
   if (max_missions < 1 || max_agents_per_mission < 1) {
     return invalid("limits.max_missions and limits.max_agents_per_mission must be >= 1");
   }
@@ -549,6 +551,14 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
   }
   last_down_ = now;
   return true;
+}
+
+Status AgentSession::checkHelloDeadline(Clock::time_point now) const {
+  if (record_ || closed_) return Status::Ok();
+  if (std::chrono::duration<double>(now - opened_).count() < options_.hello_timeout_s) return Status::Ok();
+  return Error{ErrorCode::kFailedPrecondition, "no Hello within " + text::formatDouble(options_.hello_timeout_s) + " s" +
+                                                   " of opening the stream (limits.hello_timeout_s): a stream "
+                                                   "starts with the agent's Hello"};
 }
 
 void AgentSession::countRefused(const Status& reason) {

@@ -44,6 +44,7 @@ struct SessionOptions {
   std::string server_name = "cvislam_server";
   std::size_t max_missions = 64;            // missions a server holds; a Hello for one more is refused
   std::size_t max_agents_per_mission = 32;  // agents of one mission; a Hello of one more is refused
+  double hello_timeout_s = 5.0;  // a stream that says nothing for this long after opening is ended
 
   [[nodiscard]] Status validate() const;
 };
@@ -82,6 +83,9 @@ class AgentSession {
 
   // The periodic message (acknowledgement, corrections) when one is due at `now`; false when none is.
   bool nextDownlink(Clock::time_point now, v1::ServerDownlink& out);
+
+  // An error once the stream has been open hello_timeout_s at `now` without a Hello: the stream is to end.
+  [[nodiscard]] Status checkHelloDeadline(Clock::time_point now) const;
 
   // A message the adapter refused before it reached handle() (bytes that do not parse): counted like any other
   // refused message. The stream ends with it.
@@ -123,6 +127,7 @@ class AgentSession {
   std::uint64_t down_sequence_ = 0;
   CovisibleSender covisible_;  // what this stream has sent of the covisible map
   Clock::time_point last_down_{};
+  Clock::time_point opened_ = Clock::now();
   bool closed_ = false;
 };
 

@@ -19,10 +19,9 @@ std::shared_ptr<Mission> findMission(const MissionRegistry& missions, const std:
   }
   auto mission = missions.find(name);
   if (!mission) {
-    std::string known;
-    for (const auto& m : missions.missions()) known += (known.empty() ? "" : ", ") + m->name();
-    status = Error{ErrorCode::kNotFound, "no mission '" + name + "' on this server (it holds: " +
-                                             (known.empty() ? std::string("none") : known) + ")"};
+    // No list of what the server holds: a caller learns only of the missions its token opens (ListMissions).
+    status = Error{ErrorCode::kNotFound,
+                   "no mission '" + name + "' on this server (ListMissions lists the missions your token opens)"};
   }
   return mission;
 }

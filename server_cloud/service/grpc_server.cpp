@@ -164,6 +164,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
       std::lock_guard lock(mutex_);
       done_ = true;
       session_->close(closing_status_);
+      slot_.release();
     }
     const std::shared_ptr<LinkReactor> last = std::move(self_);  // may be the last reference: deletes this
   }
@@ -173,6 +174,13 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   void tick(AgentSession::Clock::time_point now) {
     std::unique_lock lock(mutex_, std::try_to_lock);
     if (!lock.owns_lock() || done_) return;
+    if (Status overdue = session_->checkHelloDeadline(now); !overdue.ok()) {
+      if (!gate_.finishing()) {
+        closing_status_ = overdue;
+        finishLocked(toGrpc(overdue));
+      }
+      return;
+    }
     // One message in flight and none waiting: an agent that does not read gets no queue that grows (its
     // acknowledgements are cumulative and its corrections wait in its record).
     if (!gate_.writable() || !queue_.empty()) return;
@@ -190,9 +198,19 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
         presentedToken(*context));
   }
   void start(ServerCore& core) {
-    // The mission's token is checked at the Hello (it names the mission); the rate of streams opened here.
-    if (Status admitted = core.admitRequest(clientKey(*context_, presentedToken(*context_)), "opening an agent stream");
-        !admitted.ok()) {
+    // The mission's token is checked at the Hello (it names the mission). Until then the stream is the address's:
+    // its rate of streams opened, and its streams open at once.
+    const std::string address = peerAddress(*context_);
+    Status admitted = core.admitRequest(unauthenticatedKey(*context_), "opening an agent stream");
+    if (admitted.ok()) {
+      auto slot = core.openStreamSlot(address);
+      if (slot) {
+        slot_ = std::move(slot).value();
+      } else {
+        admitted = slot.error();
+      }
+    }
+    if (!admitted.ok()) {
       std::lock_guard lock(mutex_);
       closing_status_ = admitted;
       finishLocked(toGrpc(admitted));
@@ -232,6 +250,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   std::deque<grpc::ByteBuffer> queue_;
   WriteGate gate_;
   Status closing_status_;
+  StreamLimits::Slot slot_;           // counts this stream against its address's limit
   bool done_ = false;                 // OnDone ran: nothing may start on the stream any more
   std::shared_ptr<LinkReactor> self_;  // from open() to OnDone()
 };
@@ -366,7 +385,14 @@ Result<std::unique_ptr<GrpcServer>> GrpcServer::start(ServerCore& core) {
   builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, o.keepalive_timeout_ms);
   builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
   builder.AddChannelArgument(GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 100);
-  builder.AddChannelArgument(GRPC_ARG_HTTP2_MAX_PING_STRIKES, 0);
+  // A client pinging faster than that three times over is sent away; the agents ping once a second.
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MAX_PING_STRIKES, 2);
+  // Bounds on what one connection and all of them may take: streams multiplexed on one connection (an agent
+  // uses one, a map client a few), and the memory gRPC's buffers may hold in all.
+  builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS, 128);
+  grpc::ResourceQuota quota("cvislam_server");
+  quota.Resize(static_cast<std::size_t>(o.memory_quota_mb) << 20U);
+  builder.SetResourceQuota(quota);
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   impl->server = builder.BuildAndStart();
   if (!impl->server || impl->port == 0) {

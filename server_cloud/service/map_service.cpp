@@ -269,6 +269,13 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
                                          v1::ListMissionsResponse* response) override {
     const std::string token = presentedToken(*context);
     if (Status s = admitCall(core_, *context, token, "", "ListMissions"); !s.ok()) return finish(context, s);
+    // With tokens on, a listing needs a token that opens something: an anonymous caller would make every
+    // replica fan out and query the leases for an empty answer.
+    if (core_.tokens().enabled() && !core_.tokens().opensAny(token)) {
+      return finish(context, Error{ErrorCode::kUnauthenticated,
+                                   "ListMissions needs a mission's token: send gRPC metadata 'authorization: Bearer "
+                                   "<token>' (--token, or CVISLAM_TOKEN)"});
+    }
     maps::listMissions(core_.missions(), *response);
     // Only the missions the caller's token opens: a client of one mission does not learn the others.
     auto* missions = response->mutable_missions();

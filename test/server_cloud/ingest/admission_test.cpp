@@ -58,7 +58,7 @@ TEST_F(AdmissionTest, AHelloWithoutTheMissionsTokenIsRefusedBeforeAnythingIsMade
     ASSERT_FALSE(s.ok());
     EXPECT_EQ(s.error().code(), ErrorCode::kUnauthenticated) << s.error().toString();
   }
-  EXPECT_THAT(other.error().message(), HasSubstr("not mission 'hall-a''s token"));
+  EXPECT_THAT(other.error().message(), HasSubstr("does not open mission 'hall-a'"));
   EXPECT_TRUE(core_->missions().missions().empty()) << "a refused Hello made a mission";
 }
 

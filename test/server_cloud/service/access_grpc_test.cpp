@@ -34,6 +34,7 @@ using ::testing::HasSubstr;
 const std::string kTokenSurvey = "survey-token-5f0c2a9e";
 const std::string kTokenDepot = "depot-token-77b1c4d2";
 const std::string kOperator = "operator-token-c0ffee11";
+const std::string kTokenQuiet = "quiet-token-3a9d0e61";  // a mission declared, with nothing in it yet
 
 std::unique_ptr<grpc::ClientContext> callContext(const std::string& token) {
   auto c = std::make_unique<grpc::ClientContext>();
@@ -74,8 +75,8 @@ class AccessTest : public ::testing::Test {
   void start(ServerOptions options = {}, std::shared_ptr<grpc::ChannelCredentials> credentials = nullptr) {
     options.listen = "127.0.0.1:0";
     options.tokens_file = dir_.path() / "tokens";
-    std::ofstream(options.tokens_file) << "survey " << kTokenSurvey << "\ndepot " << kTokenDepot << "\n* " << kOperator
-                                       << "\n";
+    std::ofstream(options.tokens_file) << "survey " << kTokenSurvey << "\ndepot " << kTokenDepot << "\nquiet "
+                                       << kTokenQuiet << "\n* " << kOperator << "\n";
     core_ = std::make_unique<ServerCore>(options);
     ASSERT_TRUE(core_->loadTokens().ok());
     cvislam::test::ExampleMissionOptions example;
@@ -152,7 +153,7 @@ TEST_F(AccessTest, EveryMapServiceCallNeedsItsMissionsToken) {
               grpc::StatusCode::UNAUTHENTICATED);
   }
   const grpc::Status wrong = listMaps("survey", kTokenDepot);
-  EXPECT_THAT(wrong.error_message(), HasSubstr("not mission 'survey''s token"));
+  EXPECT_THAT(wrong.error_message(), HasSubstr("does not open mission 'survey'"));
   EXPECT_THAT(wrong.error_message(), ::testing::Not(HasSubstr(kTokenSurvey)));
   EXPECT_TRUE(listMaps("survey", kTokenSurvey).ok());
   EXPECT_TRUE(listMaps("survey", kOperator).ok());
@@ -180,7 +181,11 @@ TEST_F(AccessTest, ListingsShowOnlyTheMissionsTheTokenOpens) {
   EXPECT_EQ(list(kTokenSurvey), "survey ");
   EXPECT_EQ(list(kTokenDepot), "depot ");
   EXPECT_EQ(list(kOperator), "depot survey ");
-  EXPECT_EQ(list(""), "");
+  v1::ListMissionsResponse anonymous;
+  EXPECT_EQ(maps_->ListMissions(callContext("").get(), {}, &anonymous).error_code(),
+            grpc::StatusCode::UNAUTHENTICATED);
+  EXPECT_EQ(maps_->ListMissions(callContext("made-up-token-0000").get(), {}, &anonymous).error_code(),
+            grpc::StatusCode::UNAUTHENTICATED);
   EXPECT_EQ(stats(kTokenDepot), "depot ");
   EXPECT_THAT(stats(kOperator), HasSubstr("survey"));
   // Health stays open: probes carry no token.
@@ -219,10 +224,11 @@ TEST_F(AccessTest, LimitsEndCallsWithResourceExhaustedNamingTheLimit) {
   EXPECT_EQ(third_mission.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
   EXPECT_THAT(third_mission.error_message(), HasSubstr("limits.max_missions"));
 
-  // The depot client used its burst of 8 (4 streams so far); the survey client has a bucket of its own.
+  // The depot client's bucket (its streams counted on its address before their Hellos); the survey client has a
+  // bucket of its own.
   int refused = 0;
   grpc::Status last;
-  for (int i = 0; i < 8; ++i) {
+  for (int i = 0; i < 12; ++i) {
     const grpc::Status s = listMaps("depot", kTokenDepot);
     if (!s.ok()) {
       ++refused;
@@ -234,6 +240,49 @@ TEST_F(AccessTest, LimitsEndCallsWithResourceExhaustedNamingTheLimit) {
   EXPECT_THAT(last.error_message(), HasSubstr("ListMaps refused: client ipv4:127.0.0.1 (token #"));
   EXPECT_THAT(last.error_message(), HasSubstr("limits.requests_per_s"));
   EXPECT_TRUE(listMaps("survey", kTokenSurvey).ok());
+}
+
+
+// Tokens made up one after another from one address share that address's bucket: they neither get a full bucket
+// each nor take anything from a genuine client's.
+TEST_F(AccessTest, MadeUpTokensFromOneAddressShareOneRateLimit) {
+  ServerOptions options;
+  options.rate_limit.rate_per_s = 1.0;
+  options.rate_limit.burst = 8.0;
+  start(options);
+  int unauthenticated = 0;
+  int limited = 0;
+  grpc::Status last;
+  for (int i = 0; i < 30; ++i) {
+    const grpc::Status s = listMaps("survey", "made-up-token-" + std::to_string(1000 + i));
+    unauthenticated += s.error_code() == grpc::StatusCode::UNAUTHENTICATED ? 1 : 0;
+    if (s.error_code() == grpc::StatusCode::RESOURCE_EXHAUSTED) {
+      ++limited;
+      last = s;
+    }
+  }
+  EXPECT_LE(unauthenticated, 12);
+  EXPECT_GE(limited, 18);
+  EXPECT_THAT(last.error_message(), HasSubstr("client ipv4:127.0.0.1 (unauthenticated)"));
+  EXPECT_TRUE(listMaps("survey", kTokenSurvey).ok());
+}
+
+// Nothing a caller is refused with tells it which other missions exist: a mission not in the tokens file and a
+// wrong token read the same, and NOT_FOUND names no mission.
+TEST_F(AccessTest, RefusalsAndNotFoundNameNoOtherMission) {
+  start();
+  const grpc::Status unlisted = listMaps("elsewhere", kTokenDepot);
+  const grpc::Status wrong = listMaps("survey", kTokenDepot);
+  ASSERT_EQ(unlisted.error_code(), grpc::StatusCode::UNAUTHENTICATED);
+  ASSERT_EQ(wrong.error_code(), grpc::StatusCode::UNAUTHENTICATED);
+  std::string unlisted_text = unlisted.error_message();
+  unlisted_text.replace(unlisted_text.find("elsewhere"), 9, "survey");
+  EXPECT_EQ(unlisted_text, wrong.error_message());
+  const grpc::Status empty = listMaps("quiet", kTokenQuiet);
+  EXPECT_EQ(empty.error_code(), grpc::StatusCode::NOT_FOUND);
+  for (const char* other : {"survey", "depot"}) {
+    EXPECT_THAT(empty.error_message(), ::testing::Not(HasSubstr(other)));
+  }
 }
 
 // TLS from certificate files: the certificate is made here, with openssl, and trusted as its own CA.

@@ -631,6 +631,51 @@ TEST_F(GrpcServerTest, ASlowAppendOfOneAgentDelaysNoOtherAgentsAcknowledgementsN
   EXPECT_TRUE(slow.sendAndAwaitAck(makeKeyframeBatch(2, 2, 2)));  // the slow agent is served in the end
 }
 
+
+// Streams that never send a Hello are ended after hello_timeout_s, and stop counting against their address.
+TEST_F(GrpcServerTest, StreamsWithoutAHelloAreEndedAfterTheHelloTimeout) {
+  ServerOptions options = defaultOptions();
+  options.session.hello_timeout_s = 0.5;
+  start(options);
+  std::vector<std::unique_ptr<AgentClient>> silent;
+  for (int i = 0; i < 20; ++i) silent.push_back(std::make_unique<AgentClient>(channel_));
+  for (auto& client : silent) {
+    const grpc::Status status = client->awaitEnd();
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+    EXPECT_THAT(status.error_message(), HasSubstr("no Hello within 0.5 s"));
+  }
+  for (int i = 0; i < 100 && core_->streamLimits().openStreams() > 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_EQ(core_->streamLimits().openStreams(), 0U);
+  AgentClient agent(channel_);  // and a real agent is still welcome
+  EXPECT_TRUE(agent.greet(kGoodAgent, kGoodSession).has_value());
+}
+
+// One address may hold only so many streams at once; one more is refused, and a closed one frees its place.
+TEST_F(GrpcServerTest, StreamsBeyondTheLimitPerAddressAreRefusedAsResourceExhausted) {
+  ServerOptions options = defaultOptions();
+  options.stream_limits.per_address = 4;
+  start(options);
+  std::vector<std::unique_ptr<AgentClient>> agents;
+  for (std::uint32_t id = 1; id <= 4; ++id) {
+    agents.push_back(std::make_unique<AgentClient>(channel_));
+    ASSERT_TRUE(agents.back()->greet(id, 0x1000 + id).has_value()) << "agent " << id;
+  }
+  AgentClient fifth(channel_);
+  EXPECT_FALSE(fifth.greet(5, 0x1005).has_value());
+  const grpc::Status refused = fifth.awaitEnd();
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_THAT(refused.error_message(), HasSubstr("limits.max_streams_per_address"));
+  EXPECT_TRUE(agents.back()->close().ok());
+  agents.pop_back();
+  for (int i = 0; i < 100 && core_->streamLimits().openStreams() > 3; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  AgentClient again(channel_);
+  EXPECT_TRUE(again.greet(4, 0x1004).has_value());
+}
+
 TEST_F(GrpcServerTest, StartOnAPortInUseFailsNamingTheAddress) {
   start();
   ServerOptions taken = defaultOptions();
