@@ -33,4 +33,9 @@ WORKDIR /var/lib/cvislam
 EXPOSE 50051
 VOLUME ["/var/lib/cvislam"]
 ENTRYPOINT ["/opt/cvislam/bin/cvislam_server"]
-CMD ["--listen", "0.0.0.0:50051", "--store", "/var/lib/cvislam/store.db", "--output", "/var/lib/cvislam/output"]
+# The default command serves TLS with tokens, from files mounted at /etc/cvislam/secrets (where the Kubernetes
+# Secret goes): on a reachable address the server refuses to start without them. On a network you trust, give
+# your own arguments with --insecure instead.
+CMD ["--listen", "0.0.0.0:50051", "--store", "/var/lib/cvislam/store.db", "--output", "/var/lib/cvislam/output", \
+     "--tls-cert", "/etc/cvislam/secrets/tls.crt", "--tls-key", "/etc/cvislam/secrets/tls.key", \
+     "--tokens", "/etc/cvislam/secrets/tokens"]

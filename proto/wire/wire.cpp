@@ -20,6 +20,26 @@ bool allFinite(std::initializer_list<double> values) {
 }
 }  // namespace
 
+Status checkPosition(const Eigen::Vector3d& p, const std::string& what) {
+  if (!p.allFinite()) return invalid(what + ": a non-finite position");
+  if (p.norm() > kMaxPositionM) {
+    return invalid(what + ": a position " + std::to_string(p.norm()) + " m from the origin (at most " +
+                   std::to_string(kMaxPositionM) + " m)");
+  }
+  return Status::Ok();
+}
+
+namespace {
+// |v| <= limit for each component of a 3-vector; `what` names the field.
+Status checkBound(const Eigen::Vector3d& v, double limit, const std::string& what) {
+  if (v.cwiseAbs().maxCoeff() > limit) {
+    return invalid(what + ": a component of magnitude " + std::to_string(v.cwiseAbs().maxCoeff()) + " (at most " +
+                   std::to_string(limit) + ")");
+  }
+  return Status::Ok();
+}
+}  // namespace
+
 void toProto(const geometry::SE3d& T, v1::Pose* out) {
   out->set_px(T.translation().x());
   out->set_py(T.translation().y());
@@ -41,8 +61,10 @@ Result<geometry::SE3d> fromProto(const v1::Pose& pose, const std::string& what) 
   if (std::abs(norm - 1.0) > 1e-3) {
     return invalid(what + ": the rotation quaternion has norm " + std::to_string(norm) + ", not 1");
   }
+  const Eigen::Vector3d t(pose.px(), pose.py(), pose.pz());
+  if (Status s = checkPosition(t, what); !s.ok()) return s.error();
   const Eigen::Quaterniond q(qw / norm, qx / norm, qy / norm, qz / norm);
-  return geometry::SE3d(geometry::SO3d(q), Eigen::Vector3d(pose.px(), pose.py(), pose.pz()));
+  return geometry::SE3d(geometry::SO3d(q), t);
 }
 
 Status checkFinite(const google::protobuf::RepeatedField<float>& values, int count, const std::string& what) {
@@ -82,6 +104,9 @@ Result<KeyframeStateValues> fromProto(const v1::KeyframeState& state, const std:
     out.bias.gyro[i] = state.bias_gyro(i);
     out.bias.accel[i] = state.bias_accel(i);
   }
+  if (Status s = checkBound(out.v_w, kMaxSpeedMps, what + " v_w"); !s.ok()) return s.error();
+  if (Status s = checkBound(out.bias.gyro, kMaxGyroBiasRadps, what + " bias_gyro"); !s.ok()) return s.error();
+  if (Status s = checkBound(out.bias.accel, kMaxAccelBiasMps2, what + " bias_accel"); !s.ok()) return s.error();
   return out;
 }
 
@@ -119,6 +144,19 @@ Result<std::pair<dataset::CameraCalibration, geometry::SE3d>> fromProto(const v1
   if (!allFinite({in.fx(), in.fy(), in.cx(), in.cy(), in.rate_hz()}) || !(in.fx() > 0) || !(in.fy() > 0)) {
     return invalid(what + ": focal lengths must be positive and every intrinsic finite");
   }
+  if (in.fx() < kMinFocalPx || in.fy() < kMinFocalPx || in.fx() > kMaxFocalPx || in.fy() > kMaxFocalPx) {
+    return invalid(what + ": focal lengths " + std::to_string(in.fx()) + ", " + std::to_string(in.fy()) +
+                   " px are not in [1, 1e5]");
+  }
+  const double w = in.width();
+  const double h = in.height();
+  if (in.cx() < -w || in.cx() > 2 * w || in.cy() < -h || in.cy() > 2 * h) {
+    return invalid(what + ": principal point (" + std::to_string(in.cx()) + ", " + std::to_string(in.cy()) +
+                   ") is far outside the image");
+  }
+  if (in.rate_hz() < 0 || in.rate_hz() > kMaxRateHz) {
+    return invalid(what + ": rate_hz " + std::to_string(in.rate_hz()) + " is not in [0, 1e4] (0: not said)");
+  }
   if (in.distortion_coefficients_size() != 4) {
     return invalid(what + ": " + std::to_string(in.distortion_coefficients_size()) +
                    " distortion coefficients, expected 4");
@@ -146,10 +184,17 @@ Result<std::pair<dataset::CameraCalibration, geometry::SE3d>> fromProto(const v1
   for (int i = 0; i < 4; ++i) {
     c.distortion_coefficients[static_cast<std::size_t>(i)] = in.distortion_coefficients(i);
     if (!std::isfinite(in.distortion_coefficients(i))) return invalid(what + ": a non-finite distortion coefficient");
+    if (std::abs(in.distortion_coefficients(i)) > kMaxDistortion) {
+      return invalid(what + ": distortion coefficient " + std::to_string(in.distortion_coefficients(i)) +
+                     " is beyond +-10");
+    }
   }
   if (!in.has_t_s_c()) return invalid(what + ": no T_s_c (camera to IMU)");
   auto T = fromProto(in.t_s_c(), what + " T_s_c");
   if (!T) return T.error();
+  if (T->translation().norm() > kMaxCameraToImuM) {
+    return invalid(what + ": the camera is " + std::to_string(T->translation().norm()) + " m from the IMU (T_s_c)");
+  }
   c.T_b_c = *T;
   return std::pair{c, *T};
 }
@@ -168,8 +213,16 @@ Result<imu::ImuNoise> fromProto(const v1::ImuCalibration& in, const std::string&
   noise.gyro_random_walk = in.gyro_random_walk();
   noise.accel_noise_density = in.accel_noise_density();
   noise.accel_random_walk = in.accel_random_walk();
-  if (!std::isfinite(in.rate_hz()) || !(in.rate_hz() > 0)) return invalid(what + ": rate_hz must be positive");
+  if (!std::isfinite(in.rate_hz()) || !(in.rate_hz() > 0) || in.rate_hz() > kMaxRateHz) {
+    return invalid(what + ": rate_hz must be positive and at most 1e4");
+  }
   if (Status s = noise.validate(); !s.ok()) return s.error().withContext(what);
+  for (double v : {noise.gyro_noise_density, noise.gyro_random_walk, noise.accel_noise_density,
+                   noise.accel_random_walk}) {
+    if (v < kMinNoise || v > kMaxNoise) {
+      return invalid(what + ": a noise figure of " + std::to_string(v) + " is not in [1e-9, 10]");
+    }
+  }
   return noise;
 }
 

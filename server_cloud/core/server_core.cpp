@@ -29,7 +29,16 @@ std::string hostName() {
 ServerCore::ServerCore(const ServerOptions& options)
     : options_(options), start_(Clock::now()), limiter_(options.rate_limit), streams_(options.stream_limits) {}
 
-ServerCore::~ServerCore() = default;
+ServerCore::~ServerCore() {
+  // The replica's thread loads missions, which feeds the workers: it stops first (without releasing: a crash
+  // would not either). Recognition's thread calls the back-end (matches) and the back-end's thread calls
+  // recognition (merges and removals to re-index): recognition's thread stops next, then the back-end goes, then
+  // recognition itself.
+  replica_.reset();
+  if (recognition_) recognition_->stop();
+  backend_.reset();
+  recognition_.reset();
+}
 
 Status ServerCore::startWorkers() {
   if (options_.recognition.enabled && !recognition_) {
@@ -176,6 +185,8 @@ Result<LoadReport> ServerCore::loadMission(const MapStore* source, const std::st
   report.source = source->describe();
   report.from = from;
   report.as = as;
+  // Before anything is written: a name the replay would refuse would make the store unreplayable.
+  if (Status s = checkMissionName(as); !s.ok()) return s.error().withContext("loading a mission as '" + as + "'");
   if (from == as) return Error{ErrorCode::kInvalidArgument, "mission '" + from + "' cannot be loaded as itself"};
   if (missions_.find(as) && !store_) {
     report.already_held = true;

@@ -49,6 +49,9 @@ struct ClusterOptions {
 };
 
 struct ServerOptions;
+// Whether host:port names this machine's loopback (127.0.0.0/8, ::1, localhost): nobody else can connect.
+bool isLoopbackAddress(const std::string& host_port);
+
 // Where redirected agents and forwarded reads reach this replica: cluster.advertise, or `listen` when it names a
 // host and a port; empty when neither does.
 std::string clusterAddress(const ServerOptions& o);
@@ -82,6 +85,9 @@ struct ServerOptions {
   // A second, plaintext port that serves grpc.health.v1 and nothing else (host:port; empty: none), for
   // probes that cannot speak TLS (Kubernetes' gRPC probes). The services stay behind TLS on `listen`.
   std::string health_listen;
+  // A `listen` address other machines can reach needs TLS and tokens; true lets the server start without them
+  // (a network the operator trusts), and it says so.
+  bool insecure = false;
   ClusterOptions cluster;
 
   [[nodiscard]] Status validate() const;

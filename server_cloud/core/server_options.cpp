@@ -18,6 +18,11 @@ Error invalid(const std::string& what) {
 
 }  // namespace
 
+bool isLoopbackAddress(const std::string& host_port) {
+  const std::string host = host_port.substr(0, host_port.rfind(':'));
+  return host == "localhost" || host.rfind("127.", 0) == 0 || host == "[::1]" || host == "::1";
+}
+
 std::string clusterAddress(const ServerOptions& o) {
   if (!o.cluster.advertise.empty()) return o.cluster.advertise;
   const auto colon = o.listen.rfind(':');
@@ -54,6 +59,15 @@ Status ServerOptions::validate() const {
   if (tls_certificate.empty() != tls_private_key.empty()) {
     return invalid("TLS needs both a certificate and its private key (--tls-cert and --tls-key)");
   }
+  if (!insecure && !isLoopbackAddress(listen) && (tls_certificate.empty() || tokens_file.empty())) {
+    const std::string missing = tls_certificate.empty() && tokens_file.empty() ? "TLS and tokens"
+                                : tls_certificate.empty()                      ? "TLS"
+                                                                               : "tokens";
+    return invalid("listen " + listen + " can be reached from other machines, but the server would run without " +
+                   missing +
+                   ": give --tls-cert and --tls-key, and --tokens; or --insecure (server.insecure) to serve "
+                   "a network you trust in plaintext or with every mission open");
+  }
   if (backend.enabled) {
     if (Status s = backend.validate(); !s.ok()) return s;
   }
@@ -81,7 +95,11 @@ Status ServerOptions::validate() const {
 
 std::string ServerOptions::describe() const {
   std::ostringstream out;
-  out << "  listen:                       " << listen << "\n"
+  out << "  listen:                       " << listen
+      << (insecure && !isLoopbackAddress(listen) && (tls_certificate.empty() || tokens_file.empty())
+              ? " (--insecure: reachable from other machines without TLS or tokens)"
+              : "")
+      << "\n"
       << "  health_listen:                " << (health_listen.empty() ? "(none)" : health_listen) << "\n"
       << "  output:                       " << (output.empty() ? "(none)" : output.string()) << "\n"
       << "  max_message_bytes:            " << max_message_bytes << "\n"
@@ -139,6 +157,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   std::string store_sync(toString(o.store_sync));
   server.read("listen", o.listen);
   server.read("health_listen", o.health_listen);
+  server.read("insecure", o.insecure);
   server.read("output", output);
   server.read("timeline_interval_s", o.timeline_interval_s);
   server.read("store", store);
@@ -195,6 +214,8 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   limits.read("max_streams", o.stream_limits.total);
   limits.read("max_streams_per_address", o.stream_limits.per_address);
   limits.read("hello_timeout_s", o.session.hello_timeout_s);
+  limits.read("agent_hello_burst", o.session.agent_hello_burst);
+  limits.read("agent_hellos_per_minute", o.session.agent_hellos_per_minute);
   if (Status s = limits.finish(); !s.ok()) return in_file(s);
 
   config::YamlSection recognition(root["recognition"], "recognition");

@@ -19,20 +19,6 @@ Error invalid(const std::string& what) {
   return Error{ErrorCode::kInvalidArgument, what};
 }
 
-// A mission name: 1 to 128 characters of [A-Za-z0-9._-], so that it can name files and metrics safely.
-Status checkMissionName(const std::string& name) {
-  if (name.empty() || name.size() > 128) {
-    return invalid("mission name must have 1 to 128 characters, got " + std::to_string(name.size()));
-  }
-  for (char c : name) {
-    if (std::isalnum(static_cast<unsigned char>(c)) == 0 && c != '.' && c != '_' && c != '-') {
-      return invalid("mission name '" + name + "': use letters, digits, '.', '_' and '-' only");
-    }
-  }
-  if (name == "." || name == "..") return invalid("mission name '" + name + "' is reserved");
-  return Status::Ok();
-}
-
 Result<AgentSensors> sensorsFromHello(const v1::Hello& hello) {
   SensorMode mode = SensorMode::kMono;
   if (hello.mode() == v1::SENSOR_MODE_MONO) {
@@ -121,7 +107,51 @@ Result<std::uint64_t> applyStoredBeyond(Mission& mission, AgentRecord& record, c
   }
 }
 
+// The Hello as the store keeps it: without last_acked_sequence, the one field that changes between reconnects of
+// one process.
+std::string normalizedHello(const v1::Hello& hello) {
+  v1::Hello copy = hello;
+  copy.clear_last_acked_sequence();
+  return copy.SerializeAsString();
+}
+
+// Takes one Hello from the agent's allowance: OK, or RESOURCE_EXHAUSTED saying when to come back.
+Status takeHelloAllowance(AgentRecord& record, const SessionOptions& options, std::chrono::steady_clock::time_point now) {
+  const double per_s = options.agent_hellos_per_minute / 60.0;
+  if (record.hello_allowance < 0.0) {
+    record.hello_allowance = options.agent_hello_burst;
+  } else {
+    const double elapsed_s = std::max(0.0, std::chrono::duration<double>(now - record.hello_allowance_at).count());
+    record.hello_allowance = std::min(options.agent_hello_burst, record.hello_allowance + elapsed_s * per_s);
+  }
+  record.hello_allowance_at = now;
+  if (record.hello_allowance >= 1.0) {
+    record.hello_allowance -= 1.0;
+    return Status::Ok();
+  }
+  ++record.hellos_refused;
+  const double wait_s = (1.0 - record.hello_allowance) / per_s;
+  return Error{ErrorCode::kResourceExhausted,
+               "agent " + std::to_string(record.id) + " reconnects too often (more than " +
+                   text::formatDouble(options.agent_hellos_per_minute) +
+                   " Hellos a minute after a burst; limits.agent_hellos_per_minute): connect again in " +
+                   text::formatDouble(std::ceil(wait_s)) + " s"};
+}
+
 }  // namespace
+
+Status checkMissionName(const std::string& name) {
+  if (name.empty() || name.size() > 128) {
+    return invalid("mission name must have 1 to 128 characters, got " + std::to_string(name.size()));
+  }
+  for (char c : name) {
+    if (std::isalnum(static_cast<unsigned char>(c)) == 0 && c != '.' && c != '_' && c != '-') {
+      return invalid("mission name '" + name + "': use letters, digits, '.', '_' and '-' only");
+    }
+  }
+  if (name == "." || name == "..") return invalid("mission name '" + name + "' is reserved");
+  return Status::Ok();
+}
 
 Status SessionOptions::validate() const {
   if (!std::isfinite(downlink_rate_hz) || !(downlink_rate_hz > 0.0) || downlink_rate_hz > 100.0) {
@@ -129,6 +159,10 @@ Status SessionOptions::validate() const {
   }
   if (max_corrections_per_message < 1) return invalid("max_corrections_per_message must be >= 1");
   if (!std::isfinite(hello_timeout_s) || !(hello_timeout_s > 0.0)) return invalid("limits.hello_timeout_s must be > 0");
+  if (!(agent_hello_burst >= 1.0) || !std::isfinite(agent_hello_burst) || !(agent_hellos_per_minute > 0.0) ||
+      !std::isfinite(agent_hellos_per_minute)) {
+    return invalid("limits.agent_hello_burst must be >= 1 and limits.agent_hellos_per_minute > 0");
+  }
   if (max_missions < 1 || max_agents_per_mission < 1) {
     return invalid("limits.max_missions and limits.max_agents_per_mission must be >= 1");
   }
@@ -201,7 +235,16 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
   if (credentials_.tokens != nullptr) {
     if (Status s = credentials_.tokens->authorize(hello.mission(), credentials_.token); !s.ok()) return s;
   }
+  if (hello.agent_id() > 0xFFFF) return invalid("agent id " + std::to_string(hello.agent_id()) + " is over 65535");
+  auto sensors = sensorsFromHello(hello);
+  if (!sensors) return sensors.error();
+  // Everything the Hello says is checked before a replica takes the mission's lease for it.
   if (ownership_ != nullptr) {
+    if (!missions_.find(hello.mission()) && missions_.missions().size() >= options_.max_missions) {
+      return Error{ErrorCode::kResourceExhausted, "this replica holds " + std::to_string(options_.max_missions) +
+                                                      " missions, its limit (limits.max_missions): mission '" +
+                                                      hello.mission() + "' cannot start here"};
+    }
     auto owner = ownership_->claim(hello.mission());
     if (!owner) {
       return Error{ErrorCode::kUnavailable, "this replica cannot serve mission '" + hello.mission() + "' now (" +
@@ -213,9 +256,6 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
                                                 " at " + owner->address + ": connect there"};
     }
   }
-  if (hello.agent_id() > 0xFFFF) return invalid("agent id " + std::to_string(hello.agent_id()) + " is over 65535");
-  auto sensors = sensorsFromHello(hello);
-  if (!sensors) return sensors.error();
 
   const auto agent_id = static_cast<AgentId>(hello.agent_id());
   auto opened = missions_.open(hello.mission(), options_.max_missions);
@@ -245,13 +285,17 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
                                                     "agent another --agent-id"};
       }
     }
-    // Durable before anything changes: the batches that follow need the sensors when the store is replayed.
-    if (store_ != nullptr) {
-      StoreRecord stored{0, StoreRecord::Kind::kHello, hello.mission(), agent_id, 0, hello.SerializeAsString()};
+    if (Status s = takeHelloAllowance(*record, options_, Clock::now()); !s.ok()) return s;
+    // Durable before anything changes: the batches that follow need the sensors when the store is replayed. A
+    // Hello that says what the stored one says is not stored again.
+    const std::string normalized = normalizedHello(hello);
+    if (store_ != nullptr && normalized != record->stored_hello) {
+      StoreRecord stored{0, StoreRecord::Kind::kHello, hello.mission(), agent_id, 0, normalized};
       if (Status s = store_->append(stored); !s.ok()) {
         return Error{ErrorCode::kUnavailable,
                      "the server could not store the Hello (" + s.error().message() + "); connect again later"};
       }
+      record->stored_hello = normalized;
     }
     if (store_ != nullptr) {
       auto caught_up = applyStoredBeyond(*mission, *record, *store_, options_, on_stored_);
@@ -447,6 +491,7 @@ Status replayStored(MissionRegistry& missions, const SessionOptions& options, co
     if (!sensors) return damaged(sensors.error().message());
     auto record = shared_record->write();
     applyHello(*mission, *record, hello, std::move(sensors).value());
+    record->stored_hello = normalizedHello(hello);
     return Status::Ok();
   }
   v1::MapBatch batch;

@@ -45,6 +45,10 @@ struct SessionOptions {
   std::size_t max_missions = 64;            // missions a server holds; a Hello for one more is refused
   std::size_t max_agents_per_mission = 32;  // agents of one mission; a Hello of one more is refused
   double hello_timeout_s = 5.0;  // a stream that says nothing for this long after opening is ended
+  // Hellos of one agent: a burst, then this many a minute. Beyond it a Hello is refused before it is stored or
+  // logged (an agent on a bad radio link reconnects a few times a minute; a loop would do so hundreds of times).
+  double agent_hello_burst = 20.0;
+  double agent_hellos_per_minute = 12.0;
 
   [[nodiscard]] Status validate() const;
 };
@@ -130,6 +134,9 @@ class AgentSession {
   Clock::time_point opened_ = Clock::now();
   bool closed_ = false;
 };
+
+// A mission name: 1 to 128 characters of [A-Za-z0-9._-], so that it can name files and metrics safely.
+Status checkMissionName(const std::string& name);
 
 // What a Hello sets in the agent's record and its mission (live and when the store is replayed).
 void applyHello(Mission& mission, AgentRecord& record, const v1::Hello& hello, AgentSensors sensors);

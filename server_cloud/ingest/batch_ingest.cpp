@@ -244,7 +244,8 @@ class Checker {
     // Raw IMU since the previous keyframe.
     const v1::ImuSamples& imu = k.imu();
     const int samples = imu.dt_ns_size();
-    if (imu.gyro_size() != 3 * samples || imu.accel_size() != 3 * samples) {
+    const std::int64_t columns = 3 * static_cast<std::int64_t>(samples);  // 64-bit: no overflow at any message size
+    if (imu.gyro_size() != columns || imu.accel_size() != columns) {
       return invalid(name + ": IMU columns disagree (" + std::to_string(samples) + " times, " +
                      std::to_string(imu.gyro_size()) + " gyro and " + std::to_string(imu.accel_size()) +
                      " accelerometer values)");
@@ -295,6 +296,7 @@ class Checker {
     const std::string name = pointName(c);
     if (new_points_.count(c) != 0) return invalid(name + " is sent in full twice in one batch");
     if (Status s = wire::checkFinite(p.p_w(), 3, name + " p_w"); !s.ok()) return s;
+    if (Status s = wire::checkPosition(Vector3d(p.p_w(0), p.p_w(1), p.p_w(2)), name + " p_w"); !s.ok()) return s;
     if (p.orb_size() != 4) {
       return invalid(name + ": descriptor of " + std::to_string(p.orb_size()) + " words, expected 4 (32 bytes)");
     }
@@ -368,7 +370,7 @@ class Checker {
   }
 
   Status checkPointUpdates(const v1::PointPositions& u) {
-    if (u.p_w_size() != 3 * u.point_size()) {
+    if (u.p_w_size() != 3 * static_cast<std::int64_t>(u.point_size())) {
       return invalid("point updates: " + std::to_string(u.point_size()) + " points but " +
                      std::to_string(u.p_w_size()) + " coordinates");
     }
@@ -377,7 +379,7 @@ class Checker {
       auto map = livePoint(c, "point update");
       if (!map) return map.error();
       const Vector3d p(u.p_w(3 * i), u.p_w(3 * i + 1), u.p_w(3 * i + 2));
-      if (!p.allFinite()) return invalid("update of " + pointName(c) + ": a non-finite position");
+      if (Status s = wire::checkPosition(p, "update of " + pointName(c)); !s.ok()) return s;
       plan_.point_updates.push_back({c, p, *map});
     }
     return Status::Ok();

@@ -42,12 +42,16 @@ RecognitionWorker::RecognitionWorker(const RecognitionWorkerOptions& options, Mi
 }
 
 RecognitionWorker::~RecognitionWorker() {
+  stop();
+}
+
+void RecognitionWorker::stop() {
   {
     const std::lock_guard lock(mutex_);
     stop_ = true;
   }
   wake_.notify_all();
-  thread_.join();
+  if (thread_.joinable()) thread_.join();
 }
 
 bool RecognitionWorker::enqueue(KeyframeEvent event) {

@@ -75,6 +75,8 @@ class RecognitionWorker {
   static Result<std::unique_ptr<RecognitionWorker>> create(const RecognitionWorkerOptions& options,
                                                            MissionRegistry& missions);
   ~RecognitionWorker();  // stops the thread; events still queued are dropped
+  // Stops the thread now (the object stays: events enqueued later are kept and never handled). Idempotent.
+  void stop();
   RecognitionWorker(const RecognitionWorker&) = delete;
   RecognitionWorker& operator=(const RecognitionWorker&) = delete;
 

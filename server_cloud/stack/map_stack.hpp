@@ -11,6 +11,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -142,6 +143,14 @@ struct AgentRecord {
   std::uint64_t resend_from = 0;
   std::uint64_t resend_conflicts = 0;  // how often that happened
   std::uint64_t caught_up_batches = 0;  // batches a Hello found in the store beyond what memory held
+  // The Hello as last stored (without its last_acked_sequence, which changes every time): a reconnect that says the
+  // same is not stored again.
+  std::string stored_hello;
+  // Reconnections allowed now (a bucket refilled over time), so that an agent that reconnects in a loop neither
+  // grows the store nor floods the mission's event log.
+  double hello_allowance = -1.0;  // < 0: full
+  std::chrono::steady_clock::time_point hello_allowance_at{};
+  std::uint64_t hellos_refused = 0;
   // Which server map holds each agent map, keyframe and point of the agent (by counter).
   struct AgentMap {
     MapId map = 0;

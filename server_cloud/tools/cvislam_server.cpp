@@ -132,6 +132,10 @@ int main(int argc, char** argv) {
                  "[none: every mission open to every client]");
   app.add_option("--tls-cert", tls_cert, "PEM certificate (chain) for TLS on the port [none: plaintext]");
   app.add_option("--tls-key", tls_key, "PEM private key of --tls-cert");
+  bool insecure = false;
+  app.add_flag("--insecure", insecure,
+               "Start on an address other machines can reach (e.g. 0.0.0.0) without TLS or without tokens; without "
+               "it such a server refuses to start. For a network you trust");
   std::string health_listen;
   app.add_option("--health-listen", health_listen,
                  "Also serve grpc.health.v1 alone, in plaintext, on this host:port (for Kubernetes probes, which "
@@ -202,6 +206,7 @@ int main(int argc, char** argv) {
   if (!tls_cert.empty()) options.tls_certificate = tls_cert;
   if (!tls_key.empty()) options.tls_private_key = tls_key;
   if (!health_listen.empty()) options.health_listen = health_listen;
+  if (insecure) options.insecure = true;
   if (!postgres.empty()) options.cluster.postgres = postgres;
   if (!replica.empty()) options.cluster.replica = replica;
   if (!advertise.empty()) options.cluster.advertise = advertise;

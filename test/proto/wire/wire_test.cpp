@@ -107,7 +107,8 @@ TEST(Wire, CameraCalibrationRoundTripKeepsTheIntrinsicsAndTheExtrinsics) {
   dataset::CameraCalibration calibration;  // EuRoC cam0
   calibration.distortion_coefficients = {-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05};
   std::mt19937 rng(3);
-  const geometry::SE3d T_s_c = randomPose(rng);
+  // A turned camera a few centimetres from the IMU, as on a real rig.
+  const geometry::SE3d T_s_c(randomPose(rng).so3(), Eigen::Vector3d(-0.0216, -0.0647, 0.0098));
   v1::CameraCalibration message;
 
   toProto(calibration, T_s_c, &message);
@@ -166,6 +167,45 @@ TEST(Wire, ImuCalibrationRoundTripsAndANonPositiveDensityIsRefused) {
   EXPECT_THAT(bad_walk.error().message(), AllOf(HasSubstr("hello imu"), HasSubstr("gyro_random_walk")));
   ASSERT_FALSE(bad_rate.ok());
   EXPECT_THAT(bad_rate.error().message(), HasSubstr("rate_hz must be positive"));
+}
+
+
+// Finite but physically absurd values are refused like non-finite ones: each would become inf or NaN once a
+// shared map or its optimisation used it.
+TEST(Wire, AbsurdFiniteCalibrationsAndPosesAreRefusedNamingTheField) {
+  v1::CameraCalibration valid;
+  toProto(dataset::CameraCalibration{}, geometry::SE3d(), &valid);
+  const auto camera = [&](auto&& change) {
+    v1::CameraCalibration c = valid;
+    change(c);
+    auto decoded = fromProto(c, "cam0");
+    return decoded.ok() ? std::string("accepted") : decoded.error().message();
+  };
+  EXPECT_THAT(camera([](auto& c) { c.set_fx(1e-300); }), HasSubstr("not in [1, 1e5]"));
+  EXPECT_THAT(camera([](auto& c) { c.set_fy(1e300); }), HasSubstr("not in [1, 1e5]"));
+  EXPECT_THAT(camera([](auto& c) { c.set_cx(1e9); }), HasSubstr("far outside the image"));
+  EXPECT_THAT(camera([](auto& c) { c.set_distortion_coefficients(0, 1e300); }), HasSubstr("beyond +-10"));
+  EXPECT_THAT(camera([](auto& c) { c.set_rate_hz(-20.0); }), HasSubstr("rate_hz"));
+  EXPECT_THAT(camera([](auto& c) { c.mutable_t_s_c()->set_px(1e300); }), HasSubstr("cam0 T_s_c"));
+  EXPECT_THAT(camera([](auto& c) { c.mutable_t_s_c()->set_px(50.0); }), HasSubstr("m from the IMU"));
+  EXPECT_EQ(camera([](auto&) {}), "accepted");
+
+  v1::ImuCalibration imu;
+  toProto(imu::ImuNoise{}, 200.0, &imu);
+  for (double bad : {1e-300, 1e300}) {
+    v1::ImuCalibration noisy = imu;
+    noisy.set_accel_noise_density(bad);
+    auto decoded = fromProto(noisy, "imu");
+    ASSERT_FALSE(decoded.ok()) << bad;
+    EXPECT_THAT(decoded.error().message(), HasSubstr("imu"));
+  }
+
+  v1::Pose far;
+  toProto(geometry::SE3d(), &far);
+  far.set_py(-1e300);
+  auto decoded = fromProto(far, "keyframe 3:2 T_w_s");
+  ASSERT_FALSE(decoded.ok());
+  EXPECT_THAT(decoded.error().message(), HasSubstr("keyframe 3:2 T_w_s: a position"));
 }
 
 TEST(Wire, AngleCodeRoundTripsWithinHalfAStepAndWrapsAroundTheTurn) {

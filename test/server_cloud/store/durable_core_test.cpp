@@ -144,7 +144,8 @@ TEST_F(DurableCoreTest, ARestartedCoreHoldsEveryAcknowledgedBatchOnceAndTheAgent
   EXPECT_EQ(after.size(), 12U);
   EXPECT_EQ(std::set<std::uint32_t>(after.begin(), after.end()).size(), 12U);  // each once
   EXPECT_EQ(core->missions().find(kMission)->agent(kAgent)->read()->duplicate_batches, 1U);
-  EXPECT_EQ(core->store()->counters().records, 1U + 5U + 1U + 1U);  // two Hellos, batches 1..6
+  // One Hello (the reconnect's said the same, so it was not stored again) and batches 1..6.
+  EXPECT_EQ(core->store()->counters().records, 1U + 5U + 1U);
 }
 
 TEST_F(DurableCoreTest, AnotherProcessClaimingTheAgentAfterARestartIsStillRefused) {
@@ -270,6 +271,73 @@ TEST_F(DurableCoreTest, ABatchThatDiffersFromTheOneStoredUnderItsNumberGivesWayT
   owned.reset();
   auto restarted = startCore();
   EXPECT_EQ(keyframesInMaps(*restarted), before);
+}
+
+
+// A reconnect loop of one agent (the same process, the same Hello): the store gets that Hello once, and the
+// mission's event log gets a bounded number of connection events, so map events are not pushed out.
+TEST_F(DurableCoreTest, AReconnectLoopStoresTheHelloOnceAndIsCutOffBeforeItFloodsTheEventLog) {
+  auto core = startCore();
+  int refused = 0;
+  Status last;
+  for (int i = 0; i < 200; ++i) {
+    auto session = core->openSession({});
+    const Status s = send(*session, helloMessage(kMission, kAgent, kSession));
+    if (!s.ok()) {
+      ++refused;
+      last = s;
+      continue;
+    }
+    if (i == 0) sendOk(*session, batchMessage(makeKeyframeBatch(1, 0, 2)));
+  }
+  const ServerOptions o = options();
+  EXPECT_EQ(core->store()->counters().records, 2U);  // one Hello, one batch
+  EXPECT_GE(refused, 200 - static_cast<int>(o.session.agent_hello_burst) - 1);
+  EXPECT_EQ(last.error().code(), ErrorCode::kResourceExhausted);
+  EXPECT_THAT(last.error().message(), HasSubstr("limits.agent_hellos_per_minute"));
+  const auto events = core->missions().find(kMission)->events().read(1, 1000);
+  EXPECT_EQ(events.skipped, 0U);
+  EXPECT_LE(events.events.size(), 2 * static_cast<std::size_t>(o.session.agent_hello_burst) + 4);
+  EXPECT_EQ(core->missions().find(kMission)->agent(kAgent)->read()->hellos_refused, static_cast<std::uint64_t>(refused));
+}
+
+// The disk fills while an agent says Hello: the Hello is refused UNAVAILABLE, nothing about the agent changes,
+// and the agent comes in once the store takes records again.
+TEST_F(DurableCoreTest, AHelloTheStoreCannotKeepIsRefusedAndChangesNothing) {
+  class FullDiskStore final : public test::ForwardingStore {
+   public:
+    using ForwardingStore::ForwardingStore;
+    Status append(const StoreRecord& r) override {
+      if (full) return Error{ErrorCode::kIoError, "database or disk is full"};
+      return ForwardingStore::append(r);
+    }
+    bool full = true;
+  };
+  SqliteStoreOptions o;
+  o.path = dir_ / "maps.db";
+  auto sqlite = openSqliteStore(o);
+  ASSERT_TRUE(sqlite.ok());
+  auto store = std::make_unique<FullDiskStore>(std::move(sqlite).value());
+  FullDiskStore* disk = store.get();
+  ServerCore core(ServerOptions{});
+  ASSERT_TRUE(core.attachStore(std::move(store)).ok());
+  auto session = core.openSession({});
+  const Status refused = send(*session, helloMessage(kMission, kAgent, kSession));
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.error().code(), ErrorCode::kUnavailable);
+  EXPECT_THAT(refused.error().message(), HasSubstr("could not store the Hello"));
+  {
+    auto record = core.missions().find(kMission)->agent(kAgent)->read();
+    EXPECT_FALSE(record->connected);
+    EXPECT_EQ(record->connections, 0U);
+    EXPECT_FALSE(record->sensors.has_value());
+  }
+  EXPECT_EQ(core.missions().find(kMission)->events().nextNumber(), 1U);  // nothing logged
+  disk->full = false;
+  auto again = core.openSession({});
+  sendOk(*again, helloMessage(kMission, kAgent, kSession));
+  sendOk(*again, batchMessage(makeKeyframeBatch(1, 0, 2)));
+  EXPECT_EQ(core.store()->counters().records, 2U);
 }
 
 TEST_F(DurableCoreTest, AStoreWithAGapInAnAgentsBatchesStopsTheStartNamingTheRecord) {

@@ -166,6 +166,27 @@ TEST_F(MapReuseTest, ANewAgentJoinsTheLoadedMissionBesideItsAgents) {
   EXPECT_THAT(taken.error().message(), HasSubstr("another --agent-id"));
 }
 
+
+// A name the replay would refuse is refused before anything is written: the store still opens afterwards.
+TEST_F(MapReuseTest, ALoadUnderAnInvalidNameWritesNothingAndTheStoreStillOpens) {
+  for (const std::string& bad : {std::string("a/b"), std::string("x y"), std::string(".."), std::string(200, 'm')}) {
+    SCOPED_TRACE(bad);
+    {
+      ServerCore core(storeOptions(dir_.path() / "day2.db"));
+      ASSERT_TRUE(core.openStore().ok());
+      auto source = openSource(dir_.path() / "day1.db");
+      const auto loaded = core.loadMission(source.get(), "day1", bad);
+      ASSERT_FALSE(loaded.ok());
+      EXPECT_EQ(loaded.error().code(), ErrorCode::kInvalidArgument);
+      EXPECT_EQ(core.store()->counters().records, 0U);
+    }
+    ServerCore restarted(storeOptions(dir_.path() / "day2.db"));
+    const auto replayed = restarted.openStore();
+    ASSERT_TRUE(replayed.ok()) << replayed.error().toString();
+    EXPECT_EQ(replayed->batches, 0U);
+  }
+}
+
 TEST_F(MapReuseTest, ASourceWithoutTheMissionIsRefusedNamingWhatItHolds) {
   ServerCore core(storeOptions(dir_.path() / "day2.db"));
   ASSERT_TRUE(core.openStore().ok());
