@@ -20,11 +20,11 @@ bool allFinite(std::initializer_list<double> values) {
 }
 }  // namespace
 
-Status checkPosition(const Eigen::Vector3d& p, const std::string& what) {
+Status checkPosition(const Eigen::Vector3d& p, const std::string& what, double limit_m) {
   if (!p.allFinite()) return invalid(what + ": a non-finite position");
-  if (p.norm() > kMaxPositionM) {
+  if (p.norm() > limit_m) {
     return invalid(what + ": a position " + std::to_string(p.norm()) + " m from the origin (at most " +
-                   std::to_string(kMaxPositionM) + " m)");
+                   std::to_string(limit_m) + " m)");
   }
   return Status::Ok();
 }

@@ -1,6 +1,7 @@
 #include "server_cloud/cluster/replica_coordinator.hpp"
 
-#include <chrono>
+#include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <random>
 
@@ -13,6 +14,11 @@ MissionOwner here() {
 MissionOwner elsewhere(const Lease& lease) {
   return MissionOwner{false, lease.holder, lease.address};
 }
+std::string seconds(double s) {
+  char text[32];
+  std::snprintf(text, sizeof text, "%.0f s", std::ceil(s));
+  return text;
+}
 }  // namespace
 
 std::string makeHolderName(const std::string& replica) {
@@ -23,27 +29,42 @@ std::string makeHolderName(const std::string& replica) {
   return replica + "/" + hex;
 }
 
-ReplicaCoordinator::ReplicaCoordinator(std::unique_ptr<MissionLeases> leases, Loader loader)
-    : leases_(std::move(leases)), loader_(std::move(loader)) {}
+ReplicaCoordinator::ReplicaCoordinator(std::unique_ptr<MissionLeases> leases, std::unique_ptr<MissionLeases> renewals,
+                                       Loader loader, Dropper dropper, HasRoom has_room, ReplicaOptions options)
+    : leases_(std::move(leases)),
+      renewals_(std::move(renewals)),
+      loader_(std::move(loader)),
+      dropper_(std::move(dropper)),
+      has_room_(std::move(has_room)),
+      replica_options_(options),
+      cache_ttl_(std::chrono::duration_cast<Clock::duration>(
+          std::chrono::duration<double>(leases_->options().ttl_s / 3.0))) {}
 
 ReplicaCoordinator::~ReplicaCoordinator() {
   {
     std::lock_guard lock(wake_mutex_);
-    stopping_ = true;
+    renew_stopping_ = true;
   }
   wake_.notify_all();
-  if (thread_.joinable()) thread_.join();
+  if (renew_thread_.joinable()) renew_thread_.join();
+  {
+    std::lock_guard lock(state_mutex_);
+    stopping_ = true;
+  }
+  state_changed_.notify_all();
+  if (load_thread_.joinable()) load_thread_.join();
 }
 
 void ReplicaCoordinator::start() {
   const auto period = std::chrono::duration<double>(leases_->options().ttl_s / 3.0);
-  thread_ = std::thread([this, period] {
+  load_thread_ = std::thread([this] { runLoads(); });
+  renew_thread_ = std::thread([this, period] {
     std::unique_lock lock(wake_mutex_);
-    while (!stopping_) {
+    while (!renew_stopping_) {
       lock.unlock();
       tick();
       lock.lock();
-      wake_.wait_for(lock, period, [this] { return stopping_; });
+      wake_.wait_for(lock, period, [this] { return renew_stopping_; });
     }
   });
 }
@@ -51,10 +72,16 @@ void ReplicaCoordinator::start() {
 Status ReplicaCoordinator::release() {
   {
     std::lock_guard lock(wake_mutex_);
-    stopping_ = true;
+    renew_stopping_ = true;
   }
   wake_.notify_all();
-  if (thread_.joinable()) thread_.join();
+  if (renew_thread_.joinable()) renew_thread_.join();
+  {
+    std::lock_guard lock(state_mutex_);
+    stopping_ = true;
+  }
+  state_changed_.notify_all();
+  if (load_thread_.joinable()) load_thread_.join();
   std::vector<std::string> missions = served();
   Status result = Status::Ok();
   std::lock_guard db(db_mutex_);
@@ -66,81 +93,159 @@ Status ReplicaCoordinator::release() {
   return result;
 }
 
-Result<MissionOwner> ReplicaCoordinator::claim(const std::string& mission) {
-  bool was_lost = false;
-  {
-    std::lock_guard lock(state_mutex_);
-    if (served_.count(mission) != 0U) return here();
-    if (loading_.count(mission) != 0U) {
-      return Error{ErrorCode::kUnavailable,
-                   "mission '" + mission + "' is being loaded from the store by this replica: connect again shortly"};
-    }
-    was_lost = lost_.count(mission) != 0U;
-    if (!was_lost) loading_.insert(mission);  // from here on, this caller alone takes it
-  }
-  return take(mission, was_lost, /*by_takeover=*/false);
+std::optional<std::string> ReplicaCoordinator::blockedLocked(const std::string& mission, Clock::time_point now) const {
+  const auto it = retries_.find(mission);
+  if (it == retries_.end() || now >= it->second.not_before) return std::nullopt;
+  const double wait_s = std::chrono::duration<double>(it->second.not_before - now).count();
+  return "its stored records failed to load " + std::to_string(it->second.failures) + " time(s) (" + it->second.error +
+         "); the next try is in " + seconds(wait_s);
 }
 
-// The caller put `mission` into loading_ (unless it was lost: then only its owner is looked up).
-Result<MissionOwner> ReplicaCoordinator::take(const std::string& mission, bool was_lost, bool by_takeover) {
-  Result<Lease> lease = [&]() -> Result<Lease> {
-    std::lock_guard db(db_mutex_);
-    if (was_lost) {
-      auto found = leases_->find(mission);
-      if (!found) return found.error();
-      if (!*found) return Error{ErrorCode::kNotFound, "mission '" + mission + "' has no lease"};
-      return **found;
+Result<MissionOwner> ReplicaCoordinator::claim(const std::string& mission) {
+  const auto loaded = [&](std::unique_lock<std::mutex>& lock) -> std::optional<Result<MissionOwner>> {
+    state_changed_.wait_for(lock, replica_options_.claim_wait, [&] { return loading_.count(mission) == 0U; });
+    if (served_.count(mission) != 0U) return Result<MissionOwner>(here());
+    if (loading_.count(mission) != 0U) {
+      return Result<MissionOwner>(Error{ErrorCode::kUnavailable, "mission '" + mission +
+                                                                     "' is being loaded from the store by this "
+                                                                     "replica: connect again shortly"});
     }
+    return std::nullopt;
+  };
+  {
+    std::unique_lock lock(state_mutex_);
+    if (served_.count(mission) != 0U) return here();
+    if (loading_.count(mission) != 0U) {
+      if (auto answer = loaded(lock)) return *answer;
+    }
+    if (auto blocked = blockedLocked(mission, Clock::now())) {
+      return Error{ErrorCode::kUnavailable, "mission '" + mission + "' cannot be served now: " + *blocked};
+    }
+  }
+  auto owner = acquireAndQueue(mission, /*by_takeover=*/false);
+  if (!owner || !owner->here) return owner;
+  std::unique_lock lock(state_mutex_);
+  if (auto answer = loaded(lock)) return *answer;
+  if (auto blocked = blockedLocked(mission, Clock::now())) {
+    return Error{ErrorCode::kUnavailable, "mission '" + mission + "' cannot be served now: " + *blocked};
+  }
+  return Error{ErrorCode::kUnavailable, "mission '" + mission + "' is not served here now: connect again"};
+}
+
+Result<MissionOwner> ReplicaCoordinator::acquireAndQueue(const std::string& mission, bool by_takeover) {
+  {
+    std::lock_guard lock(state_mutex_);
+    if (served_.count(mission) != 0U || loading_.count(mission) != 0U) return here();
+    loading_.insert(mission);  // from here on, this caller alone takes it
+  }
+  Result<Lease> lease = [&] {
+    std::lock_guard db(db_mutex_);
     return leases_->acquire(mission);
   }();
-  const auto done_loading = [&] {
-    std::lock_guard lock(state_mutex_);
+  std::lock_guard lock(state_mutex_);
+  if (!lease || lease->holder != leases_->options().holder) {
     loading_.erase(mission);
-  };
-  if (!lease) {
-    done_loading();
-    return lease.error();
-  }
-  if (lease->holder != leases_->options().holder) {
-    done_loading();
-    std::lock_guard lock(state_mutex_);
+    state_changed_.notify_all();
+    if (!lease) return lease.error();
     ++counters_.redirected;
-    if (was_lost && lease->remaining_s <= 0.0) {
+    if (lease->remaining_s <= 0.0) {
       return Error{ErrorCode::kUnavailable, "mission '" + mission +
-                                                "' is between replicas (its lease lapsed; another replica takes it "
-                                                "over within a few seconds): connect again"};
+                                                "' is between replicas (its lease lapsed; a replica takes it over "
+                                                "within a few seconds): connect again"};
     }
+    owner_cache_[mission] = {Clock::now(), elsewhere(*lease)};
     return elsewhere(*lease);
   }
-  // Ours: load what the store holds of it before anyone is served.
-  const auto started = std::chrono::steady_clock::now();
+  queue_.push_back(Load{mission, *lease, by_takeover});
+  state_changed_.notify_all();
+  return here();
+}
+
+void ReplicaCoordinator::runLoads() {
+  std::unique_lock lock(state_mutex_);
+  while (true) {
+    state_changed_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+    if (stopping_) return;
+    const Load job = queue_.front();
+    queue_.pop_front();
+    load_running_ = true;
+    lock.unlock();
+    load(job);
+    lock.lock();
+    load_running_ = false;
+    loading_.erase(job.mission);
+    state_changed_.notify_all();
+  }
+}
+
+void ReplicaCoordinator::load(const Load& job) {
+  const std::string& mission = job.mission;
+  const auto started = Clock::now();
   if (Status loaded = loader_(mission); !loaded.ok()) {
+    dropper_(mission);  // whatever the load applied before it failed
     {
       std::lock_guard db(db_mutex_);
       (void)leases_->release(mission);
     }
-    done_loading();
-    return loaded.error().withContext("loading mission '" + mission + "' from the store (its lease was given back)");
-  }
-  const double load_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
-  {
     std::lock_guard lock(state_mutex_);
-    loading_.erase(mission);
-    served_.insert(mission);
-    ++(by_takeover ? counters_.taken_over : counters_.claimed);
+    Retry& retry = retries_[mission];
+    ++retry.failures;
+    ++counters_.load_failures;
+    retry.error = loaded.error().message();
+    const double wait_s = std::min(replica_options_.retry_max_s,
+                                   replica_options_.retry_min_s * std::pow(2.0, std::min(retry.failures - 1, 20)));
+    retry.not_before = Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wait_s));
+    std::fprintf(stderr,
+                 "[server] mission '%s' failed to load from the store (%d time(s)): %s; its lease was given back, "
+                 "and this replica tries it again in %s\n",
+                 mission.c_str(), retry.failures, retry.error.c_str(), seconds(wait_s).c_str());
+    return;
   }
+  const double load_s = std::chrono::duration<double>(Clock::now() - started).count();
+  // The lease may have lapsed during a long load, and another replica taken the mission: then what was loaded is
+  // behind what that replica appends, and must not be served.
+  Result<std::optional<Lease>> now = [&] {
+    std::lock_guard db(db_mutex_);
+    return leases_->find(mission);
+  }();
+  const bool still_ours = now && *now && (*now)->holder == leases_->options().holder &&
+                          (*now)->epoch == job.lease.epoch && (*now)->remaining_s > 0.0;
+  if (!still_ours) {
+    dropper_(mission);
+    std::lock_guard lock(state_mutex_);
+    ++counters_.lapsed_while_loading;
+    std::fprintf(stderr, "[server] mission '%s' loaded in %.3f s, but its lease %s meanwhile: not served here\n",
+                 mission.c_str(), load_s, now ? "lapsed or moved" : "could not be read");
+    return;
+  }
+  std::lock_guard lock(state_mutex_);
+  served_.insert(mission);
+  retries_.erase(mission);
+  owner_cache_.erase(mission);
+  ++(job.by_takeover ? counters_.taken_over : counters_.claimed);
   std::fprintf(stderr, "[server] %s mission '%s' (lease epoch %lld), loaded from the store in %.3f s\n",
-               by_takeover ? "took over" : "serves", mission.c_str(), static_cast<long long>(lease->epoch), load_s);
-  return here();
+               job.by_takeover ? "took over" : "serves", mission.c_str(), static_cast<long long>(job.lease.epoch),
+               load_s);
+}
+
+void ReplicaCoordinator::waitForLoads() {
+  std::unique_lock lock(state_mutex_);
+  state_changed_.wait(lock, [this] { return stopping_ || (queue_.empty() && !load_running_); });
 }
 
 Result<MissionOwner> ReplicaCoordinator::owner(const std::string& mission) {
+  const auto now = Clock::now();
   {
     std::lock_guard lock(state_mutex_);
     if (served_.count(mission) != 0U) return here();
+    if (auto it = owner_cache_.find(mission); it != owner_cache_.end() && now - it->second.first < cache_ttl_) {
+      return it->second.second;
+    }
   }
-  std::lock_guard db(db_mutex_);
-  auto found = leases_->find(mission);
+  Result<std::optional<Lease>> found = [&] {
+    std::lock_guard db(db_mutex_);
+    return leases_->find(mission);
+  }();
   if (!found) return found.error();
   if (!*found) return Error{ErrorCode::kNotFound, "no replica serves mission '" + mission + "'"};
   if ((*found)->holder == leases_->options().holder) return here();
@@ -148,31 +253,43 @@ Result<MissionOwner> ReplicaCoordinator::owner(const std::string& mission) {
     return Error{ErrorCode::kUnavailable,
                  "mission '" + mission + "' is between replicas (its owner's lease lapsed): ask again shortly"};
   }
+  std::lock_guard lock(state_mutex_);
+  owner_cache_[mission] = {now, elsewhere(**found)};
   return elsewhere(**found);
 }
 
 Result<std::vector<MissionOwner>> ReplicaCoordinator::others() {
-  std::lock_guard db(db_mutex_);
-  auto holders = leases_->otherHolders();
+  const auto now = Clock::now();
+  {
+    std::lock_guard lock(state_mutex_);
+    if (others_cache_ && now - others_cache_->first < cache_ttl_) return others_cache_->second;
+  }
+  Result<std::vector<Lease>> holders = [&] {
+    std::lock_guard db(db_mutex_);
+    return leases_->otherHolders();
+  }();
   if (!holders) return holders.error();
   std::vector<MissionOwner> out;
   out.reserve(holders->size());
   for (const Lease& lease : *holders) out.push_back(elsewhere(lease));
+  std::lock_guard lock(state_mutex_);
+  others_cache_ = std::make_pair(now, out);
   return out;
 }
 
-bool ReplicaCoordinator::renewLeases() {
+void ReplicaCoordinator::renewLeases() {
   Result<std::vector<std::string>> renewed = [&] {
-    std::lock_guard db(db_mutex_);
-    return leases_->renew();
+    std::lock_guard renewing(renew_mutex_);
+    return renewals_->renew();
   }();
   if (!renewed) {
     std::lock_guard lock(state_mutex_);
     if (counters_.renew_failures++ % 10 == 0) {
       std::fprintf(stderr, "[server] cannot renew the mission leases: %s\n", renewed.error().message().c_str());
     }
-    return false;
+    return;
   }
+  std::vector<std::string> lost;
   {
     const std::set<std::string> still(renewed->begin(), renewed->end());
     std::lock_guard lock(state_mutex_);
@@ -181,19 +298,22 @@ bool ReplicaCoordinator::renewLeases() {
         ++it;
         continue;
       }
-      std::fprintf(stderr,
-                   "[server] lost the lease of mission '%s' (another replica took it over); its agents go there\n",
-                   it->c_str());
-      lost_.insert(*it);
+      lost.push_back(*it);
       ++counters_.lost;
+      owner_cache_.erase(*it);
       it = served_.erase(it);
     }
   }
-  return true;
+  for (const std::string& mission : lost) {
+    std::fprintf(stderr,
+                 "[server] lost the lease of mission '%s' (another replica took it over): its streams end and its "
+                 "agents go there\n",
+                 mission.c_str());
+    dropper_(mission);
+  }
 }
 
-void ReplicaCoordinator::tick() {
-  if (!renewLeases()) return;
+void ReplicaCoordinator::queueTakeovers() {
   Result<std::vector<std::string>> lapsed = [&] {
     std::lock_guard db(db_mutex_);
     return leases_->lapsed();
@@ -201,22 +321,22 @@ void ReplicaCoordinator::tick() {
   if (!lapsed) return;
   for (const std::string& mission : *lapsed) {
     {
-      std::lock_guard lock(wake_mutex_);
-      if (stopping_) return;
-    }
-    // A load may take a while: keep the leases held so far alive first.
-    if (!renewLeases()) return;
-    {
       std::lock_guard lock(state_mutex_);
-      if (served_.count(mission) != 0U || loading_.count(mission) != 0U || lost_.count(mission) != 0U) continue;
-      loading_.insert(mission);
+      if (stopping_ || served_.count(mission) != 0U || loading_.count(mission) != 0U) continue;
+      if (blockedLocked(mission, Clock::now())) continue;
     }
-    auto taken = take(mission, /*was_lost=*/false, /*by_takeover=*/true);
+    if (has_room_ && !has_room_()) return;
+    auto taken = acquireAndQueue(mission, /*by_takeover=*/true);
     if (!taken) {
       std::fprintf(stderr, "[server] could not take mission '%s' over: %s\n", mission.c_str(),
                    taken.error().message().c_str());
     }
   }
+}
+
+void ReplicaCoordinator::tick() {
+  renewLeases();
+  queueTakeovers();
 }
 
 std::vector<std::string> ReplicaCoordinator::served() const {

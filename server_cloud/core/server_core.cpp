@@ -100,7 +100,9 @@ Result<RecoveryReport> ServerCore::openStore() {
     lease_options.ttl_s = options_.cluster.lease_ttl_s;
     auto leases = cluster::MissionLeases::open(lease_options);
     if (!leases) return leases.error();
-    return joinCluster(std::move(store).value(), std::move(leases).value());
+    auto renewals = cluster::MissionLeases::open(lease_options);
+    if (!renewals) return renewals.error();
+    return joinCluster(std::move(store).value(), std::move(leases).value(), std::move(renewals).value());
   }
   if (options_.store.empty()) return RecoveryReport{};
   SqliteStoreOptions store_options;
@@ -143,13 +145,16 @@ Result<RecoveryReport> ServerCore::attachStore(std::unique_ptr<MapStore> store) 
 }
 
 Result<RecoveryReport> ServerCore::joinCluster(std::unique_ptr<MapStore> store,
-                                               std::unique_ptr<cluster::MissionLeases> leases) {
+                                               std::unique_ptr<cluster::MissionLeases> leases,
+                                               std::unique_ptr<cluster::MissionLeases> renewals) {
   if (store_) return Error{ErrorCode::kFailedPrecondition, "the server has a map store already"};
   RecoveryReport report;
   report.store = store->describe() + ", replica " + leases->options().holder + " at " + leases->options().address;
   store_ = std::move(store);
   replica_ = std::make_unique<cluster::ReplicaCoordinator>(
-      std::move(leases), [this](const std::string& mission) { return loadFromStore(mission); });
+      std::move(leases), std::move(renewals), [this](const std::string& mission) { return loadFromStore(mission); },
+      [this](const std::string& mission) { dropMission(mission); },
+      [this] { return missions_.missions().size() < options_.session.max_missions; });
   replica_->start();
   return report;
 }
@@ -157,6 +162,16 @@ Result<RecoveryReport> ServerCore::joinCluster(std::unique_ptr<MapStore> store,
 Status ServerCore::leaveCluster() {
   if (!replica_) return Status::Ok();
   return replica_->release();
+}
+
+void ServerCore::dropMission(const std::string& name) {
+  std::shared_ptr<Mission> mission = missions_.remove(name);
+  if (!mission) return;
+  mission->retire();  // its sessions and watches end, and refuse what still comes
+  for (const SharedAgentRecord& agent : mission->agents()) {
+    std::function<void()> cancel = agent->read()->cancel_stream;
+    if (cancel) cancel();
+  }
 }
 
 Status ServerCore::loadFromStore(const std::string& mission) {

@@ -164,7 +164,9 @@ class ServerCore {
   // Scale-out: joins the replicas of options.cluster (openStore() does it when options.cluster is enabled). The
   // store is shared and nothing is replayed now: each mission is loaded from it when this replica takes it (an
   // agent's Hello, or a takeover after another replica's lease lapsed). Starts renewing and taking over.
-  Result<RecoveryReport> joinCluster(std::unique_ptr<MapStore> store, std::unique_ptr<cluster::MissionLeases> leases);
+  // `renewals` is a second connection, used only to renew the leases.
+  Result<RecoveryReport> joinCluster(std::unique_ptr<MapStore> store, std::unique_ptr<cluster::MissionLeases> leases,
+                                     std::unique_ptr<cluster::MissionLeases> renewals);
   // Gives every mission back at once (a clean shutdown; call after writeOutputs()). Nothing to do when alone.
   Status leaveCluster();
   // Who serves which mission; nullptr when this server runs alone (it serves every mission).
@@ -179,6 +181,10 @@ class ServerCore {
   // replayed it from its store) nothing is copied. Call after openStore() and before serving. Errors name the
   // store and the mission (NOT_FOUND lists the missions the store holds).
   Result<LoadReport> loadMission(const MapStore* source, const std::string& from, const std::string& as);
+
+  // Scale-out: the mission is no longer this replica's (its lease went to another). Its agent streams and watches
+  // end, what still comes on them is refused, and memory forgets it, so that a later take loads it afresh.
+  void dropMission(const std::string& mission);
 
   [[nodiscard]] const ServerOptions& options() const { return options_; }
   [[nodiscard]] MissionRegistry& missions() { return missions_; }

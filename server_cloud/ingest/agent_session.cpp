@@ -350,6 +350,10 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   const std::uint64_t sequence = batch.sequence();
   const auto arrived = Clock::now();  // before the lock: waits for the back-end count
   const bool gba_at_arrival = mission_->gbaRunning();
+  if (mission_->retired()) {
+    return Error{ErrorCode::kUnavailable, "mission '" + mission_name_ +
+                                              "' moved to another replica: connect again (the Hello is redirected)"};
+  }
   auto record = record_->write();
   if (record->connections != stream_) {
     return Error{ErrorCode::kAlreadyExists, "a newer stream of this agent took over"};
@@ -526,7 +530,7 @@ void AgentSession::countDown(AgentRecord& record, const v1::ServerDownlink& mess
 }
 
 bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) {
-  if (!record_ || closed_) return false;
+  if (!record_ || closed_ || mission_->retired()) return false;
   const auto period = std::chrono::duration<double>(1.0 / options_.downlink_rate_hz);
   if (now - last_down_ < period) return false;
   out.Clear();

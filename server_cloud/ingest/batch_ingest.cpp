@@ -296,7 +296,10 @@ class Checker {
     const std::string name = pointName(c);
     if (new_points_.count(c) != 0) return invalid(name + " is sent in full twice in one batch");
     if (Status s = wire::checkFinite(p.p_w(), 3, name + " p_w"); !s.ok()) return s;
-    if (Status s = wire::checkPosition(Vector3d(p.p_w(0), p.p_w(1), p.p_w(2)), name + " p_w"); !s.ok()) return s;
+    if (Status s = wire::checkPosition(Vector3d(p.p_w(0), p.p_w(1), p.p_w(2)), name + " p_w", wire::kMaxPointDistanceM);
+        !s.ok()) {
+      return s;
+    }
     if (p.orb_size() != 4) {
       return invalid(name + ": descriptor of " + std::to_string(p.orb_size()) + " words, expected 4 (32 bytes)");
     }
@@ -379,7 +382,7 @@ class Checker {
       auto map = livePoint(c, "point update");
       if (!map) return map.error();
       const Vector3d p(u.p_w(3 * i), u.p_w(3 * i + 1), u.p_w(3 * i + 2));
-      if (Status s = wire::checkPosition(p, "update of " + pointName(c)); !s.ok()) return s;
+      if (Status s = wire::checkPosition(p, "update of " + pointName(c), wire::kMaxPointDistanceM); !s.ok()) return s;
       plan_.point_updates.push_back({c, p, *map});
     }
     return Status::Ok();

@@ -178,6 +178,11 @@ class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionRespo
  private:
   void sendLocked() {
     if (!gate_.writable()) return;
+    if (mission_->retired()) {  // another replica serves it now: a new watch is forwarded there
+      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                                "the mission moved to another replica: watch again from the next event number"));
+      return;
+    }
     MissionEventLog::Page page = mission_->events().read(next_, kMaxEvents);
     if (page.events.empty() && page.skipped == 0) return;
     next_ = page.next;

@@ -96,6 +96,15 @@ Result<std::shared_ptr<Mission>> MissionRegistry::open(const std::string& name, 
   return mission;
 }
 
+std::shared_ptr<Mission> MissionRegistry::remove(const std::string& name) {
+  auto missions = missions_.write();
+  auto it = missions->find(name);
+  if (it == missions->end()) return nullptr;
+  std::shared_ptr<Mission> out = std::move(it->second);
+  missions->erase(it);
+  return out;
+}
+
 std::shared_ptr<Mission> MissionRegistry::find(const std::string& name) const {
   auto missions = missions_.read();
   auto it = missions->find(name);

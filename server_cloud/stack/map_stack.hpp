@@ -218,6 +218,10 @@ class Mission {
   [[nodiscard]] MissionEventLog& events() { return events_; }
   [[nodiscard]] const MissionEventLog& events() const { return events_; }
 
+  // Scale-out: the mission moved to another replica. Its sessions and watches end, and refuse what still comes.
+  void retire() { retired_.store(true, std::memory_order_release); }
+  [[nodiscard]] bool retired() const { return retired_.load(std::memory_order_acquire); }
+
   // Every agent's sensors as its newest Hello gave them, apart from the agents' records: whoever needs another
   // agent's cameras (the covisible downlink) must not wait while that agent's record is locked for a slow commit.
   void setSensors(AgentId id, const AgentSensors& sensors);
@@ -230,6 +234,7 @@ class Mission {
   Synchronized<std::map<AgentId, SharedAgentRecord>> agents_;
   Synchronized<std::map<AgentId, std::shared_ptr<const AgentSensors>>> sensors_;
   std::atomic<int> gba_running_{0};
+  std::atomic<bool> retired_{false};
 };
 
 // Every mission this server holds, by name.
@@ -240,6 +245,8 @@ class MissionRegistry {
   // `max_missions` already.
   Result<std::shared_ptr<Mission>> open(const std::string& name, std::size_t max_missions);
   [[nodiscard]] std::shared_ptr<Mission> find(const std::string& name) const;
+  // Forgets the mission (scale-out: another replica serves it now); returns it, or nullptr when not held.
+  std::shared_ptr<Mission> remove(const std::string& name);
   [[nodiscard]] std::vector<std::shared_ptr<Mission>> missions() const;  // by name
 
  private:

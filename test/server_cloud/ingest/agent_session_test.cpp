@@ -435,6 +435,24 @@ TEST_F(AgentSessionTest, GoodbyeAtTheEndOfTheMissionMarksTheAgentFinished) {
 
 // ---- Reconnects and a second process ----
 
+TEST_F(AgentSessionTest, AMissionDroppedFromThisReplicaEndsItsStreamsAndRefusesWhatStillComes) {
+  int cancelled = 0;
+  auto session = openSession(&cancelled);
+  greet(*session);
+  sendBatch(*session, 1, 0, 2);
+
+  core_.dropMission(kMission);  // its lease went to another replica
+
+  EXPECT_EQ(cancelled, 1);
+  EXPECT_EQ(core_.missions().find(kMission), nullptr);
+  const Status late = send(*session, batchMessage(makeKeyframeBatch(2, 2, 2)));
+  ASSERT_FALSE(late.ok());
+  EXPECT_EQ(late.error().code(), ErrorCode::kUnavailable);
+  EXPECT_THAT(late.error().message(), HasSubstr("moved to another replica"));
+  v1::ServerDownlink down;
+  EXPECT_FALSE(session->nextDownlink(later(2), down));
+}
+
 TEST_F(AgentSessionTest, CloseMarksTheAgentDisconnectedAndKeepsWhatItStored) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 2);
