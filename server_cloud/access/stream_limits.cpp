@@ -1,10 +1,12 @@
 #include "server_cloud/access/stream_limits.hpp"
 
+#include <string>
+
 namespace cvislam::server {
 
 Status StreamLimitOptions::validate() const {
   if (per_address < 1 || total < 1) {
-    return Error{ErrorCode::kInvalidArgument, "limits.max_streams_per_address and limits.max_streams must be >= 1"};
+    return Error{ErrorCode::kInvalidArgument, std::string(per_address_key) + " and " + total_key + " must be >= 1"};
   }
   return Status::Ok();
 }
@@ -14,14 +16,15 @@ Result<StreamLimits::Slot> StreamLimits::open(const std::string& address) {
   if (total_ >= options_.total) {
     ++refused_;
     return Error{ErrorCode::kResourceExhausted, "the server has " + std::to_string(total_) +
-                                                    " streams open, its limit (limits.max_streams): retry later"};
+                                                    " streams of this kind open, its limit (" + options_.total_key +
+                                                    "): retry later"};
   }
   std::size_t& mine = by_address_[address];
   if (mine >= options_.per_address) {
     ++refused_;
     return Error{ErrorCode::kResourceExhausted, "client " + address + " has " + std::to_string(mine) +
-                                                    " streams open, the limit per address "
-                                                    "(limits.max_streams_per_address)"};
+                                                    " streams of this kind open, the limit per address (" +
+                                                    options_.per_address_key + ")"};
   }
   ++mine;
   ++total_;

@@ -16,6 +16,9 @@ namespace cvislam::server {
 struct StreamLimitOptions {
   std::size_t per_address = 256;  // agents behind one address (a NAT, a test bench) share it
   std::size_t total = 4096;
+  // What the limits are called in the config, for the errors.
+  const char* per_address_key = "limits.max_streams_per_address";
+  const char* total_key = "limits.max_streams";
 
   [[nodiscard]] Status validate() const;
 };

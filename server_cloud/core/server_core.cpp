@@ -27,7 +27,9 @@ std::string hostName() {
 }  // namespace
 
 ServerCore::ServerCore(const ServerOptions& options)
-    : options_(options), start_(Clock::now()), limiter_(options.rate_limit), streams_(options.stream_limits) {}
+    : options_(options), start_(Clock::now()), limiter_(options.rate_limit),
+      streams_(options.stream_limits),
+      map_reads_(options.map_read_limits) {}
 
 ServerCore::~ServerCore() {
   // The replica's thread loads missions, which feeds the workers: it stops first (without releasing: a crash

@@ -79,6 +79,10 @@ struct ServerOptions {
   std::filesystem::path tokens_file;
   RateLimitOptions rate_limit;
   StreamLimitOptions stream_limits;  // agent streams open at once, per address and in all
+  // Map reads that hold a snapshot or an export until the client has read it (GetMap, ExportMap, and their relays
+  // in scale-out): open at once per address and in all, and how long one may take.
+  StreamLimitOptions map_read_limits{8, 64, "limits.max_map_reads_per_address", "limits.max_map_reads"};
+  double map_read_timeout_s = 300.0;
   // TLS on the port (agent link, map service, monitor, health): PEM files; both empty: plaintext.
   std::filesystem::path tls_certificate;
   std::filesystem::path tls_private_key;
@@ -202,6 +206,9 @@ class ServerCore {
   // A new agent stream from `address` (the peer without its port): its slot, or RESOURCE_EXHAUSTED.
   Result<StreamLimits::Slot> openStreamSlot(const std::string& address) { return streams_.open(address); }
   [[nodiscard]] const StreamLimits& streamLimits() const { return streams_; }
+  // The same for a map read (GetMap, ExportMap) from `address`.
+  Result<StreamLimits::Slot> openMapReadSlot(const std::string& address) { return map_reads_.open(address); }
+  [[nodiscard]] const StreamLimits& mapReadLimits() const { return map_reads_; }
 
   // A session for a new agent stream (see AgentSession for `cancel_stream`); `token` is what the stream
   // presented, checked against the tokens when its Hello names the mission.
@@ -241,6 +248,7 @@ class ServerCore {
   MissionTokens tokens_;
   RateLimiter limiter_;
   StreamLimits streams_;
+  StreamLimits map_reads_;
   std::unique_ptr<cluster::ReplicaCoordinator> replica_;  // scale-out only; after store_: it goes first
 
   // Replays what store_ holds of `mission` (this replica has just taken its lease).

@@ -50,6 +50,10 @@ Status ServerOptions::validate() const {
   if (Status s = session.validate(); !s.ok()) return s;
   if (Status s = rate_limit.validate(); !s.ok()) return s;
   if (Status s = stream_limits.validate(); !s.ok()) return s;
+  if (Status s = map_read_limits.validate(); !s.ok()) return s;
+  if (!std::isfinite(map_read_timeout_s) || !(map_read_timeout_s > 0.0)) {
+    return invalid("limits.map_read_timeout_s must be > 0");
+  }
   if (!health_listen.empty() && health_listen.find(':') == std::string::npos) {
     return invalid("health_listen address '" + health_listen + "': give host:port, e.g. 0.0.0.0:50052, or \"\"");
   }
@@ -135,6 +139,8 @@ std::string ServerOptions::describe() const {
       << ")\n"
       << "  max_streams:                  " << stream_limits.total << " (" << stream_limits.per_address
       << " per address; a stream without a Hello within " << session.hello_timeout_s << " s is ended)\n"
+      << "  max_map_reads:                " << map_read_limits.total << " (" << map_read_limits.per_address
+      << " per address, each at most " << map_read_timeout_s << " s)\n"
       << "  cluster:                      "
       << (cluster.enabled()
               ? "replica " + (cluster.replica.empty() ? std::string("(host name)") : cluster.replica) + " at " +
@@ -214,6 +220,9 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   limits.read("max_streams", o.stream_limits.total);
   limits.read("max_streams_per_address", o.stream_limits.per_address);
   limits.read("hello_timeout_s", o.session.hello_timeout_s);
+  limits.read("max_map_reads", o.map_read_limits.total);
+  limits.read("max_map_reads_per_address", o.map_read_limits.per_address);
+  limits.read("map_read_timeout_s", o.map_read_timeout_s);
   limits.read("agent_hello_burst", o.session.agent_hello_burst);
   limits.read("agent_hellos_per_minute", o.session.agent_hellos_per_minute);
   if (Status s = limits.finish(); !s.ok()) return in_file(s);

@@ -1,6 +1,7 @@
 #include "server_cloud/service/map_service.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <functional>
 #include <mutex>
 #include <set>
@@ -21,23 +22,79 @@ namespace cvislam::server {
 
 namespace {
 
-// Writes what `produce` makes, one message at a time, then finishes with OK; a client that goes away ends it.
+// Cancels a call from another thread, safely at any time: before its reactor is done, and after (then nothing).
+class CallCanceller {
+ public:
+  explicit CallCanceller(grpc::CallbackServerContext* context) : context_(context) {}
+  void cancel() {
+    std::lock_guard lock(mutex_);
+    if (context_ != nullptr) context_->TryCancel();
+  }
+  void ended() {
+    std::lock_guard lock(mutex_);
+    context_ = nullptr;
+  }
+
+ private:
+  std::mutex mutex_;
+  grpc::CallbackServerContext* context_;
+};
+
+// Map reads that must end by a deadline: a client that stops reading would otherwise keep its snapshot in memory
+// for as long as its connection lives. The periodic thread cancels the overdue ones.
+class ReadDeadlines {
+ public:
+  void add(std::chrono::steady_clock::time_point deadline, const std::shared_ptr<CallCanceller>& call) {
+    std::lock_guard lock(mutex_);
+    calls_.emplace_back(deadline, call);
+  }
+  void tick(std::chrono::steady_clock::time_point now) {
+    std::vector<std::shared_ptr<CallCanceller>> overdue;
+    {
+      std::lock_guard lock(mutex_);
+      for (auto it = calls_.begin(); it != calls_.end();) {
+        auto call = it->second.lock();
+        if (!call || now >= it->first) {
+          if (call) overdue.push_back(std::move(call));
+          it = calls_.erase(it);
+        } else {
+          ++it;
+        }
+      }
+    }
+    for (const auto& call : overdue) call->cancel();
+  }
+
+ private:
+  std::mutex mutex_;
+  std::vector<std::pair<std::chrono::steady_clock::time_point, std::weak_ptr<CallCanceller>>> calls_;
+};
+
+// Writes what `produce` makes, one message at a time, then finishes with OK; a client that goes away ends it. It
+// holds its map-read slot until it is done.
 template <typename Message>
 class StreamWriter final : public grpc::ServerWriteReactor<Message> {
  public:
   using Producer = std::function<bool(Message&)>;  // fills the next message; false when there is none
 
-  explicit StreamWriter(Producer produce) : produce_(std::move(produce)) { writeNext(); }
+  StreamWriter(Producer produce, StreamLimits::Slot slot, std::shared_ptr<CallCanceller> canceller)
+      : produce_(std::move(produce)), slot_(std::move(slot)), canceller_(std::move(canceller)) {
+    writeNext();
+  }
   explicit StreamWriter(const grpc::Status& refused) { this->Finish(refused); }
 
   void OnWriteDone(bool ok) override {
     if (!ok) {
-      this->Finish(grpc::Status(grpc::StatusCode::CANCELLED, "the client stopped reading"));
+      this->Finish(grpc::Status(grpc::StatusCode::CANCELLED,
+                                "the client stopped reading, or the read took longer than limits.map_read_timeout_s"));
       return;
     }
     writeNext();
   }
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    if (canceller_) canceller_->ended();
+    delete this;
+  }
 
  private:
   void writeNext() {
@@ -49,6 +106,8 @@ class StreamWriter final : public grpc::ServerWriteReactor<Message> {
   }
 
   Producer produce_;
+  StreamLimits::Slot slot_;
+  std::shared_ptr<CallCanceller> canceller_;
   Message message_;
 };
 
@@ -266,6 +325,7 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
   explicit MapServiceImpl(ServerCore& core) : core_(core) {}
 
   WatchRegistry& watches() { return watches_; }
+  ReadDeadlines& deadlines() { return deadlines_; }
   void forwardWith(std::shared_ptr<grpc::ChannelCredentials> credentials) {
     peers_ = std::make_unique<PeerStubs<v1::MapService>>(std::move(credentials));
   }
@@ -350,6 +410,8 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     if (!owner->empty()) {
       return relayFromOwner<v1::MapChunk>(*context, *owner, request, &v1::MapService::Stub::async::GetMap);
     }
+    auto slot = core_.openMapReadSlot(peerAddress(*context));
+    if (!slot) return new Writer(toGrpc(slot.error()));
     maps::SnapshotOptions options;
     options.observations = request->observations();
     options.descriptors = request->descriptors();
@@ -358,7 +420,8 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     auto chunker = maps::MapChunker::create(std::move(snapshot).value(), request->max_chunk_bytes());
     if (!chunker) return new Writer(toGrpc(chunker.error()));
     auto shared = std::make_shared<maps::MapChunker>(std::move(chunker).value());
-    return new Writer([shared](v1::MapChunk& chunk) { return shared->next(chunk); });
+    return new Writer([shared](v1::MapChunk& chunk) { return shared->next(chunk); }, std::move(slot).value(),
+                      withDeadline(context));
   }
 
   grpc::ServerWriteReactor<v1::ExportChunk>* ExportMap(grpc::CallbackServerContext* context,
@@ -370,6 +433,8 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
     if (!owner->empty()) {
       return relayFromOwner<v1::ExportChunk>(*context, *owner, request, &v1::MapService::Stub::async::ExportMap);
     }
+    auto slot = core_.openMapReadSlot(peerAddress(*context));
+    if (!slot) return new Writer(toGrpc(slot.error()));
     std::vector<maps::MapSnapshot> snapshots;
     if (request->has_map_id()) {
       auto one = maps::snapshotMap(core_.missions(), request->mission(), request->map_id());
@@ -381,7 +446,8 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
       snapshots = std::move(all).value();
     }
     auto files = std::make_shared<FileChunks>(maps::exportMaps(snapshots));
-    return new Writer([files](v1::ExportChunk& chunk) { return files->next(chunk); });
+    return new Writer([files](v1::ExportChunk& chunk) { return files->next(chunk); }, std::move(slot).value(),
+                      withDeadline(context));
   }
 
   grpc::ServerWriteReactor<v1::WatchMissionResponse>* WatchMission(grpc::CallbackServerContext* context,
@@ -410,6 +476,15 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
   }
 
  private:
+  // A canceller for the call, registered to fire at limits.map_read_timeout_s.
+  std::shared_ptr<CallCanceller> withDeadline(grpc::CallbackServerContext* context) {
+    auto canceller = std::make_shared<CallCanceller>(context);
+    const auto timeout = std::chrono::duration<double>(core_.options().map_read_timeout_s);
+    deadlines_.add(std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(timeout),
+                   canceller);
+    return canceller;
+  }
+
   // Relays the owner's answer to a streaming read: `method` is the stub's callback method for it.
   template <typename Message, typename Request, typename Method>
   grpc::ServerWriteReactor<Message>* relayFromOwner(grpc::CallbackServerContext& context, const std::string& owner,
@@ -447,6 +522,7 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
 
   ServerCore& core_;
   WatchRegistry watches_;
+  ReadDeadlines deadlines_;
   std::unique_ptr<PeerStubs<v1::MapService>> peers_;  // scale-out: set before the server starts
 };
 
@@ -470,6 +546,7 @@ void MapService::forwardWith(std::shared_ptr<grpc::ChannelCredentials> peer_cred
 
 void MapService::tick() {
   impl_->service.watches().forEach([](WatchReactor& r) { r.tick(); });
+  impl_->service.deadlines().tick(std::chrono::steady_clock::now());
 }
 
 void MapService::stopWatches() {

@@ -213,6 +213,62 @@ TEST_F(MapServiceTest, AClientThatStopsReadingMidStreamLeavesTheServerServing) {
   EXPECT_EQ(chunks[0].points_size(), 80 * 30);
 }
 
+
+// Map reads hold a copy of what they send until the client has read it. Clients that open them and never read get
+// at most max_map_reads_per_address at once (the rest are refused), and those are cancelled at map_read_timeout_s,
+// so their copies go.
+TEST(MapReadLimits, ReadersThatNeverReadAreCappedPerAddressAndCancelledAtTheTimeout) {
+  ServerOptions options;
+  options.listen = "127.0.0.1:0";
+  options.map_read_limits.per_address = 3;
+  options.map_read_timeout_s = 0.5;
+  ServerCore core(options);
+  test::ExampleMissionOptions example;
+  example.keyframes_per_agent = 1500;  // tens of megabytes: more than the transport buffers for a reader that waits
+  test::fillExampleMission(core.missions(), example);
+  auto server = GrpcServer::start(core);
+  ASSERT_TRUE(server.ok()) << server.error().toString();
+  auto stub = v1::MapService::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  v1::GetMapRequest request;
+  request.set_mission("survey");
+  request.set_observations(true);
+  request.set_descriptors(true);
+  request.set_max_chunk_bytes(64U << 10U);
+
+  constexpr int kReaders = 8;
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
+  std::vector<std::unique_ptr<grpc::ClientReader<v1::MapChunk>>> readers;
+  for (int i = 0; i < kReaders; ++i) {
+    contexts.push_back(callContext());
+    readers.push_back(stub->GetMap(contexts.back().get(), request));  // and never read
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  EXPECT_EQ(core.mapReadLimits().openStreams(), 3U);
+  std::this_thread::sleep_for(std::chrono::milliseconds(600));  // past the timeout, still without reading
+  int refused = 0;
+  int cancelled = 0;
+  for (auto& reader : readers) {
+    v1::MapChunk chunk;
+    while (reader->Read(&chunk)) {
+    }
+    const grpc::Status status = reader->Finish();
+    if (status.error_code() == grpc::StatusCode::RESOURCE_EXHAUSTED) {
+      ++refused;
+      EXPECT_THAT(status.error_message(), HasSubstr("limits.max_map_reads_per_address"));
+    } else {
+      EXPECT_EQ(status.error_code(), grpc::StatusCode::CANCELLED) << status.error_message();
+      ++cancelled;
+    }
+  }
+  EXPECT_EQ(refused, kReaders - 3);
+  EXPECT_EQ(cancelled, 3);
+  for (int i = 0; i < 100 && core.mapReadLimits().openStreams() > 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_EQ(core.mapReadLimits().openStreams(), 0U);
+  (*server)->shutdown(std::chrono::milliseconds(500));
+}
+
 TEST_F(MapServiceTest, ExportOverTheWireGivesTheCoresFilesWhole) {
   v1::ExportMapRequest request;
   request.set_mission("survey");
