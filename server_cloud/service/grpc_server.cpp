@@ -21,6 +21,7 @@
 #include "cvislam/v1/monitor.grpc.pb.h"
 #include "proto/wire/wire.hpp"
 #include "server_cloud/service/call_access.hpp"
+#include "server_cloud/service/call_canceller.hpp"
 #include "server_cloud/service/grpc_status.hpp"
 #include "server_cloud/service/map_service.hpp"
 #include "server_cloud/service/read_forwarding.hpp"
@@ -29,24 +30,6 @@
 namespace cvislam::server {
 
 namespace {
-
-// Lets another stream's session cancel this stream safely at any time, even after it ended.
-class StreamHandle {
- public:
-  explicit StreamHandle(grpc::CallbackServerContext* context) : context_(context) {}
-  void cancel() {
-    std::lock_guard lock(mutex_);
-    if (context_ != nullptr) context_->TryCancel();
-  }
-  void ended() {
-    std::lock_guard lock(mutex_);
-    context_ = nullptr;
-  }
-
- private:
-  std::mutex mutex_;
-  grpc::CallbackServerContext* context_;
-};
 
 class LinkReactor;
 
@@ -189,8 +172,8 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
 
  private:
   LinkReactor(grpc::CallbackServerContext* context, ServerCore& core, ReactorRegistry& registry)
-      : context_(context), handle_(std::make_shared<StreamHandle>(context)), registry_(registry) {
-    std::weak_ptr<StreamHandle> weak = handle_;
+      : context_(context), handle_(std::make_shared<CallCanceller>(context)), registry_(registry) {
+    std::weak_ptr<CallCanceller> weak = handle_;
     session_ = core.openSession(
         [weak] {
           if (auto h = weak.lock()) h->cancel();
@@ -238,7 +221,7 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   }
 
   grpc::CallbackServerContext* context_;  // valid until OnDone()
-  std::shared_ptr<StreamHandle> handle_;
+  std::shared_ptr<CallCanceller> handle_;
   ReactorRegistry& registry_;
   std::mutex mutex_;
   std::unique_ptr<AgentSession> session_;

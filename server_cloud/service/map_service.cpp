@@ -14,6 +14,7 @@
 #include "server_cloud/maps/map_export.hpp"
 #include "server_cloud/maps/map_reader.hpp"
 #include "server_cloud/service/call_access.hpp"
+#include "server_cloud/service/call_canceller.hpp"
 #include "server_cloud/service/grpc_status.hpp"
 #include "server_cloud/service/read_forwarding.hpp"
 #include "server_cloud/service/write_gate.hpp"
@@ -21,24 +22,6 @@
 namespace cvislam::server {
 
 namespace {
-
-// Cancels a call from another thread, safely at any time: before its reactor is done, and after (then nothing).
-class CallCanceller {
- public:
-  explicit CallCanceller(grpc::CallbackServerContext* context) : context_(context) {}
-  void cancel() {
-    std::lock_guard lock(mutex_);
-    if (context_ != nullptr) context_->TryCancel();
-  }
-  void ended() {
-    std::lock_guard lock(mutex_);
-    context_ = nullptr;
-  }
-
- private:
-  std::mutex mutex_;
-  grpc::CallbackServerContext* context_;
-};
 
 // Map reads that must end by a deadline: a client that stops reading would otherwise keep its snapshot in memory
 // for as long as its connection lives. The periodic thread cancels the overdue ones.
