@@ -40,6 +40,8 @@ Status LinkOptions::validate() const {
   }
   if (!(connect_timeout_s > 0.0) || !(flush_timeout_s >= 0.0)) return bad("timeouts must be positive");
   if (keepalive_ms < 100) return bad("keepalive_ms must be >= 100");
+  if (keepalive_timeout_ms < 100) return bad("keepalive_timeout_ms must be >= 100");
+  if (Status s = pacer.validate(); !s.ok()) return s;
   return store.validate();
 }
 
@@ -50,13 +52,16 @@ struct Link::Impl {
     std::uint64_t down_bytes;
     bool connected;
     std::size_t keyframes_waiting;
+    std::size_t unacked_bytes;
+    std::size_t window_bytes;
   };
 
   Impl(const LinkOptions& o, AgentId a)
       : options(o),
         agent(a),
         store(a, o.store),
-        client(LinkClientOptions{o.server, o.keepalive_ms,
+        pacer(o.pacer),
+        client(LinkClientOptions{o.server, o.keepalive_ms, o.keepalive_timeout_ms,
                                  std::chrono::milliseconds(static_cast<int>(o.connect_timeout_s * 1000)), 16U << 20U,
                                  o.token, o.tls_ca_pem}) {
     timeline.reserve(4096);
@@ -65,6 +70,7 @@ struct Link::Impl {
   LinkOptions options;
   AgentId agent;
   LinkStore store;
+  UplinkPacer pacer;
   LinkClient client;
   v1::AgentUplink hello;
   v1::AgentUplink goodbye;
@@ -150,7 +156,8 @@ struct Link::Impl {
   void addTimelineRow(Clock::time_point now, bool connected) {
     const LinkBacklog b = store.backlog();
     timeline.push_back({std::chrono::duration<double>(now - start).count(), messageBytes(up_by_kind),
-                        messageBytes(down_by_kind), connected, b.keyframes_unsent + b.keyframes_unacked});
+                        messageBytes(down_by_kind), connected, b.keyframes_unsent + b.keyframes_unacked,
+                        pacer.inFlightBytes(), pacer.windowBytes()});
   }
 
   // Publishes a copy for other threads; everything is computed before the lock is taken.
@@ -175,6 +182,9 @@ struct Link::Impl {
     status.corrections_refused = corrections_refused;
     status.anchor_messages_published = anchors_published;
     status.anchor_messages_dropped = anchors_dropped;
+    status.unacked_bytes = pacer.inFlightBytes();
+    status.window_bytes = pacer.windowBytes();
+    status.uplink_rate_bytes_per_s = pacer.rateBytesPerS();
   }
 };
 
@@ -251,6 +261,7 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
         ++s.streams;
         const std::uint64_t stored = (*welcome)->welcome().stored_sequence();
         s.store.onWelcome(stored, (*welcome)->welcome().resend_from_sequence());
+        s.pacer.onReconnect();
         next_sequence = stored + 1;
         last_sent = std::min(last_sent, stored);
         backoff = backoff_min;
@@ -274,6 +285,7 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
         s.count(s.down_by_kind, "message", 1, bytes);
         if (s.downlink.acked_sequence() > 0) {
           s.store.onAck(s.downlink.acked_sequence());
+          s.pacer.onAck(s.downlink.acked_sequence(), Clock::now());
           s.count(s.down_by_kind, "ack", 1, 0);
         }
         if (s.downlink.corrected_keyframes_size() > 0) {
@@ -304,16 +316,19 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
     }
     // At most max_rate_hz batches a second; while nothing is due, the store is looked at again only after a
     // delta, a reconnection, or one period.
-    if (connected && now >= next_build) {
+    // Within the pacer's window only: what does not fit waits in the store, where newer states replace older ones.
+    if (connected && now >= next_build && s.pacer.maySend()) {
       // Made on the arena once, reused while nothing is due, and dropped with the arena's reset after a send.
       if (s.uplink == nullptr) s.uplink = google::protobuf::Arena::CreateMessage<v1::AgentUplink>(&s.arena);
       v1::AgentUplink* uplink = s.uplink;
       v1::MapBatch& batch = *uplink->mutable_batch();
       next_build = now + period;
-      if (s.store.buildBatch(next_sequence, s.store.newestSensorTime(), s.options.max_batch_bytes, batch)) {
+      if (s.store.buildBatch(next_sequence, s.store.newestSensorTime(), s.pacer.batchBudget(s.options.max_batch_bytes),
+                             batch)) {
         const std::uint64_t bytes = uplink->ByteSizeLong();
         const bool sent = s.client.send(*uplink);
         if (sent) {
+          s.pacer.onSent(next_sequence, bytes, Clock::now());
           last_sent = next_sequence++;
           s.countBatch(batch, bytes);
         } else {
@@ -410,14 +425,16 @@ Status Link::writeReport(const std::filesystem::path& dir) const {
                       {"up", up},
                       {"down", down},
                       {"up_mb_per_s", duration_s > 0 ? static_cast<double>(st.up_bytes) * 1e-6 / duration_s : 0.0},
+                      {"uplink_window_bytes", st.window_bytes},
+                      {"uplink_rate_mbit_per_s", st.uplink_rate_bytes_per_s * 8e-6},
                       {"down_mb_per_s", duration_s > 0 ? static_cast<double>(st.down_bytes) * 1e-6 / duration_s : 0.0}};
   std::ofstream json(dir / "link.json");
   json << j.dump(2) << "\n";
   std::ofstream csv(dir / "link_timeline.csv");
-  csv << "t_s,up_bytes,down_bytes,connected,keyframes_waiting\n";
+  csv << "t_s,up_bytes,down_bytes,connected,keyframes_waiting,unacked_bytes,window_bytes\n";
   for (const auto& r : s.timeline) {
     csv << r.t_s << ',' << r.up_bytes << ',' << r.down_bytes << ',' << (r.connected ? 1 : 0) << ','
-        << r.keyframes_waiting << '\n';
+        << r.keyframes_waiting << ',' << r.unacked_bytes << ',' << r.window_bytes << '\n';
   }
   if (!json || !csv) return Error{ErrorCode::kIoError, "cannot write the link report into " + dir.string()};
   return Status::Ok();

@@ -26,6 +26,7 @@
 #include <string>
 
 #include "agent_rt/link/link_store.hpp"
+#include "agent_rt/link/uplink_pacer.hpp"
 #include "agent_rt/runtime/messages.hpp"
 #include "common/core/result.hpp"
 #include "common/dataset/types.hpp"
@@ -46,6 +47,10 @@ struct LinkOptions {
   double connect_timeout_s = 1.0;
   double flush_timeout_s = 15.0;  // at the end: how long to wait for the server to acknowledge everything
   int keepalive_ms = 1000;
+  // How long a keepalive ping may wait for its answer. It waits behind whatever the agent has on its way up: on a
+  // slow radio, seconds (the pacer keeps that near pacer.window_s). Longer: a dead server is noticed later.
+  int keepalive_timeout_ms = 5000;
+  UplinkPacerOptions pacer;
   // The own keyframes the local map keeps (the mapper's N), told to the server in the Hello so that its
   // covisible map leaves them out; 0: the server's default.
   std::uint32_t local_map_keyframes = 0;
@@ -99,6 +104,9 @@ struct LinkStatus {
   std::uint64_t sent_sequence = 0;
   std::uint64_t up_bytes = 0;
   std::uint64_t down_bytes = 0;
+  std::size_t unacked_bytes = 0;      // batches sent and not yet acknowledged
+  std::size_t window_bytes = 0;       // what the pacer lets be unacknowledged
+  double uplink_rate_bytes_per_s = 0;  // its estimate of the link's rate (0: none yet)
   bool flushed = false;  // at the end: everything acknowledged
   // Covisible maps from the server: checked and decoded, or refused (malformed; the link keeps going).
   std::uint64_t covisible_accepted = 0;

@@ -122,7 +122,7 @@ LinkClient::LinkClient(const LinkClientOptions& options) : impl_(std::make_uniqu
   s.options = options;
   // Notice a dead or hung server within a few seconds, and come back quickly after it restarts.
   s.args.SetInt(GRPC_ARG_KEEPALIVE_TIME_MS, options.keepalive_ms);
-  s.args.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, options.keepalive_ms);
+  s.args.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, options.keepalive_timeout_ms);
   s.args.SetInt(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
   s.args.SetInt(GRPC_ARG_HTTP2_MAX_PINGS_WITHOUT_DATA, 0);
   s.args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);

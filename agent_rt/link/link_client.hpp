@@ -25,6 +25,7 @@ namespace cvislam::agent {
 struct LinkClientOptions {
   std::string server;  // host:port, or several, comma-separated (replicas)
   int keepalive_ms = 1000;
+  int keepalive_timeout_ms = 5000;
   std::chrono::milliseconds connect_timeout{1000};
   std::size_t max_message_bytes = 16U << 20U;
   std::string token;         // the mission's token, sent as "authorization: Bearer <token>"; empty: none

@@ -96,6 +96,8 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   link.read("mission", o.link.mission);
   link.read("max_rate_hz", o.link.max_rate_hz);
   link.read("max_batch_bytes", o.link.max_batch_bytes);
+  link.read("uplink_window_s", o.link.pacer.window_s);
+  link.read("keepalive_timeout_ms", o.link.keepalive_timeout_ms);
   link.read("point_update_min_m", o.link.store.point_update_min_m);
   link.read("reconnect_max_s", o.link.reconnect_max_s);
   link.read("flush_timeout_s", o.link.flush_timeout_s);
