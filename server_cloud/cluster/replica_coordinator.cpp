@@ -1,5 +1,7 @@
 #include "server_cloud/cluster/replica_coordinator.hpp"
 
+#include "server_cloud/store/operator_log.hpp"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -146,7 +148,10 @@ Result<MissionOwner> ReplicaCoordinator::acquireAndQueue(const std::string& miss
   if (!lease || lease->holder != leases_->options().holder) {
     loading_.erase(mission);
     state_changed_.notify_all();
-    if (!lease) return lease.error();
+    if (!lease) {
+      return Error{ErrorCode::kUnavailable, "the lease of mission '" + mission + "' could not be taken (" +
+                                                logForOperator(lease.error()) + ")"};
+    }
     ++counters_.redirected;
     if (lease->remaining_s <= 0.0) {
       return Error{ErrorCode::kUnavailable, "mission '" + mission +
@@ -191,7 +196,7 @@ void ReplicaCoordinator::load(const Load& job) {
     Retry& retry = retries_[mission];
     ++retry.failures;
     ++counters_.load_failures;
-    retry.error = loaded.error().message();
+    retry.error = logForOperator(loaded.error());
     const double wait_s = std::min(replica_options_.retry_max_s,
                                    replica_options_.retry_min_s * std::pow(2.0, std::min(retry.failures - 1, 20)));
     retry.not_before = Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wait_s));

@@ -10,6 +10,7 @@
 #include "common/core/text.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
+#include "server_cloud/store/operator_log.hpp"
 
 namespace cvislam::server {
 
@@ -293,7 +294,7 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
       StoreRecord stored{0, StoreRecord::Kind::kHello, hello.mission(), agent_id, 0, normalized};
       if (Status s = store_->append(stored); !s.ok()) {
         return Error{ErrorCode::kUnavailable,
-                     "the server could not store the Hello (" + s.error().message() + "); connect again later"};
+                     "the server could not store the Hello (" + logForOperator(s.error()) + "); connect again later"};
       }
       record->stored_hello = normalized;
     }
@@ -301,7 +302,7 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
       auto caught_up = applyStoredBeyond(*mission, *record, *store_, options_, on_stored_);
       if (!caught_up) {
         return Error{ErrorCode::kUnavailable, "the server could not read what its store holds of this agent (" +
-                                                  caught_up.error().message() + "); connect again later"};
+                                                  logForOperator(caught_up.error()) + "); connect again later"};
       }
       record->caught_up_batches += *caught_up;
     }
@@ -386,7 +387,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
       Status appended = store_->append(stored);
       if (appended.ok()) return Status::Ok();
       if (appended.error().code() != ErrorCode::kAlreadyExists) {
-        return Error{ErrorCode::kUnavailable, "the server could not store it (" + appended.error().message() +
+        return Error{ErrorCode::kUnavailable, "the server could not store it (" + logForOperator(appended.error()) +
                                                   "); it was not applied: send it again"};
       }
       // The store holds this number already, though memory does not: an earlier attempt committed unseen. The
@@ -395,7 +396,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
       auto found = store_->findBatch(mission_name_, agent_, sequence);
       if (!found || !*found) {
         return Error{ErrorCode::kUnavailable, "the store says it holds it but could not give it back (" +
-                                                  (found ? std::string("not found") : found.error().message()) +
+                                                  (found ? std::string("not found") : logForOperator(found.error())) +
                                                   "); it was not applied: send it again"};
       }
       if ((*found)->body == stored.body) return Status::Ok();
