@@ -1,11 +1,10 @@
 #include "agent_rt/link/link.hpp"
 
-#include <unistd.h>
-
 #include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <map>
+#include <random>
 #include <thread>
 #include <vector>
 
@@ -197,9 +196,10 @@ Result<std::unique_ptr<Link>> Link::create(const LinkOptions& options, AgentId a
   hello.set_mission(options.mission);
   hello.set_agent_id(agent);
   // A number of this process, different for every run: a reconnect of this process takes over its old stream,
-  // another process claiming the same agent id is refused.
-  const auto now_ns = static_cast<std::uint64_t>(Clock::now().time_since_epoch().count());
-  hello.set_session((static_cast<std::uint64_t>(::getpid()) << 40U) ^ now_ns);
+  // another process claiming the same agent id is refused. Random, so that no one who knows the process can
+  // guess it and take the agent's stream over.
+  std::random_device entropy;
+  hello.set_session((static_cast<std::uint64_t>(entropy()) << 32U) ^ entropy());
   hello.set_mode(sensors.stereo ? v1::SENSOR_MODE_STEREO : v1::SENSOR_MODE_MONO);
   hello.set_uses_imu(sensors.uses_imu);
   hello.set_local_map_keyframes(options.local_map_keyframes);

@@ -105,7 +105,9 @@ bool PgResult::boolean(int row, int column) const {
 
 std::string redactConninfo(const std::string& conninfo) {
   static const std::regex kPassword(R"((password\s*=\s*)('[^']*'|\S+))");
-  return std::regex_replace(conninfo, kPassword, "$1***");
+  // A URI carries it as postgresql://user:secret@host/db.
+  static const std::regex kUriPassword(R"(((?:postgres|postgresql)://[^:/@\s]*:)[^@\s]*@)");
+  return std::regex_replace(std::regex_replace(conninfo, kPassword, "$1***"), kUriPassword, "$1***@");
 }
 
 Result<std::unique_ptr<PgConnection>> PgConnection::open(const std::string& conninfo, const std::string& what,

@@ -285,11 +285,20 @@ Result<std::unique_ptr<MapStore>> openSqliteStore(const SqliteStoreOptions& opti
         "CREATE UNIQUE INDEX records_batch ON records (mission, agent, sequence) WHERE kind = 2;"
         "CREATE INDEX records_mission ON records (mission, number);"
         "INSERT INTO meta VALUES ('format', '" +
-        std::string(kFormat) + "'), ('schema', '" + std::to_string(kStoreSchemaVersion) + "'), ('created_by', " + "'" +
-        options.software +
-        "');"
-        "COMMIT;";
+        std::string(kFormat) + "'), ('schema', '" + std::to_string(kStoreSchemaVersion) + "');";
     if (Status s = exec(raw, path, create.c_str(), "creating the tables"); !s.ok()) return s.error();
+    // The software's name is bound, never spliced into the SQL.
+    sqlite3_stmt* by = nullptr;
+    if (sqlite3_prepare_v2(raw, "INSERT INTO meta VALUES ('created_by', ?1)", -1, &by, nullptr) != SQLITE_OK) {
+      sqlite3_finalize(by);
+      return Error{ErrorCode::kIoError, "map store " + path + ": " + sqlite3_errmsg(raw)};
+    }
+    Stmt created_by(by);
+    sqlite3_bind_text(by, 1, options.software.data(), static_cast<int>(options.software.size()), SQLITE_STATIC);
+    if (sqlite3_step(by) != SQLITE_DONE) {
+      return Error{ErrorCode::kIoError, "map store " + path + ": writing its meta data: " + sqlite3_errmsg(raw)};
+    }
+    if (Status s = exec(raw, path, "COMMIT", "creating the tables"); !s.ok()) return s.error();
   } else {
     if (options.check_on_open) {
       auto check = queryText(raw, path, "PRAGMA quick_check");

@@ -267,6 +267,10 @@ TEST_F(ClusterStoreTest, AnUnreachableDatabaseIsNamedWithoutItsPassword) {
   ASSERT_FALSE(opened.ok());
   EXPECT_THAT(opened.error().toString(), HasSubstr("127.0.0.1"));
   EXPECT_THAT(opened.error().toString(), Not(HasSubstr("hunter2")));
+  // In URI form too.
+  EXPECT_EQ(redactConninfo("postgresql://cvislam:hunter2@db:5432/cvislam?sslmode=require"),
+            "postgresql://cvislam:***@db:5432/cvislam?sslmode=require");
+  EXPECT_EQ(redactConninfo("host=db password='a b' user=x"), "host=db password=*** user=x");
 }
 
 }  // namespace
