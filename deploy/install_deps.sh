@@ -38,6 +38,8 @@ packages=(
   # deploy/run_mission.sh's report (deploy/mission_report.py, standard library only); jq for
   # test/bench/agent_accuracy.sh
   python3 jq
+  # the chaos suite (test/chaos/run_chaos.py): network namespaces and tc, and a server clock that jumps
+  iproute2 faketime
 )
 
 missing=()

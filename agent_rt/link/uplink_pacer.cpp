@@ -56,6 +56,9 @@ void UplinkPacer::onAck(std::uint64_t sequence, Clock::time_point now) {
 void UplinkPacer::onReconnect() {
   in_flight_count_ = 0;
   in_flight_bytes_ = 0;
+  sample_count_ = 0;
+  sample_next_ = 0;
+  have_ack_ = false;
 }
 
 double UplinkPacer::rateBytesPerS() const {

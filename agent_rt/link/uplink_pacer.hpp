@@ -26,9 +26,11 @@ namespace cvislam::agent {
 
 struct UplinkPacerOptions {
   double window_s = 2.0;  // unacknowledged data in flight, in seconds at the estimated rate
-  std::size_t min_window_bytes = 128U << 10U;
+  // Small to begin with: 64 KiB is one second at 0.5 Mbit/s; the first acknowledgements open it to what the link
+  // carries (a fast link's doubles with every acknowledgement round, as TCP's slow start does).
+  std::size_t min_window_bytes = 32U << 10U;
   std::size_t max_window_bytes = 8U << 20U;
-  std::size_t initial_window_bytes = 256U << 10U;
+  std::size_t initial_window_bytes = 64U << 10U;
   double rate_memory_s = 10.0;
 
   [[nodiscard]] Status validate() const;
@@ -45,7 +47,8 @@ class UplinkPacer {
   void onSent(std::uint64_t sequence, std::size_t bytes, Clock::time_point now);
   // The server acknowledged every batch up to `sequence`.
   void onAck(std::uint64_t sequence, Clock::time_point now);
-  // A new stream: what was in flight is sent again from the store, so nothing counts as in flight.
+  // A new stream: what was in flight is sent again from the store, so nothing counts as in flight; and the link
+  // may not be the one measured (the stream may have broken because it became slower), so the window starts over.
   void onReconnect();
 
   // Whether another batch may go now, and how big it may be (at most `max_batch_bytes`).
