@@ -453,6 +453,28 @@ TEST_F(AgentSessionTest, AMissionDroppedFromThisReplicaEndsItsStreamsAndRefusesW
   EXPECT_FALSE(session->nextDownlink(later(2), down));
 }
 
+// A server that exits without writing outputs (no drain) while place recognition and the back-end still work
+// through queued keyframes: the core stops the workers in an order in which neither calls the other after it went
+// (run under the asan preset to see it).
+TEST(ServerCoreShutdown, ACoreDestroyedWhileItsWorkersAreBusyStopsThemInOrder) {
+  for (int round = 0; round < 3; ++round) {
+    ServerOptions o;
+    o.recognition.delay_keyframes = 0;  // every keyframe queued for a query at once
+    auto core = std::make_unique<ServerCore>(o);
+    ASSERT_TRUE(core->startWorkers().ok());
+    for (std::uint32_t agent = 1; agent <= 2; ++agent) {
+      auto session = core->openSession({});
+      ASSERT_TRUE(test::sendTo(*session, helloMessage(kMission, agent, 100 + agent)).ok());
+      for (std::uint64_t s = 1; s <= 8; ++s) {
+        ASSERT_TRUE(test::sendTo(*session, batchMessage(makeKeyframeBatch(s, static_cast<std::uint32_t>(4 * (s - 1)), 4)))
+                        .ok());
+      }
+    }
+    ASSERT_NE(core->recognition(), nullptr);
+    core.reset();  // no drainWorkers(): the queues still hold work
+  }
+}
+
 TEST_F(AgentSessionTest, CloseMarksTheAgentDisconnectedAndKeepsWhatItStored) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 2);

@@ -267,6 +267,30 @@ TEST_F(AccessTest, MadeUpTokensFromOneAddressShareOneRateLimit) {
   EXPECT_TRUE(listMaps("survey", kTokenSurvey).ok());
 }
 
+// The mark replicas put on a call they pass on grants an outside client nothing: its token is still checked, and
+// a listing with it and no good token is still refused.
+TEST_F(AccessTest, AForgedForwardingMarkGrantsNothing) {
+  start();
+  const auto marked = [](const std::string& token) {
+    auto c = callContext(token);
+    c->AddMetadata("cvislam-forwarded", "1");
+    return c;
+  };
+  v1::ListMapsRequest maps_request;
+  maps_request.set_mission("survey");
+  v1::ListMapsResponse maps_response;
+  EXPECT_EQ(maps_->ListMaps(marked("").get(), maps_request, &maps_response).error_code(),
+            grpc::StatusCode::UNAUTHENTICATED);
+  EXPECT_EQ(maps_->ListMaps(marked(kTokenDepot).get(), maps_request, &maps_response).error_code(),
+            grpc::StatusCode::UNAUTHENTICATED);
+  v1::ListMissionsResponse missions;
+  EXPECT_EQ(maps_->ListMissions(marked("").get(), {}, &missions).error_code(), grpc::StatusCode::UNAUTHENTICATED);
+  ASSERT_TRUE(maps_->ListMissions(marked(kTokenDepot).get(), {}, &missions).ok());
+  ASSERT_EQ(missions.missions_size(), 1);
+  EXPECT_EQ(missions.missions(0).name(), "depot");
+  EXPECT_TRUE(maps_->ListMaps(marked(kTokenSurvey).get(), maps_request, &maps_response).ok());
+}
+
 // Nothing a caller is refused with tells it which other missions exist: a mission not in the tokens file and a
 // wrong token read the same, and NOT_FOUND names no mission.
 TEST_F(AccessTest, RefusalsAndNotFoundNameNoOtherMission) {

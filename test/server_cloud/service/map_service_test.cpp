@@ -470,6 +470,28 @@ TEST_F(MapServiceTest, WatchingAnUnknownMissionIsNotFoundAndAStoppingServerEndsE
   EXPECT_THAT(s_stopped.error_message(), HasSubstr("stopping"));
 }
 
+// Scale-out: a replica that lost a mission's lease ends its watches of it, so that watchers come back through the
+// new owner instead of reading a log that no longer grows.
+TEST_F(MapServiceTest, AWatchOfAMissionThisReplicaGaveUpEndsUnavailable) {
+  MissionEventLog& log = core_->missions().find("survey")->events();
+  v1::WatchMissionRequest request;
+  request.set_mission("survey");
+  request.set_from_event(log.nextNumber());
+  auto context = callContext();
+  auto reader = stub_->WatchMission(context.get(), request);
+  log.append(keyframeAdded(5));
+  ASSERT_EQ(readEvents(*reader, 1).size(), 1U);
+
+  core_->dropMission("survey");
+
+  v1::WatchMissionResponse response;
+  while (reader->Read(&response)) {
+  }
+  const grpc::Status status = reader->Finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_THAT(status.error_message(), HasSubstr("moved to another replica"));
+}
+
 TEST_F(MapServiceTest, MapctlWatchPrintsEventsFromANumberAndSaysWhereToResume) {
   MissionEventLog& log = core_->missions().find("survey")->events();
   for (std::uint32_t c = 0; c < 5; ++c) log.append(keyframeAdded(c));

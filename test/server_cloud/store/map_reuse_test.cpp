@@ -15,6 +15,7 @@
 #include "server_cloud/store/sqlite_store.hpp"
 #include "test/server_cloud/link_messages.hpp"
 #include "test/server_cloud/session_driver.hpp"
+#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::server {
@@ -185,6 +186,35 @@ TEST_F(MapReuseTest, ALoadUnderAnInvalidNameWritesNothingAndTheStoreStillOpens) 
     ASSERT_TRUE(replayed.ok()) << replayed.error().toString();
     EXPECT_EQ(replayed->batches, 0U);
   }
+}
+
+// The disk fills during a load: the load stops with an error that says what it was storing, and a later start
+// with space goes on where it stopped (ALoadCutShortGoesOnWhereItStopped).
+TEST_F(MapReuseTest, ALoadWhoseStoreRefusesRecordsStopsSayingWhatItWasStoring) {
+  class FullStore final : public test::ForwardingStore {
+   public:
+    using ForwardingStore::ForwardingStore;
+    Status append(const StoreRecord& r) override {
+      if (++appends > 2) return Error{ErrorCode::kIoError, "database or disk is full"};
+      return ForwardingStore::append(r);
+    }
+    int appends = 0;
+  };
+  SqliteStoreOptions o;
+  o.path = dir_.path() / "day2.db";
+  auto sqlite = openSqliteStore(o);
+  ASSERT_TRUE(sqlite.ok());
+  ServerCore core(ServerOptions{});
+  ASSERT_TRUE(core.attachStore(std::make_unique<FullStore>(std::move(sqlite).value())).ok());
+  auto source = openSource(dir_.path() / "day1.db");
+
+  const auto loaded = core.loadMission(source.get(), "day1", "day2");
+
+  ASSERT_FALSE(loaded.ok());
+  EXPECT_EQ(loaded.error().code(), ErrorCode::kIoError);
+  EXPECT_THAT(loaded.error().message(), HasSubstr("storing mission 'day2' (loaded from 'day1')"));
+  EXPECT_THAT(loaded.error().message(), HasSubstr("disk is full"));
+  EXPECT_EQ(core.store()->counters().records, 2U);
 }
 
 TEST_F(MapReuseTest, ASourceWithoutTheMissionIsRefusedNamingWhatItHolds) {
