@@ -25,6 +25,34 @@ TEST(ServerConfigFiles, TheDocumentedConfigHoldsExactlyTheDefaults) {
   EXPECT_EQ(loaded.describe(), ServerOptions{}.describe());
 }
 
+// Off loopback a server needs TLS and tokens, or the operator's word (--insecure) that the network is trusted.
+TEST(ServerOptionsTest, AReachableAddressWithoutTlsOrTokensIsRefusedUnlessInsecure) {
+  ServerOptions o;
+  o.listen = "0.0.0.0:50051";
+  const Status open = o.validate();
+  ASSERT_FALSE(open.ok());
+  EXPECT_THAT(open.error().message(), HasSubstr("without TLS and tokens"));
+  EXPECT_THAT(open.error().message(), HasSubstr("--insecure"));
+  o.tls_certificate = "server.crt";
+  o.tls_private_key = "server.key";
+  const Status tls_only = o.validate();
+  ASSERT_FALSE(tls_only.ok());
+  EXPECT_THAT(tls_only.error().message(), HasSubstr("without tokens"));
+  o.tokens_file = "tokens";
+  EXPECT_TRUE(o.validate().ok());
+
+  ServerOptions insecure;
+  insecure.listen = "10.0.0.7:50051";
+  insecure.insecure = true;
+  EXPECT_TRUE(insecure.validate().ok());
+  EXPECT_THAT(insecure.describe(), HasSubstr("--insecure: reachable from other machines"));
+  for (const char* loopback : {"127.0.0.1:0", "127.1.2.3:50051", "localhost:50051", "[::1]:50051"}) {
+    ServerOptions local;
+    local.listen = loopback;
+    EXPECT_TRUE(local.validate().ok()) << loopback;
+  }
+}
+
 TEST(ServerConfigFiles, TheClusterConfigLoadsWithThePathsTheStatefulSetMounts) {
   ServerOptions o;
   const Status s = loadServerConfig(kSource / "deploy" / "k8s" / "base" / "server.yaml", o);
