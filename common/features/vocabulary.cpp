@@ -140,8 +140,10 @@ std::pair<std::size_t, std::size_t> shareOf(std::size_t n, int shares, int t) {
 // Lookup: from the root to the closest child at every level (the first on a tie), until a node without children.
 // x86-64 code built for no particular CPU (the project sets no -march) makes each popcount a library call; the
 // lookup gets a second version using the POPCNT instruction, picked when the program loads if the CPU has it
-// (75 instead of 520 ns per word with the shipped vocabulary), so builds stay portable.
-#if defined(__x86_64__) && defined(__has_attribute)
+// (75 instead of 520 ns per word with the shipped vocabulary), so builds stay portable. Not under ThreadSanitizer:
+// the version is picked by a resolver that the loader runs before the TSan runtime is up, and the instrumented
+// resolver crashes every program that links the vocabulary.
+#if defined(__x86_64__) && defined(__has_attribute) && !defined(__SANITIZE_THREAD__)
 #if __has_attribute(target_clones)
 #define CVISLAM_VOCABULARY_POPCNT_CLONES __attribute__((target_clones("popcnt", "default")))
 #endif
