@@ -7,6 +7,7 @@
 #include <optional>
 #include <string_view>
 #include <utility>
+#include <vector>
 
 namespace cvislam::server {
 
@@ -85,24 +86,50 @@ class SqliteStore final : public MapStore {
   }
 
   Status replay(const std::string& mission, const std::function<Status(const StoreRecord&)>& visit) const override {
-    std::lock_guard lock(mutex_);
-    auto select =
-        compile(mission.empty() ? "SELECT number, kind, mission, agent, sequence, body, checksum FROM records ORDER BY "
-                                  "number"
-                                : "SELECT number, kind, mission, agent, sequence, body, checksum FROM records WHERE "
-                                  "mission = ?1 ORDER BY number");
-    if (!select) return select.error();
-    sqlite3_stmt* s = select->get();
-    if (!mission.empty()) sqlite3_bind_text(s, 1, mission.data(), static_cast<int>(mission.size()), SQLITE_STATIC);
-    StoreRecord r;
+    // In pages, the lock released while the records are visited: visiting applies them to a mission and takes its
+    // agents' locks, and a session holds its agent's lock while it appends. A replay that held the store across
+    // its visits would order those two locks the other way round, and would stall every other mission's appends
+    // for as long as a long mission takes to load.
+    constexpr int kPage = 256;
+    std::int64_t after = 0;
+    std::vector<StoreRecord> page;
     for (;;) {
-      const int rc = sqlite3_step(s);
-      if (rc == SQLITE_DONE) break;
-      if (rc != SQLITE_ROW) return sqliteError("reading the records");
-      if (Status st = readRow(s, r); !st.ok()) return st;
-      if (Status st = visit(r); !st.ok()) return st;
+      page.clear();
+      Status failed = Status::Ok();
+      {
+        std::lock_guard lock(mutex_);
+        auto select = compile(mission.empty()
+                                  ? "SELECT number, kind, mission, agent, sequence, body, checksum FROM records WHERE "
+                                    "number > ?1 ORDER BY number LIMIT ?2"
+                                  : "SELECT number, kind, mission, agent, sequence, body, checksum FROM records WHERE "
+                                    "number > ?1 AND mission = ?3 ORDER BY number LIMIT ?2");
+        if (!select) return select.error();
+        sqlite3_stmt* s = select->get();
+        sqlite3_bind_int64(s, 1, after);
+        sqlite3_bind_int(s, 2, kPage);
+        if (!mission.empty()) sqlite3_bind_text(s, 3, mission.data(), static_cast<int>(mission.size()), SQLITE_STATIC);
+        for (;;) {
+          const int rc = sqlite3_step(s);
+          if (rc == SQLITE_DONE) break;
+          if (rc != SQLITE_ROW) {
+            failed = sqliteError("reading the records");
+            break;
+          }
+          StoreRecord& r = page.emplace_back();
+          if (failed = readRow(s, r); !failed.ok()) {
+            page.pop_back();
+            break;
+          }
+        }
+      }
+      // The records before a bad one are visited first, as a replay that read them one by one would have.
+      for (const StoreRecord& r : page) {
+        if (Status st = visit(r); !st.ok()) return st;
+        after = static_cast<std::int64_t>(r.number);
+      }
+      if (!failed.ok()) return failed;
+      if (page.size() < static_cast<std::size_t>(kPage)) return Status::Ok();
     }
-    return Status::Ok();
   }
 
   [[nodiscard]] Result<std::optional<StoreRecord>> findBatch(const std::string& mission, AgentId agent,
