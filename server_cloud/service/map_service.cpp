@@ -144,10 +144,14 @@ class WatchReactor;
 // The open WatchMission streams. Lock order: the registry before a reactor.
 class WatchRegistry {
  public:
-  bool add(WatchReactor* r) {
+  // Registers r and runs start under the registry's lock, so that start (which locks r) keeps the lock order
+  // and no tick reaches r before it has started.
+  template <typename F>
+  bool add(WatchReactor* r, F&& start) {
     std::lock_guard lock(mutex_);
     if (stopped_) return false;
     reactors_.insert(r);
+    start();
     return true;
   }
   void remove(WatchReactor* r) {
@@ -178,13 +182,15 @@ class WatchReactor final : public grpc::ServerWriteReactor<v1::WatchMissionRespo
 
   WatchReactor(std::shared_ptr<Mission> mission, std::uint64_t from, WatchRegistry& registry)
       : mission_(std::move(mission)), next_(from), registry_(registry) {
-    std::lock_guard lock(mutex_);
-    if (!registry_.add(this)) {
+    const bool added = registry_.add(this, [this] {
+      std::lock_guard lock(mutex_);
+      registered_ = true;
+      sendLocked();
+    });
+    if (!added) {
+      std::lock_guard lock(mutex_);
       finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is stopping"));
-      return;
     }
-    registered_ = true;
-    sendLocked();
   }
 
   void OnWriteDone(bool ok) override {
