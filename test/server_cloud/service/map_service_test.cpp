@@ -242,9 +242,15 @@ TEST(MapReadLimits, ReadersThatNeverReadAreCappedPerAddressAndCancelledAtTheTime
     contexts.push_back(callContext());
     readers.push_back(stub->GetMap(contexts.back().get(), request));  // and never read
   }
-  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  // Bounded waits on the condition rather than fixed sleeps: under a sanitizer the snapshots take seconds.
+  for (int i = 0; i < 250 && core.mapReadLimits().openStreams() < 3U; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
   EXPECT_EQ(core.mapReadLimits().openStreams(), 3U);
-  std::this_thread::sleep_for(std::chrono::milliseconds(600));  // past the timeout, still without reading
+  // Past the timeout, still without reading: the server cancels the three and frees their slots.
+  for (int i = 0; i < 1500 && core.mapReadLimits().openStreams() > 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
   int refused = 0;
   int cancelled = 0;
   for (auto& reader : readers) {
@@ -262,9 +268,6 @@ TEST(MapReadLimits, ReadersThatNeverReadAreCappedPerAddressAndCancelledAtTheTime
   }
   EXPECT_EQ(refused, kReaders - 3);
   EXPECT_EQ(cancelled, 3);
-  for (int i = 0; i < 100 && core.mapReadLimits().openStreams() > 0; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
   EXPECT_EQ(core.mapReadLimits().openStreams(), 0U);
   (*server)->shutdown(std::chrono::milliseconds(500));
 }
