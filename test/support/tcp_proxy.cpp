@@ -66,6 +66,8 @@ void TcpProxy::run() {
       fds.push_back({s, POLLIN, 0});
     }
     if (poll(fds.data(), fds.size(), 20) <= 0) continue;
+    // Only the pairs that were polled have entries in fds: a pair accepted below waits for the next poll.
+    const std::size_t polled = pairs.size();
     if ((fds[0].revents & POLLIN) != 0) {
       const int client = accept(listen_fd_, nullptr, nullptr);
       if (client >= 0) {
@@ -81,7 +83,7 @@ void TcpProxy::run() {
       }
     }
     std::vector<std::size_t> dead;
-    for (std::size_t i = 0; i < pairs.size(); ++i) {
+    for (std::size_t i = 0; i < polled; ++i) {
       for (int side = 0; side < 2; ++side) {
         const pollfd& f = fds[1 + 2 * i + static_cast<std::size_t>(side)];
         if ((f.revents & (POLLIN | POLLHUP | POLLERR)) == 0) continue;
