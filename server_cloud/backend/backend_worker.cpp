@@ -25,11 +25,15 @@ class StackLocks {
       const auto content = map->read();
       agents.insert(content->agents().begin(), content->agents().end());
     }
+    // Found first and locked after: the mission's agent map is not to be locked while a record is.
+    std::vector<std::pair<AgentId, SharedAgentRecord>> found;
     for (AgentId agent : agents) {
-      if (SharedAgentRecord shared = mission.findAgent(agent)) {
-        records_.push_back(shared->write());
-        by_agent_.emplace(agent, &*records_.back());
-      }
+      if (SharedAgentRecord shared = mission.findAgent(agent)) found.emplace_back(agent, std::move(shared));
+    }
+    records_.reserve(found.size());
+    for (const auto& [agent, shared] : found) {
+      records_.push_back(shared->write());
+      by_agent_.emplace(agent, &*records_.back());
     }
     std::vector<std::shared_ptr<ServerMap>> sorted = maps;
     std::sort(sorted.begin(), sorted.end(), [](const auto& a, const auto& b) { return a->id() < b->id(); });

@@ -59,8 +59,11 @@ Result<SharedAgentRecord> Mission::admitAgent(AgentId id, std::size_t max_agents
                                                     " agents, its limit (limits.max_agents_per_mission); agent " +
                                                     std::to_string(id) + " cannot join it"};
   }
-  auto record = std::make_shared<Synchronized<AgentRecord>>();
-  record->write()->id = id;
+  // Named before it is published, so that no record's lock is ever taken under the agents' lock (the back-end
+  // takes them the other way round).
+  AgentRecord named;
+  named.id = id;
+  auto record = std::make_shared<Synchronized<AgentRecord>>(std::in_place, std::move(named));
   agents->emplace(id, record);
   return record;
 }
