@@ -243,6 +243,8 @@ Result<MissionOwner> ReplicaCoordinator::owner(const std::string& mission) {
   {
     std::lock_guard lock(state_mutex_);
     if (served_.count(mission) != 0U) return here();
+    // Held here but still replaying: a read now would see part of the mission.
+    if (loading_.count(mission) != 0U) return loadingHere(mission);
     if (auto it = owner_cache_.find(mission); it != owner_cache_.end() && now - it->second.first < cache_ttl_) {
       return it->second.second;
     }
@@ -253,7 +255,14 @@ Result<MissionOwner> ReplicaCoordinator::owner(const std::string& mission) {
   }();
   if (!found) return found.error();
   if (!*found) return Error{ErrorCode::kNotFound, "no replica serves mission '" + mission + "'"};
-  if ((*found)->holder == leases_->options().holder) return here();
+  if ((*found)->holder == leases_->options().holder) {
+    std::lock_guard lock(state_mutex_);
+    if (served_.count(mission) != 0U) return here();
+    if (loading_.count(mission) != 0U) return loadingHere(mission);
+    // The lease is this replica's but the mission is not served: its load failed and the lease is being let go.
+    return Error{ErrorCode::kUnavailable,
+                 "mission '" + mission + "' is not served by this replica now, though it holds its lease: ask again"};
+  }
   if ((*found)->remaining_s <= 0.0) {
     return Error{ErrorCode::kUnavailable,
                  "mission '" + mission + "' is between replicas (its owner's lease lapsed): ask again shortly"};
@@ -261,6 +270,11 @@ Result<MissionOwner> ReplicaCoordinator::owner(const std::string& mission) {
   std::lock_guard lock(state_mutex_);
   owner_cache_[mission] = {now, elsewhere(**found)};
   return elsewhere(**found);
+}
+
+Error ReplicaCoordinator::loadingHere(const std::string& mission) {
+  return Error{ErrorCode::kUnavailable,
+               "mission '" + mission + "' is being loaded from the store by this replica: ask again shortly"};
 }
 
 Result<std::vector<MissionOwner>> ReplicaCoordinator::others() {

@@ -126,6 +126,24 @@ TEST_F(ReplicaCoordinatorTest, ALoadLongerThanTheTtlKeepsTheOtherLeasesAndServes
   EXPECT_EQ(redirected->holder, "replica/b");
 }
 
+// Map reads ask owner(): while this replica still loads a mission it holds the lease of, a read is told to come
+// back, not served a mission half replayed.
+TEST_F(ReplicaCoordinatorTest, AMissionBeingLoadedIsNotOfferedToReadersUntilItsLoadEnds) {
+  core_.load_time["m"] = std::chrono::milliseconds(1500);
+  auto a = coordinator("replica/a");
+  a->start();
+  auto claimed = a->claim("m");
+  ASSERT_FALSE(claimed.ok());  // its load has started
+  auto during = a->owner("m");
+  ASSERT_FALSE(during.ok()) << "a mission still loading was offered to a reader";
+  EXPECT_EQ(during.error().code(), ErrorCode::kUnavailable);
+  EXPECT_THAT(during.error().message(), HasSubstr("being loaded"));
+  a->waitForLoads();
+  auto after = a->owner("m");
+  ASSERT_TRUE(after.ok()) << after.error().toString();
+  EXPECT_TRUE(after->here);
+}
+
 // A lease lost to another replica ends the mission here (dropped); once that replica's lease lapses in turn, this
 // replica takes the mission over again and loads it afresh.
 TEST_F(ReplicaCoordinatorTest, ALostMissionIsDroppedAndTakenOverAgainWhenItsNewOwnerDies) {
