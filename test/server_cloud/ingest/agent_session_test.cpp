@@ -685,5 +685,45 @@ TEST_F(AgentSessionTest, CorrectingAKeyframeTheServerDoesNotHoldIsNotFound) {
   EXPECT_EQ(unknown_mission.error().code(), ErrorCode::kNotFound);
 }
 
+// Scale-out: a replica takes a mission's lease for a Hello only once the Hello is one it would serve. A Hello
+// refused for what it says (an absurd calibration) or for the replica's mission limit claims nothing, so it cannot
+// take a mission over from nobody, nor hold a lease for a mission it then refuses to serve.
+class CountingOwnership final : public MissionOwnership {
+ public:
+  int claims = 0;
+  Result<MissionOwner> claim(const std::string& /*mission*/) override {
+    ++claims;
+    return MissionOwner{};
+  }
+  Result<MissionOwner> owner(const std::string& /*mission*/) override { return MissionOwner{}; }
+  Result<std::vector<MissionOwner>> others() override { return std::vector<MissionOwner>{}; }
+};
+
+TEST(AgentSessionOwnership, AHelloRefusedForWhatItSaysOrForTheMissionLimitClaimsNoLease) {
+  MissionRegistry missions;
+  SessionOptions options;
+  options.max_missions = 1;
+  missions.getOrCreate("held");  // the replica's one mission
+  CountingOwnership ownership;
+  v1::ServerDownlink reply;
+  bool reply_due = false;
+
+  AgentSession absurd(missions, options, [] {}, {}, nullptr, {}, &ownership);
+  v1::AgentUplink hello = helloMessage("held", kAgent, kSession);
+  hello.mutable_hello()->mutable_cam0()->set_fx(1e300);
+  EXPECT_FALSE(test::sendTo(absurd, hello, &reply, &reply_due).ok());
+
+  AgentSession over_limit(missions, options, [] {}, {}, nullptr, {}, &ownership);
+  const Status refused = test::sendTo(over_limit, helloMessage("another", kAgent, kSession), &reply, &reply_due);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.error().code(), ErrorCode::kResourceExhausted);
+  EXPECT_EQ(ownership.claims, 0);
+
+  AgentSession served(missions, options, [] {}, {}, nullptr, {}, &ownership);
+  const Status welcomed = test::sendTo(served, helloMessage("held", kAgent, kSession), &reply, &reply_due);
+  EXPECT_TRUE(welcomed.ok()) << welcomed.error().toString();
+  EXPECT_EQ(ownership.claims, 1);  // and a Hello it serves does claim
+}
+
 }  // namespace
 }  // namespace cvislam::server
