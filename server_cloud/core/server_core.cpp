@@ -156,7 +156,7 @@ Result<RecoveryReport> ServerCore::joinCluster(std::unique_ptr<MapStore> store,
   replica_ = std::make_unique<cluster::ReplicaCoordinator>(
       std::move(leases), std::move(renewals), [this](const std::string& mission) { return loadFromStore(mission); },
       [this](const std::string& mission) { dropMission(mission); },
-      [this] { return missions_.missions().size() < options_.session.max_missions; });
+      [this] { return missions_.size() < options_.session.max_missions; });
   replica_->start();
   return report;
 }

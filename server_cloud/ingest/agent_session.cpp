@@ -83,6 +83,21 @@ std::vector<KeyframeId> newestKeyframes(const AgentRecord& record, int n, MapId&
   return out;
 }
 
+// Applies a batch the store holds (record `held`) without storing it again: what a session does where an append's
+// outcome was in doubt and the store, not memory, says what the sequence number holds.
+Result<IngestReport> applyStoredBatch(Mission& mission, AgentRecord& record, const StoreRecord& held,
+                                      const SessionOptions& options) {
+  const std::string what = "the batch " + std::to_string(held.sequence) + " of agent " + std::to_string(record.id) +
+                           " that the store holds (record " + std::to_string(held.number) + ")";
+  v1::MapBatch batch;
+  if (!batch.ParseFromString(held.body) || batch.sequence() != held.sequence) {
+    return Error{ErrorCode::kDataError, what + " does not parse as that batch"};
+  }
+  auto report = applyBatch(mission, record, batch, options.ingest, {});
+  if (!report) return Error{ErrorCode::kDataError, what + " does not apply (" + report.error().message() + ")"};
+  return report;
+}
+
 // Applies the batches the store holds of the agent beyond record.stored_sequence, in order. They are appends
 // whose outcome was in doubt: the store refused or lost the answer, but the database had committed them. A Welcome
 // that left them out would tell the agent those numbers are free, and the agent would build new batches under
@@ -91,18 +106,11 @@ Result<std::uint64_t> applyStoredBeyond(Mission& mission, AgentRecord& record, c
                                         const SessionOptions& options, const AgentSession::StoredListener& on_stored) {
   std::uint64_t applied = 0;
   for (;;) {
-    const std::uint64_t next = record.stored_sequence + 1;
-    auto held = store.findBatch(mission.name(), record.id, next);
+    auto held = store.findBatch(mission.name(), record.id, record.stored_sequence + 1);
     if (!held) return held.error();
     if (!*held) return applied;
-    v1::MapBatch batch;
-    if (!batch.ParseFromString((*held)->body) || batch.sequence() != next) {
-      return Error{ErrorCode::kDataError, "store record " + std::to_string((*held)->number) + " (batch " +
-                                              std::to_string(next) + " of agent " + std::to_string(record.id) +
-                                              ") does not parse as that batch"};
-    }
-    auto report = applyBatch(mission, record, batch, options.ingest, {});
-    if (!report) return report.error().withContext("applying the stored batch " + std::to_string(next));
+    auto report = applyStoredBatch(mission, record, **held, options);
+    if (!report) return report.error();
     if (on_stored) on_stored(mission.name(), *report);
     ++applied;
   }
@@ -241,11 +249,7 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
   if (!sensors) return sensors.error();
   // Everything the Hello says is checked before a replica takes the mission's lease for it.
   if (ownership_ != nullptr) {
-    if (!missions_.find(hello.mission()) && missions_.missions().size() >= options_.max_missions) {
-      return Error{ErrorCode::kResourceExhausted, "this replica holds " + std::to_string(options_.max_missions) +
-                                                      " missions, its limit (limits.max_missions): mission '" +
-                                                      hello.mission() + "' cannot start here"};
-    }
+    if (Status room = missions_.checkRoom(hello.mission(), options_.max_missions); !room.ok()) return room;
     auto owner = ownership_->claim(hello.mission());
     if (!owner) {
       return Error{ErrorCode::kUnavailable, "this replica cannot serve mission '" + hello.mission() + "' now (" +
@@ -420,16 +424,8 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
 
 Status AgentSession::applyHeldInstead(AgentRecord& record, const StoreRecord& held) {
   const std::uint64_t sequence = held.sequence;
-  v1::MapBatch stored;
-  if (!stored.ParseFromString(held.body) || stored.sequence() != sequence) {
-    return Error{ErrorCode::kDataError, "batch " + std::to_string(sequence) + ": store record " +
-                                            std::to_string(held.number) + " under its number does not parse"};
-  }
-  auto report = applyBatch(*mission_, record, stored, options_.ingest, {});
-  if (!report) {
-    return Error{ErrorCode::kDataError, "batch " + std::to_string(sequence) + ": the batch the store holds under its "
-                                            "number does not apply (" + report.error().message() + ")"};
-  }
+  auto report = applyStoredBatch(*mission_, record, held, options_);
+  if (!report) return report.error();
   if (on_stored_) on_stored_(mission_name_, *report);
   ++record.resend_conflicts;
   if (record.resend_from == 0 || sequence < record.resend_from) record.resend_from = sequence;

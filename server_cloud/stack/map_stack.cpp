@@ -85,15 +85,29 @@ std::shared_ptr<Mission> MissionRegistry::getOrCreate(const std::string& name) {
   return open(name, std::numeric_limits<std::size_t>::max()).value();  // no limit: never fails
 }
 
+namespace {
+Status roomFor(const std::map<std::string, std::shared_ptr<Mission>>& missions, const std::string& name,
+               std::size_t max_missions) {
+  if (missions.count(name) != 0U || missions.size() < max_missions) return Status::Ok();
+  return Error{ErrorCode::kResourceExhausted, "this server holds " + std::to_string(missions.size()) +
+                                                  " missions, its limit (limits.max_missions); mission '" + name +
+                                                  "' cannot start here (use another server, or raise the limit)"};
+}
+}  // namespace
+
+std::size_t MissionRegistry::size() const {
+  return missions_.read()->size();
+}
+
+Status MissionRegistry::checkRoom(const std::string& name, std::size_t max_missions) const {
+  return roomFor(*missions_.read(), name, max_missions);
+}
+
 Result<std::shared_ptr<Mission>> MissionRegistry::open(const std::string& name, std::size_t max_missions) {
   auto missions = missions_.write();
   auto it = missions->find(name);
   if (it != missions->end()) return it->second;
-  if (missions->size() >= max_missions) {
-    return Error{ErrorCode::kResourceExhausted, "this server holds " + std::to_string(missions->size()) +
-                                                    " missions, its limit (limits.max_missions); mission '" + name +
-                                                    "' cannot start here (use another server, or raise the limit)"};
-  }
+  if (Status room = roomFor(*missions, name, max_missions); !room.ok()) return room.error();
   auto mission = std::make_shared<Mission>(name);
   missions->emplace(name, mission);
   return mission;

@@ -244,10 +244,13 @@ class MissionRegistry {
   // The same for a live Hello: a new mission is refused with RESOURCE_EXHAUSTED when the server holds
   // `max_missions` already.
   Result<std::shared_ptr<Mission>> open(const std::string& name, std::size_t max_missions);
+  // What open would say of the limit now, without making anything (a replica checks it before taking a lease).
+  [[nodiscard]] Status checkRoom(const std::string& name, std::size_t max_missions) const;
   [[nodiscard]] std::shared_ptr<Mission> find(const std::string& name) const;
   // Forgets the mission (scale-out: another replica serves it now); returns it, or nullptr when not held.
   std::shared_ptr<Mission> remove(const std::string& name);
   [[nodiscard]] std::vector<std::shared_ptr<Mission>> missions() const;  // by name
+  [[nodiscard]] std::size_t size() const;
 
  private:
   Synchronized<std::map<std::string, std::shared_ptr<Mission>>> missions_;
