@@ -33,7 +33,7 @@ Status LinkOptions::validate() const {
     return bad("the token may hold printable ASCII characters only, without spaces");
   }
   if (!(max_rate_hz > 0.0) || max_rate_hz > 100.0) return bad("max_rate_hz must be in (0, 100]");
-  if (max_batch_bytes < (16U << 10U)) return bad("max_batch_bytes must be at least 16 KiB");
+  if (max_batch_bytes < kMinBatchBytes) return bad("max_batch_bytes must be at least 16 KiB");
   if (!(reconnect_min_s > 0.0) || reconnect_max_s < reconnect_min_s) {
     return bad("reconnect times must satisfy 0 < reconnect_min_s <= reconnect_max_s");
   }

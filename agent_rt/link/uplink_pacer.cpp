@@ -5,10 +5,6 @@
 
 namespace cvislam::agent {
 
-namespace {
-constexpr std::size_t kMinBatchBytes = 16U << 10U;  // LinkOptions' smallest max_batch_bytes
-}  // namespace
-
 Status UplinkPacerOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "link: " + what}; };
   if (!std::isfinite(window_s) || !(window_s > 0.0)) return bad("uplink_window_s must be > 0");
@@ -29,25 +25,23 @@ void UplinkPacer::onSent(std::uint64_t sequence, std::size_t bytes, Clock::time_
 void UplinkPacer::onAck(std::uint64_t sequence, Clock::time_point now) {
   std::size_t delivered = 0;
   std::size_t kept = 0;
-  const Sent* newest = nullptr;
-  Sent newest_copy;
+  bool any = false;
+  Sent newest{};  // the newest batch this acknowledgement covers
   for (std::size_t i = 0; i < in_flight_count_; ++i) {
     if (in_flight_[i].sequence <= sequence) {
       delivered += in_flight_[i].bytes;
-      if (newest == nullptr || in_flight_[i].sequence > newest_copy.sequence) {
-        newest_copy = in_flight_[i];
-        newest = &newest_copy;
-      }
+      if (!any || in_flight_[i].sequence > newest.sequence) newest = in_flight_[i];
+      any = true;
     } else {
       in_flight_[kept++] = in_flight_[i];
     }
   }
   in_flight_count_ = kept;
   in_flight_bytes_ -= std::min(in_flight_bytes_, delivered);
-  if (newest == nullptr) return;
+  if (!any) return;
   delivered_ += delivered;
-  const double elapsed_s = std::max(0.01, std::chrono::duration<double>(now - newest->sent_at).count());
-  samples_[sample_next_] = Sample{now, static_cast<double>(delivered_ - newest->delivered_at_send) / elapsed_s};
+  const double elapsed_s = std::max(0.01, std::chrono::duration<double>(now - newest.sent_at).count());
+  samples_[sample_next_] = Sample{now, static_cast<double>(delivered_ - newest.delivered_at_send) / elapsed_s};
   sample_next_ = (sample_next_ + 1) % samples_.size();
   sample_count_ = std::min(sample_count_ + 1, samples_.size());
   have_ack_ = true;

@@ -24,6 +24,9 @@
 
 namespace cvislam::agent {
 
+// The smallest batch the link builds (LinkOptions::max_batch_bytes' floor), and so the smallest budget a batch gets.
+inline constexpr std::size_t kMinBatchBytes = 16U << 10U;
+
 struct UplinkPacerOptions {
   double window_s = 2.0;  // unacknowledged data in flight, in seconds at the estimated rate
   // Small to begin with: 64 KiB is one second at 0.5 Mbit/s; the first acknowledgements open it to what the link
