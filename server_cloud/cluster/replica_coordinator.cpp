@@ -1,5 +1,6 @@
 #include "server_cloud/cluster/replica_coordinator.hpp"
 
+#include "common/core/text.hpp"
 #include "server_cloud/store/operator_log.hpp"
 
 #include <algorithm>
@@ -17,9 +18,7 @@ MissionOwner elsewhere(const Lease& lease) {
   return MissionOwner{false, lease.holder, lease.address};
 }
 std::string seconds(double s) {
-  char text[32];
-  std::snprintf(text, sizeof text, "%.0f s", std::ceil(s));
-  return text;
+  return text::formatDouble(std::ceil(s)) + " s";
 }
 }  // namespace
 
@@ -43,6 +42,10 @@ ReplicaCoordinator::ReplicaCoordinator(std::unique_ptr<MissionLeases> leases, st
           std::chrono::duration<double>(leases_->options().ttl_s / 3.0))) {}
 
 ReplicaCoordinator::~ReplicaCoordinator() {
+  stopThreads();
+}
+
+void ReplicaCoordinator::stopThreads() {
   {
     std::lock_guard lock(wake_mutex_);
     renew_stopping_ = true;
@@ -72,18 +75,7 @@ void ReplicaCoordinator::start() {
 }
 
 Status ReplicaCoordinator::release() {
-  {
-    std::lock_guard lock(wake_mutex_);
-    renew_stopping_ = true;
-  }
-  wake_.notify_all();
-  if (renew_thread_.joinable()) renew_thread_.join();
-  {
-    std::lock_guard lock(state_mutex_);
-    stopping_ = true;
-  }
-  state_changed_.notify_all();
-  if (load_thread_.joinable()) load_thread_.join();
+  stopThreads();
   std::vector<std::string> missions = served();
   Status result = Status::Ok();
   std::lock_guard db(db_mutex_);
@@ -107,11 +99,7 @@ Result<MissionOwner> ReplicaCoordinator::claim(const std::string& mission) {
   const auto loaded = [&](std::unique_lock<std::mutex>& lock) -> std::optional<Result<MissionOwner>> {
     state_changed_.wait_for(lock, replica_options_.claim_wait, [&] { return loading_.count(mission) == 0U; });
     if (served_.count(mission) != 0U) return Result<MissionOwner>(here());
-    if (loading_.count(mission) != 0U) {
-      return Result<MissionOwner>(Error{ErrorCode::kUnavailable, "mission '" + mission +
-                                                                     "' is being loaded from the store by this "
-                                                                     "replica: connect again shortly"});
-    }
+    if (loading_.count(mission) != 0U) return Result<MissionOwner>(loadingHere(mission));
     return std::nullopt;
   };
   {
@@ -274,7 +262,7 @@ Result<MissionOwner> ReplicaCoordinator::owner(const std::string& mission) {
 
 Error ReplicaCoordinator::loadingHere(const std::string& mission) {
   return Error{ErrorCode::kUnavailable,
-               "mission '" + mission + "' is being loaded from the store by this replica: ask again shortly"};
+               "mission '" + mission + "' is being loaded from the store by this replica: try again shortly"};
 }
 
 Result<std::vector<MissionOwner>> ReplicaCoordinator::others() {

@@ -113,6 +113,7 @@ class ReplicaCoordinator final : public MissionOwnership {
   void load(const Load& job);
   // Under state_mutex_: a reason the mission may not be taken now, or nothing.
   [[nodiscard]] static Error loadingHere(const std::string& mission);
+  void stopThreads();  // the renewals first, then the loads
   std::optional<std::string> blockedLocked(const std::string& mission, Clock::time_point now) const;
   // Acquires the lease and, when it is this replica's, queues its load. Returns the owner (here: queued).
   Result<MissionOwner> acquireAndQueue(const std::string& mission, bool by_takeover);

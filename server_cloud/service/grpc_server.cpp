@@ -55,10 +55,6 @@ class ReactorRegistry {
     }
     return out;
   }
-  [[nodiscard]] std::size_t size() {
-    std::lock_guard lock(mutex_);
-    return reactors_.size();
-  }
 
  private:
   std::mutex mutex_;
