@@ -49,7 +49,7 @@ struct DownlinkOptions {
   // Corrections are applied to own keyframes outside the local BA window (one in the window takes its
   // correction when it leaves the window): held fixed there, they pull the window onto the server's map over the
   // next local BAs, so tracking never sees the step at once. Off by default: on the simulated missions they
-  // helped the drifting MH_05 replay but made overlap2 and the live steps worse than anchors alone (README).
+  // helped the drifting MH_05 replay but made overlap2 and the live steps worse than anchors alone (docs/agent.md).
   bool apply_corrections = false;
 };
 

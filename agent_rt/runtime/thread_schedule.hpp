@@ -8,7 +8,7 @@
 // priority, tracking stays SCHED_OTHER and mapping, the link and the frame loader drop to positive nice values
 // (mapping 10: CFS weights 1024 against 110), which needs no privilege; the agent says so once, naming what to
 // grant. On one core at the sensor rate, nice values alone left tracking's p99 at 1.6x its p99 with mapping on
-// another core, SCHED_FIFO at 1.3x (README, "The agent on a small board").
+// another core, SCHED_FIFO at 1.3x (docs/agent.md, "On a small board").
 //
 // The agent applies these at --pace realtime only: with no sensor clock (fast, sync) tracking has no deadline
 // to protect, and starving mapping there only costs accuracy.

@@ -4,7 +4,7 @@
 // largest file seen it allocates nothing. Anything else (colour, 16-bit, interlaced, JPEG, PGM) it hands back
 // undecoded: the loader (image.hpp) then names the format and how to convert it.
 //
-// The frame loader is a quarter to a third of the agent's CPU on one core (README, "On a small board"); most of
+// The frame loader is a quarter to a third of the agent's CPU on one core (docs/agent.md, "On a small board"); most of
 // it was libpng's inflate and OpenCV's buffers around it.
 #pragma once
 

@@ -1,4 +1,4 @@
-# The cvislam agent image (x86-64; boards take the cross-built binary, see README "Building for a board"):
+# The cvislam agent image (x86-64; boards take the cross-built binary, see docs/deploy.md, "Building for a board"):
 # cvislam_agent with its configs, run as a non-root user. The agent embeds RouDi, so the container needs a
 # /dev/shm of at least 256 MiB (docker run --shm-size=256m; on Kubernetes a memory emptyDir, see
 # deploy/k8s/base/agent-pod.yaml).

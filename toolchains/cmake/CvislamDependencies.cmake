@@ -27,7 +27,7 @@ set_target_properties(cvislam::libdeflate PROPERTIES IMPORTED_LOCATION "${LIBDEF
   INTERFACE_INCLUDE_DIRECTORIES "${LIBDEFLATE_INCLUDE_DIR}")
 
 # OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).
-# We install the per-module -dev packages and fall back to a small find-module; see README "Dependencies".
+# We install the per-module -dev packages and fall back to a small find-module; see docs/development.md, "Dependencies".
 find_package(OpenCV 4 QUIET CONFIG COMPONENTS core imgproc imgcodecs features2d calib3d)
 if(NOT OpenCV_FOUND)
   # features2d and calib3d: ORB and an independent camera projection in the simulator's tests

@@ -565,7 +565,7 @@ TEST(MapperOptions, NamesBadValues) {
   EXPECT_NE(o.validate().error().message().find("window"), std::string::npos);
   o = MapperOptions{};
   EXPECT_TRUE(o.downlink.use_anchors);
-  EXPECT_FALSE(o.downlink.apply_corrections) << "corrections are opt-in (README: when they help)";
+  EXPECT_FALSE(o.downlink.apply_corrections) << "corrections are opt-in (docs/agent.md: when they help)";
   o.downlink.max_anchor_keyframes = 1000;
   EXPECT_NE(o.validate().error().message().find("max_anchor_keyframes"), std::string::npos);
   o = MapperOptions{};
