@@ -15,7 +15,7 @@
 #   --mode      stereo (default) or mono (mono-inertial)
 #   --pace      sync (default: after each keyframe tracking waits for mapping, so every run gives the same
 #               figures on a loaded machine) or realtime (frames at the sensor rate, as on a robot; on this
-#               2-core machine several realtime agents compete for the cores, see issue 17)
+#               2-core machine several realtime agents compete for the cores, see docs/agent.md)
 #   --out       results [out/mission]: summary.json, report/index.html, server/, agents/, eval/, maps/
 #   --no-real   skip the agent on the real EuRoC excerpt
 #   --server-arg one more cvislam_server argument, repeatable (e.g. --server-arg --no-gba)

@@ -296,7 +296,7 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
                   correction_bytes);
         }
         if (s.downlink.removed_keyframes_size() > 0) {
-          // Counted only: the agent's local map keeps its own keyframes (using the server's map is issue 14's).
+          // Counted only: the agent's local map keeps its own keyframes (it does not adopt the server's map).
           std::uint64_t removal_bytes = 0;
           for (std::uint32_t c : s.downlink.removed_keyframes()) removal_bytes += wire::varintBytes(c);
           s.count(s.down_by_kind, "removal", static_cast<std::uint64_t>(s.downlink.removed_keyframes_size()),

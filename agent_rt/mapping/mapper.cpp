@@ -105,7 +105,7 @@ struct BestTwo {
 
 // The epipolar line of bearing b0 in the second camera (relative pose T_c1_c0), and the distance of a bearing b1
 // from it in pixels of a camera with focal length f. Made once per b0: a keypoint has hundreds of candidates
-// (stop 38: recomputing the line per candidate was 4 % of the mono agent's CPU).
+// (recomputing the line per candidate was measured at 4 % of the mono agent's CPU).
 class EpipolarLine {
  public:
   EpipolarLine(const Vector3d& b0, const SE3d& T_c1_c0, double f)

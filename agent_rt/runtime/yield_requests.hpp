@@ -1,4 +1,4 @@
-// Tracking asks mapping to cut its local BA short (issue 17): when keyframes have been held back for long
+// Tracking asks mapping to cut its local BA short: when keyframes have been held back for long
 // (FrameResult::keyframe_overdue), the map tracking searches falls behind the camera, and a BA that finishes its
 // iterations only delays the keyframe tracking needs. ORB-SLAM's tracking sets its local mapper's abort flag for
 // the same reason.

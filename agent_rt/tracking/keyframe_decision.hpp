@@ -3,7 +3,7 @@
 // map points. The paper uses 15; our default is 30. Our tracker keeps 40-70 points per frame on the simulated
 // hall (about 260 on real EuRoC), so 15 came too late on fast turns: the simulated aggressive flight lost
 // tracking and started 26 maps with 15, none with 30, and the ATE over all seven simulated flights fell in
-// both modes (closing note of stop 9).
+// both modes.
 // During IMU initialisation the paper keeps at most 3 frames between keyframes; that is the same rule with
 // max_frames_between = 3.
 #pragma once

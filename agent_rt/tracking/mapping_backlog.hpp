@@ -1,4 +1,4 @@
-// Mapping's backlog as tracking sees it (issue 17): the keyframes tracking has published and mapping has not
+// Mapping's backlog as tracking sees it: the keyframes tracking has published and mapping has not
 // yet taken, and what tracking does about them. On a board with one free core mapping falls behind; tracking
 // then keeps tracking on the newest snapshot with the IMU, makes a keyframe only when it would otherwise be
 // lost (ORB-SLAM's "local mapping busy" rule), and never lets the backlog grow past a bound.

@@ -14,7 +14,7 @@
 // pose with its own uncertainty added (a right match of a near point still fits within the valley's width; the
 // wrong one lies far outside it).
 // Seen in tracking after a frame had waited for the first map: no velocity yet, the prediction 4 cm behind, and
-// the frame tracked 4 cm off through a wrong stereo depth (issue 17).
+// the frame tracked 4 cm off through a wrong stereo depth.
 #pragma once
 
 #include <cstdint>

@@ -162,7 +162,7 @@ class ServerCore {
   // startWorkers() (place recognition and the back-end see the replayed keyframes) and before serving. The error
   // names the file and the record that is wrong.
   Result<RecoveryReport> openStore();
-  // The same with a store made elsewhere (tests; the scale-out issue's shared store).
+  // The same with a store made elsewhere (tests; replicas sharing one PostgreSQL store).
   Result<RecoveryReport> attachStore(std::unique_ptr<MapStore> store);
   [[nodiscard]] MapStore* store() const { return store_.get(); }
   // Scale-out: joins the replicas of options.cluster (openStore() does it when options.cluster is enabled). The

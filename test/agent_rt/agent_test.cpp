@@ -246,7 +246,7 @@ TEST_F(AgentTest, RefusesWhatCannotWork) {
 }
 
 // At --pace fast with the whole agent on one core, tracking outruns mapping: keyframes are held back, and once one
-// is overdue tracking asks mapping to yield, which cuts its local BAs short (issue 17). The wiring with real threads
+// is overdue tracking asks mapping to yield, which cuts its local BAs short. The wiring with real threads
 // and iceoryx: requests counted on tracking's side, BAs cut short on mapping's, one map throughout. With the request
 // delay beyond the sequence's length, tracking never asks.
 TEST_F(AgentTest, OnOneCoreAtFastPaceTrackingAsksTheLaggingMapperToYield) {

@@ -243,7 +243,7 @@ TEST_F(MissionProcesses, AServerKilledAndRestartedThreeTimesGetsTheAgentsCurrent
 // The restart test of the map store: the server is killed (SIGKILL) at random moments and started again on its
 // store. Every keyframe the agent made ends on the last server exactly once, with the agent's final state, and
 // the agent is never told that the server lost a batch it had acknowledged. CVISLAM_RESTART_KILLS sets the number
-// of kills (default 3; the closing note's figure used 10 on a longer sequence through deploy/run_mission.sh).
+// of kills (default 3; run 10 or more before a release).
 TEST_F(MissionProcesses, AServerOnAStoreKilledAtRandomMomentsEndsWithEveryKeyframeExactlyOnceAndLosesNoAck) {
   int kills = 3;
   if (const char* env = std::getenv("CVISLAM_RESTART_KILLS"); env != nullptr) kills = std::max(1, std::atoi(env));

@@ -76,7 +76,7 @@ TEST(PoseOptimizer, RecoversThePoseAndFindsTheWrongMatches) {
 // valley. One wrong match of a point 0.4 m away, found where the prediction put it, has the leverage to drag the
 // pose along that valley until it fits, and every match is then an inlier. Seen in tracking when a frame had
 // waited for the first map: no velocity yet, so the prediction was 4 cm behind, and the frame was tracked 4 cm
-// off (issue 17). The same point with a right match must still count.
+// off. The same point with a right match must still count.
 struct ValleyCase {
   std::vector<PoseObservation> observations;  // the near point last
   SE3d T_true;

@@ -1,4 +1,4 @@
-// Tracking with a mapper that cannot keep up (issue 17): on a board with one free core mapping falls behind,
+// Tracking with a mapper that cannot keep up: on a board with one free core mapping falls behind,
 // and tracking must keep one map rather than fall apart. The real Tracker and Mapper run in one thread
 // (test/support/inline_agent); the mapper is made slow on purpose by answering each keyframe only after a
 // fixed number of frames, one keyframe at a time. This binary also replaces malloc, so it checks that the
@@ -120,7 +120,7 @@ TEST_F(MappingLag, AStarvedMapperLeavesTrackingOnOneMapWithFewerKeyframes) {
   EXPECT_EQ(slow.steady_allocations, 0);
 }
 
-// The same mapper without the back-off, as the agent was before issue 17: the backlog is not bounded, tracking
+// The same mapper without the back-off, as the agent once was: the backlog is not bounded, tracking
 // loses most frames and starts new maps.
 TEST_F(MappingLag, WithoutTheBackOffTheBacklogGrows) {
   auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
@@ -281,7 +281,7 @@ TEST(TrackerOptions, ADeadReckoningBoundThatIsNotPositiveIsNamed) {
 // wrong stereo depth in the first map (a point 0.44 m away that is metres away) then dragged the pose along the
 // valley that points a few metres ahead leave, and every frame until the next keyframes was tracked 4 to 8 cm off,
 // which skewed the IMU initialisation by 1.9 degrees; at realtime pace this decided whether a run ended at 2.5 or
-// 10.4 cm ATE (issue 17). The pose optimiser's leverage check catches the point.
+// 10.4 cm ATE. The pose optimiser's leverage check catches the point.
 double worstErrorAfterAWait(const dataset::EurocSequence& seq, int first_map_frames, double max_leverage) {
   TrackerOptions options;
   options.pose.max_leverage = max_leverage;

@@ -1,7 +1,7 @@
 // Peer check: our evaluator against evo and rpg_trajectory_evaluation, on real estimates of real data.
 // The reference figures (../shared/data/peer-*/REFERENCE.json) were produced by running those tools.
 // Required agreement: ATE RMSE within 1 mm under every alignment, scale within 0.1 %, and the same number
-// of associated poses. We in fact agree to ~1e-12; the asserted bounds are the issue's.
+// of associated poses. We in fact agree to ~1e-12; the asserted bounds are what a user can rely on.
 #include <cmath>
 #include <fstream>
 #include <string>
