@@ -27,6 +27,8 @@ packages=(
   libpq-dev postgresql-15
   # fuzzing the server's inbound messages with libFuzzer (test/fuzz/run_fuzz.sh)
   clang libclang-rt-14-dev
+  # the style check (test/check_style.sh): formatting in CI, clang-tidy on changed files
+  clang-format clang-tidy
   # the map service's Python client (server_cloud/tools/cvislam_map_client.py) and its test
   python3-grpcio python3-protobuf
   # zero-copy tracking <-> mapping; libacl1-dev because iceoryx's RouDi headers include <sys/acl.h>

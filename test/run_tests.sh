@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Installs what is missing, builds everything and runs every test through CTest.
+# Installs what is missing, checks the formatting (test/check_style.sh), builds everything and runs every test
+# through CTest.
 #
 #   test/run_tests.sh [--preset default|asan|tsan] [--no-board] [extra ctest arguments, e.g. -R Lie -L integration]
 #
@@ -31,6 +32,9 @@ esac
 "$repo/deploy/install_deps.sh"
 "$repo/deploy/install_deploy_tools.sh"
 cd "$repo"
+rc=0
+# Formatting first: a few seconds, and its failure is reported without stopping the tests.
+test/check_style.sh || rc=1
 build="build/$preset"
 start=$(date +%s)
 if [ ! -f "$build/build.ninja" ]; then
@@ -39,7 +43,6 @@ fi
 cmake --build --preset "$preset"
 echo "run_tests: build took $(( $(date +%s) - start )) s"
 junit="$build/ctest-junit.xml"
-rc=0
 ctest --preset "$preset" --output-junit "$PWD/$junit" "$@" || rc=$?
 . "$repo/test/ctest_summary.sh"
 ctest_summary "$junit" ctest

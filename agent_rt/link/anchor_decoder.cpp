@@ -28,7 +28,9 @@ Result<PoseMsg> pose(const v1::Pose& in, const std::string& what) {
   return toMsg(*T);
 }
 
-bool agentId(std::uint32_t value) { return value <= std::numeric_limits<AgentId>::max(); }
+bool agentId(std::uint32_t value) {
+  return value <= std::numeric_limits<AgentId>::max();
+}
 
 // More than `capacity` of `what` in one message is refused.
 Status checkCapacity(int count, std::size_t capacity, const std::string& what) {
@@ -46,13 +48,15 @@ Status checkPosition(const google::protobuf::RepeatedField<float>& values, int f
 Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
   out.agent_map = in.agent_map();
   // The server's selection, best first.
-  if (in.selected_agent_size() != in.selected_counter_size()) return refused("selected_agent and selected_counter differ in length");
+  if (in.selected_agent_size() != in.selected_counter_size())
+    return refused("selected_agent and selected_counter differ in length");
   if (Status s = checkCapacity(in.selected_counter_size(), kMaxAnchorKeyframesPerMessage, "selected keyframes");
       !s.ok()) {
     return s;
   }
   for (int i = 0; i < in.selected_counter_size(); ++i) {
-    if (!agentId(in.selected_agent(i))) return refused("selected keyframe " + std::to_string(i) + ": agent id over 16 bits");
+    if (!agentId(in.selected_agent(i)))
+      return refused("selected keyframe " + std::to_string(i) + ": agent id over 16 bits");
     out.selected[out.selected_count++] = KeyframeId{static_cast<AgentId>(in.selected_agent(i)), in.selected_counter(i)};
   }
   // Points in full.
@@ -63,7 +67,8 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
     if (p.p_w_size() != 3) return refused(what + ": p_w needs 3 values, has " + std::to_string(p.p_w_size()));
     if (Status s = checkPosition(p.p_w(), 0, what + " p_w"); !s.ok()) return s;
     if (p.orb_size() != 4) return refused(what + ": orb needs 4 words, has " + std::to_string(p.orb_size()));
-    if (p.octave() >= kPyramidLevels) return refused(what + ": octave " + std::to_string(p.octave()) + " beyond the pyramid");
+    if (p.octave() >= kPyramidLevels)
+      return refused(what + ": octave " + std::to_string(p.octave()) + " beyond the pyramid");
     AnchorPointMsg& point = out.points[out.point_count++];
     point.id = MapPointId{static_cast<AgentId>(p.agent()), p.counter()};
     point.p_w = {p.p_w(0), p.p_w(1), p.p_w(2)};
@@ -97,8 +102,10 @@ Status decode(const v1::CovisibleMap& in, AnchorMessage& out) {
         return refused(what + ": observation " + std::to_string(i) + " is not a finite normalised coordinate");
       }
       const auto octave = static_cast<std::uint8_t>(k.octave()[static_cast<std::size_t>(i)]);
-      if (octave >= kPyramidLevels) return refused(what + ": observation " + std::to_string(i) + " octave beyond the pyramid");
-      if (!agentId(k.point_agent(i))) return refused(what + ": observation " + std::to_string(i) + " agent id over 16 bits");
+      if (octave >= kPyramidLevels)
+        return refused(what + ": observation " + std::to_string(i) + " octave beyond the pyramid");
+      if (!agentId(k.point_agent(i)))
+        return refused(what + ": observation " + std::to_string(i) + " agent id over 16 bits");
       keyframe.observations[keyframe.observation_count++] =
           AnchorObservationMsg{x, y, MapPointId{static_cast<AgentId>(k.point_agent(i)), k.point_counter(i)}, octave};
     }

@@ -14,7 +14,7 @@
 namespace cvislam::v1 {
 class CovisibleMap;
 class KeyframeState;
-}
+}  // namespace cvislam::v1
 
 namespace cvislam::agent {
 

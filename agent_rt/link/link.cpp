@@ -100,8 +100,8 @@ struct Link::Impl {
     out->stream = streams;
     out->sequence = down.sequence();
     // Without a covisible map, the empty one: the message's counts are cleared all the same.
-    const Status decoded = decodeCovisibleMap(covisible ? down.covisible() : v1::CovisibleMap::default_instance(),
-                                              down.sequence(), *out);
+    const Status decoded =
+        decodeCovisibleMap(covisible ? down.covisible() : v1::CovisibleMap::default_instance(), down.sequence(), *out);
     out->has_covisible = covisible && decoded.ok() ? 1 : 0;
     if (covisible) ++(decoded.ok() ? covisible_accepted : covisible_refused);
     if (!decoded.ok()) covisible_last_refusal = decoded.error().message();
@@ -113,7 +113,8 @@ struct Link::Impl {
     any = any || out->correction_count > 0;
     if (sink == nullptr || out == scratch_anchors.get()) return;
     if (any) {
-      out->publish_steady_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch()).count();
+      out->publish_steady_ns =
+          std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch()).count();
       sink->publish();
       ++anchors_published;
     } else {

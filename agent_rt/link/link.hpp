@@ -104,10 +104,10 @@ struct LinkStatus {
   std::uint64_t sent_sequence = 0;
   std::uint64_t up_bytes = 0;
   std::uint64_t down_bytes = 0;
-  std::size_t unacked_bytes = 0;      // batches sent and not yet acknowledged
-  std::size_t window_bytes = 0;       // what the pacer lets be unacknowledged
+  std::size_t unacked_bytes = 0;       // batches sent and not yet acknowledged
+  std::size_t window_bytes = 0;        // what the pacer lets be unacknowledged
   double uplink_rate_bytes_per_s = 0;  // its estimate of the link's rate (0: none yet)
-  bool flushed = false;  // at the end: everything acknowledged
+  bool flushed = false;                // at the end: everything acknowledged
   // Covisible maps from the server: checked and decoded, or refused (malformed; the link keeps going).
   std::uint64_t covisible_accepted = 0;
   std::uint64_t covisible_refused = 0;

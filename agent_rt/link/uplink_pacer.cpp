@@ -58,9 +58,8 @@ void UplinkPacer::onReconnect() {
 double UplinkPacer::rateBytesPerS() const {
   if (sample_count_ == 0) return 0.0;
   const std::size_t newest = (sample_next_ + samples_.size() - 1) % samples_.size();
-  const Clock::time_point since =
-      samples_[newest].t -
-      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(options_.rate_memory_s));
+  const Clock::time_point since = samples_[newest].t - std::chrono::duration_cast<Clock::duration>(
+                                                           std::chrono::duration<double>(options_.rate_memory_s));
   double best = 0.0;
   for (std::size_t i = 0; i < sample_count_; ++i) {
     if (samples_[i].t >= since) best = std::max(best, samples_[i].bytes_per_s);

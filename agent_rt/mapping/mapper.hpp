@@ -61,9 +61,9 @@ struct MapperOptions {
   features::OrbOptions orb;  // for the second camera's image (stereo)
   StereoOptions stereo;
   geometry::TriangulationOptions triangulation;
-  int triangulation_neighbours = 2;  // previous keyframes searched for new points
-  double fuse_radius_px = 4.0;       // at level 0
-  int fuse_max_distance = 40;        // Hamming bits
+  int triangulation_neighbours = 2;   // previous keyframes searched for new points
+  double fuse_radius_px = 4.0;        // at level 0
+  int fuse_max_distance = 40;         // Hamming bits
   double fuse_max_depth_ratio = 0.2;  // duplicates: depths in the keyframe's camera within this share
   bool use_imu = true;
   int imu_init_keyframes = 15;      // keyframes before the IMU initialisation is tried (paper: 15)
@@ -89,9 +89,9 @@ struct MapperReport {
   bool imu_initialisation_failed = false;
   bool map_restarted = false;  // monocular IMU initialisation failed up to the limit
   bool mono_initialised_now = false;
-  int linked = 0;  // tracking's matches linked
-  int fused = 0;   // existing points found again by projection
-  int merged = 0;  // duplicate points merged into another
+  int linked = 0;          // tracking's matches linked
+  int fused = 0;           // existing points found again by projection
+  int merged = 0;          // duplicate points merged into another
   int stereo_matches = 0;  // keypoints of the keyframe with a cam1 match
   int stereo_points = 0;
   int triangulated = 0;
@@ -101,9 +101,9 @@ struct MapperReport {
   bool ba_skipped = false;  // the next keyframe was waiting, or tracking asked (yield_to_waiting_keyframes)
   LocalBundleAdjustmentSummary ba;
   std::int64_t ba_ns = 0;
-  std::uint64_t lost_messages = 0;  // keyframe messages missing before this one
+  std::uint64_t lost_messages = 0;      // keyframe messages missing before this one
   std::uint32_t delta_events_lost = 0;  // structural changes beyond the delta's capacity
-  std::string note;                 // why an initialisation did not succeed, for the log
+  std::string note;                     // why an initialisation did not succeed, for the log
 };
 
 // What one downlink message did to the local map.

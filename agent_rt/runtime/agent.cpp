@@ -312,7 +312,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   std::thread mapping([&] {
     schedule_this_thread("mapping", threads.mapping);
     mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready,
-                 yield_requests);
+                  yield_requests);
   });
 
   // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.

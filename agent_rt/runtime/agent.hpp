@@ -58,9 +58,9 @@ struct AgentOptions {
   double rate = 1.0;  // realtime pace: 2 plays the sequence twice as fast
   double progress_interval_s = 2.0;
   bool quiet = false;
-  bool trace_mapping = false;  // one line per keyframe on stderr: links, new points, stereo matches, local BA
-  std::size_t max_frames = 0;  // 0 = all
-  int frame_ring_size = 4;     // frames the loader reads ahead
+  bool trace_mapping = false;     // one line per keyframe on stderr: links, new points, stereo matches, local BA
+  std::size_t max_frames = 0;     // 0 = all
+  int frame_ring_size = 4;        // frames the loader reads ahead
   ThreadScheduleOptions threads;  // nice values, real-time priority and CPUs per thread (thread_schedule.hpp)
 
   [[nodiscard]] Status validate() const;
@@ -84,7 +84,7 @@ struct AgentRunSummary {
   std::size_t mapping_yield_requests = 0;  // frames whose keyframe was overdue: mapping was asked to yield
   // The next keyframe was waiting, or tracking asked (MapperOptions::yield_to_waiting_keyframes, YieldRequests).
   std::size_t local_ba_skipped = 0;
-  std::size_t local_ba_stopped_early = 0;  // cut short for the same reasons
+  std::size_t local_ba_stopped_early = 0;        // cut short for the same reasons
   std::size_t local_ba_yielded_to_tracking = 0;  // of those skipped or cut short, because tracking asked
   std::size_t lost_keyframe_messages = 0;
   bool link_enabled = false;

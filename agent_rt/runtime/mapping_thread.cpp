@@ -217,11 +217,11 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
           report->ba.map_points_left_out, report->ba.reprojection_factors, report->ba.second_camera_factors,
           report->ba.second_camera_rejected, report->ba.anchor_factors, report->ba.initial_cost, report->ba.final_cost,
           report->ba.iterations, static_cast<double>(report->ba_ns) * 1e-6,
-          report->ba_skipped && yielded_to_tracking           ? " (BA skipped: tracking asked)"
-          : report->ba_skipped                                ? " (BA skipped: the next keyframe is waiting)"
+          report->ba_skipped && yielded_to_tracking         ? " (BA skipped: tracking asked)"
+          : report->ba_skipped                              ? " (BA skipped: the next keyframe is waiting)"
           : report->ba.stopped_early && yielded_to_tracking ? " (BA cut short: tracking asked)"
-          : report->ba.stopped_early                          ? " (BA cut short: the next keyframe is waiting)"
-                                     : "");
+          : report->ba.stopped_early                        ? " (BA cut short: the next keyframe is waiting)"
+                                                            : "");
     }
     if (report->new_map) ++stats.new_maps;
     if (report->imu_initialised_now && stats.imu_initialised_at_s < 0) stats.imu_initialised_at_s = t_s;

@@ -108,12 +108,13 @@ Result<MotionWindowResult> optimizeMotionWindow(std::span<MotionWindowKeyframe> 
       return Error{ErrorCode::kInvalidArgument, "optimizeMotionWindow: a keyframe has no IMU to the next state"};
     }
     if (kf.is_outlier.size() != kf.observations.size()) {
-      return Error{ErrorCode::kInvalidArgument, "optimizeMotionWindow: a keyframe's is_outlier is not as long as "
-                                                "its observations"};
+      return Error{ErrorCode::kInvalidArgument,
+                   "optimizeMotionWindow: a keyframe's is_outlier is not as long as "
+                   "its observations"};
     }
   }
   const std::size_t k_count = keyframes.size();
-  const auto frame = k_count;                      // the frame is the last node
+  const auto frame = k_count;                     // the frame is the last node
   const int dim = 9 * static_cast<int>(k_count);  // node 0, the oldest keyframe, is held
   const auto offset = [](std::size_t node) { return 9 * (static_cast<int>(node) - 1); };
 
@@ -151,10 +152,9 @@ Result<MotionWindowResult> optimizeMotionWindow(std::span<MotionWindowKeyframe> 
         Eigen::Matrix<double, 6, 6> H_pose = Eigen::Matrix<double, 6, 6>::Zero();
         Eigen::Matrix<double, 6, 1> g_pose = Eigen::Matrix<double, 6, 1>::Zero();
         const bool is_frame = k == frame;
-        const int used =
-            accumulateReprojection(is_frame ? observations : keyframes[k].observations, nodes[k].T_w_s, T_s_c,
-                                   intrinsics, options.huber_delta, is_frame ? is_outlier : keyframes[k].is_outlier,
-                                   H_pose, g_pose);
+        const int used = accumulateReprojection(is_frame ? observations : keyframes[k].observations, nodes[k].T_w_s,
+                                                T_s_c, intrinsics, options.huber_delta,
+                                                is_frame ? is_outlier : keyframes[k].is_outlier, H_pose, g_pose);
         if (is_frame) used_frame = used;
         const int o = offset(k);
         H.block<6, 6>(o, o) += H_pose;

@@ -73,7 +73,7 @@ inline constexpr std::size_t kMaxMotionWindowKeyframes = kMaxMotionBaKeyframes +
 struct MotionWindowResult {
   geometry::SE3d T_w_s;  // the frame's
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
-  int inliers = 0;  // the frame's
+  int inliers = 0;           // the frame's
   int keyframe_inliers = 0;  // of the optimised keyframes
   int iterations = 0;
   double imu_chi2 = 0.0;  // whitened squared IMU residuals, summed over the links, at the end
@@ -86,7 +86,8 @@ Result<MotionWindowResult> optimizeMotionWindow(std::span<MotionWindowKeyframe> 
                                                 const geometry::SE3d& T_w_s_initial, const Eigen::Vector3d& v_w_initial,
                                                 const geometry::SE3d& T_s_c,
                                                 const factors::PinholeIntrinsics& intrinsics,
-                                                const PoseOptimizerOptions& options, std::span<std::uint8_t> is_outlier);
+                                                const PoseOptimizerOptions& options,
+                                                std::span<std::uint8_t> is_outlier);
 
 Result<InertialPoseResult> optimizePoseInertial(std::span<const PoseObservation> observations,
                                                 const geometry::SE3d& T_w_s_initial, const Eigen::Vector3d& v_w_initial,

@@ -19,8 +19,8 @@ namespace cvislam::agent {
 struct KeyframeDecisionOptions {
   int max_frames_between = 20;
   double min_coverage_ratio = 0.4;  // tracked coverage / coverage at the last keyframe
-  int min_tracked_points = 30;  // paper: 15 (see above)
-  int grid_columns = 8;  // coverage is the share of these cells that hold a tracked keypoint
+  int min_tracked_points = 30;      // paper: 15 (see above)
+  int grid_columns = 8;             // coverage is the share of these cells that hold a tracked keypoint
   int grid_rows = 6;
 
   [[nodiscard]] Status validate() const;

@@ -79,8 +79,8 @@ class MappingBacklog {
   std::uint64_t next_sequence_ = 0;
   std::uint64_t taken_ = 0;
   std::array<std::int64_t, kCapacity> publish_steady_ns_{};  // by sequence modulo kCapacity
-  bool holding_back_ = false;           // a keyframe was held back since the last one published
-  std::int64_t held_back_since_ns_ = 0;  // sequence time of the first of them
+  bool holding_back_ = false;                                // a keyframe was held back since the last one published
+  std::int64_t held_back_since_ns_ = 0;                      // sequence time of the first of them
 };
 
 }  // namespace cvislam::agent

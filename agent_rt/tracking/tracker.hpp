@@ -53,7 +53,7 @@ struct TrackerOptions {
   // the position and takes only the rotation from the gyro, a new map starts at rest, and the search is as wide
   // as while relocalising until a frame is tracked again.
   double max_dead_reckoning_s = 1.0;
-  bool use_imu = true;                        // prediction and motion-only BA with the IMU, once initialised
+  bool use_imu = true;  // prediction and motion-only BA with the IMU, once initialised
   // n: the newest keyframes in motion-only BA with the frame (paper IV-C), 1 to kMaxMotionBaKeyframes
   // (CVISLAM_MAX_MOTION_BA_KEYFRAMES). The oldest of them is held; the others' poses and velocities are
   // optimised with the frame's (see inertial_pose_optimizer.hpp). 1: the newest keyframe alone, held.
@@ -121,7 +121,7 @@ struct FrameResult {
   // Keyframes have been held back for MappingLagOptions::yield_request_after_s: the caller should ask mapping to
   // cut its local BA short (the agent does, through MappingYieldRequests).
   bool keyframe_overdue = false;
-  int pending_keyframes = 0;       // published and not yet answered by mapping, when the frame was tracked
+  int pending_keyframes = 0;  // published and not yet answered by mapping, when the frame was tracked
   // Tracking needs mapping's answer to go on well: a keyframe it needed was held back by a full backlog, or it
   // is lost while keyframes are pending. A caller without a clock (--pace fast) waits for mapping here.
   bool needs_mapping = false;

@@ -46,7 +46,7 @@ Vector2d CameraModel::distort(const Vector2d& x, Matrix2d* J_d_x) const {
       const double r2 = u * u + v * v;
       const double radial = 1.0 + k1 * r2 + k2 * r2 * r2;
       Vector2d d(u * radial + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u),
-                       v * radial + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v);
+                 v * radial + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v);
       if (J_d_x != nullptr) {
         const double d_radial_d_r2 = k1 + 2.0 * k2 * r2;
         (*J_d_x)(0, 0) = radial + 2.0 * u * u * d_radial_d_r2 + 2.0 * p1 * v + 6.0 * p2 * u;

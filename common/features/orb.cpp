@@ -32,7 +32,7 @@ using detail::kMaxImageSide;
 // Constants and the test pattern.
 
 constexpr int kMaxLevels = 16;
-constexpr int kPatchRadius = 15;     // orientation disc and descriptor test points
+constexpr int kPatchRadius = 15;  // orientation disc and descriptor test points
 
 struct TestPair {
   std::int8_t x1 = 0;
@@ -572,8 +572,8 @@ int OrbExtractor::extract(std::span<const std::uint8_t> pixels, int width, int h
   for (int l = 0; l < o.pyramid_levels; ++l) {
     if (l > 0) m.buildLevel(l);
     const int found = m.detectLevel(l);
-    candidate_count = m.keepStrongest(found, std::min(found, m.level_budget[static_cast<std::size_t>(l)]),
-                                      candidate_count);
+    candidate_count =
+        m.keepStrongest(found, std::min(found, m.level_budget[static_cast<std::size_t>(l)]), candidate_count);
   }
   // A cell without candidates (the budgets go to the strongest corners, which texture-rich regions have) gets
   // the strongest corner it has, so that the grid can cover dark and weakly textured regions too; only one per

@@ -137,8 +137,8 @@ __attribute__((target("avx2"))) void resampleRowWide(const std::uint16_t* row, c
       const __m256i taps = _mm256_i32gather_epi32(reinterpret_cast<const int*>(row), i, 2);
       const __m256i left = _mm256_and_si256(taps, low_half);
       const __m256i right = _mm256_srli_epi32(taps, 16);
-      const __m256i sum = _mm256_add_epi32(_mm256_mullo_epi32(left, _mm256_sub_epi32(full, w)),
-                                           _mm256_mullo_epi32(right, w));
+      const __m256i sum =
+          _mm256_add_epi32(_mm256_mullo_epi32(left, _mm256_sub_epi32(full, w)), _mm256_mullo_epi32(right, w));
       const __m256i pixels = _mm256_srli_epi32(_mm256_add_epi32(sum, half), 16);  // 0..255 in each 32-bit lane
       // Narrow to bytes: within each 128-bit half, lanes 0-3 end up in its first 4 bytes.
       const __m256i words = _mm256_packus_epi32(pixels, pixels);
@@ -182,8 +182,8 @@ constexpr int kWideLanes = 16;
 constexpr int kWideLanes = 8;
 #endif
 
-CVISLAM_PYRAMID_WIDE_TARGET void blurRowsWide(const std::uint8_t* image, int width, int height, int y_begin,
-                                              int y_end, std::uint8_t* out, std::uint16_t* scratch) {
+CVISLAM_PYRAMID_WIDE_TARGET void blurRowsWide(const std::uint8_t* image, int width, int height, int y_begin, int y_end,
+                                              std::uint8_t* out, std::uint16_t* scratch) {
   blurRows<kWideLanes>(image, width, height, y_begin, y_end, out, scratch);
 }
 

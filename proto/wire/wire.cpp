@@ -217,8 +217,8 @@ Result<imu::ImuNoise> fromProto(const v1::ImuCalibration& in, const std::string&
     return invalid(what + ": rate_hz must be positive and at most 1e4");
   }
   if (Status s = noise.validate(); !s.ok()) return s.error().withContext(what);
-  for (double v : {noise.gyro_noise_density, noise.gyro_random_walk, noise.accel_noise_density,
-                   noise.accel_random_walk}) {
+  for (double v :
+       {noise.gyro_noise_density, noise.gyro_random_walk, noise.accel_noise_density, noise.accel_random_walk}) {
     if (v < kMinNoise || v > kMaxNoise) {
       return invalid(what + ": a noise figure of " + std::to_string(v) + " is not in [1e-9, 10]");
     }

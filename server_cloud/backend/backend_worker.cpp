@@ -647,8 +647,10 @@ void BackendWorker::gba(const GbaRequest& request) {
       }
     }
     if (target == request.map) return;
-    if (request.waiting.empty() && request.final) requestGba(request.mission, target, true, std::nullopt, request.since);
-    for (const auto& waiter : request.waiting) requestGba(request.mission, target, request.final, waiter, request.since);
+    if (request.waiting.empty() && request.final)
+      requestGba(request.mission, target, true, std::nullopt, request.since);
+    for (const auto& waiter : request.waiting)
+      requestGba(request.mission, target, request.final, waiter, request.since);
   };
   const std::shared_ptr<ServerMap> map = mission->stack().find(request.map);
   if (!map) return forward();

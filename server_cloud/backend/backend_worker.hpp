@@ -135,7 +135,7 @@ struct BackendStats {
   double new_keyframe_fuse_ms_total = 0.0;
   double new_keyframe_fuse_locked_ms_max = 0.0;  // of which under the map's locks (the copy and the apply)
   std::uint64_t redundancy_checked = 0;
-  std::uint64_t final_pass_removed = 0;  // of redundant_removed, by the final pass
+  std::uint64_t final_pass_removed = 0;          // of redundant_removed, by the final pass
   std::uint64_t redundant_kept_for_imu_gap = 0;  // redundant, but removing it would leave too long an IMU link
   std::uint64_t redundant_removed = 0;
   std::uint64_t points_removed = 0;

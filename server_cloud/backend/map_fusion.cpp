@@ -122,7 +122,9 @@ class KeypointGrid {
 
  private:
   static constexpr double kCell = 16.0;
-  [[nodiscard]] int column(double x) const { return std::clamp(static_cast<int>(std::floor(x / kCell)), 0, columns_ - 1); }
+  [[nodiscard]] int column(double x) const {
+    return std::clamp(static_cast<int>(std::floor(x / kCell)), 0, columns_ - 1);
+  }
   [[nodiscard]] int row(double y) const { return std::clamp(static_cast<int>(std::floor(y / kCell)), 0, rows_ - 1); }
   [[nodiscard]] std::size_t cellOf(int c, int r) const { return static_cast<std::size_t>(r * columns_ + c); }
 
@@ -173,7 +175,8 @@ std::vector<ProjectionMatch> searchByProjection(const ProjectionSearchInput& inp
       const std::optional<Eigen::Vector2d> px = t.camera->camera.project(X_c);
       if (!px || px->x() < 0.0 || px->y() < 0.0 || px->x() >= width || px->y() >= height) continue;
       // The octave comes from an agent: bounded by an 8-level pyramid, so that no point searches a whole image.
-      const double radius = options.search_radius_px * std::pow(options.pyramid_scale_factor, std::min<int>(p.octave, 7));
+      const double radius =
+          options.search_radius_px * std::pow(options.pyramid_scale_factor, std::min<int>(p.octave, 7));
       int best = std::numeric_limits<int>::max();
       int best_keypoint = -1;
       grid.forEachNear(*px, radius, [&](std::uint16_t k) {
@@ -263,8 +266,7 @@ std::vector<ProjectionMatch> searchNewKeyframe(const NewKeyframeSearch& search, 
 }
 
 std::vector<ProjectionMatch> searchNewKeyframe(const MapContent& map, const KeyframeId& keyframe,
-                                               const recognition::CameraLookup& cameras,
-                                               const FusionOptions& options) {
+                                               const recognition::CameraLookup& cameras, const FusionOptions& options) {
   return searchNewKeyframe(gatherNewKeyframeSearch(map, keyframe, cameras, options), options);
 }
 

@@ -128,10 +128,10 @@ Result<std::unique_ptr<PgConnection>> PgConnection::open(const std::string& conn
   const std::string idle = std::to_string(timeouts.keepalive_idle_s);
   const std::string interval = std::to_string(timeouts.keepalive_interval_s);
   const std::string count = std::to_string(timeouts.keepalive_count);
-  const char* const keys[] = {"connect_timeout",    "keepalives",       "keepalives_idle", "keepalives_interval",
-                              "keepalives_count",   "tcp_user_timeout", "dbname",          nullptr};
-  const char* const values[] = {connect.c_str(), "1",           idle.c_str(),     interval.c_str(),
-                                count.c_str(),   unacked.c_str(), conninfo.c_str(), nullptr};
+  const char* const keys[] = {"connect_timeout",  "keepalives",       "keepalives_idle", "keepalives_interval",
+                              "keepalives_count", "tcp_user_timeout", "dbname",          nullptr};
+  const char* const values[] = {
+      connect.c_str(), "1", idle.c_str(), interval.c_str(), count.c_str(), unacked.c_str(), conninfo.c_str(), nullptr};
   PGconn* connection = PQconnectdbParams(keys, values, /*expand_dbname=*/1);
   if (connection == nullptr) return Error{ErrorCode::kInternal, what + ": libpq could not allocate a connection"};
   if (PQstatus(connection) != CONNECTION_OK) {
@@ -147,18 +147,14 @@ Result<std::unique_ptr<PgConnection>> PgConnection::open(const std::string& conn
       std::string("postgresql ") + PQhost(connection) + ":" + PQport(connection) + "/" + PQdb(connection);
   std::unique_ptr<PgConnection> out(new PgConnection(connection, std::move(description), what, timeouts));
   if (!out->configureSession()) {
-    return Error{ErrorCode::kUnavailable,
-                 what + ": " + out->describe() + ": cannot set the statement timeout: " +
-                     trimmed(PQerrorMessage(connection))};
+    return Error{ErrorCode::kUnavailable, what + ": " + out->describe() + ": cannot set the statement timeout: " +
+                                              trimmed(PQerrorMessage(connection))};
   }
   return out;
 }
 
 PgConnection::PgConnection(pg_conn* connection, std::string description, std::string what, PgTimeouts timeouts)
-    : connection_(connection),
-      timeouts_(timeouts),
-      description_(std::move(description)),
-      what_(std::move(what)) {}
+    : connection_(connection), timeouts_(timeouts), description_(std::move(description)), what_(std::move(what)) {}
 
 bool PgConnection::configureSession() {
   const std::string sql = "SET statement_timeout = " + std::to_string(timeouts_.statement_ms);

@@ -6,9 +6,9 @@
 //   cvislam_leases   which replica serves which mission, until when (mission_leases.hpp).
 //
 // Fencing: with `holder` set, a record is appended only while that replica holds its mission's lease, checked in
-// the same statement as the insert, under a share lock of the lease row (see execAppend). A replica whose lease lapsed (it stalled, or lost the database for longer than
-// the lease) and was taken over can therefore never write into the mission behind the new owner's back: its append
-// fails with kFailedPrecondition and its agents reconnect to the owner.
+// the same statement as the insert, under a share lock of the lease row (see execAppend). A replica whose lease lapsed
+// (it stalled, or lost the database for longer than the lease) and was taken over can therefore never write into the
+// mission behind the new owner's back: its append fails with kFailedPrecondition and its agents reconnect to the owner.
 #pragma once
 
 #include <memory>

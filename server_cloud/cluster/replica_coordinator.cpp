@@ -38,8 +38,8 @@ ReplicaCoordinator::ReplicaCoordinator(std::unique_ptr<MissionLeases> leases, st
       dropper_(std::move(dropper)),
       has_room_(std::move(has_room)),
       replica_options_(options),
-      cache_ttl_(std::chrono::duration_cast<Clock::duration>(
-          std::chrono::duration<double>(leases_->options().ttl_s / 3.0))) {}
+      cache_ttl_(
+          std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(leases_->options().ttl_s / 3.0))) {}
 
 ReplicaCoordinator::~ReplicaCoordinator() {
   stopThreads();
@@ -137,8 +137,8 @@ Result<MissionOwner> ReplicaCoordinator::acquireAndQueue(const std::string& miss
     loading_.erase(mission);
     state_changed_.notify_all();
     if (!lease) {
-      return Error{ErrorCode::kUnavailable, "the lease of mission '" + mission + "' could not be taken (" +
-                                                logForOperator(lease.error()) + ")"};
+      return Error{ErrorCode::kUnavailable,
+                   "the lease of mission '" + mission + "' could not be taken (" + logForOperator(lease.error()) + ")"};
     }
     ++counters_.redirected;
     if (lease->remaining_s <= 0.0) {
@@ -187,7 +187,8 @@ void ReplicaCoordinator::load(const Load& job) {
     retry.error = logForOperator(loaded.error());
     const double wait_s = std::min(replica_options_.retry_max_s,
                                    replica_options_.retry_min_s * std::pow(2.0, std::min(retry.failures - 1, 20)));
-    retry.not_before = Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wait_s));
+    retry.not_before =
+        Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wait_s));
     std::fprintf(stderr,
                  "[server] mission '%s' failed to load from the store (%d time(s)): %s; its lease was given back, "
                  "and this replica tries it again in %s\n",

@@ -126,9 +126,9 @@ class ReplicaCoordinator final : public MissionOwnership {
   ReplicaOptions replica_options_;
   Clock::duration cache_ttl_;
 
-  std::mutex db_mutex_;                 // leases_: one connection, one statement at a time
-  std::mutex renew_mutex_;              // renewals_: the renewal thread's, and tick()'s when a test calls it
-  mutable std::mutex state_mutex_;      // everything below
+  std::mutex db_mutex_;                    // leases_: one connection, one statement at a time
+  std::mutex renew_mutex_;                 // renewals_: the renewal thread's, and tick()'s when a test calls it
+  mutable std::mutex state_mutex_;         // everything below
   std::condition_variable state_changed_;  // a load ended, or one was queued
   std::set<std::string> served_;
   std::set<std::string> loading_;  // queued or running

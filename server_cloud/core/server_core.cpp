@@ -27,7 +27,9 @@ std::string hostName() {
 }  // namespace
 
 ServerCore::ServerCore(const ServerOptions& options)
-    : options_(options), start_(Clock::now()), limiter_(options.rate_limit),
+    : options_(options),
+      start_(Clock::now()),
+      limiter_(options.rate_limit),
       streams_(options.stream_limits),
       map_reads_(options.map_read_limits) {}
 
@@ -437,7 +439,8 @@ Status writeRecognition(const std::filesystem::path& path, const recognition::Re
     e["query_map"] = m.query_map;
     e["candidate_map"] = m.candidate_map;
     if (stack != nullptr) {
-      for (const auto& [key, id] : {std::pair{"query_map_origin", m.query_map}, {"candidate_map_origin", m.candidate_map}}) {
+      for (const auto& [key, id] :
+           {std::pair{"query_map_origin", m.query_map}, {"candidate_map_origin", m.candidate_map}}) {
         if (const std::optional<MapOrigin> o = stack->origin(id)) e[key] = {o->agent, o->agent_map};
       }
     }

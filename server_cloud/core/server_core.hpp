@@ -61,7 +61,7 @@ struct ServerOptions {
   std::filesystem::path output;            // written at shutdown when set
   std::size_t max_message_bytes = 16U << 20U;
   std::size_t memory_quota_mb = 4096;  // what gRPC's buffers may hold in all (grpc::ResourceQuota)
-  int keepalive_time_ms = 2000;  // pings on idle streams, to notice a vanished agent
+  int keepalive_time_ms = 2000;        // pings on idle streams, to notice a vanished agent
   int keepalive_timeout_ms = 5000;
   double timeline_interval_s = 1.0;  // keyframes and traffic per agent, sampled for timeline.csv
   SessionOptions session;

@@ -40,7 +40,8 @@ Status ServerOptions::validate() const {
     return invalid("max_message_bytes must be in [64 KiB, 1 GiB]");
   }
   if (keepalive_time_ms < 100 || keepalive_timeout_ms < 100) return invalid("keepalive times must be >= 100 ms");
-  if (memory_quota_mb < 64 || memory_quota_mb > (1U << 20U)) return invalid("limits.memory_quota_mb must be in [64, 1048576]");
+  if (memory_quota_mb < 64 || memory_quota_mb > (1U << 20U))
+    return invalid("limits.memory_quota_mb must be in [64, 1048576]");
   if (memory_quota_mb * (1U << 20U) < 4 * max_message_bytes) {
     return invalid("limits.memory_quota_mb must hold at least four messages of max_message_bytes");
   }

@@ -125,7 +125,8 @@ std::string normalizedHello(const v1::Hello& hello) {
 }
 
 // Takes one Hello from the agent's allowance: OK, or RESOURCE_EXHAUSTED saying when to come back.
-Status takeHelloAllowance(AgentRecord& record, const SessionOptions& options, std::chrono::steady_clock::time_point now) {
+Status takeHelloAllowance(AgentRecord& record, const SessionOptions& options,
+                          std::chrono::steady_clock::time_point now) {
   const double per_s = options.agent_hellos_per_minute / 60.0;
   if (record.hello_allowance < 0.0) {
     record.hello_allowance = options.agent_hello_burst;
@@ -356,8 +357,8 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   const auto arrived = Clock::now();  // before the lock: waits for the back-end count
   const bool gba_at_arrival = mission_->gbaRunning();
   if (mission_->retired()) {
-    return Error{ErrorCode::kUnavailable, "mission '" + mission_name_ +
-                                              "' moved to another replica: connect again (the Hello is redirected)"};
+    return Error{ErrorCode::kUnavailable,
+                 "mission '" + mission_name_ + "' moved to another replica: connect again (the Hello is redirected)"};
   }
   auto record = record_->write();
   if (record->connections != stream_) {
@@ -602,7 +603,8 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
 Status AgentSession::checkHelloDeadline(Clock::time_point now) const {
   if (record_ || closed_) return Status::Ok();
   if (std::chrono::duration<double>(now - opened_).count() < options_.hello_timeout_s) return Status::Ok();
-  return Error{ErrorCode::kFailedPrecondition, "no Hello within " + text::formatDouble(options_.hello_timeout_s) + " s" +
+  return Error{ErrorCode::kFailedPrecondition, "no Hello within " + text::formatDouble(options_.hello_timeout_s) +
+                                                   " s" +
                                                    " of opening the stream (limits.hello_timeout_s): a stream "
                                                    "starts with the agent's Hello"};
 }

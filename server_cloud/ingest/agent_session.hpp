@@ -44,7 +44,7 @@ struct SessionOptions {
   std::string server_name = "cvislam_server";
   std::size_t max_missions = 64;            // missions a server holds; a Hello for one more is refused
   std::size_t max_agents_per_mission = 32;  // agents of one mission; a Hello of one more is refused
-  double hello_timeout_s = 5.0;  // a stream that says nothing for this long after opening is ended
+  double hello_timeout_s = 5.0;             // a stream that says nothing for this long after opening is ended
   // Hellos of one agent: a burst, then this many a minute. Beyond it a Hello is refused before it is stored or
   // logged (an agent on a bad radio link reconnects a few times a minute; a loop would do so hundreds of times).
   double agent_hello_burst = 20.0;

@@ -12,7 +12,9 @@
 namespace cvislam::server {
 namespace {
 
-Status invalid(const std::string& what) { return Error{ErrorCode::kInvalidArgument, "covisible downlink: " + what}; }
+Status invalid(const std::string& what) {
+  return Error{ErrorCode::kInvalidArgument, "covisible downlink: " + what};
+}
 
 bool movedBeyond(const geometry::SE3d& a, const geometry::SE3d& b, const CovisibleOptions& options) {
   const double rotation_deg = (a.so3().inverse() * b.so3()).log().norm() * 180.0 / std::numbers::pi;
@@ -60,8 +62,8 @@ std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& conten
   if (seeds.empty()) return out;
   const KeyframeId newest = seeds.front();
   const auto isRecentOwn = [&](const KeyframeId& id) {
-    return id.agent == newest.agent &&
-           static_cast<std::int64_t>(id.counter) > static_cast<std::int64_t>(newest.counter) - options.own_recent_excluded;
+    return id.agent == newest.agent && static_cast<std::int64_t>(id.counter) >
+                                           static_cast<std::int64_t>(newest.counter) - options.own_recent_excluded;
   };
   std::unordered_map<KeyframeId, int> weight;
   for (std::size_t i = 0; i < seeds.size() && i < static_cast<std::size_t>(options.seed_keyframes); ++i) {
@@ -101,7 +103,8 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
     started_ = true;
   }
   CovisibleOptions options = options_;
-  if (local_map_keyframes > 0) options.own_recent_excluded = static_cast<int>(std::min<std::uint32_t>(local_map_keyframes, 100000));
+  if (local_map_keyframes > 0)
+    options.own_recent_excluded = static_cast<int>(std::min<std::uint32_t>(local_map_keyframes, 100000));
   const std::vector<std::pair<KeyframeId, int>> ranked = selectCovisible(content, seeds, options);
   std::vector<KeyframeId> selection;
   selection.reserve(ranked.size());

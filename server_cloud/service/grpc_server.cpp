@@ -229,8 +229,8 @@ class LinkReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc:
   std::deque<grpc::ByteBuffer> queue_;
   WriteGate gate_;
   Status closing_status_;
-  StreamLimits::Slot slot_;           // counts this stream against its address's limit
-  bool done_ = false;                 // OnDone ran: nothing may start on the stream any more
+  StreamLimits::Slot slot_;            // counts this stream against its address's limit
+  bool done_ = false;                  // OnDone ran: nothing may start on the stream any more
   std::shared_ptr<LinkReactor> self_;  // from open() to OnDone()
 };
 

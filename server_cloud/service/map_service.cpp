@@ -469,8 +469,9 @@ class MapServiceImpl final : public v1::MapService::CallbackService {
   std::shared_ptr<CallCanceller> withDeadline(grpc::CallbackServerContext* context) {
     auto canceller = std::make_shared<CallCanceller>(context);
     const auto timeout = std::chrono::duration<double>(core_.options().map_read_timeout_s);
-    deadlines_.add(std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(timeout),
-                   canceller);
+    deadlines_.add(
+        std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(timeout),
+        canceller);
     return canceller;
   }
 

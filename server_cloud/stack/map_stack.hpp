@@ -15,9 +15,9 @@
 #include <cstdint>
 #include <functional>
 #include <map>
-#include <set>
 #include <memory>
 #include <optional>
+#include <set>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
@@ -141,7 +141,7 @@ struct AgentRecord {
   // it committed unseen): from this batch on, what the agent last sent may not be what the server holds, and the
   // next Welcome asks it to send that content again.
   std::uint64_t resend_from = 0;
-  std::uint64_t resend_conflicts = 0;  // how often that happened
+  std::uint64_t resend_conflicts = 0;   // how often that happened
   std::uint64_t caught_up_batches = 0;  // batches a Hello found in the store beyond what memory held
   // The Hello as last stored (without its last_acked_sequence, which changes every time): a reconnect that says the
   // same is not stored again.

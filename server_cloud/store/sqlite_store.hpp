@@ -27,7 +27,7 @@ struct SqliteStoreOptions {
   enum class Sync { kOff, kNormal, kFull };
   Sync sync = Sync::kFull;
   bool create_if_missing = true;
-  bool check_on_open = true;                // SQLite's quick_check of the whole file
+  bool check_on_open = true;  // SQLite's quick_check of the whole file
   // Read only, shared with other readers (a recording that several replay clients read); append() fails.
   bool read_only = false;
   std::string software = "cvislam_server";  // written into a new store's meta table

@@ -68,7 +68,7 @@ std::vector<PathSample> sampleRingPath(const RingMotion& m, double duration_s, s
   const auto n = static_cast<std::size_t>(std::ceil((duration_s + 1.0) * kRateHz)) + 1;
   std::vector<PathSample> out;
   out.reserve(n);
-  double progress_s = 0.0;  // time spent moving along the ring, ramped in after the start manoeuvre
+  double progress_s = 0.0;         // time spent moving along the ring, ramped in after the start manoeuvre
   double turned_progress_s = 0.0;  // the same, signed by the direction of travel (a vehicle that turns round)
   const double perimeter = 2.0 * kPi * std::sqrt(0.5 * (kRingA * kRingA + kRingB * kRingB));
   const double angular_rate = 2.0 * kPi * m.speed_mps / perimeter;

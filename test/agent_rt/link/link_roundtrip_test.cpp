@@ -10,8 +10,8 @@
 
 #include "agent_rt/link/link_store.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
-#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/agent_rt/link/link_test_support.hpp"
+#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
 #include "test/support/inline_agent.hpp"
@@ -206,7 +206,6 @@ TEST_F(LinkRoundTrip, AfterAServerRestartTheServerGetsTheAgentsCurrentMapAndNoth
   std::printf("held at the restart: %zu keyframes; the restarted server ends with %zu keyframes, %zu points\n",
               held_at_restart, link.server.keyframes(), link.server.points());
 }
-
 
 // A batch whose append committed but whose answer was lost ends the stream; the agent reconnects and builds its
 // next batch from its current map. Every keyframe the server acknowledged must still be held after a restart

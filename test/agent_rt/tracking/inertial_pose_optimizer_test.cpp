@@ -193,7 +193,9 @@ WindowCase makeWindowCase(std::uint64_t seed) {
   return w;
 }
 
-double velocityError(const Vector3d& v, const imu::NavState& truth) { return (v - truth.v_w).norm(); }
+double velocityError(const Vector3d& v, const imu::NavState& truth) {
+  return (v - truth.v_w).norm();
+}
 
 TEST(MotionWindow, ANewestKeyframeOffItsTruthIsCorrectedInsteadOfMisleadingTheFrame) {
   // Local BA has not caught up: the newest keyframe's velocity is 0.3 m/s off and its position 2 cm. Held
@@ -209,20 +211,20 @@ TEST(MotionWindow, ANewestKeyframeOffItsTruthIsCorrectedInsteadOfMisleadingTheFr
     std::vector<std::uint8_t> outlier(w.c.base.observations.size());
 
     InertialAnchor fixed{w.window[1].T_w_s, w.window[1].v_w, w.window[1].bias, w.window[1].to_next};
-    auto held = optimizePoseInertial(w.c.base.observations, initial, v_initial, fixed, s.T_s_c, s.intrinsics, {},
-                                     outlier);
-    auto windowed = optimizeMotionWindow(w.window, w.c.base.observations, initial, v_initial, s.T_s_c, s.intrinsics,
-                                         {}, outlier);
+    auto held =
+        optimizePoseInertial(w.c.base.observations, initial, v_initial, fixed, s.T_s_c, s.intrinsics, {}, outlier);
+    auto windowed =
+        optimizeMotionWindow(w.window, w.c.base.observations, initial, v_initial, s.T_s_c, s.intrinsics, {}, outlier);
     ASSERT_TRUE(windowed.ok()) << windowed.error().toString();
     // Held fixed, the wrong anchor either drags the frame or pulls it so far that vision refuses it.
     const double held_v = held.ok() ? velocityError(held->v_w, w.c.truth) : std::numeric_limits<double>::infinity();
     const double window_v = velocityError(windowed->v_w, w.c.truth);
     const double window_p = (windowed->T_w_s.translation() - w.c.truth.T_w_s.translation()).norm();
-    std::printf("seed %llu: frame velocity error n=1 %.1f mm/s%s, n=2 %.1f mm/s; n=2 position %.2f mm, %d+%d "
-                "inliers, %d iterations\n",
-                static_cast<unsigned long long>(seed), 1e3 * held_v, held.ok() ? "" : " (refused)", 1e3 * window_v,
-                1e3 * window_p,
-                windowed->inliers, windowed->keyframe_inliers, windowed->iterations);
+    std::printf(
+        "seed %llu: frame velocity error n=1 %.1f mm/s%s, n=2 %.1f mm/s; n=2 position %.2f mm, %d+%d "
+        "inliers, %d iterations\n",
+        static_cast<unsigned long long>(seed), 1e3 * held_v, held.ok() ? "" : " (refused)", 1e3 * window_v,
+        1e3 * window_p, windowed->inliers, windowed->keyframe_inliers, windowed->iterations);
     EXPECT_LT(window_v, 0.01);
     EXPECT_LT(window_p, 0.005);
     EXPECT_GT(held_v, 3.0 * window_v);

@@ -624,7 +624,6 @@ TEST(SqrtInformation, WhitensTheCovarianceToIdentity) {
   EXPECT_LT((S * covariance * S.transpose() - Eigen::Matrix<double, 9, 9>::Identity()).cwiseAbs().maxCoeff(), 1e-9);
 }
 
-
 // ------------------------------------------------------------------------------ world-point reprojection
 class WorldPointFactorTest : public ::testing::Test {
  protected:

@@ -70,7 +70,7 @@ TEST(PyramidFilters, ABlurOfSomeRowsWritesThoseRowsOnly) {
   const std::vector<std::uint8_t> expected = referenceBlur(img, kW, kH);
   std::vector<std::uint16_t> scratch(kW + 16);
   std::vector<std::uint8_t> out(img.size(), 7);
-  blurRowsWide(img.data(), kW, kH, -4, 5, out.data(), scratch.data());  // clipped to rows 0..4
+  blurRowsWide(img.data(), kW, kH, -4, 5, out.data(), scratch.data());   // clipped to rows 0..4
   blurRowsWide(img.data(), kW, kH, 17, 30, out.data(), scratch.data());  // rows 17..19
   for (int y = 0; y < kH; ++y) {
     for (int x = 0; x < kW; ++x) {

@@ -169,7 +169,6 @@ TEST(Wire, ImuCalibrationRoundTripsAndANonPositiveDensityIsRefused) {
   EXPECT_THAT(bad_rate.error().message(), HasSubstr("rate_hz must be positive"));
 }
 
-
 // Finite but physically absurd values are refused like non-finite ones: each would become inf or NaN once a
 // shared map or its optimisation used it.
 TEST(Wire, AbsurdFiniteCalibrationsAndPosesAreRefusedNamingTheField) {

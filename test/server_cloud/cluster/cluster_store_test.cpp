@@ -4,11 +4,11 @@
 // lease's expiry into the past in SQL, so that no test waits for a TTL.
 #include <chrono>
 #include <cstdio>
-#include <future>
-#include <thread>
 #include <filesystem>
+#include <future>
 #include <memory>
 #include <string>
+#include <thread>
 #include <tuple>
 #include <vector>
 
@@ -124,7 +124,6 @@ TEST_F(ClusterStoreTest, AppendsAreFencedByTheMissionsLease) {
   ASSERT_TRUE(store_b->append(batch("m1", 0, 2)).ok());
   EXPECT_THAT(sequences(*store_b, "m1"), ElementsAre(1, 2));
 }
-
 
 // An append that is still in flight when its holder's lease lapses and another replica takes the mission over
 // (the statement started in time, its commit comes late). The new owner's replay, which follows its acquire, must

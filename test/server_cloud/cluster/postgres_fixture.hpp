@@ -110,5 +110,4 @@ class PostgresTest : public ::testing::Test {
   std::string conninfo_;
 };
 
-
 }  // namespace cvislam::server::cluster

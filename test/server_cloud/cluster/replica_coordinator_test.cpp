@@ -68,8 +68,8 @@ struct FakeCore {
 class ReplicaCoordinatorTest : public PostgresTest {
  protected:
   std::unique_ptr<ReplicaCoordinator> coordinator(const std::string& holder, ReplicaOptions options = {}) {
-    return std::make_unique<ReplicaCoordinator>(leases(holder, kTtlS), leases(holder, kTtlS), core_.loader(),
-                                                core_.dropper(), [] { return true; }, options);
+    return std::make_unique<ReplicaCoordinator>(
+        leases(holder, kTtlS), leases(holder, kTtlS), core_.loader(), core_.dropper(), [] { return true; }, options);
   }
   // Another replica takes the mission over in one statement, as its acquire after a lapse would (done in one step
   // so that the coordinator's running renewals cannot slip in between a lapse and the acquire).

@@ -466,8 +466,9 @@ TEST(ServerCoreShutdown, ACoreDestroyedWhileItsWorkersAreBusyStopsThemInOrder) {
       auto session = core->openSession({});
       ASSERT_TRUE(test::sendTo(*session, helloMessage(kMission, agent, 100 + agent)).ok());
       for (std::uint64_t s = 1; s <= 8; ++s) {
-        ASSERT_TRUE(test::sendTo(*session, batchMessage(makeKeyframeBatch(s, static_cast<std::uint32_t>(4 * (s - 1)), 4)))
-                        .ok());
+        ASSERT_TRUE(
+            test::sendTo(*session, batchMessage(makeKeyframeBatch(s, static_cast<std::uint32_t>(4 * (s - 1)), 4)))
+                .ok());
       }
     }
     ASSERT_NE(core->recognition(), nullptr);
@@ -708,18 +709,21 @@ TEST(AgentSessionOwnership, AHelloRefusedForWhatItSaysOrForTheMissionLimitClaims
   v1::ServerDownlink reply;
   bool reply_due = false;
 
-  AgentSession absurd(missions, options, [] {}, {}, nullptr, {}, &ownership);
+  AgentSession absurd(
+      missions, options, [] {}, {}, nullptr, {}, &ownership);
   v1::AgentUplink hello = helloMessage("held", kAgent, kSession);
   hello.mutable_hello()->mutable_cam0()->set_fx(1e300);
   EXPECT_FALSE(test::sendTo(absurd, hello, &reply, &reply_due).ok());
 
-  AgentSession over_limit(missions, options, [] {}, {}, nullptr, {}, &ownership);
+  AgentSession over_limit(
+      missions, options, [] {}, {}, nullptr, {}, &ownership);
   const Status refused = test::sendTo(over_limit, helloMessage("another", kAgent, kSession), &reply, &reply_due);
   ASSERT_FALSE(refused.ok());
   EXPECT_EQ(refused.error().code(), ErrorCode::kResourceExhausted);
   EXPECT_EQ(ownership.claims, 0);
 
-  AgentSession served(missions, options, [] {}, {}, nullptr, {}, &ownership);
+  AgentSession served(
+      missions, options, [] {}, {}, nullptr, {}, &ownership);
   const Status welcomed = test::sendTo(served, helloMessage("held", kAgent, kSession), &reply, &reply_due);
   EXPECT_TRUE(welcomed.ok()) << welcomed.error().toString();
   EXPECT_EQ(ownership.claims, 1);  // and a Hello it serves does claim

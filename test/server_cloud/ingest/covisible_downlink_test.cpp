@@ -15,9 +15,9 @@
 namespace cvislam::server {
 namespace {
 
+using Eigen::Vector3d;
 using geometry::SE3d;
 using geometry::SO3d;
-using Eigen::Vector3d;
 
 // The two agents' cameras differ, so that using the wrong agent's intrinsics shows.
 CovisibleCamera cameraOf(AgentId agent) {

@@ -182,8 +182,7 @@ TEST_F(AccessTest, ListingsShowOnlyTheMissionsTheTokenOpens) {
   EXPECT_EQ(list(kTokenDepot), "depot ");
   EXPECT_EQ(list(kOperator), "depot survey ");
   v1::ListMissionsResponse anonymous;
-  EXPECT_EQ(maps_->ListMissions(callContext("").get(), {}, &anonymous).error_code(),
-            grpc::StatusCode::UNAUTHENTICATED);
+  EXPECT_EQ(maps_->ListMissions(callContext("").get(), {}, &anonymous).error_code(), grpc::StatusCode::UNAUTHENTICATED);
   EXPECT_EQ(maps_->ListMissions(callContext("made-up-token-0000").get(), {}, &anonymous).error_code(),
             grpc::StatusCode::UNAUTHENTICATED);
   EXPECT_EQ(stats(kTokenDepot), "depot ");
@@ -241,7 +240,6 @@ TEST_F(AccessTest, LimitsEndCallsWithResourceExhaustedNamingTheLimit) {
   EXPECT_THAT(last.error_message(), HasSubstr("limits.requests_per_s"));
   EXPECT_TRUE(listMaps("survey", kTokenSurvey).ok());
 }
-
 
 // Tokens made up one after another from one address share that address's bucket: they neither get a full bucket
 // each nor take anything from a genuine client's.

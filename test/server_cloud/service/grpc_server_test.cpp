@@ -27,8 +27,8 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
-#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/server_cloud/link_messages.hpp"
+#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::server {
@@ -259,7 +259,7 @@ TEST_F(GrpcServerTest, BatchesAreStoredAndAcknowledged) {
   ASSERT_TRUE(stats.has_value());
   EXPECT_EQ(stats->stored_sequence(), 2U);
   EXPECT_EQ(stats->keyframes(), 5U);
-  EXPECT_EQ(stats->server_keyframes(), 5U);  // no back-end here: nothing removed as redundant
+  EXPECT_EQ(stats->server_keyframes(), 5U);     // no back-end here: nothing removed as redundant
   EXPECT_EQ(stats->ingest_ms().samples(), 2U);  // one ingest time per stored batch
   EXPECT_GT(stats->ingest_ms().max(), 0.0);
   EXPECT_LE(stats->ingest_ms().p50(), stats->ingest_ms().max());
@@ -586,7 +586,6 @@ TEST_F(GrpcServerTest, AgentVanishingAfterARefusalWhileADownlinkIsInFlightIsDisc
   EXPECT_EQ(restarted.awaitEnd().error_code(), grpc::StatusCode::FAILED_PRECONDITION);  // not ALREADY_EXISTS
 }
 
-
 // A store whose appends of one agent take 2 s (its disk or database connection stalls): that agent's stream waits,
 // and nobody else does. The other agent's batches are acknowledged as usual, and a new stream is welcomed.
 class SlowAgentStore final : public test::ForwardingStore {
@@ -630,7 +629,6 @@ TEST_F(GrpcServerTest, ASlowAppendOfOneAgentDelaysNoOtherAgentsAcknowledgementsN
   EXPECT_LT(welcomed_s, 1.0) << "a new stream waited for the slow agent's append";
   EXPECT_TRUE(slow.sendAndAwaitAck(makeKeyframeBatch(2, 2, 2)));  // the slow agent is served in the end
 }
-
 
 // Streams that never send a Hello are ended after hello_timeout_s, and stop counting against their address.
 TEST_F(GrpcServerTest, StreamsWithoutAHelloAreEndedAfterTheHelloTimeout) {

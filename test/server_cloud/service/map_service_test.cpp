@@ -213,7 +213,6 @@ TEST_F(MapServiceTest, AClientThatStopsReadingMidStreamLeavesTheServerServing) {
   EXPECT_EQ(chunks[0].points_size(), 80 * 30);
 }
 
-
 // Map reads hold a copy of what they send until the client has read it. Clients that open them and never read get
 // at most max_map_reads_per_address at once (the rest are refused), and those are cancelled at map_read_timeout_s,
 // so their copies go.

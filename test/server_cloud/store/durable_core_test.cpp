@@ -16,16 +16,16 @@
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
 #include "test/server_cloud/link_messages.hpp"
-#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/server_cloud/session_driver.hpp"
+#include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::server {
 namespace {
 
 using test::batchMessage;
-using test::InDoubtStore;
 using test::helloMessage;
+using test::InDoubtStore;
 using test::makeKeyframeBatch;
 using ::testing::HasSubstr;
 
@@ -275,7 +275,6 @@ TEST_F(DurableCoreTest, ABatchThatDiffersFromTheOneStoredUnderItsNumberGivesWayT
   EXPECT_EQ(keyframesInMaps(*restarted), before);
 }
 
-
 // A reconnect loop of one agent (the same process, the same Hello): the store gets that Hello once, and the
 // mission's event log gets a bounded number of connection events, so map events are not pushed out.
 TEST_F(DurableCoreTest, AReconnectLoopStoresTheHelloOnceAndIsCutOffBeforeItFloodsTheEventLog) {
@@ -300,7 +299,8 @@ TEST_F(DurableCoreTest, AReconnectLoopStoresTheHelloOnceAndIsCutOffBeforeItFlood
   const auto events = core->missions().find(kMission)->events().read(1, 1000);
   EXPECT_EQ(events.skipped, 0U);
   EXPECT_LE(events.events.size(), 2 * static_cast<std::size_t>(o.session.agent_hello_burst) + 4);
-  EXPECT_EQ(core->missions().find(kMission)->agent(kAgent)->read()->hellos_refused, static_cast<std::uint64_t>(refused));
+  EXPECT_EQ(core->missions().find(kMission)->agent(kAgent)->read()->hellos_refused,
+            static_cast<std::uint64_t>(refused));
 }
 
 // The disk fills while an agent says Hello: the Hello is refused UNAVAILABLE, nothing about the agent changes,

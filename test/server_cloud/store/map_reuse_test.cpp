@@ -167,7 +167,6 @@ TEST_F(MapReuseTest, ANewAgentJoinsTheLoadedMissionBesideItsAgents) {
   EXPECT_THAT(taken.error().message(), HasSubstr("another --agent-id"));
 }
 
-
 // A name the replay would refuse is refused before anything is written: the store still opens afterwards.
 TEST_F(MapReuseTest, ALoadUnderAnInvalidNameWritesNothingAndTheStoreStillOpens) {
   for (const std::string& bad : {std::string("a/b"), std::string("x y"), std::string(".."), std::string(200, 'm')}) {

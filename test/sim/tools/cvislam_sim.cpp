@@ -73,7 +73,8 @@ static int run(int argc, char** argv) {
       "(OUT/agent0, OUT/agent1, ...): cam0 (and cam1) PNG at 20 Hz, imu0 at 200 Hz, and "
       "state_groundtruth_estimate0 with the true biases. Same preset and seed give byte-identical files.\n"
       "Presets: loop (1 agent, a loop back to its start), overlap2 (2 agents whose paths share about a third), "
-      "hall4 / hall8 (4 / 8 agents flying laps of the hall, half each way, each turning round once), aggressive (1 agent, fast motion), euroc-mh (5 agents "
+      "hall4 / hall8 (4 / 8 agents flying laps of the hall, half each way, each turning round once), aggressive (1 "
+      "agent, fast motion), euroc-mh (5 agents "
       "replaying EuRoC MH_01..MH_05 from $CVISLAM_DATA_DIR/euroc-groundtruth).",
       "cvislam_sim"};
   std::string preset;
@@ -116,8 +117,9 @@ static int run(int argc, char** argv) {
       ->check(CLI::ExistingDirectory);
   app.add_flag("--overwrite", overwrite, "Replace existing OUT/agentN/mav0 folders (they are deleted first)");
   int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
-  app.add_option("--threads", threads, "Agents rendered at once, one per thread; the files do not depend on it "
-                                       "[the number of cores]")
+  app.add_option("--threads", threads,
+                 "Agents rendered at once, one per thread; the files do not depend on it "
+                 "[the number of cores]")
       ->check(CLI::Range(1, 64));
   app.add_flag("-q,--quiet", quiet, "No progress output");
 
