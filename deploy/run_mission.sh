@@ -315,7 +315,7 @@ cat >"$out/mission.json" <<EOF
 EOF
 
 # 5. Scores, tables, summary.json and the report with pictures.
-/usr/bin/python3 "$repo/deploy/mission_report.py" --out "$out" --eval "$bin/cvislam_eval"
+/usr/bin/python3 "$repo/tools/mission_report.py" --out "$out" --eval "$bin/cvislam_eval"
 echo
 echo "wall time: build $((t_built - t_start)) s, render $((t_rendered - t_built)) s, mission $((t_ran - t_agents)) s," \
   "total $(( $(date +%s) - t_start )) s"

@@ -16,7 +16,7 @@ import subprocess
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import mission_pictures  # noqa: E402  (deploy/mission_pictures.py: the SVGs and the HTML page)
+import mission_pictures  # noqa: E402  (tools/mission_pictures.py: the SVGs and the HTML page)
 from mission_pictures import load_json  # noqa: E402
 
 
