@@ -37,7 +37,7 @@ packages=(
   libyaml-cpp-dev libcli11-dev libfmt-dev nlohmann-json3-dev
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev
-  # deploy/run_mission.sh's report (deploy/mission_report.py, standard library only); jq for
+  # deploy/run_mission.sh's report (tools/mission_report.py, standard library only); jq for
   # test/bench/agent_accuracy.sh
   python3 jq
   # the chaos suite (test/chaos/run_chaos.py): network namespaces and tc, and a server clock that jumps

@@ -34,6 +34,7 @@
 set -euo pipefail
 
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+source "$repo/deploy/lib/wait.sh"
 preset=overlap2
 seed=1
 duration=""
@@ -158,8 +159,7 @@ if pgrep -x iox-roudi >/dev/null; then
 fi
 iox-roudi -m off -c "$repo/deploy/roudi_config.toml" >"$out/roudi.log" 2>&1 &
 roudi_pid=$!
-for _ in $(seq 100); do grep -q "RouDi is ready" "$out/roudi.log" && break; sleep 0.1; done
-grep -q "RouDi is ready" "$out/roudi.log" || { echo "run_mission: iox-roudi did not start:" >&2; cat "$out/roudi.log" >&2; exit 1; }
+wait_for_line "$out/roudi.log" "RouDi is ready" 10 iox-roudi "$roudi_pid" || exit 1
 
 store_args=()
 [ "$store" = 1 ] && store_args=(--store "$out/store.db")
@@ -176,8 +176,7 @@ start_server() {
   "$bin/cvislam_server" --listen "$1" --port-file "$out/server.port" --output "$out/server" \
     --status-interval 10 ${store_args[@]+"${store_args[@]}"} ${server_args[@]+"${server_args[@]}"} >"$out/server.log" 2>&1 &
   server_pid=$!
-  for _ in $(seq 600); do [ -s "$out/server.port" ] && break; kill -0 "$server_pid" 2>/dev/null || break; sleep 0.05; done
-  [ -s "$out/server.port" ] || { echo "run_mission: cvislam_server did not start:" >&2; cat "$out/server.log" >&2; exit 1; }
+  wait_for_file "$out/server.port" 30 cvislam_server "$server_pid" "$out/server.log" || exit 1
 }
 start_server 127.0.0.1:0
 port=$(cat "$out/server.port")
@@ -193,6 +192,9 @@ if [ "$kills" -gt 0 ]; then
   echo "kill,at_s,replay_s,serving_s,all_agents_streaming_s,keyframes_replayed" >"$out/restarts.csv"
   echo "== restart test: the server is killed (SIGKILL) at ${kill_at[*]} s and started again on its store"
 fi
+# True once the server's log has $1 agents "connected; it resumes".
+# shellcheck disable=SC2317  # called through wait_until
+resumed() { [ "$(grep -c 'connected; it resumes' "$out/server.log" || true)" -ge "$1" ]; }
 # Kills the server, starts it again on the same port and store, and times it (one line of restarts.csv).
 restart_server() {
   local k=$1 t0 t1 now replayed serving streaming
@@ -202,13 +204,11 @@ restart_server() {
   mv "$out/server.log" "$out/server.killed$k.log"
   start_server "127.0.0.1:$port"
   t1=$(date +%s.%N)
-  # Every agent still flying has connected again when the new server has one "connected" line per agent.
+  # Every agent still flying has connected again when the new server has one "connected" line per agent; the
+  # time stands in restarts.csv even when one has not within 20 s.
   local flying=0
   for p in "${pids[@]}"; do kill -0 "$p" 2>/dev/null && flying=$((flying + 1)); done
-  for _ in $(seq 400); do
-    [ "$(grep -c 'connected; it resumes' "$out/server.log" || true)" -ge "$flying" ] && break
-    sleep 0.05
-  done
+  wait_until 20 "$flying agent(s) to stream to the restarted server" resumed "$flying" || true
   now=$(date +%s.%N)
   replayed=$(sed -n 's/.*replayed.*missions, \([0-9]*\) keyframes, in \([0-9.]*\) s/\1 \2/p' "$out/server.log")
   serving=$(awk "BEGIN { print $t1 - $t0 }")
@@ -315,7 +315,7 @@ cat >"$out/mission.json" <<EOF
 EOF
 
 # 5. Scores, tables, summary.json and the report with pictures.
-/usr/bin/python3 "$repo/deploy/mission_report.py" --out "$out" --eval "$bin/cvislam_eval"
+/usr/bin/python3 "$repo/tools/mission_report.py" --out "$out" --eval "$bin/cvislam_eval"
 echo
 echo "wall time: build $((t_built - t_start)) s, render $((t_rendered - t_built)) s, mission $((t_ran - t_agents)) s," \
   "total $(( $(date +%s) - t_start )) s"

@@ -81,22 +81,24 @@ if [ "$excerpt" -eq 1 ]; then
     for arch in x86_64 aarch64; do
       "$evaluate" --estimate "$out/$arch/trajectory.txt" --groundtruth "$seq" --json "$out/$arch.json" --quiet
     done
-    python3 - "$out" "$tolerance_m" "$t0" "$t1" "$t2" <<'EOF' || rc=1
+    python3 - "$repo/tools" "$out" "$tolerance_m" "$t0" "$t1" "$t2" <<'EOF' || rc=1
 import json, math, sys
-out, tol, t0, t1, t2 = sys.argv[1], float(sys.argv[2]), *map(float, sys.argv[3:])
+sys.path.insert(0, sys.argv[1])
+from cvislam_tools.files import read_tum_fields
+from cvislam_tools.poses import angle_between_deg
+out, tol, t0, t1, t2 = sys.argv[2], float(sys.argv[3]), *map(float, sys.argv[4:])
 def ate(arch):
     j = json.load(open(f"{out}/{arch}.json"))
     return j["se3"]["rmse"], j["poses"]
-def poses(arch):  # TUM: t x y z qx qy qz qw
-    rows = [l.split() for l in open(f"{out}/{arch}/trajectory.txt") if l.strip() and not l.startswith("#")]
-    return {r[0]: list(map(float, r[1:8])) for r in rows}
+def poses(arch):  # TUM: t x y z qx qy qz qw, by the time as written
+    return {r[0]: list(map(float, r[1:8])) for r in read_tum_fields(f"{out}/{arch}/trajectory.txt") or []}
 host_rmse, host_n = ate("x86_64")
 board_rmse, board_n = ate("aarch64")
 a, b = poses("x86_64"), poses("aarch64")
 common = sorted(set(a) & set(b))
 # Both runs start from the same gravity-aligned frame: compare them as they are, with no alignment.
 dpos = [math.dist(a[t][:3], b[t][:3]) for t in common]
-drot = [2 * math.degrees(math.acos(min(1.0, abs(sum(x * y for x, y in zip(a[t][3:], b[t][3:])))))) for t in common]
+drot = [angle_between_deg(a[t][3:], b[t][3:]) for t in common]
 print("real data, EuRoC V1_01 excerpt, --pace sync: the agent on x86-64 and on aarch64 (qemu)")
 print(f"  {'build':<24}{'poses':>6}{'ATE SE3 [mm]':>14}{'wall [s]':>10}")
 print(f"  {'x86-64 (build/default)':<24}{host_n:>6}{host_rmse*1e3:>14.2f}{t1-t0:>10.1f}")

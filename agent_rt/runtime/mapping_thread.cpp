@@ -58,7 +58,7 @@ void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool
   }
   // anchors.txt: after every downlink message that carried a covisible map, the local map's newest own keyframe
   // and every anchor held, each with its pose in the agent's world frame, so that the anchors' consistency with
-  // the agent's own estimate can be checked against ground truth after the run (deploy/anchor_consistency.py).
+  // the agent's own estimate can be checked against ground truth after the run (tools/anchor_consistency.py).
   struct FileCloser {
     void operator()(std::FILE* f) const {
       if (f != nullptr) std::fclose(f);

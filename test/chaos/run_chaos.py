@@ -39,6 +39,10 @@ import tempfile
 import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.join(REPO, "tools"))
+from cvislam_tools import evaluation  # noqa: E402  (tools/cvislam_tools: shared with the analysis scripts)
+from cvislam_tools.files import read_tum_fields  # noqa: E402
+
 SIM_SEED = 1
 PRESET = "overlap2"
 AGENTS = (0, 1)
@@ -70,16 +74,7 @@ def wait_for(predicate, timeout_s, step_s=0.05):
 
 def read_tum_times(path):
     """Keyframe times (as written, so both sides compare exactly) of a TUM file, with repeats."""
-    times = []
-    try:
-        with open(path) as f:
-            for line in f:
-                line = line.strip()
-                if line and not line.startswith("#"):
-                    times.append(line.split()[0])
-    except OSError:
-        pass
-    return times
+    return [row[0] for row in read_tum_fields(path) or []]
 
 
 class Network:
@@ -563,15 +558,11 @@ def measure(run_):
             for row in csv.DictReader(f):
                 backlog = max(backlog, int(row["keyframes_waiting"]))
                 unacked = max(unacked, int(row.get("unacked_bytes") or 0))
-        report = os.path.join(run_.dir, f"eval_agent{a}.json")
-        subprocess.run([os.path.join(run_.suite.bin, "cvislam_eval"), "--estimate",
-                        os.path.join(run_.dir, f"agent{a}", "trajectory_online.txt"), "--groundtruth",
-                        os.path.join(run_.suite.mission, f"agent{a}"), "--json", report, "-q"],
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        try:
-            ate.append(100.0 * json.load(open(report))["se3"]["rmse"])
-        except (OSError, KeyError, ValueError):
-            ate.append(float("nan"))
+        scored, _ = evaluation.run_eval(os.path.join(run_.suite.bin, "cvislam_eval"),
+                                        [(os.path.join(run_.dir, f"agent{a}", "trajectory_online.txt"),
+                                          os.path.join(run_.suite.mission, f"agent{a}"))],
+                                        os.path.join(run_.dir, f"eval_agent{a}.json"))
+        ate.append(100.0 * evaluation.ate(scored))
     # A keyframe the agent never saw acknowledged (its flush at the end ran out of time) may be missing; one it saw
     # acknowledged may not. The agents only count the former, so every missing one beyond that count is lost.
     out.update(flushed=flushed, reconnects=reconnects, kf_dropped=dropped, max_backlog_kf=backlog,

@@ -84,8 +84,7 @@ for R in "${r_list[@]}"; do
       replica_pids+=("$!"); pids+=("$!")
     done
     for ((r = 0; r < R; r++)); do
-      for _ in $(seq 100); do grep -q "listening on" "$step/replica$r.log" && break; sleep 0.1; done
-      grep -q "listening on" "$step/replica$r.log" || { cat "$step/replica$r.log" >&2; exit 1; }
+      wait_for_line "$step/replica$r.log" "listening on" 10 "replica r$r" "${replica_pids[$r]}" || exit 1
     done
     replay_pids=()
     started=$(date +%s.%N)

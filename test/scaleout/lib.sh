@@ -1,6 +1,8 @@
+# shellcheck shell=bash
 # Shared by the scale-out scripts (sourced, with `repo` set): a work folder that the postgres user can enter, the
 # processes started into `pids`, and a cleanup at exit that kills them, stops the database under "$work/pg" and
-# removes the folder (unless `keep` is 1: then it says where the logs are).
+# removes the folder (unless `keep` is 1: then it says where the logs are); and deploy/lib/wait.sh's waits.
+source "$repo/deploy/lib/wait.sh"
 scaleout_work() {  # scaleout_work NAME: sets `work`, `pids` and the exit trap
   work=$(mktemp -d "/tmp/cvislam-$1.XXXXXX")
   chmod 755 "$work"  # the postgres user runs the database under it

@@ -28,8 +28,10 @@ rec_port=$(port)
   >"$work/recorder.log" 2>&1 &
 recorder=$!
 pids+=("$recorder")
+# Generous: the scale-out tests also run under ThreadSanitizer (test/run_sanitizers.sh), which starts slowly.
+wait_for_line "$work/recorder.log" "listening on" 30 "the recording server" "$recorder" ||
+  fail "the recording server did not start (see $work/recorder.log)"
 for a in 0 1; do
-  for _ in $(seq 50); do grep -q "listening on" "$work/recorder.log" && break; sleep 0.1; done
   "$bin/cvislam_agent" --dataset "$seq" --output "$work/agent$a" --pace realtime --quiet --server "127.0.0.1:$rec_port" \
     --mission recorded --agent-id "$a" >"$work/agent$a.log" 2>&1 || fail "recording agent $a (see $work/agent$a.log)"
 done
@@ -44,8 +46,8 @@ for r in 0 1 2; do
   pids+=("$!")
 done
 for r in 0 1 2; do
-  for _ in $(seq 100); do grep -q "listening on" "$work/replica$r.log" && break; sleep 0.1; done
-  grep -q "listening on" "$work/replica$r.log" || fail "replica $r did not start (see $work/replica$r.log)"
+  wait_for_line "$work/replica$r.log" "listening on" 10 "replica r$r" "${pids[$((1 + r))]}" ||
+    fail "replica $r did not start (see $work/replica$r.log)"
 done
 list() { local first=$1; echo "127.0.0.1:${ports[$first]},127.0.0.1:${ports[$(( (first + 1) % 3 ))]},127.0.0.1:${ports[$(( (first + 2) % 3 ))]}"; }
 
@@ -57,7 +59,9 @@ for m in 0 1 2 3; do
   replays+=("$!")
   pids+=("$!")
 done
-for _ in $(seq 100); do [ "$(sql "SELECT count(*) FROM cvislam_leases")" = 4 ] && break; sleep 0.1; done
+# shellcheck disable=SC2317  # called through wait_until
+leased() { [ "$(sql "SELECT count(*) FROM cvislam_leases")" = "$1" ]; }
+wait_until 10 "a lease for each of the four missions" leased 4 || true  # the lookup of m1's owner below says more
 sleep 2
 read -r victim_address old_epoch < <(sql "SELECT address, epoch FROM cvislam_leases WHERE mission = 'm1'")
 victim=-1
@@ -68,13 +72,10 @@ kill -9 "${pids[$((1 + victim))]}"
 killed=$(now)
 wait "${pids[$((1 + victim))]}" 2>/dev/null || true  # reaped here, so bash does not report "Killed"
 echo "SIGKILL to replica r$victim, owner of m1 ($before batches stored); missions it served: $(sql "SELECT string_agg(mission, ',') FROM cvislam_leases WHERE address = '$victim_address'")"
-taken=""
-for _ in $(seq 300); do
-  row=$(sql "SELECT address, epoch FROM cvislam_leases WHERE mission = 'm1'")
-  if [ "${row#* }" != "$old_epoch" ]; then taken=$(now); break; fi
-  sleep 0.05
-done
-[ -n "$taken" ] || fail "nobody took m1 over within 15 s"
+# shellcheck disable=SC2317  # called through wait_until; leaves the lease's row in `row`
+lease_moved() { row=$(sql "SELECT address, epoch FROM cvislam_leases WHERE mission = 'm1'"); [ "${row#* }" != "$old_epoch" ]; }
+wait_until 15 "another replica to take m1's lease over" lease_moved || fail "nobody took m1 over within 15 s"
+taken=$(now)
 new_address=${row% *}
 rc=0
 for i in "${!replays[@]}"; do wait "${replays[$i]}" || { echo "mission m$i did not complete (see $work/m$i.log)"; rc=1; }; done

@@ -12,30 +12,22 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import mission_pictures  # noqa: E402  (deploy/mission_pictures.py: the SVGs and the HTML page)
-from mission_pictures import load_json  # noqa: E402
+import mission_pictures  # noqa: E402  (tools/mission_pictures.py: the SVGs and the HTML page)
+from cvislam_tools import evaluation  # noqa: E402
+from cvislam_tools.evaluation import ate  # noqa: E402
+from cvislam_tools.files import load_json, read_rows  # noqa: E402
+from cvislam_tools.poses import angle_between_deg, eval_transform, pose_apply, pose_inv, pose_mul  # noqa: E402
 
 
 def run_eval(eval_bin, pairs, json_path, align=None, per_pose=False):
     """cvislam_eval over (estimate, ground truth) pairs; returns its JSON, or None with the reason printed."""
-    cmd = [eval_bin, "--quiet", "--json", json_path]
-    for estimate, groundtruth in pairs:
-        cmd += ["--estimate", estimate, "--groundtruth", groundtruth]
-    if align:
-        cmd += ["--align", align]
-    if per_pose:
-        cmd.append("--per-pose")
-    result = subprocess.run(cmd, capture_output=True, text=True)
-    if result.returncode != 0:
-        reason = (result.stderr or result.stdout).strip().splitlines()
-        print(f"  (not evaluated: {reason[-1] if reason else 'cvislam_eval failed'})")
-        return None
-    with open(json_path) as f:
-        return json.load(f)
+    result, reason = evaluation.run_eval(eval_bin, pairs, json_path, align, per_pose)
+    if result is None:
+        print(f"  (not evaluated: {reason})")
+    return result
 
 
 def counter(stats_map, kind):
@@ -43,61 +35,18 @@ def counter(stats_map, kind):
     return int(c.get("messages", 0)), int(c.get("bytes", 0))
 
 
-def ate(j, alignment="se3"):
-    return j[alignment]["rmse"] if j and alignment in j else float("nan")
-
-
 def cm(value):
     return "   n/a" if value is None or math.isnan(value) else f"{value * 100:6.2f}"
-
-
-def quat_mul(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
-
-
-def quat_rotate(q, v):
-    w, x, y, z = quat_mul(quat_mul(q, (0.0, *v)), (q[0], -q[1], -q[2], -q[3]))
-    return (x, y, z)
-
-
-def quat_inv(q):
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def pose_apply(T, p):
-    r = quat_rotate(T[0], p)
-    return tuple(r[i] + T[1][i] for i in range(3))
-
-
-def pose_inv(T):
-    qi = quat_inv(T[0])
-    t = quat_rotate(qi, T[1])
-    return (qi, tuple(-c for c in t))
-
-
-def pose_mul(A, B):
-    return (quat_mul(A[0], B[0]), pose_apply(A, B[1]))
 
 
 def largest_live_step_mm(path, after_s=0.0):
     """The largest jump of tracking's live position between frames beyond constant velocity (the second
     difference of trajectory_online.txt), in mm, from `after_s` seconds into the run on (the IMU initialisation
     moves the world frame once, before): what a correction or an anchor would show as a step."""
-    positions = []
-    start = None
-    try:
-        with open(path) as f:
-            for line in f:
-                fields = line.split()
-                if len(fields) >= 4 and not line.startswith("#"):
-                    start = float(fields[0]) if start is None else start
-                    if float(fields[0]) - start >= after_s:
-                        positions.append([float(v) for v in fields[1:4]])
-    except OSError:
+    rows = read_rows(path, None, 4)
+    if rows is None:
         return None
+    positions = [r[1:4] for r in rows if r[0] - rows[0][0] >= after_s]
     steps = [sum((positions[i][k] - 2 * positions[i - 1][k] + positions[i - 2][k]) ** 2 for k in range(3)) ** 0.5
              for i in range(2, len(positions))]
     return 1000.0 * max(steps) if steps else None
@@ -211,15 +160,13 @@ def report_recognition(out, mission, map_to_truth, summary):
             ca = (name, m["candidate_map_origin"][0] if "candidate_map_origin" in m else m["candidate"][0])
             if qa not in map_to_truth or ca not in map_to_truth:
                 continue
-            to_pose = lambda t: (tuple(t["quaternion_wxyz"]), tuple(t["translation"]))  # noqa: E731
-            T_gt_q, T_gt_c = to_pose(map_to_truth[qa]), to_pose(map_to_truth[ca])
+            T_gt_q, T_gt_c = (eval_transform(map_to_truth[m])[:2] for m in (qa, ca))  # SE3: scale 1
             true = pose_mul(pose_inv(T_gt_q), T_gt_c)
             x, y, z, qx, qy, qz, qw = m["T_qmap_cmap"]
             est = ((qw, qx, qy, qz), (x, y, z))
             p = tuple(m["p_cmap_query"])
             dt = math.dist(pose_apply(true, p), pose_apply(est, p))
-            dq = quat_mul(quat_inv(true[0]), est[0])
-            dr = math.degrees(2.0 * math.acos(min(1.0, abs(dq[0]))))
+            dr = angle_between_deg(true[0], est[0])
             scored += 1
             errors_t.append(dt)
             errors_r.append(dr)

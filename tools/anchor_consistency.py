@@ -23,45 +23,16 @@ import math
 import os
 import sys
 
-
-def quat_to_matrix(qx, qy, qz, qw):
-    n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-    if n == 0.0:
-        raise ValueError("zero quaternion")
-    x, y, z, w = qx / n, qy / n, qz / n, qw / n
-    return [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-
-
-def relative_translation(R_a, t_a, t_b):
-    """(T_a^-1 T_b).translation = R_a^T (t_b - t_a)."""
-    d = [t_b[i] - t_a[i] for i in range(3)]
-    return [sum(R_a[r][c] * d[r] for r in range(3)) for c in range(3)]
+from cvislam_tools.files import read_groundtruth
+from cvislam_tools.poses import quat_to_matrix, relative_translation
 
 
 def load_ground_truth(datasets, agent):
-    for sub in ("mav0/state_groundtruth_estimate0/data.csv", "state_groundtruth_estimate0/data.csv"):
-        path = os.path.join(datasets, "agent%d" % agent, sub)
-        if os.path.exists(path):
-            break
-    else:
+    rows = read_groundtruth(os.path.join(datasets, "agent%d" % agent))
+    if rows is None:
         raise FileNotFoundError("no ground truth for agent %d under %s (expected agent%d/mav0/state_groundtruth_"
                                 "estimate0/data.csv)" % (agent, datasets, agent))
-    times, poses = [], []
-    with open(path) as f:
-        for line in f:
-            if not line.strip() or line.startswith("#"):
-                continue
-            v = line.strip().split(",")
-            t = int(v[0])
-            p = [float(v[1]), float(v[2]), float(v[3])]
-            qw, qx, qy, qz = (float(x) for x in v[4:8])  # EuRoC order: w, x, y, z
-            times.append(t)
-            poses.append((quat_to_matrix(qx, qy, qz, qw), p))
-    return times, poses
+    return [t for t, _, _ in rows], [(quat_to_matrix(*q), list(p)) for _, p, q in rows]
 
 
 def nearest(gt, t_ns, tolerance_ns=2_000_000):
@@ -100,8 +71,8 @@ def main():
             if len(v) != 13 or v[0] not in ("K", "A"):
                 sys.exit("%s:%d: expected 13 fields starting with K or A" % (path, number))
             key = (int(v[1]), int(v[2]))
-            entry = (int(v[3]), int(v[4]), int(v[5]), quat_to_matrix(*map(float, v[9:13])),
-                     [float(x) for x in v[6:9]])
+            qx, qy, qz, qw = map(float, v[9:13])  # TUM order: x, y, z, w
+            entry = (int(v[3]), int(v[4]), int(v[5]), quat_to_matrix(qw, qx, qy, qz), [float(x) for x in v[6:9]])
             if key not in messages:
                 messages[key] = [None, []]
                 order.append(key)

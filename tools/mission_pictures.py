@@ -5,9 +5,11 @@ Only the Python standard library. Everything missing (a failed agent, a server t
 named on the page. The output depends only on the inputs: same files, same bytes."""
 
 import html
-import json
 import math
 import os
+
+from cvislam_tools.files import load_json, read_csv, read_groundtruth, read_rows
+from cvislam_tools.poses import eval_transform, quat_to_matrix
 
 # One colour per agent, by its place in the mission's agent list.
 PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22",
@@ -22,69 +24,23 @@ GAP_S = 0.5  # a longer pause between onboard poses is drawn as a gap
 # Reading the inputs
 # ---------------------------------------------------------------------------------------------------------------
 
-def load_json(path):
-    """The JSON in path, or None when it is missing or unreadable."""
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except (OSError, ValueError):
-        return None
-
-
-def read_rows(path, sep=None, columns=4):
-    """Numeric rows (their first `columns` values) of a text table; comments, headers and bad rows are skipped.
-    Returns None when the file cannot be read."""
-    rows = []
-    try:
-        with open(path) as f:
-            for line in f:
-                if line.startswith("#"):
-                    continue
-                values = line.strip().split(sep)
-                try:
-                    rows.append([float(v) for v in values[:columns]])
-                except ValueError:
-                    continue
-    except OSError:
-        return None
-    return [r for r in rows if len(r) == columns]
-
-
-def read_csv(path):
-    """A CSV with a header as a list of dicts, or None when it cannot be read."""
-    try:
-        with open(path) as f:
-            header = f.readline().strip().split(",")
-            return [dict(zip(header, line.strip().split(","))) for line in f
-                    if len(line.strip().split(",")) == len(header)]
-    except OSError:
-        return None
-
-
-def read_groundtruth(dataset, agent):
+def groundtruth_xy(dataset, agent):
     """The agent's ground-truth positions (x, y) from the simulator's EuRoC folder, thinned to MAX_GT_POINTS."""
-    rows = read_rows(os.path.join(dataset, agent, "mav0", "state_groundtruth_estimate0", "data.csv"), ",", 4)
+    rows = read_groundtruth(os.path.join(dataset, agent))
     if not rows:
         return None
     step = max(1, math.ceil(len(rows) / MAX_GT_POINTS))
-    return [(r[1], r[2]) for r in rows[::step]]
+    return [(p[0], p[1]) for _, p, _ in rows[::step]]
 
 
 def alignment(evaluation):
     """The SE3 alignment of a cvislam_eval JSON as a function estimate -> ground-truth frame:
-    p_gt = s * R(q) * p_est + t, with q = quaternion_wxyz (common/eval/report.cpp, S_gt_est)."""
+    p_gt = s * R(q) * p_est + t (common/eval/report.cpp, S_gt_est); None when it has none, or a zero rotation."""
     try:
-        a = evaluation["se3"]["transform_gt_est"]
-        w, x, y, z = (float(v) for v in a["quaternion_wxyz"])
-        t = [float(v) for v in a["translation"]]
-        s = float(a.get("scale", 1.0))
+        q, t, s = eval_transform(evaluation["se3"]["transform_gt_est"])
+        r = quat_to_matrix(*q)
     except (KeyError, TypeError, ValueError):
         return None
-    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
-    w, x, y, z = w / n, x / n, y / n, z / n
-    r = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
     return lambda p: tuple(s * sum(r[i][k] * p[k] for k in range(3)) + t[i] for i in range(3))
 
 
@@ -239,7 +195,7 @@ def topview_svg(out, summary, notes):
     agents, name = mission.get("agents", []), mission.get("mission", "")
     layers = []  # (agent, ground truth, onboard pieces, server keyframes)
     for a in agents:
-        gt = read_groundtruth(mission.get("dataset", ""), a)
+        gt = groundtruth_xy(mission.get("dataset", ""), a)
         onboard = aligned_xy(os.path.join(out, "agents", a, "trajectory.txt"), evaluation(out, summary, a, "onboard"))
         server = aligned_xy(os.path.join(out, "server", name, f"keyframes_agent{a.replace('agent', '')}.txt"),
                             evaluation(out, summary, a, "server"))
