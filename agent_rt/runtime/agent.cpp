@@ -3,15 +3,19 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <cstdio>
 #include <fstream>
+#include <functional>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <thread>
 
 #include <nlohmann/json.hpp>
 
 #include "agent_rt/ipc/embedded_roudi.hpp"
+#include "agent_rt/runtime/frame_ring.hpp"
 #include "agent_rt/runtime/iceoryx_channels.hpp"
 #include "agent_rt/runtime/mapping_thread.hpp"
 #include "agent_rt/runtime/message_conversions.hpp"
@@ -20,6 +24,8 @@
 #include "common/dataset/euroc.hpp"
 #include "common/dataset/png_gray.hpp"
 #include "common/dataset/trajectory_io.hpp"
+#include "iceoryx_posh/popo/user_trigger.hpp"
+#include "iceoryx_posh/popo/wait_set.hpp"
 
 namespace cvislam::agent {
 
@@ -84,53 +90,20 @@ Status AgentOptions::validate() const {
 
 namespace {
 
-// Frames read ahead by the loader thread into buffers allocated at start-up; one producer, one consumer.
-class FrameRing {
- public:
-  struct Slot {
-    std::vector<std::uint8_t> left;
-    std::vector<std::uint8_t> right;
-    std::int64_t t_ns = 0;
-    std::size_t frame = 0;
-    bool ok = true;
-    std::string error;
-  };
-
-  FrameRing(int size, std::size_t pixels, bool stereo) : slots_(static_cast<std::size_t>(size)) {
-    for (Slot& s : slots_) {
-      s.left.resize(pixels);
-      if (stereo) s.right.resize(pixels);
-      s.error.reserve(256);
-    }
-  }
-
-  Slot* producerSlot() {
-    const std::size_t head = head_.load(std::memory_order_relaxed);
-    if (head - tail_.load(std::memory_order_acquire) >= slots_.size()) return nullptr;
-    return &slots_[head % slots_.size()];
-  }
-  void produced() { head_.fetch_add(1, std::memory_order_release); }
-  Slot* consumerSlot() {
-    const std::size_t tail = tail_.load(std::memory_order_relaxed);
-    if (tail == head_.load(std::memory_order_acquire)) return nullptr;
-    return &slots_[tail % slots_.size()];
-  }
-  void consumed() { tail_.fetch_add(1, std::memory_order_release); }
-  void finish() { done_.store(true, std::memory_order_release); }
-  [[nodiscard]] bool finished() const { return done_.load(std::memory_order_acquire); }
-
- private:
-  std::vector<Slot> slots_;
-  std::atomic<std::size_t> head_{0};
-  std::atomic<std::size_t> tail_{0};
-  std::atomic<bool> done_{false};
+// What the dataset and the options decide before any thread starts.
+struct RunPlan {
+  dataset::EurocSequence sequence;
+  bool stereo;
+  double imu_noise_inflation;
+  SensorSetup setup;
+  std::unique_ptr<Tracker> tracker;
+  std::unique_ptr<Mapper> mapper;
+  std::vector<dataset::RigFrame> frames;
 };
 
-}  // namespace
-
-Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atomic<bool>& stop) {
-  AgentOptions options = options_in;
-  if (Status s = options.validate(); !s.ok()) return s.error();
+// Opens the dataset, chooses the mode and the IMU noise, and makes tracking and mapping for its sensors. Fills
+// what `options` takes from the sensors.
+Result<RunPlan> planRun(AgentOptions& options) {
   auto sequence = dataset::EurocSequence::open(options.dataset);
   if (!sequence) return sequence.error().withContext("dataset " + options.dataset.string());
   const dataset::EurocSequence& seq = *sequence;
@@ -148,7 +121,6 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   if (options.use_imu && !seq.imuCalibration()) {
     return Error{ErrorCode::kInvalidArgument, "the dataset has no imu0/sensor.yaml; run with use_imu: false"};
   }
-
   double inflation = options.imu_noise_inflation;
   if (inflation == 0.0) {
     // The simulator writes mission.yaml beside its agents' folders.
@@ -172,6 +144,469 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   std::vector<dataset::RigFrame> frames = framesToRun(seq, stereo);
   if (options.max_frames > 0 && frames.size() > options.max_frames) frames.resize(options.max_frames);
   if (frames.empty()) return Error{ErrorCode::kDataError, "the dataset has no usable camera frames"};
+  return RunPlan{
+      std::move(sequence).value(), stereo,           inflation, std::move(setup).value(), std::move(tracker).value(),
+      std::move(mapper).value(),   std::move(frames)};
+}
+
+// One iceoryx memory pool per message type, sized from its channel's queue (ChannelDepths). Sizes must grow by at
+// least a few KiB from pool to pool: near-equal ones share one pool.
+std::vector<MemPoolSpec> mempoolsFor(const ChannelDepths& depths, bool with_link) {
+  std::vector<MemPoolSpec> pools = {{128, 64},
+                                    {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), depths.keyframeChunks()},
+                                    {static_cast<std::uint32_t>(sizeof(MapSnapshotMessage)), depths.snapshotChunks()}};
+  if (with_link) {
+    pools.push_back({static_cast<std::uint32_t>(sizeof(MapDeltaMessage)), depths.deltaChunks()});
+    pools.push_back({static_cast<std::uint32_t>(sizeof(AnchorMessage)), depths.anchorChunks()});
+  }
+  std::sort(pools.begin(), pools.end(),
+            [](const MemPoolSpec& a, const MemPoolSpec& b) { return a.chunk_payload_bytes < b.chunk_payload_bytes; });
+  std::vector<MemPoolSpec> merged;
+  for (const MemPoolSpec& p : pools) {
+    if (!merged.empty() && p.chunk_payload_bytes < merged.back().chunk_payload_bytes + 4096) {
+      merged.back().chunk_payload_bytes = p.chunk_payload_bytes + 4096;
+      merged.back().chunk_count += p.chunk_count;
+    } else {
+      merged.push_back(p);
+    }
+  }
+  return merged;
+}
+
+// RouDi in this process (returned), or an attachment to an external iox-roudi (nullptr).
+Result<std::unique_ptr<EmbeddedRouDi>> startIceoryx(const AgentOptions& options, const ChannelDepths& depths) {
+  const std::string runtime_name =
+      options.runtime_name.empty() ? "cvislam_agent_" + std::to_string(options.agent) : options.runtime_name;
+  if (options.roudi == RouDiMode::kExternal) {
+    if (Status s = attachToExternalRouDi(runtime_name); !s.ok()) return s.error();
+    return std::unique_ptr<EmbeddedRouDi>();
+  }
+  EmbeddedRouDiOptions roudi_options;
+  roudi_options.runtime_name = runtime_name;
+  roudi_options.mempools = mempoolsFor(depths, !options.link.server.empty());
+  return EmbeddedRouDi::start(roudi_options);
+}
+
+// The per-stage latencies of the run, each with room for one sample per frame.
+struct StageLatencies {
+  explicit StageLatencies(std::size_t frames)
+      : orb("orb_extraction", frames),
+        matching("matching", frames),
+        pose("pose_optimisation", frames),
+        motion("motion_ba", frames),
+        keyframe("keyframe_write", frames),
+        tracking("tracking_total", frames),
+        receive("keyframe_publish_to_receive", frames),
+        local_ba("local_ba", frames),
+        mapping("mapping_total", frames) {}
+
+  void addFrame(const FrameResult& r) {
+    orb.add(r.times.orb_ns);
+    if (r.times.matching_ns > 0) matching.add(r.times.matching_ns);
+    if (r.times.pose_ns > 0) pose.add(r.times.pose_ns);
+    if (r.times.motion_ba_ns > 0) motion.add(r.times.motion_ba_ns);
+    if (r.keyframe) keyframe.add(r.times.keyframe_ns);
+    tracking.add(r.times.total_ns);
+  }
+  [[nodiscard]] std::vector<StageSummary> summarise() const {
+    std::vector<StageSummary> out;
+    for (const LatencyRecorder* r :
+         {&orb, &matching, &pose, &motion, &keyframe, &tracking, &receive, &local_ba, &mapping})
+      out.push_back(cvislam::agent::summarise(*r));
+    return out;
+  }
+
+  LatencyRecorder orb, matching, pose, motion, keyframe, tracking;  // tracking's thread
+  LatencyRecorder receive, local_ba, mapping;                       // mapping's thread
+};
+
+// The loader thread's work: every frame's images into the ring, until the end or until tracking closes it.
+void loadFrames(const dataset::EurocSequence& seq, const std::vector<dataset::RigFrame>& frames, bool stereo,
+                FrameRing& ring) {
+  dataset::GrayPngDecoder png;  // its buffers settle at the first frame's size
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    FrameRing::Slot* slot = ring.waitForFreeSlot();
+    if (slot == nullptr) return;  // tracking stopped
+    slot->t_ns = frames[i].t_ns;
+    slot->frame = i;
+    slot->ok = true;
+    slot->error.clear();
+    Status st = seq.loadImageInto(0, frames[i].cam0, slot->left, png);
+    if (st.ok() && stereo) st = seq.loadImageInto(1, *frames[i].cam1, slot->right, png);
+    if (!st.ok()) {
+      slot->ok = false;
+      slot->error = st.error().toString();
+    }
+    ring.produced();
+  }
+  ring.finish();
+}
+
+// Set once by one thread, waited for with a deadline by another.
+class Completion {
+ public:
+  void set() {
+    {
+      std::lock_guard lock(mutex_);
+      done_ = true;
+    }
+    changed_.notify_all();
+  }
+  bool waitUntil(std::chrono::steady_clock::time_point deadline) {
+    std::unique_lock lock(mutex_);
+    return changed_.wait_until(lock, deadline, [&] { return done_; });
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  bool done_ = false;
+};
+
+// The tracking thread's loop over the frames: tracks each one, adopts mapping's snapshots, counts what happened,
+// paces the run and reports progress. Its iceoryx ports and its wait on mapping's snapshots are made once, here.
+class TrackingLoop {
+ public:
+  struct Shared {
+    const AgentOptions& options;
+    const RunPlan& plan;
+    FrameRing& ring;
+    StageLatencies& latencies;
+    TrajectoryRecorder& recorder;
+    YieldRequests& yield_requests;
+    const std::atomic<bool>& stop;
+    const Link* link;  // progress text only; nullptr without a server
+  };
+
+  TrackingLoop(const Shared& shared, const ChannelDepths& depths)
+      : s_(shared),
+        tracker_(*shared.plan.tracker),
+        keyframe_pub_(service(shared.options.agent, "keyframes"), iox::popo::PublisherOptions{}),
+        snapshot_sub_(service(shared.options.agent, "map_snapshot"), snapshotOptions(depths)),
+        sink_(keyframe_pub_) {
+    snapshot_wait_.attachState(snapshot_sub_, iox::popo::SubscriberState::HAS_DATA).or_else([](auto) {
+      std::fprintf(stderr, "[agent] cannot wait on mapping's snapshots: iceoryx refused the wait set\n");
+    });
+  }
+
+  // Both sides must be connected before the first keyframe. RouDi connects publishers and subscribers
+  // asynchronously and iceoryx gives no event for it, so this start-up step alone polls, bounded by 10 s.
+  void awaitMapping(const std::atomic<bool>& mapping_ready) {
+    const auto deadline = Clock::now() + std::chrono::seconds(10);
+    while ((!mapping_ready.load() || !keyframe_pub_.hasSubscribers()) && Clock::now() < deadline) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    if (!keyframe_pub_.hasSubscribers())
+      std::fprintf(stderr, "[agent] warning: mapping did not subscribe within 10 s\n");
+  }
+
+  void run(AgentRunSummary& summary) {
+    wall_start_ = Clock::now();
+    last_progress_ = wall_start_;
+    while (true) {
+      if (s_.stop.load()) {
+        summary.interrupted = true;
+        break;
+      }
+      FrameRing::Slot* slot = s_.ring.waitForFrame();
+      if (slot == nullptr) break;
+      if (s_.options.pace == Pace::kRealtime) std::this_thread::sleep_until(sensorTimeDue(slot->t_ns));
+      drainSnapshots();
+      ++summary.frames;
+      if (!slot->ok) {
+        ++summary.unreadable_frames;
+        if (!s_.options.quiet)
+          std::fprintf(stderr, "[tracking] frame %zu skipped: %s\n", slot->frame, slot->error.c_str());
+        s_.ring.consumed();
+        continue;
+      }
+      const FrameInput input = frameInput(*slot);
+      const FrameResult r = tracker_.track(input, sink_);
+      previous_t_ns_ = slot->t_ns;
+      s_.ring.consumed();
+      s_.latencies.addFrame(r);
+      s_.recorder.addFrame(input.t_ns, r);
+      count(input.t_ns, r, summary);
+      waitForMappingIfPaced(r);
+      reportProgress(input.t_ns, r, summary);
+    }
+    summary.wall_s = std::chrono::duration<double>(Clock::now() - wall_start_).count();
+    summary.mean_tracked_points =
+        summary.tracked_frames > 0 ? static_cast<double>(tracked_points_sum_) / summary.tracked_frames : 0.0;
+  }
+
+  // Takes every snapshot mapping has published; the newest is kept (its chunk held) for tracking.
+  void drainSnapshots() {
+    while (true) {
+      auto taken = snapshot_sub_.take();
+      if (taken.has_error()) break;
+      if (held_) tsanRelease(held_->get());
+      held_.emplace(std::move(taken.value()));
+      tsanAcquire(held_->get());
+      tracker_.adoptSnapshot(held_->get());
+      s_.recorder.addSnapshot(*held_->get());
+    }
+  }
+
+ private:
+  static iox::popo::SubscriberOptions snapshotOptions(const ChannelDepths& depths) {
+    iox::popo::SubscriberOptions options;
+    options.queueCapacity = depths.snapshots;
+    return options;
+  }
+
+  [[nodiscard]] Clock::time_point sensorTimeDue(std::int64_t t_ns) const {
+    const std::int64_t since_first = t_ns - s_.plan.frames.front().t_ns;
+    return wall_start_ +
+           std::chrono::nanoseconds(static_cast<std::int64_t>(static_cast<double>(since_first) / s_.options.rate));
+  }
+
+  [[nodiscard]] FrameInput frameInput(const FrameRing::Slot& slot) const {
+    FrameInput input;
+    input.t_ns = slot.t_ns;
+    input.width = s_.plan.sequence.cam0().calibration.width;
+    input.height = s_.plan.sequence.cam0().calibration.height;
+    input.left = slot.left;
+    if (s_.plan.stereo) input.right = slot.right;
+    // The IMU covering [previous frame, this frame].
+    if (s_.options.use_imu) {
+      input.imu = imuCovering(s_.plan.sequence.imu(), previous_t_ns_ < 0 ? slot.t_ns : previous_t_ns_, slot.t_ns);
+    }
+    return input;
+  }
+
+  void count(std::int64_t t_ns, const FrameResult& r, AgentRunSummary& summary) {
+    const bool quiet = s_.options.quiet;
+    const double t_s = static_cast<double>(t_ns) * 1e-9;
+    if (r.tracked) {
+      ++summary.tracked_frames;
+      tracked_points_sum_ += static_cast<std::size_t>(r.inliers);
+    }
+    if (r.keyframe) ++summary.keyframes;
+    if (r.issue == FrameIssue::kImuGap) {
+      ++summary.imu_gaps;
+      if (!quiet) std::fprintf(stderr, "[tracking] t=%.3f s: IMU gap; this frame predicts without it\n", t_s);
+    }
+    if (r.issue == FrameIssue::kKeyframeDropped) ++summary.dropped_keyframes;
+    if (r.keyframe_deferred) ++summary.deferred_keyframes;
+    if (r.keyframe_overdue) s_.yield_requests.request();
+    if (r.needs_mapping) ++summary.frames_needing_mapping;
+    summary.most_pending_keyframes = std::max(summary.most_pending_keyframes, r.pending_keyframes);
+    if (!r.tracked && r.status != TrackingStatus::kWaitingForMap) {
+      ++summary.lost_frames;
+      if (!quiet && r.status == TrackingStatus::kRelocalising) {
+        std::fprintf(stderr, "[tracking] t=%.3f s: %s (%d keypoints, %d matches); relocalising\n", t_s,
+                     toString(r.issue), r.keypoints, r.matches);
+      }
+    }
+    if (r.status == TrackingStatus::kWaitingForMap && previous_status_ == TrackingStatus::kRelocalising && !quiet) {
+      std::fprintf(stderr, "[tracking] t=%.3f s: relocalisation failed for %d frames: starting a new map\n", t_s,
+                   s_.options.tracking.max_lost_frames);
+    }
+    previous_status_ = r.status;
+  }
+
+  // At fast pace there is no sensor clock to keep: tracking waits for mapping to answer a pending keyframe rather
+  // than run ahead of the map. At sync pace it waits after every keyframe, so runs repeat. Woken by the snapshot
+  // itself; the bounded slices only let a stop request in.
+  void waitForMappingIfPaced(const FrameResult& r) {
+    const Pace pace = s_.options.pace;
+    const bool fast_wait = pace == Pace::kFast && r.needs_mapping && r.pending_keyframes > 0;
+    const bool sync_wait = pace == Pace::kSync && r.keyframe;
+    if (!fast_wait && !sync_wait) return;
+    const auto still_waiting = [&] {
+      return fast_wait ? tracker_.pendingKeyframes() >= r.pending_keyframes : tracker_.awaitingKeyframe(nullptr);
+    };
+    const auto deadline = Clock::now() + (fast_wait ? std::chrono::seconds(10) : std::chrono::seconds(30));
+    while (still_waiting() && !s_.stop.load()) {
+      const auto now = Clock::now();
+      if (now >= deadline) break;
+      const auto slice = std::min<Clock::duration>(deadline - now, std::chrono::milliseconds(100));
+      snapshot_wait_.timedWait(
+          iox::units::Duration::fromNanoseconds(std::chrono::duration_cast<std::chrono::nanoseconds>(slice).count()));
+      drainSnapshots();
+    }
+  }
+
+  void reportProgress(std::int64_t t_ns, const FrameResult& r, const AgentRunSummary& summary) {
+    const auto now = Clock::now();
+    const double since_s = std::chrono::duration<double>(now - last_progress_).count();
+    if (s_.options.quiet || since_s < s_.options.progress_interval_s) return;
+    const double fps = static_cast<double>(summary.frames - frames_at_progress_) / since_s;
+    const MapSnapshotMessage* map = held_ ? held_->get() : nullptr;
+    std::fprintf(stderr,
+                 "[agent] frame %zu/%zu  t=%.1f s  %.1f fps  %-15s  inliers %3d  map %2u KF %5u pts  IMU %s%s%s\n",
+                 summary.frames, s_.plan.frames.size(), static_cast<double>(t_ns - s_.plan.frames.front().t_ns) * 1e-9,
+                 fps, toString(r.status), r.inliers, map ? map->keyframe_count : 0U, map ? map->point_count : 0U,
+                 tracker_.imuInitialised() ? "initialised" : "not yet", s_.link ? "  " : "",
+                 s_.link ? s_.link->progressText().c_str() : "");
+    last_progress_ = now;
+    frames_at_progress_ = summary.frames;
+  }
+
+  Shared s_;
+  Tracker& tracker_;
+  iox::popo::Publisher<KeyframeMessage> keyframe_pub_;
+  iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub_;
+  iox::popo::WaitSet<1> snapshot_wait_;
+  IceoryxKeyframeSink sink_;
+  std::optional<iox::popo::Sample<const MapSnapshotMessage>> held_;
+  Clock::time_point wall_start_;
+  Clock::time_point last_progress_;
+  std::size_t frames_at_progress_ = 0;
+  std::int64_t previous_t_ns_ = -1;
+  std::size_t tracked_points_sum_ = 0;
+  TrackingStatus previous_status_ = TrackingStatus::kWaitingForMap;
+};
+
+// The link to the server on its own thread, fed by mapping's deltas over iceoryx; it passes the server's anchors
+// back to mapping.
+class LinkThread {
+ public:
+  LinkThread(std::unique_ptr<Link> link, const AgentOptions& options, const ChannelDepths& depths,
+             const std::function<void()>& schedule)
+      : link_(std::move(link)), options_(options) {
+    thread_ = std::thread([this, depths, schedule] {
+      schedule();
+      iox::popo::SubscriberOptions delta_options;
+      delta_options.queueCapacity = depths.deltas;
+      iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options_.agent, "map_delta"), delta_options);
+      IceoryxDeltaSource source(subscriber);
+      iox::popo::Publisher<AnchorMessage> anchor_publisher(service(options_.agent, "anchors"),
+                                                           iox::popo::PublisherOptions{});
+      IceoryxAnchorSink anchor_sink(anchor_publisher);
+      link_->run(source, stop_, &anchor_sink);
+      done_.set();
+    });
+  }
+  ~LinkThread() {
+    stop_.store(true);
+    if (thread_.joinable()) thread_.join();
+  }
+  LinkThread(const LinkThread&) = delete;
+  LinkThread& operator=(const LinkThread&) = delete;
+
+  [[nodiscard]] const Link& link() const { return *link_; }
+
+  // Mapping has published its last delta: the link sends what is left and waits for the acknowledgements. It
+  // ends within its flush timeout, unless a write is stuck on a server that stopped reading (it still answers
+  // keepalive pings): then its stream is cancelled.
+  LinkStatus finish() {
+    if (!options_.quiet) std::fprintf(stderr, "[link] end of run: %s; flushing\n", link_->progressText().c_str());
+    stop_.store(true);
+    const auto give_up = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                            std::chrono::duration<double>(options_.link.flush_timeout_s + 5.0));
+    if (!done_.waitUntil(give_up)) {
+      std::fprintf(stderr, "[link] the server stopped reading: cancelling the stream\n");
+      link_->abort();
+    }
+    thread_.join();
+    LinkStatus status = link_->status();
+    if (!options_.quiet) {
+      const std::size_t waiting = status.backlog.keyframes_unsent + status.backlog.keyframes_unacked;
+      std::fprintf(stderr, "[link] %s: %llu batches acknowledged, %zu keyframes not acknowledged\n",
+                   status.flushed ? "flushed" : "NOT flushed (server unreachable or too slow)",
+                   static_cast<unsigned long long>(status.acked_sequence), waiting);
+    }
+    return status;
+  }
+
+  [[nodiscard]] Status writeReport(const std::filesystem::path& folder) const { return link_->writeReport(folder); }
+
+ private:
+  std::unique_ptr<Link> link_;
+  const AgentOptions& options_;
+  std::atomic<bool> stop_{false};
+  Completion done_;
+  std::thread thread_;
+};
+
+// What mapping counted, into the run's summary.
+void addMappingFigures(const MappingStats& stats, const YieldRequests& yield_requests, std::int64_t first_frame_t_ns,
+                       AgentRunSummary& summary) {
+  summary.new_maps = stats.new_maps;
+  summary.local_ba_skipped = stats.ba_skipped;
+  summary.local_ba_stopped_early = stats.ba_stopped_early;
+  summary.local_ba_yielded_to_tracking = stats.ba_yielded_to_tracking;
+  summary.mapping_yield_requests = yield_requests.requests();
+  summary.lost_keyframe_messages = stats.lost_messages;
+  summary.imu_initialised_at_s =
+      stats.imu_initialised_at_s < 0 ? -1.0 : stats.imu_initialised_at_s - static_cast<double>(first_frame_t_ns) * 1e-9;
+}
+
+// summary.json.
+nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& options, const RunPlan& plan,
+                           const MappingStats& mapping_stats) {
+  nlohmann::json j = {{"frames", summary.frames},
+                      {"tracked_frames", summary.tracked_frames},
+                      {"keyframes", summary.keyframes},
+                      {"new_maps", summary.new_maps},
+                      {"lost_frames", summary.lost_frames},
+                      {"unreadable_frames", summary.unreadable_frames},
+                      {"imu_gaps", summary.imu_gaps},
+                      {"dropped_keyframes", summary.dropped_keyframes},
+                      {"deferred_keyframes", summary.deferred_keyframes},
+                      {"frames_needing_mapping", summary.frames_needing_mapping},
+                      {"most_pending_keyframes", summary.most_pending_keyframes},
+                      {"mapping_yield_requests", summary.mapping_yield_requests},
+                      {"local_ba_skipped", summary.local_ba_skipped},
+                      {"local_ba_stopped_early", summary.local_ba_stopped_early},
+                      {"local_ba_yielded_to_tracking", summary.local_ba_yielded_to_tracking},
+                      {"imu_initialised_at_s", summary.imu_initialised_at_s},
+                      {"mean_tracked_points", summary.mean_tracked_points},
+                      {"mode", plan.stereo ? "stereo" : "mono"},
+                      {"imu_noise_inflation", plan.imu_noise_inflation},
+                      {"interrupted", summary.interrupted},
+                      {"wall_s", summary.wall_s}};
+  if (summary.link_enabled) {
+    j["link"] = {
+        {"server", options.link.server},
+        {"mission", options.link.mission},
+        {"flushed", summary.link.flushed},
+        {"connections", summary.link.connections},
+        {"acked_sequence", summary.link.acked_sequence},
+        {"keyframes_unacknowledged", summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked},
+        {"keyframes_dropped", summary.link.store.keyframes_dropped},
+        {"deltas_lost", summary.link.store.deltas_lost},
+        {"up_bytes", summary.link.up_bytes},
+        {"down_bytes", summary.link.down_bytes}};
+    j["downlink"] = mapping_stats.downlinkJson();
+  }
+  return j;
+}
+
+// The trajectories, latency.json and summary.json (the link's report is written by the link).
+Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& recorder,
+                       const nlohmann::json& summary_json, AgentRunSummary& summary) {
+  dataset::Trajectory refined;
+  dataset::Trajectory online;
+  dataset::Trajectory keyframes;
+  recorder.build(refined, online, keyframes);
+  summary.trajectory = options.output / "trajectory.txt";
+  summary.keyframe_trajectory = options.output / "keyframes.txt";
+  summary.latency_json = options.output / "latency.json";
+  for (const auto& [path, trajectory] :
+       {std::pair{summary.trajectory, &refined}, std::pair{options.output / "trajectory_online.txt", &online},
+        std::pair{summary.keyframe_trajectory, &keyframes}}) {
+    if (Status s = dataset::writeTrajectory(path, *trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) return s;
+  }
+  std::ofstream latency(summary.latency_json);
+  latency << latencyJson(summary.stages);
+  if (!latency) return Error{ErrorCode::kIoError, "cannot write " + summary.latency_json.string()};
+  std::ofstream json(options.output / "summary.json");
+  json << summary_json.dump(2) << "\n";
+  if (!json) return Error{ErrorCode::kIoError, "cannot write " + (options.output / "summary.json").string()};
+  return Status::Ok();
+}
+
+}  // namespace
+
+Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atomic<bool>& stop) {
+  AgentOptions options = options_in;
+  if (Status s = options.validate(); !s.ok()) return s.error();
+  auto planned = planRun(options);
+  if (!planned) return planned.error();
+  RunPlan& plan = *planned;
 
   std::error_code ec;
   std::filesystem::create_directories(options.output, ec);
@@ -179,63 +614,18 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     return Error{ErrorCode::kIoError,
                  "cannot create the output folder " + options.output.string() + ": " + ec.message()};
   }
-
-  // iceoryx: RouDi in this process, or an external iox-roudi.
-  std::unique_ptr<EmbeddedRouDi> roudi;
   const ChannelDepths depths = ChannelDepths::forLag(options.tracking.lag);
-  const std::string runtime_name =
-      options.runtime_name.empty() ? "cvislam_agent_" + std::to_string(options.agent) : options.runtime_name;
-  if (options.roudi == RouDiMode::kEmbedded) {
-    EmbeddedRouDiOptions roudi_options;
-    roudi_options.runtime_name = runtime_name;
-    // A pool per message type, sized from its channel's queue (see ChannelDepths).
-    std::vector<MemPoolSpec> pools = {
-        {128, 64},
-        {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), depths.keyframeChunks()},
-        {static_cast<std::uint32_t>(sizeof(MapSnapshotMessage)), depths.snapshotChunks()}};
-    if (!options.link.server.empty()) {
-      pools.push_back({static_cast<std::uint32_t>(sizeof(MapDeltaMessage)), depths.deltaChunks()});
-      pools.push_back({static_cast<std::uint32_t>(sizeof(AnchorMessage)), depths.anchorChunks()});
-    }
-    std::sort(pools.begin(), pools.end(),
-              [](const MemPoolSpec& a, const MemPoolSpec& b) { return a.chunk_payload_bytes < b.chunk_payload_bytes; });
-    // Sizes must grow by at least a few KiB from pool to pool: near-equal ones share one pool.
-    roudi_options.mempools.clear();
-    for (const MemPoolSpec& p : pools) {
-      if (!roudi_options.mempools.empty() &&
-          p.chunk_payload_bytes < roudi_options.mempools.back().chunk_payload_bytes + 4096) {
-        roudi_options.mempools.back().chunk_payload_bytes = p.chunk_payload_bytes + 4096;
-        roudi_options.mempools.back().chunk_count += p.chunk_count;
-      } else {
-        roudi_options.mempools.push_back(p);
-      }
-    }
-    auto started = EmbeddedRouDi::start(roudi_options);
-    if (!started) return started.error();
-    roudi = std::move(started.value());
-  } else if (Status s = attachToExternalRouDi(runtime_name); !s.ok()) {
-    return s.error();
-  }
+  auto roudi = startIceoryx(options, depths);
+  if (!roudi) return roudi.error();
 
-  const std::size_t n_frames = frames.size();
-  LatencyRecorder orb_ms("orb_extraction", n_frames);
-  LatencyRecorder matching_ms("matching", n_frames);
-  LatencyRecorder pose_ms("pose_optimisation", n_frames);
-  LatencyRecorder motion_ms("motion_ba", n_frames);
-  LatencyRecorder keyframe_ms("keyframe_write", n_frames);
-  LatencyRecorder tracking_ms("tracking_total", n_frames);
-  LatencyRecorder receive_ms("keyframe_publish_to_receive", n_frames);
-  LatencyRecorder ba_ms("local_ba", n_frames);
-  LatencyRecorder mapping_ms("mapping_total", n_frames);
+  const std::size_t n_frames = plan.frames.size();
+  StageLatencies latencies(n_frames);
   MappingStats mapping_stats;
-
   AgentRunSummary summary;
   TrajectoryRecorder recorder(n_frames);
-  const int width = seq.cam0().calibration.width;
-  const int height = seq.cam0().calibration.height;
-  const auto pixels = static_cast<std::size_t>(width) * static_cast<std::size_t>(height);
-  FrameRing ring(options.frame_ring_size, pixels, stereo);
-  std::atomic<bool> loader_stop{false};
+  const auto& cam0 = plan.sequence.cam0().calibration;
+  FrameRing ring(options.frame_ring_size, static_cast<std::size_t>(cam0.width) * static_cast<std::size_t>(cam0.height),
+                 plan.stereo);
   std::atomic<bool> tracking_done{false};
   std::atomic<bool> mapping_ready{false};
   YieldRequests yield_requests;  // tracking -> mapping: cut the local BA short (FrameResult::keyframe_overdue)
@@ -255,317 +645,67 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   std::thread loader([&] {
     schedule_this_thread("loader", threads.loader);
-    dataset::GrayPngDecoder png;  // its buffers settle at the first frame's size
-    for (std::size_t i = 0; i < frames.size(); ++i) {
-      FrameRing::Slot* slot = nullptr;
-      while ((slot = ring.producerSlot()) == nullptr) {
-        if (loader_stop.load() || stop.load()) {
-          ring.finish();
-          return;
-        }
-        std::this_thread::sleep_for(std::chrono::microseconds(200));
-      }
-      slot->t_ns = frames[i].t_ns;
-      slot->frame = i;
-      slot->ok = true;
-      slot->error.clear();
-      Status st = seq.loadImageInto(0, frames[i].cam0, slot->left, png);
-      if (st.ok() && stereo) st = seq.loadImageInto(1, *frames[i].cam1, slot->right, png);
-      if (!st.ok()) {
-        slot->ok = false;
-        slot->error = st.error().toString();
-      }
-      ring.produced();
-    }
-    ring.finish();
+    loadFrames(plan.sequence, plan.frames, plan.stereo, ring);
   });
 
-  // The link to the server, when there is one: its own thread, fed by mapping's deltas.
-  std::unique_ptr<Link> link;
-  std::atomic<bool> link_stop{false};
-  std::atomic<bool> link_done{false};
-  std::thread link_thread;
+  std::unique_ptr<LinkThread> link;
   if (!options.link.server.empty()) {
     LinkOptions link_options = options.link;
     link_options.local_map_keyframes = static_cast<std::uint32_t>(options.mapping.max_keyframes);
-    auto created = Link::create(link_options, options.agent, linkSensors(seq, *setup, stereo, options.use_imu));
-    if (!created) return created.error();
-    link = std::move(created.value());
+    auto created =
+        Link::create(link_options, options.agent, linkSensors(plan.sequence, plan.setup, plan.stereo, options.use_imu));
+    if (!created) {
+      ring.close();
+      loader.join();
+      return created.error();
+    }
     if (!options.quiet) {
       std::fprintf(stderr, "[link] server %s, mission '%s', agent %u\n", options.link.server.c_str(),
                    options.link.mission.c_str(), static_cast<unsigned>(options.agent));
     }
-    link_thread = std::thread([&] {
-      schedule_this_thread("link", threads.link);
-      iox::popo::SubscriberOptions delta_options;
-      delta_options.queueCapacity = depths.deltas;
-      iox::popo::Subscriber<MapDeltaMessage> subscriber(service(options.agent, "map_delta"), delta_options);
-      IceoryxDeltaSource source(subscriber);
-      iox::popo::PublisherOptions anchor_options;
-      iox::popo::Publisher<AnchorMessage> anchor_publisher(service(options.agent, "anchors"), anchor_options);
-      IceoryxAnchorSink anchor_sink(anchor_publisher);
-      link->run(source, link_stop, &anchor_sink);
-      link_done.store(true);
-    });
+    link = std::make_unique<LinkThread>(std::move(created.value()), options, depths,
+                                        [&] { schedule_this_thread("link", threads.link); });
   }
 
+  // Woken when tracking is done, so mapping waits on events alone.
+  iox::popo::UserTrigger tracking_done_trigger;
   std::thread mapping([&] {
     schedule_this_thread("mapping", threads.mapping);
-    mappingThread(**mapper, options, tracking_done, stop, receive_ms, ba_ms, mapping_ms, mapping_stats, mapping_ready,
-                  yield_requests);
+    mappingThread(*plan.mapper, options, tracking_done_trigger,
+                  {tracking_done, stop, mapping_ready, latencies.receive, latencies.local_ba, latencies.mapping,
+                   mapping_stats, yield_requests});
   });
 
   // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.
   const ThreadScheduleRestorer restore_caller;
   schedule_this_thread("tracking", threads.tracking);
   {
-    iox::popo::PublisherOptions pub_options;
-    iox::popo::Publisher<KeyframeMessage> keyframe_pub(service(options.agent, "keyframes"), pub_options);
-    iox::popo::SubscriberOptions sub_options;
-    sub_options.queueCapacity = depths.snapshots;
-    iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub(service(options.agent, "map_snapshot"), sub_options);
-    IceoryxKeyframeSink sink(keyframe_pub);
-    std::optional<iox::popo::Sample<const MapSnapshotMessage>> held;
-
-    // Both sides must be connected before the first keyframe (RouDi connects them asynchronously).
-    const auto connect_deadline = Clock::now() + std::chrono::seconds(10);
-    while ((!mapping_ready.load() || !keyframe_pub.hasSubscribers()) && Clock::now() < connect_deadline) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(5));
-    }
-    if (!keyframe_pub.hasSubscribers())
-      std::fprintf(stderr, "[agent] warning: mapping did not subscribe within 10 s\n");
-
-    const auto drain_snapshots = [&] {
-      while (true) {
-        auto taken = snapshot_sub.take();
-        if (taken.has_error()) break;
-        if (held) tsanRelease(held->get());
-        held.emplace(std::move(taken.value()));
-        tsanAcquire(held->get());
-        tracker.value()->adoptSnapshot(held->get());
-        recorder.addSnapshot(*held->get());
-      }
-    };
-
-    const std::vector<dataset::ImuSample>& imu = seq.imu();
-    const auto wall_start = Clock::now();
-    auto last_progress = wall_start;
-    std::size_t frames_at_progress = 0;
-    std::int64_t previous_t_ns = -1;
-    std::size_t tracked_points_sum = 0;
-    TrackingStatus previous_status = TrackingStatus::kWaitingForMap;
-    while (true) {
-      if (stop.load()) {
-        summary.interrupted = true;
-        break;
-      }
-      FrameRing::Slot* slot = ring.consumerSlot();
-      if (slot == nullptr) {
-        if (ring.finished() && ring.consumerSlot() == nullptr) break;
-        std::this_thread::sleep_for(std::chrono::microseconds(100));
-        continue;
-      }
-      if (options.pace == Pace::kRealtime) {
-        const auto due = wall_start + std::chrono::nanoseconds(static_cast<std::int64_t>(
-                                          static_cast<double>(slot->t_ns - frames.front().t_ns) / options.rate));
-        std::this_thread::sleep_until(due);
-      }
-      drain_snapshots();
-      ++summary.frames;
-      if (!slot->ok) {
-        ++summary.unreadable_frames;
-        if (!options.quiet)
-          std::fprintf(stderr, "[tracking] frame %zu skipped: %s\n", slot->frame, slot->error.c_str());
-        ring.consumed();
-        continue;
-      }
-      // The IMU covering [previous frame, this frame].
-      std::span<const dataset::ImuSample> imu_span;
-      if (options.use_imu) imu_span = imuCovering(imu, previous_t_ns < 0 ? slot->t_ns : previous_t_ns, slot->t_ns);
-      FrameInput input;
-      input.t_ns = slot->t_ns;
-      input.width = width;
-      input.height = height;
-      input.left = slot->left;
-      if (stereo) input.right = slot->right;
-      input.imu = imu_span;
-      const FrameResult r = tracker.value()->track(input, sink);
-      previous_t_ns = slot->t_ns;
-      ring.consumed();
-
-      orb_ms.add(r.times.orb_ns);
-      if (r.times.matching_ns > 0) matching_ms.add(r.times.matching_ns);
-      if (r.times.pose_ns > 0) pose_ms.add(r.times.pose_ns);
-      if (r.times.motion_ba_ns > 0) motion_ms.add(r.times.motion_ba_ns);
-      if (r.keyframe) keyframe_ms.add(r.times.keyframe_ns);
-      tracking_ms.add(r.times.total_ns);
-      recorder.addFrame(input.t_ns, r);
-      if (r.tracked) {
-        ++summary.tracked_frames;
-        tracked_points_sum += static_cast<std::size_t>(r.inliers);
-      }
-      if (r.keyframe) ++summary.keyframes;
-      if (r.issue == FrameIssue::kImuGap) {
-        ++summary.imu_gaps;
-        if (!options.quiet)
-          std::fprintf(stderr, "[tracking] t=%.3f s: IMU gap; this frame predicts without it\n", input.t_ns * 1e-9);
-      }
-      if (r.issue == FrameIssue::kKeyframeDropped) ++summary.dropped_keyframes;
-      if (r.keyframe_deferred) ++summary.deferred_keyframes;
-      if (r.keyframe_overdue) yield_requests.request();
-      if (r.needs_mapping) ++summary.frames_needing_mapping;
-      summary.most_pending_keyframes = std::max(summary.most_pending_keyframes, r.pending_keyframes);
-      if (!r.tracked && r.status != TrackingStatus::kWaitingForMap) {
-        ++summary.lost_frames;
-        if (!options.quiet && r.status == TrackingStatus::kRelocalising) {
-          std::fprintf(stderr, "[tracking] t=%.3f s: %s (%d keypoints, %d matches); relocalising\n", input.t_ns * 1e-9,
-                       toString(r.issue), r.keypoints, r.matches);
-        }
-      }
-      if (r.status == TrackingStatus::kWaitingForMap && previous_status == TrackingStatus::kRelocalising &&
-          !options.quiet) {
-        std::fprintf(stderr, "[tracking] t=%.3f s: relocalisation failed for %d frames: starting a new map\n",
-                     static_cast<double>(input.t_ns) * 1e-9, options.tracking.max_lost_frames);
-      }
-      previous_status = r.status;
-
-      if (options.pace == Pace::kFast && r.needs_mapping) {
-        // No sensor clock to keep: wait for mapping to answer a pending keyframe rather than run ahead of the map.
-        const auto deadline = Clock::now() + std::chrono::seconds(10);
-        while (tracker.value()->pendingKeyframes() >= r.pending_keyframes && r.pending_keyframes > 0 &&
-               Clock::now() < deadline && !stop.load()) {
-          std::this_thread::sleep_for(std::chrono::microseconds(200));
-          drain_snapshots();
-        }
-      }
-      if (options.pace == Pace::kSync && r.keyframe) {
-        const auto deadline = Clock::now() + std::chrono::seconds(30);
-        while (tracker.value()->awaitingKeyframe(nullptr) && Clock::now() < deadline && !stop.load()) {
-          std::this_thread::sleep_for(std::chrono::microseconds(200));
-          drain_snapshots();
-        }
-      }
-
-      const auto now = Clock::now();
-      if (!options.quiet && std::chrono::duration<double>(now - last_progress).count() >= options.progress_interval_s) {
-        const double fps = static_cast<double>(summary.frames - frames_at_progress) /
-                           std::chrono::duration<double>(now - last_progress).count();
-        const MapSnapshotMessage* map = held ? held->get() : nullptr;
-        std::fprintf(stderr,
-                     "[agent] frame %zu/%zu  t=%.1f s  %.1f fps  %-15s  inliers %3d  map %2u KF %5u pts  IMU %s%s%s\n",
-                     summary.frames, n_frames, static_cast<double>(input.t_ns - frames.front().t_ns) * 1e-9, fps,
-                     toString(r.status), r.inliers, map ? map->keyframe_count : 0U, map ? map->point_count : 0U,
-                     tracker.value()->imuInitialised() ? "initialised" : "not yet", link ? "  " : "",
-                     link ? link->progressText().c_str() : "");
-        last_progress = now;
-        frames_at_progress = summary.frames;
-      }
-    }
-    summary.wall_s = std::chrono::duration<double>(Clock::now() - wall_start).count();
-    summary.mean_tracked_points =
-        summary.tracked_frames > 0 ? static_cast<double>(tracked_points_sum) / summary.tracked_frames : 0.0;
-    loader_stop.store(true);
+    TrackingLoop tracking(
+        {options, plan, ring, latencies, recorder, yield_requests, stop, link ? &link->link() : nullptr}, depths);
+    tracking.awaitMapping(mapping_ready);
+    tracking.run(summary);
+    ring.close();
     tracking_done.store(true);
+    tracking_done_trigger.trigger();
     mapping.join();
     loader.join();
-    drain_snapshots();  // the last refinements
+    tracking.drainSnapshots();  // the last refinements
   }
   if (link) {
-    // Mapping has published its last delta: the link sends what is left and waits for the acknowledgements.
-    if (!options.quiet) std::fprintf(stderr, "[link] end of run: %s; flushing\n", link->progressText().c_str());
-    link_stop.store(true);
-    // The link ends within its flush timeout, unless a write is stuck on a server that stopped reading (it still
-    // answers keepalive pings): then its stream is cancelled.
-    const auto give_up = Clock::now() + std::chrono::duration_cast<Clock::duration>(
-                                            std::chrono::duration<double>(options.link.flush_timeout_s + 5.0));
-    while (!link_done.load() && Clock::now() < give_up) std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    if (!link_done.load()) {
-      std::fprintf(stderr, "[link] the server stopped reading: cancelling the stream\n");
-      link->abort();
-    }
-    link_thread.join();
     summary.link_enabled = true;
-    summary.link = link->status();
-    if (!options.quiet) {
-      const std::size_t waiting = summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked;
-      std::fprintf(stderr, "[link] %s: %llu batches acknowledged, %zu keyframes not acknowledged\n",
-                   summary.link.flushed ? "flushed" : "NOT flushed (server unreachable or too slow)",
-                   static_cast<unsigned long long>(summary.link.acked_sequence), waiting);
-    }
+    summary.link = link->finish();
   }
-
-  summary.new_maps = mapping_stats.new_maps;
-  summary.local_ba_skipped = mapping_stats.ba_skipped;
-  summary.local_ba_stopped_early = mapping_stats.ba_stopped_early;
-  summary.local_ba_yielded_to_tracking = mapping_stats.ba_yielded_to_tracking;
-  summary.mapping_yield_requests = yield_requests.requests();
-  summary.lost_keyframe_messages = mapping_stats.lost_messages;
-  summary.imu_initialised_at_s =
-      mapping_stats.imu_initialised_at_s < 0
-          ? -1.0
-          : mapping_stats.imu_initialised_at_s - static_cast<double>(frames.front().t_ns) * 1e-9;
-  for (const LatencyRecorder* r :
-       {&orb_ms, &matching_ms, &pose_ms, &motion_ms, &keyframe_ms, &tracking_ms, &receive_ms, &ba_ms, &mapping_ms}) {
-    summary.stages.push_back(summarise(*r));
-  }
+  addMappingFigures(mapping_stats, yield_requests, plan.frames.front().t_ns, summary);
+  summary.stages = latencies.summarise();
 
   // Outputs, on every path that got here (end of data, SIGINT/SIGTERM).
-  dataset::Trajectory refined;
-  dataset::Trajectory online;
-  dataset::Trajectory keyframes;
-  recorder.build(refined, online, keyframes);
-  summary.trajectory = options.output / "trajectory.txt";
-  summary.keyframe_trajectory = options.output / "keyframes.txt";
-  summary.latency_json = options.output / "latency.json";
-  for (const auto& [path, trajectory] :
-       {std::pair{summary.trajectory, &refined}, std::pair{options.output / "trajectory_online.txt", &online},
-        std::pair{summary.keyframe_trajectory, &keyframes}}) {
-    if (Status s = dataset::writeTrajectory(path, *trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) {
-      return s.error();
-    }
-  }
   if (link) {
     if (Status s = link->writeReport(options.output); !s.ok()) return s.error();
   }
-  std::ofstream latency(summary.latency_json);
-  latency << latencyJson(summary.stages);
-  if (!latency) return Error{ErrorCode::kIoError, "cannot write " + summary.latency_json.string()};
-  nlohmann::json j = {{"frames", summary.frames},
-                      {"tracked_frames", summary.tracked_frames},
-                      {"keyframes", summary.keyframes},
-                      {"new_maps", summary.new_maps},
-                      {"lost_frames", summary.lost_frames},
-                      {"unreadable_frames", summary.unreadable_frames},
-                      {"imu_gaps", summary.imu_gaps},
-                      {"dropped_keyframes", summary.dropped_keyframes},
-                      {"deferred_keyframes", summary.deferred_keyframes},
-                      {"frames_needing_mapping", summary.frames_needing_mapping},
-                      {"most_pending_keyframes", summary.most_pending_keyframes},
-                      {"mapping_yield_requests", summary.mapping_yield_requests},
-                      {"local_ba_skipped", summary.local_ba_skipped},
-                      {"local_ba_stopped_early", summary.local_ba_stopped_early},
-                      {"local_ba_yielded_to_tracking", summary.local_ba_yielded_to_tracking},
-                      {"imu_initialised_at_s", summary.imu_initialised_at_s},
-                      {"mean_tracked_points", summary.mean_tracked_points},
-                      {"mode", stereo ? "stereo" : "mono"},
-                      {"imu_noise_inflation", inflation},
-                      {"interrupted", summary.interrupted},
-                      {"wall_s", summary.wall_s}};
-  if (summary.link_enabled) {
-    j["link"] = {
-        {"server", options.link.server},
-        {"mission", options.link.mission},
-        {"flushed", summary.link.flushed},
-        {"connections", summary.link.connections},
-        {"acked_sequence", summary.link.acked_sequence},
-        {"keyframes_unacknowledged", summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked},
-        {"keyframes_dropped", summary.link.store.keyframes_dropped},
-        {"deltas_lost", summary.link.store.deltas_lost},
-        {"up_bytes", summary.link.up_bytes},
-        {"down_bytes", summary.link.down_bytes}};
-    j["downlink"] = mapping_stats.downlinkJson();
+  if (Status s = writeRunOutputs(options, recorder, summaryJson(summary, options, plan, mapping_stats), summary);
+      !s.ok()) {
+    return s.error();
   }
-  std::ofstream(options.output / "summary.json") << j.dump(2) << "\n";
   return summary;
 }
 

@@ -16,6 +16,10 @@
 #include "agent_rt/runtime/latency_profile.hpp"
 #include "agent_rt/runtime/yield_requests.hpp"
 
+namespace iox::popo {
+class UserTrigger;
+}  // namespace iox::popo
+
 namespace cvislam::agent {
 
 struct MappingStats {
@@ -73,12 +77,23 @@ struct MappingStats {
   [[nodiscard]] nlohmann::json downlinkJson() const;
 };
 
-// Runs until tracking is done (or `stop`) and every keyframe it sent is processed. `ready` is set once the
-// snapshot (and delta) topics have their subscribers. Local BA yields (MapperOptions::yield_to_waiting_keyframes)
-// to a keyframe already queued, and to tracking's requests since the keyframe was taken (`yield_requests`).
-void mappingThread(Mapper& mapper, const AgentOptions& options, std::atomic<bool>& tracking_done,
-                   const std::atomic<bool>& stop, LatencyRecorder& receive, LatencyRecorder& local_ba,
-                   LatencyRecorder& mapping_total, MappingStats& stats, std::atomic<bool>& ready,
-                   YieldRequests& yield_requests);
+// What the mapping thread shares with the rest of the agent: flags it reads, figures it writes.
+struct MappingLoopShared {
+  const std::atomic<bool>& tracking_done;
+  const std::atomic<bool>& stop;
+  std::atomic<bool>& ready;  // set once the snapshot (and delta) topics have their subscribers
+  LatencyRecorder& receive;
+  LatencyRecorder& local_ba;
+  LatencyRecorder& mapping_total;
+  MappingStats& stats;
+  YieldRequests& yield_requests;
+};
+
+// Runs until tracking is done (or `stop`) and every keyframe it sent is processed; it waits on its iceoryx
+// subscribers and on `tracking_done_trigger`, which tracking fires once it has set `tracking_done`. Local BA
+// yields (MapperOptions::yield_to_waiting_keyframes) to a keyframe already queued, and to tracking's requests
+// since the keyframe was taken (`yield_requests`).
+void mappingThread(Mapper& mapper, const AgentOptions& options, iox::popo::UserTrigger& tracking_done_trigger,
+                   const MappingLoopShared& shared);
 
 }  // namespace cvislam::agent

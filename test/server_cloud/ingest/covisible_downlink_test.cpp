@@ -169,7 +169,7 @@ TEST(CovisibleDownlink, AnotherAgentsKeyframesGoDownOnlyWhileTheirStateIsTheServ
 
 TEST(CovisibleDownlink, TheLocalMapSizeTheAgentsHelloGaveDecidesWhichOfItsOwnKeyframesAreLeftOut) {
   const Scene scene;
-  const auto ownAbove = [](const v1::CovisibleMap& m, std::uint32_t counter) {
+  const auto own_above = [](const v1::CovisibleMap& m, std::uint32_t counter) {
     for (int i = 0; i < m.selected_counter_size(); ++i) {
       if (m.selected_agent(i) == 1 && m.selected_counter(i) > counter) return true;
     }
@@ -182,9 +182,9 @@ TEST(CovisibleDownlink, TheLocalMapSizeTheAgentsHelloGaveDecidesWhichOfItsOwnKey
   CovisibleSender{options}.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, keeps_50, 50);
   CovisibleSender{options}.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, keeps_5, 5);
 
-  EXPECT_FALSE(ownAbove(keeps_50, 9)) << "an agent keeping 50 holds keyframes 10..59 itself";
-  EXPECT_TRUE(ownAbove(keeps_5, 40)) << "an agent keeping 5 gets its keyframes from 54 down, near its start";
-  EXPECT_FALSE(ownAbove(keeps_5, 54));
+  EXPECT_FALSE(own_above(keeps_50, 9)) << "an agent keeping 50 holds keyframes 10..59 itself";
+  EXPECT_TRUE(own_above(keeps_5, 40)) << "an agent keeping 5 gets its keyframes from 54 down, near its start";
+  EXPECT_FALSE(own_above(keeps_5, 54));
 }
 
 TEST(CovisibleDownlink, EverythingIsInTheAgentsWorldFrameAndEveryObservationProjects) {
@@ -202,14 +202,15 @@ TEST(CovisibleDownlink, EverythingIsInTheAgentsWorldFrameAndEveryObservationProj
   for (const v1::CovisiblePoint& p : out.points()) {
     const MapPointId id{static_cast<AgentId>(p.agent()), p.counter()};
     ASSERT_EQ(p.p_w_size(), 3);
-    const Vector3d p_w(p.p_w(0), p.p_w(1), p.p_w(2));
+    const Vector3d p_w = Eigen::Vector3f(p.p_w(0), p.p_w(1), p.p_w(2)).cast<double>();
     EXPECT_LT((p_w - T_w_m * scene.map.point(id)->p_w).norm(), 1e-5);
     EXPECT_TRUE(points.emplace(id, p_w).second) << "point " << id.toString() << " sent twice";
   }
   int observations = 0;
   for (const v1::CovisibleKeyframe& kf : out.keyframes()) {
-    const SE3d T_w_c(SO3d(Eigen::Quaterniond(kf.t_w_c().qw(), kf.t_w_c().qx(), kf.t_w_c().qy(), kf.t_w_c().qz())),
-                     Vector3d(kf.t_w_c().px(), kf.t_w_c().py(), kf.t_w_c().pz()));
+    const SE3d T_w_c(
+        SO3d(Eigen::Quaternionf(kf.t_w_c().qw(), kf.t_w_c().qx(), kf.t_w_c().qy(), kf.t_w_c().qz()).cast<double>()),
+        Vector3d(kf.t_w_c().px(), kf.t_w_c().py(), kf.t_w_c().pz()));
     const int n = kf.point_counter_size();
     ASSERT_EQ(kf.xy_size(), 2 * n);
     ASSERT_EQ(kf.point_agent_size(), n);

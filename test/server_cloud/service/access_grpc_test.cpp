@@ -72,7 +72,7 @@ class AccessTest : public ::testing::Test {
  protected:
   // Two missions, "survey" (the example maps) and "depot" (an agent's Hello), each with its token; the clients'
   // channel with `credentials` (plaintext when none).
-  void start(ServerOptions options = {}, std::shared_ptr<grpc::ChannelCredentials> credentials = nullptr) {
+  void start(ServerOptions options = {}, const std::shared_ptr<grpc::ChannelCredentials>& credentials = nullptr) {
     options.listen = "127.0.0.1:0";
     options.tokens_file = dir_.path() / "tokens";
     std::ofstream(options.tokens_file) << "survey " << kTokenSurvey << "\ndepot " << kTokenDepot << "\nquiet "
