@@ -375,249 +375,285 @@ void collectMatches(Tracker::State& s, int projected_count) {
 
 }  // namespace
 
-FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
-  State& s = *s_;
-  FrameResult result;
-  const std::int64_t t_start = nowNs();
-  const TrackerOptions& o = s.options;
+namespace {
 
-  // 1. IMU since the previous frame, and the prediction.
-  bool imu_frame_ok = false;
-  double dt_s = 0.0;
+// One frame's work in progress: its input, its result so far, and what the steps before decided for the ones after.
+struct FrameStep {
+  const FrameInput& frame;
+  KeyframeSink& keyframes;
+  FrameResult& result;
+  std::int64_t t_start = 0;
+  double dt_s = 0.0;          // since the previous frame
+  bool imu_frame_ok = false;  // this interval's IMU was integrated
+  bool dead_reckoning_too_long = false;
+  SE3d T_pred{};
+  Vector3d v_pred = Vector3d::Zero();
+  MappingPressure mapping{};
+  std::size_t keypoints = 0;
+  std::int64_t pose_ns = 0;
+};
+
+// 1. The IMU since the previous frame: into this frame's preintegration and, while the chain holds, into the
+// keyframe's.
+void integrateImu(Tracker::State& s, FrameStep& f) {
+  const TrackerOptions& o = s.options;
+  const FrameInput& frame = f.frame;
   if (s.started) {
-    dt_s = static_cast<double>(frame.t_ns - s.last_t_ns) * 1e-9;
+    f.dt_s = static_cast<double>(frame.t_ns - s.last_t_ns) * 1e-9;
     s.pre_frame.reset(s.bias);
     if (!frame.imu.empty() && frame.t_ns > s.last_t_ns) {
       if (s.pre_frame.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok()) {
-        imu_frame_ok = true;
+        f.imu_frame_ok = true;
         if (s.imu_ok_since_keyframe && s.has_keyframe) {
           if (!s.pre_keyframe.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok())
             s.imu_ok_since_keyframe = false;
         }
       } else {
-        result.issue = FrameIssue::kImuGap;
+        f.result.issue = FrameIssue::kImuGap;
         s.imu_ok_since_keyframe = false;
       }
     } else if (o.use_imu && frame.t_ns > s.last_t_ns) {
       // No IMU at all for this interval: the keyframe's preintegration would silently skip it.
-      result.issue = FrameIssue::kImuGap;
+      f.result.issue = FrameIssue::kImuGap;
       s.imu_ok_since_keyframe = false;
     }
   }
   s.appendImu(frame.imu);
-  SE3d T_pred = s.T_w_s;
-  Vector3d v_pred = s.v_w;
-  // With the IMU initialised, lost (or waiting for a new map) for longer than the IMU can be trusted with the
-  // position (TrackerOptions::max_dead_reckoning_s): the prediction holds the position, with or without this
-  // frame's IMU, and the search is as wide as while relocalising until a frame is tracked.
-  const bool dead_reckoning_too_long = s.imu_initialised && o.use_imu && s.untracked_s > o.max_dead_reckoning_s;
-  if (s.started) {
-    if (dead_reckoning_too_long) {
-      const SO3d dR = imu_frame_ok ? s.pre_frame.correctedDeltaR(s.bias) : SO3d();
-      T_pred = SE3d(s.T_w_s.so3() * dR, s.T_w_s.translation());
-      v_pred = Vector3d::Zero();
-    } else if (s.imu_initialised && o.use_imu && imu_frame_ok) {
-      const imu::NavState next = s.pre_frame.predict(imu::NavState{s.T_w_s, s.v_w}, s.bias);
-      T_pred = next.T_w_s;
-      v_pred = next.v_w;
-    } else {
-      const SO3d dR = imu_frame_ok ? s.pre_frame.correctedDeltaR(s.bias) : SO3d();
-      T_pred = SE3d(s.T_w_s.so3() * dR, s.T_w_s.translation() + s.v_w * dt_s);
-    }
+}
+
+// The predicted pose and velocity. With the IMU initialised, lost (or waiting for a new map) for longer than the
+// IMU can be trusted with the position (TrackerOptions::max_dead_reckoning_s): the prediction holds the position,
+// with or without this frame's IMU, and the search is as wide as while relocalising until a frame is tracked.
+void predict(const Tracker::State& s, FrameStep& f) {
+  const TrackerOptions& o = s.options;
+  f.T_pred = s.T_w_s;
+  f.v_pred = s.v_w;
+  f.dead_reckoning_too_long = s.imu_initialised && o.use_imu && s.untracked_s > o.max_dead_reckoning_s;
+  if (!s.started) return;
+  if (f.dead_reckoning_too_long) {
+    const SO3d dR = f.imu_frame_ok ? s.pre_frame.correctedDeltaR(s.bias) : SO3d();
+    f.T_pred = SE3d(s.T_w_s.so3() * dR, s.T_w_s.translation());
+    f.v_pred = Vector3d::Zero();
+  } else if (s.imu_initialised && o.use_imu && f.imu_frame_ok) {
+    const imu::NavState next = s.pre_frame.predict(imu::NavState{s.T_w_s, s.v_w}, s.bias);
+    f.T_pred = next.T_w_s;
+    f.v_pred = next.v_w;
+  } else {
+    const SO3d dR = f.imu_frame_ok ? s.pre_frame.correctedDeltaR(s.bias) : SO3d();
+    f.T_pred = SE3d(s.T_w_s.so3() * dR, s.T_w_s.translation() + s.v_w * f.dt_s);
   }
+}
 
-  // Mapping's lag: while keyframes are pending, keyframes only when tracking would otherwise be lost, none
-  // beyond the backlog's bound, and no new map for lost frames (see MappingLagOptions).
-  const MappingPressure mapping = s.backlog.pressure(t_start);
-  result.pending_keyframes = mapping.pending;
-
-  // 2. Features.
+// 2. ORB features, and their undistorted positions.
+void extractFeatures(Tracker::State& s, FrameStep& f) {
+  const TrackerOptions& o = s.options;
   const std::int64_t t_orb = nowNs();
-  s.keypoint_count = s.orb.extract(frame.left, frame.width, frame.height,
+  s.keypoint_count = s.orb.extract(f.frame.left, f.frame.width, f.frame.height,
                                    std::span(s.keypoints.data(), static_cast<std::size_t>(o.orb.max_features)),
                                    std::span(s.descriptors.data(), static_cast<std::size_t>(o.orb.max_features)));
-  const auto n = static_cast<std::size_t>(s.keypoint_count);
-  for (std::size_t k = 0; k < n; ++k) s.undistorted[k] = s.left.undistortPixel(s.keypoints[k].px.cast<double>());
-  result.keypoints = s.keypoint_count;
-  const std::int64_t t_matching = nowNs();
-  result.times.orb_ns = t_matching - t_orb;
-
-  auto finish = [&](const SE3d& T, const Vector3d& v) {
-    s.T_w_s = T;
-    s.v_w = v;
-    s.untracked_s = result.tracked || !s.started ? 0.0 : s.untracked_s + dt_s;
-    s.last_t_ns = frame.t_ns;
-    s.started = true;
-    ++s.frames_since_keyframe;
-    result.status = s.status;
-    result.T_w_s = T;
-    result.v_w = v;
-    result.map_id = s.new_map_requested ? s.requested_map_id : s.map_id;
-    result.map_epoch = s.epoch;
-    result.has_reference = s.has_keyframe;
-    result.reference = s.keyframe.id;
-    result.T_ref_s = s.keyframe.T_w_s.inverse() * T;
-    result.times.total_ns = nowNs() - t_start;
-  };
-
-  auto publish_keyframe = [&](KeyframeKind kind, const SE3d& T, const Vector3d& v) {
-    const std::int64_t t0 = nowNs();
-    KeyframeMessage* m = keyframes.loan();
-    if (m == nullptr) {
-      result.issue = FrameIssue::kKeyframeDropped;
-      return false;
-    }
-    m->sequence = s.backlog.publish(t0);
-    m->map_epoch = s.epoch;
-    m->kind = kind;
-    m->continues_frame = kind == KeyframeKind::kNewMap && s.imu_initialised && o.use_imu;
-    m->state.id = s.keyframe_ids.next();
-    m->state.t_ns = frame.t_ns;
-    m->state.T_w_s = toMsg(T);
-    m->state.v_w = toArray(v);
-    m->state.bias = toMsg(s.bias);
-    m->keypoint_count = static_cast<std::uint16_t>(n);
-    for (std::size_t k = 0; k < n; ++k) {
-      const features::Keypoint& kp = s.keypoints[k];
-      m->keypoints[k] = KeypointMsg{kp.px.x(), kp.px.y(), kp.response, kp.angle_deg, kp.octave};
-      m->descriptors[k] = s.descriptors[k];
-      m->has_match[k] = 0;
-    }
-    if (kind == KeyframeKind::kTracked) {
-      for (int i = 0; i < s.observation_count; ++i) {
-        if (s.outlier[static_cast<std::size_t>(i)] != 0) continue;
-        const std::uint16_t k = s.observation_keypoint[static_cast<std::size_t>(i)];
-        m->matched[k] = s.snapshot->points[s.observation_point[static_cast<std::size_t>(i)]].id;
-        m->has_match[k] = 1;
-      }
-    }
-    const bool imu_link = s.imu_ok_since_keyframe && s.has_keyframe && kind == KeyframeKind::kTracked;
-    m->imu_count = imu_link || kind == KeyframeKind::kNewMap ? s.keyframe_imu_count : 0;
-    std::memcpy(m->imu.data(), s.keyframe_imu.data(), m->imu_count * sizeof(ImuSampleMsg));
-    if (!frame.right.empty() && frame.right.size() <= m->right_pixels.size()) {
-      m->right_width = static_cast<std::uint16_t>(frame.width);
-      m->right_height = static_cast<std::uint16_t>(frame.height);
-      std::memcpy(m->right_pixels.data(), frame.right.data(), frame.right.size());
-    } else {
-      m->right_width = 0;
-      m->right_height = 0;
-    }
-    m->publish_steady_ns = nowNs();
-    const KeyframeId id = m->state.id;
-    keyframes.publish();
-
-    if (imu_link && s.pre_keyframe.dt() > 0.0) s.motion_window.addLink(s.keyframe.id, id, s.pre_keyframe);
-    s.published[s.published_next] = State::Published{id, T, true};
-    s.published_next = (s.published_next + 1) % s.published.size();
-    s.has_keyframe = true;
-    s.keyframe.id = id;
-    s.keyframe.T_w_s = T;
-    s.keyframe.v_w = v;
-    s.keyframe.bias = s.bias;
-    s.frames_since_keyframe = -1;  // finish() counts this frame
-    s.pre_keyframe.reset(s.bias);
-    s.imu_ok_since_keyframe = true;
-    s.restartKeyframeImu(frame.t_ns);
-    s.awaiting = true;
-    s.awaiting_id = id;
-    result.keyframe = true;
-    result.times.keyframe_ns = nowNs() - t0;
-    return true;
-  };
-
-  // 3. No map yet: ask for one (stereo: one keyframe; mono: keyframes every few frames until mapping has
-  // initialised from two views).
-  const bool have_map = s.snapshot != nullptr && s.snapshot->map_id == s.map_id && !s.new_map_requested &&
-                        s.status != TrackingStatus::kWaitingForMap;
-  if (!have_map) {
-    s.status = TrackingStatus::kWaitingForMap;
-    // With the IMU initialised, a new map keeps the world frame: the IMU carries the pose (and, in mono,
-    // mapping triangulates the new map's first points from those poses).
-    const bool keep_frame = s.imu_initialised && o.use_imu;
-    const SE3d T = !s.started ? SE3d() : keep_frame ? T_pred : SE3d(T_pred.so3(), s.T_w_s.translation());
-    const Vector3d v = keep_frame ? v_pred : Vector3d::Zero();
-    ++s.waiting_frames;
-    // Stereo maps answer at once; ask again when the first keyframe gave no map (a black frame, say).
-    const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames && !mapping.busy;
-    if (!s.new_map_requested || ask_again) {
-      if (s.keypoint_count >= o.pose.min_inliers) {
-        s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
-        s.waiting_frames = 0;
-        s.new_map_requested = true;
-        s.observation_count = 0;
-        publish_keyframe(KeyframeKind::kNewMap, T, v);
-      } else {
-        result.issue = FrameIssue::kFewFeatures;
-      }
-    } else if (!s.right && s.frames_since_keyframe + 1 >= o.initialisation_max_frames_between &&
-               s.keypoint_count >= o.pose.min_inliers) {
-      if (mapping.full) {
-        result.keyframe_deferred = true;
-        result.keyframe_overdue = s.backlog.heldBack(frame.t_ns);
-        result.needs_mapping = true;
-      } else {
-        s.observation_count = 0;
-        publish_keyframe(KeyframeKind::kTracked, T, v);
-      }
-    }
-    finish(T, v);
-    return result;
+  f.keypoints = static_cast<std::size_t>(s.keypoint_count);
+  for (std::size_t k = 0; k < f.keypoints; ++k) {
+    s.undistorted[k] = s.left.undistortPixel(s.keypoints[k].px.cast<double>());
   }
+  f.result.keypoints = s.keypoint_count;
+  f.result.times.orb_ns = nowNs() - t_orb;
+}
 
-  // 4. Guided search with the prediction, pose, second search, pose again.
-  const bool relocalising = s.status == TrackingStatus::kRelocalising || dead_reckoning_too_long;
+// The frame's end, on every path: the state moves to the frame's pose and the result says where tracking stands.
+void finishFrame(Tracker::State& s, FrameStep& f, const SE3d& T, const Vector3d& v) {
+  FrameResult& result = f.result;
+  s.T_w_s = T;
+  s.v_w = v;
+  s.untracked_s = result.tracked || !s.started ? 0.0 : s.untracked_s + f.dt_s;
+  s.last_t_ns = f.frame.t_ns;
+  s.started = true;
+  ++s.frames_since_keyframe;
+  result.status = s.status;
+  result.T_w_s = T;
+  result.v_w = v;
+  result.map_id = s.new_map_requested ? s.requested_map_id : s.map_id;
+  result.map_epoch = s.epoch;
+  result.has_reference = s.has_keyframe;
+  result.reference = s.keyframe.id;
+  result.T_ref_s = s.keyframe.T_w_s.inverse() * T;
+  result.times.total_ns = nowNs() - f.t_start;
+}
+
+// The keyframe message, written into a loaned chunk: keypoints, descriptors, the tracked matches, the IMU since
+// the last keyframe and (stereo) the right image.
+void fillKeyframe(const Tracker::State& s, const FrameStep& f, KeyframeKind kind, const SE3d& T, const Vector3d& v,
+                  bool imu_link, KeyframeMessage& m) {
+  m.map_epoch = s.epoch;
+  m.kind = kind;
+  m.continues_frame = kind == KeyframeKind::kNewMap && s.imu_initialised && s.options.use_imu;
+  m.state.t_ns = f.frame.t_ns;
+  m.state.T_w_s = toMsg(T);
+  m.state.v_w = toArray(v);
+  m.state.bias = toMsg(s.bias);
+  m.keypoint_count = static_cast<std::uint16_t>(f.keypoints);
+  for (std::size_t k = 0; k < f.keypoints; ++k) {
+    const features::Keypoint& kp = s.keypoints[k];
+    m.keypoints[k] = KeypointMsg{kp.px.x(), kp.px.y(), kp.response, kp.angle_deg, kp.octave};
+    m.descriptors[k] = s.descriptors[k];
+    m.has_match[k] = 0;
+  }
+  if (kind == KeyframeKind::kTracked) {
+    for (int i = 0; i < s.observation_count; ++i) {
+      if (s.outlier[static_cast<std::size_t>(i)] != 0) continue;
+      const std::uint16_t k = s.observation_keypoint[static_cast<std::size_t>(i)];
+      m.matched[k] = s.snapshot->points[s.observation_point[static_cast<std::size_t>(i)]].id;
+      m.has_match[k] = 1;
+    }
+  }
+  m.imu_count = imu_link || kind == KeyframeKind::kNewMap ? s.keyframe_imu_count : 0;
+  std::memcpy(m.imu.data(), s.keyframe_imu.data(), m.imu_count * sizeof(ImuSampleMsg));
+  const FrameInput& frame = f.frame;
+  if (!frame.right.empty() && frame.right.size() <= m.right_pixels.size()) {
+    m.right_width = static_cast<std::uint16_t>(frame.width);
+    m.right_height = static_cast<std::uint16_t>(frame.height);
+    std::memcpy(m.right_pixels.data(), frame.right.data(), frame.right.size());
+  } else {
+    m.right_width = 0;
+    m.right_height = 0;
+  }
+}
+
+// Publishes this frame as a keyframe and makes it tracking's reference; false when no chunk could be loaned.
+bool publishKeyframe(Tracker::State& s, FrameStep& f, KeyframeKind kind, const SE3d& T, const Vector3d& v) {
+  const std::int64_t t0 = nowNs();
+  KeyframeMessage* m = f.keyframes.loan();
+  if (m == nullptr) {
+    f.result.issue = FrameIssue::kKeyframeDropped;
+    return false;
+  }
+  const bool imu_link = s.imu_ok_since_keyframe && s.has_keyframe && kind == KeyframeKind::kTracked;
+  m->sequence = s.backlog.publish(t0);
+  m->state.id = s.keyframe_ids.next();
+  fillKeyframe(s, f, kind, T, v, imu_link, *m);
+  m->publish_steady_ns = nowNs();
+  const KeyframeId id = m->state.id;
+  f.keyframes.publish();
+
+  if (imu_link && s.pre_keyframe.dt() > 0.0) s.motion_window.addLink(s.keyframe.id, id, s.pre_keyframe);
+  s.published[s.published_next] = Tracker::State::Published{id, T, true};
+  s.published_next = (s.published_next + 1) % s.published.size();
+  s.has_keyframe = true;
+  s.keyframe.id = id;
+  s.keyframe.T_w_s = T;
+  s.keyframe.v_w = v;
+  s.keyframe.bias = s.bias;
+  s.frames_since_keyframe = -1;  // finishFrame() counts this frame
+  s.pre_keyframe.reset(s.bias);
+  s.imu_ok_since_keyframe = true;
+  s.restartKeyframeImu(f.frame.t_ns);
+  s.awaiting = true;
+  s.awaiting_id = id;
+  f.result.keyframe = true;
+  f.result.times.keyframe_ns = nowNs() - t0;
+  return true;
+}
+
+// 3. No map yet: ask for one (stereo: one keyframe; mono: keyframes every few frames until mapping has
+// initialised from two views).
+void trackWithoutMap(Tracker::State& s, FrameStep& f) {
+  const TrackerOptions& o = s.options;
+  s.status = TrackingStatus::kWaitingForMap;
+  // With the IMU initialised, a new map keeps the world frame: the IMU carries the pose (and, in mono, mapping
+  // triangulates the new map's first points from those poses).
+  const bool keep_frame = s.imu_initialised && o.use_imu;
+  const SE3d T = !s.started ? SE3d() : keep_frame ? f.T_pred : SE3d(f.T_pred.so3(), s.T_w_s.translation());
+  const Vector3d v = keep_frame ? f.v_pred : Vector3d::Zero();
+  ++s.waiting_frames;
+  // Stereo maps answer at once; ask again when the first keyframe gave no map (a black frame, say).
+  const bool ask_again = s.new_map_requested && s.right && s.waiting_frames > 2 * o.max_lost_frames && !f.mapping.busy;
+  if (!s.new_map_requested || ask_again) {
+    if (s.keypoint_count >= o.pose.min_inliers) {
+      s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
+      s.waiting_frames = 0;
+      s.new_map_requested = true;
+      s.observation_count = 0;
+      publishKeyframe(s, f, KeyframeKind::kNewMap, T, v);
+    } else {
+      f.result.issue = FrameIssue::kFewFeatures;
+    }
+  } else if (!s.right && s.frames_since_keyframe + 1 >= o.initialisation_max_frames_between &&
+             s.keypoint_count >= o.pose.min_inliers) {
+    if (f.mapping.full) {
+      f.result.keyframe_deferred = true;
+      f.result.keyframe_overdue = s.backlog.heldBack(f.frame.t_ns);
+      f.result.needs_mapping = true;
+    } else {
+      s.observation_count = 0;
+      publishKeyframe(s, f, KeyframeKind::kTracked, T, v);
+    }
+  }
+  finishFrame(s, f, T, v);
+}
+
+// The frame could not be tracked: relocalising, and after too long a new map.
+void trackingLost(Tracker::State& s, FrameStep& f) {
+  const TrackerOptions& o = s.options;
+  FrameResult& result = f.result;
+  result.issue = s.keypoint_count < o.pose.min_inliers ? FrameIssue::kFewFeatures : FrameIssue::kPoseRefused;
+  s.status = TrackingStatus::kRelocalising;
+  // With keyframes pending, the map tracking searched is behind the camera: the frame is carried by the IMU and
+  // does not count towards a new map.
+  if (f.mapping.busy) {
+    result.needs_mapping = true;
+  } else {
+    ++s.lost_frames;
+  }
+  result.matches = s.observation_count;
+  result.times.pose_ns = f.pose_ns;
+  if (s.lost_frames > o.max_lost_frames && s.keypoint_count >= o.pose.min_inliers) {
+    // Relocalisation failed for too long: start a new map here, and say so.
+    s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
+    s.waiting_frames = 0;
+    s.new_map_requested = true;
+    s.status = TrackingStatus::kWaitingForMap;
+    s.observation_count = 0;
+    // A stereo map starts from this one keyframe, so it may keep the frame whatever the IMU carried. A monocular
+    // one triangulates its first points between keyframes whose poses the IMU carries: after more dead reckoning
+    // than max_dead_reckoning_s that state is wrong (the new map would be, and lost again, map after map), so it
+    // starts again from two views and initialises the IMU again.
+    const bool keep_frame = s.imu_initialised && o.use_imu && (s.right.has_value() || !f.dead_reckoning_too_long);
+    s.imu_initialised = keep_frame;
+    publishKeyframe(s, f, KeyframeKind::kNewMap, f.T_pred, keep_frame ? f.v_pred : Vector3d::Zero());
+  }
+  // Dead reckoning meanwhile: the IMU when initialised, otherwise the rotation alone.
+  finishFrame(s, f, f.T_pred, s.imu_initialised ? f.v_pred : Vector3d::Zero());
+}
+
+std::span<const PoseObservation> observationsOf(const Tracker::State& s) {
+  return {s.observations.data(), static_cast<std::size_t>(s.observation_count)};
+}
+std::span<std::uint8_t> outliersOf(Tracker::State& s) {
+  return {s.outlier.data(), static_cast<std::size_t>(s.observation_count)};
+}
+
+// 4. Guided search around the prediction and a first pose; a second, narrower search for the points not
+// matched yet around that pose, and the pose again. Empty when the frame cannot be tracked.
+std::optional<PoseOptimizerResult> searchAndOptimisePose(Tracker::State& s, FrameStep& f) {
+  const TrackerOptions& o = s.options;
+  const std::size_t n = f.keypoints;
+  const std::int64_t t_matching = nowNs();
+  const bool relocalising = s.status == TrackingStatus::kRelocalising || f.dead_reckoning_too_long;
   s.observation_count = 0;
   std::fill_n(s.keypoint_taken.begin(), n, std::uint8_t{0});
   std::fill_n(s.point_matched.begin(), s.snapshot->point_count, std::uint8_t{0});
-  s.grid.build(std::span(s.keypoints.data(), n), frame.width, frame.height);
+  s.grid.build(std::span(s.keypoints.data(), n), f.frame.width, f.frame.height);
   const double radius = relocalising ? o.relocalisation_radius_px : o.search_radius_px;
-  int projected = projectPoints(s, T_pred, radius, false);
+  int projected = projectPoints(s, f.T_pred, radius, false);
   s.matcher.search(std::span(s.projected.data(), static_cast<std::size_t>(projected)), s.grid,
                    std::span(s.descriptors.data(), n), o.search,
                    std::span(s.match_of_point.data(), static_cast<std::size_t>(projected)));
   collectMatches(s, projected);
-  result.times.matching_ns = nowNs() - t_matching;
+  f.result.times.matching_ns = nowNs() - t_matching;
 
   std::int64_t t_pose = nowNs();
-  const auto observations = [&] {
-    return std::span(s.observations.data(), static_cast<std::size_t>(s.observation_count));
-  };
-  const auto outliers = [&] { return std::span(s.outlier.data(), static_cast<std::size_t>(s.observation_count)); };
-  auto first = optimizePose(observations(), T_pred, s.T_s_c, s.intrinsics, o.pose, outliers());
-  std::int64_t pose_ns = nowNs() - t_pose;
-
-  auto lost = [&]() {
-    result.issue = s.keypoint_count < o.pose.min_inliers ? FrameIssue::kFewFeatures : FrameIssue::kPoseRefused;
-    s.status = TrackingStatus::kRelocalising;
-    // With keyframes pending, the map tracking searched is behind the camera: the frame is carried by the IMU
-    // and does not count towards a new map.
-    if (mapping.busy) {
-      result.needs_mapping = true;
-    } else {
-      ++s.lost_frames;
-    }
-    result.matches = s.observation_count;
-    result.times.pose_ns = pose_ns;
-    if (s.lost_frames > o.max_lost_frames && s.keypoint_count >= o.pose.min_inliers) {
-      // Relocalisation failed for too long: start a new map here, and say so.
-      s.requested_map_id = std::max(s.map_id, s.requested_map_id) + 1;
-      s.waiting_frames = 0;
-      s.new_map_requested = true;
-      s.status = TrackingStatus::kWaitingForMap;
-      s.observation_count = 0;
-      // A stereo map starts from this one keyframe, so it may keep the frame whatever the IMU carried. A monocular
-      // one triangulates its first points between keyframes whose poses the IMU carries: after more dead reckoning
-      // than max_dead_reckoning_s that state is wrong (the new map would be, and lost again, map after map), so it
-      // starts again from two views and initialises the IMU again.
-      const bool keep_frame = s.imu_initialised && o.use_imu && (s.right.has_value() || !dead_reckoning_too_long);
-      s.imu_initialised = keep_frame;
-      publish_keyframe(KeyframeKind::kNewMap, T_pred, keep_frame ? v_pred : Vector3d::Zero());
-    }
-    // Dead reckoning meanwhile: the IMU when initialised, otherwise the rotation alone.
-    finish(T_pred, s.imu_initialised ? v_pred : Vector3d::Zero());
-    return result;
-  };
-  if (!first) return lost();
+  auto first = optimizePose(observationsOf(s), f.T_pred, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
+  f.pose_ns = nowNs() - t_pose;
+  if (!first) return std::nullopt;
 
   // Second search: points not matched yet, around their projection with the refined pose.
   const std::int64_t t_second = nowNs();
@@ -641,53 +677,56 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   }
   s.observation_count = kept;
   collectMatches(s, projected);
-  result.times.matching_ns += nowNs() - t_second;
+  f.result.times.matching_ns += nowNs() - t_second;
 
   t_pose = nowNs();
-  auto second = optimizePose(observations(), first->T_w_s, s.T_s_c, s.intrinsics, o.pose, outliers());
-  pose_ns += nowNs() - t_pose;
-  result.times.pose_ns = pose_ns;
-  if (!second) return lost();
-  SE3d T = second->T_w_s;
-  Vector3d v = dt_s > 0.0 ? Vector3d((T.translation() - s.T_w_s.translation()) / dt_s) : s.v_w;
-  result.matches = s.observation_count;
-  result.inliers = second->inliers;
+  auto second = optimizePose(observationsOf(s), first->T_w_s, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
+  f.pose_ns += nowNs() - t_pose;
+  f.result.times.pose_ns = f.pose_ns;
+  if (!second) return std::nullopt;
+  return *second;
+}
 
-  // 5. Motion-only visual-inertial BA against the newest keyframe.
-  if (s.imu_initialised && o.use_imu && s.has_keyframe && s.imu_ok_since_keyframe && s.pre_keyframe.dt() > 0.0) {
-    const std::int64_t t_ba = nowNs();
-    const std::span<MotionWindowKeyframe> window =
-        s.motion_window.build(s.snapshot, o.motion_ba_keyframes, s.keyframe, s.pre_keyframe);
-    Result<InertialPoseResult> inertial = Error{ErrorCode::kNotFound, "no window"};
-    if (window.size() >= 2) {
-      auto windowed =
-          optimizeMotionWindow(window, observations(), T, v_pred, s.T_s_c, s.intrinsics, o.pose, outliers());
-      if (windowed) {
-        InertialPoseResult r;
-        r.T_w_s = windowed->T_w_s;
-        r.v_w = windowed->v_w;
-        r.inliers = windowed->inliers;
-        inertial = r;
-      }
+// 5. Motion-only visual-inertial BA: over the window of newest keyframes when their IMU chain holds, else against
+// the newest keyframe alone. Refines T and v in place.
+void refineWithImu(Tracker::State& s, FrameStep& f, SE3d& T, Vector3d& v) {
+  const TrackerOptions& o = s.options;
+  if (!(s.imu_initialised && o.use_imu && s.has_keyframe && s.imu_ok_since_keyframe && s.pre_keyframe.dt() > 0.0))
+    return;
+  const std::int64_t t_ba = nowNs();
+  const std::span<MotionWindowKeyframe> window =
+      s.motion_window.build(s.snapshot, o.motion_ba_keyframes, s.keyframe, s.pre_keyframe);
+  Result<InertialPoseResult> inertial = Error{ErrorCode::kNotFound, "no window"};
+  if (window.size() >= 2) {
+    auto windowed =
+        optimizeMotionWindow(window, observationsOf(s), T, f.v_pred, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
+    if (windowed) {
+      InertialPoseResult r;
+      r.T_w_s = windowed->T_w_s;
+      r.v_w = windowed->v_w;
+      r.inliers = windowed->inliers;
+      inertial = r;
     }
-    if (!inertial) {  // n = 1, a broken chain, or a window that failed: the newest keyframe alone, held
-      const InertialAnchor anchor{s.keyframe.T_w_s, s.keyframe.v_w, s.keyframe.bias, &s.pre_keyframe};
-      inertial = optimizePoseInertial(observations(), T, v_pred, anchor, s.T_s_c, s.intrinsics, o.pose, outliers());
-    }
-    if (inertial) {
-      T = inertial->T_w_s;
-      v = inertial->v_w;
-      result.inliers = inertial->inliers;
-    } else {
-      // Keep the visual pose; the outlier flags are recomputed for the keyframe's matches.
-      (void)optimizePose(observations(), T, s.T_s_c, s.intrinsics, o.pose, outliers());
-    }
-    result.times.motion_ba_ns = nowNs() - t_ba;
   }
-  s.status = TrackingStatus::kTracking;
-  s.lost_frames = 0;
+  if (!inertial) {  // n = 1, a broken chain, or a window that failed: the newest keyframe alone, held
+    const InertialAnchor anchor{s.keyframe.T_w_s, s.keyframe.v_w, s.keyframe.bias, &s.pre_keyframe};
+    inertial =
+        optimizePoseInertial(observationsOf(s), T, f.v_pred, anchor, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
+  }
+  if (inertial) {
+    T = inertial->T_w_s;
+    v = inertial->v_w;
+    f.result.inliers = inertial->inliers;
+  } else {
+    // Keep the visual pose; the outlier flags are recomputed for the keyframe's matches.
+    (void)optimizePose(observationsOf(s), T, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
+  }
+  f.result.times.motion_ba_ns = nowNs() - t_ba;
+}
 
-  // 6. Keyframe decision.
+// 6. The keyframe decision on the tracked frame, and the keyframe when mapping's backlog lets it through.
+void considerKeyframe(Tracker::State& s, FrameStep& f, const SE3d& T, const Vector3d& v) {
+  const TrackerOptions& o = s.options;
   int covered = 0;
   for (int i = 0; i < s.observation_count; ++i) {
     if (s.outlier[static_cast<std::size_t>(i)] != 0) continue;
@@ -696,26 +735,62 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   }
   TrackingState tracking_state;
   tracking_state.frames_since_keyframe = s.frames_since_keyframe + 1;
-  tracking_state.tracked_points = result.inliers;
+  tracking_state.tracked_points = f.result.inliers;
   tracking_state.coverage = gridCoverage(std::span(s.coverage_px.data(), static_cast<std::size_t>(covered)),
-                                         frame.width, frame.height, o.keyframe.grid_columns, o.keyframe.grid_rows);
+                                         f.frame.width, f.frame.height, o.keyframe.grid_columns, o.keyframe.grid_rows);
   if (s.keyframe_coverage <= 0.0) s.keyframe_coverage = tracking_state.coverage;  // first frame on a new map
   tracking_state.keyframe_coverage = s.keyframe_coverage;
   KeyframeDecisionOptions decision_options = o.keyframe;
   if (!s.imu_initialised && o.use_imu) decision_options.max_frames_between = o.initialisation_max_frames_between;
-  result.keyframe_reason = decideKeyframe(tracking_state, decision_options);
-  if (result.keyframe_reason != KeyframeReason::kNone) {
-    const KeyframeGate gate = s.backlog.gate(mapping, tracking_state.tracked_points);
-    if (!gate.publish) {
-      result.keyframe_deferred = true;
-      result.keyframe_overdue = s.backlog.heldBack(frame.t_ns);
-      result.needs_mapping = gate.needs_mapping;
-    } else if (publish_keyframe(KeyframeKind::kTracked, T, v)) {
-      s.keyframe_coverage = tracking_state.coverage;
-    }
+  f.result.keyframe_reason = decideKeyframe(tracking_state, decision_options);
+  if (f.result.keyframe_reason == KeyframeReason::kNone) return;
+  const KeyframeGate gate = s.backlog.gate(f.mapping, tracking_state.tracked_points);
+  if (!gate.publish) {
+    f.result.keyframe_deferred = true;
+    f.result.keyframe_overdue = s.backlog.heldBack(f.frame.t_ns);
+    f.result.needs_mapping = gate.needs_mapping;
+  } else if (publishKeyframe(s, f, KeyframeKind::kTracked, T, v)) {
+    s.keyframe_coverage = tracking_state.coverage;
   }
+}
+
+}  // namespace
+
+FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
+  State& s = *s_;
+  FrameResult result;
+  FrameStep f{frame, keyframes, result};
+  f.t_start = nowNs();
+  integrateImu(s, f);
+  predict(s, f);
+  // Mapping's lag: while keyframes are pending, keyframes only when tracking would otherwise be lost, none beyond
+  // the backlog's bound, and no new map for lost frames (see MappingLagOptions).
+  f.mapping = s.backlog.pressure(f.t_start);
+  result.pending_keyframes = f.mapping.pending;
+  extractFeatures(s, f);
+
+  const bool have_map = s.snapshot != nullptr && s.snapshot->map_id == s.map_id && !s.new_map_requested &&
+                        s.status != TrackingStatus::kWaitingForMap;
+  if (!have_map) {
+    trackWithoutMap(s, f);
+    return result;
+  }
+
+  const std::optional<PoseOptimizerResult> pose = searchAndOptimisePose(s, f);
+  if (!pose) {
+    trackingLost(s, f);
+    return result;
+  }
+  SE3d T = pose->T_w_s;
+  Vector3d v = f.dt_s > 0.0 ? Vector3d((T.translation() - s.T_w_s.translation()) / f.dt_s) : s.v_w;
+  result.matches = s.observation_count;
+  result.inliers = pose->inliers;
+  refineWithImu(s, f, T, v);
+  s.status = TrackingStatus::kTracking;
+  s.lost_frames = 0;
+  considerKeyframe(s, f, T, v);
   result.tracked = true;
-  finish(T, v);
+  finishFrame(s, f, T, v);
   return result;
 }
 
