@@ -33,7 +33,7 @@ status=0
 count() { find "$reports" -name "$1.*" -type f | wc -l; }
 
 if [ "$run_tsan" = 1 ]; then
-  [ -f build/tsan/build.ninja ] || cmake --preset tsan >/dev/null
+  cmake --preset tsan >/dev/null  # again each time: a changed preset reaches an existing build folder
   cmake --build --preset tsan
   export TSAN_OPTIONS="suppressions=$repo/test/sanitizers/tsan.supp second_deadlock_stack=1 history_size=4 log_path=$reports/tsan exitcode=66"
   echo "== ThreadSanitizer: gRPC, link, store, scale-out and process tests"
@@ -53,7 +53,7 @@ if [ "$run_tsan" = 1 ]; then
 fi
 
 if [ "$run_asan" = 1 ]; then
-  [ -f build/asan/build.ninja ] || cmake --preset asan >/dev/null
+  cmake --preset asan >/dev/null  # again each time: a changed preset reaches an existing build folder
   cmake --build --preset asan
   export ASAN_OPTIONS="detect_leaks=1 log_path=$reports/asan"
   export UBSAN_OPTIONS="print_stacktrace=1 halt_on_error=1 log_path=$reports/asan"
