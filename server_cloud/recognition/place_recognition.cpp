@@ -7,6 +7,7 @@
 #include <sstream>
 #include <unordered_map>
 #include <unordered_set>
+#include <variant>
 
 #include <Eigen/Cholesky>
 #include <opencv2/calib3d.hpp>
@@ -84,6 +85,19 @@ double tiltDeg(const geometry::SE3d& T) {
 
 bool usablePoint(const ServerKeyframe& kf, std::size_t i) {
   return i < kf.has_point.size() && kf.has_point[i] != 0;
+}
+
+// The `count` keyframes most covisible with `keyframe`, most shared points first (ties by id).
+std::vector<KeyframeId> mostCovisible(const MapContent& map, const KeyframeId& keyframe, int count) {
+  std::vector<std::pair<int, KeyframeId>> neighbours;
+  for (const auto& [n, shared] : map.covisible(keyframe)) neighbours.emplace_back(shared, n);
+  std::sort(neighbours.begin(), neighbours.end(),
+            [](const auto& a, const auto& b) { return a.first != b.first ? a.first > b.first : a.second < b.second; });
+  if (neighbours.size() > static_cast<std::size_t>(count)) neighbours.resize(static_cast<std::size_t>(count));
+  std::vector<KeyframeId> out;
+  out.reserve(neighbours.size());
+  for (const auto& [shared, n] : neighbours) out.push_back(n);
+  return out;
 }
 
 }  // namespace
@@ -210,15 +224,7 @@ Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const M
     g.best = Candidate{c.keyframe, c.map, c.score, 0.0};
     g.score = c.score;
     if (const MapContent* map = maps(c.map); map != nullptr) {
-      std::vector<std::pair<int, KeyframeId>> neighbours;
-      for (const auto& [n, shared] : map->covisible(c.keyframe)) neighbours.emplace_back(shared, n);
-      std::sort(neighbours.begin(), neighbours.end(), [](const auto& a, const auto& b) {
-        return a.first != b.first ? a.first > b.first : a.second < b.second;
-      });
-      if (neighbours.size() > static_cast<std::size_t>(options.group_neighbours)) {
-        neighbours.resize(static_cast<std::size_t>(options.group_neighbours));
-      }
-      for (const auto& [shared, n] : neighbours) {
+      for (const KeyframeId& n : mostCovisible(*map, c.keyframe, options.group_neighbours)) {
         const auto it = score_of.find(n);
         if (it == score_of.end()) continue;
         g.score += it->second;
@@ -243,6 +249,203 @@ Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const M
   return search;
 }
 
+namespace {
+
+// a. Descriptor matching through the direct index: the query's features against the candidate's features that
+// observe a map point, under the same vocabulary node; one query keypoint per candidate point, the closest.
+std::vector<Correspondence> matchThroughDirectIndex(const ServerKeyframe& q, const DatabaseEntry& qe,
+                                                    const ServerKeyframe& c, const DatabaseEntry& ce,
+                                                    const MapContent& candidate_map,
+                                                    const RecognitionOptions& options) {
+  std::vector<Correspondence> matches;
+  std::unordered_map<MapPointId, std::size_t> by_point;
+  const features::FeatureVector& fq = qe.features;
+  const features::FeatureVector& fc = ce.features;
+  std::size_t i = 0;
+  std::size_t j = 0;
+  while (i < fq.size() && j < fc.size()) {
+    if (fq[i].node < fc[j].node) {
+      ++i;
+      continue;
+    }
+    if (fc[j].node < fq[i].node) {
+      ++j;
+      continue;
+    }
+    const features::NodeId node = fq[i].node;
+    std::size_t i_end = i;
+    while (i_end < fq.size() && fq[i_end].node == node) ++i_end;
+    std::size_t j_end = j;
+    while (j_end < fc.size() && fc[j_end].node == node) ++j_end;
+    for (std::size_t a = i; a < i_end; ++a) {
+      const std::uint16_t kq = fq[a].feature;
+      if (kq >= q.descriptors.size()) continue;
+      int best = std::numeric_limits<int>::max();
+      int second = std::numeric_limits<int>::max();
+      const ServerMapPoint* best_point = nullptr;
+      for (std::size_t b = j; b < j_end; ++b) {
+        const std::uint16_t kc = fc[b].feature;
+        if (!usablePoint(c, kc)) continue;
+        const ServerMapPoint* p = candidate_map.point(c.point[kc]);
+        if (p == nullptr) continue;
+        const int d = features::hammingDistance(q.descriptors[kq], c.descriptors[kc]);
+        if (d < best) {
+          second = best;
+          best = d;
+          best_point = p;
+        } else if (d < second) {
+          second = d;
+        }
+      }
+      if (best_point == nullptr || best > options.max_descriptor_distance) continue;
+      if (second != std::numeric_limits<int>::max() &&
+          static_cast<float>(best) >= options.match_ratio * static_cast<float>(second)) {
+        continue;
+      }
+      const auto [it, inserted] = by_point.emplace(best_point->id, matches.size());
+      if (inserted) {
+        matches.push_back(Correspondence{kq, best_point->id, best_point->p_w, best});
+      } else if (best < matches[it->second].distance) {
+        matches[it->second] = Correspondence{kq, best_point->id, best_point->p_w, best};
+      }
+    }
+    i = i_end;
+    j = j_end;
+  }
+  return matches;
+}
+
+// The correspondences a pose is refined on: the query keypoints' pixels, the points in the candidate map, and
+// the correspondences themselves.
+struct PoseSupport {
+  std::vector<Eigen::Vector2d> px;
+  std::vector<Eigen::Vector3d> p_m;
+  std::vector<Correspondence> used;
+
+  void add(const ServerKeyframe& q, const Correspondence& m) {
+    px.push_back(q.keypoints[m.keypoint].px.cast<double>());
+    p_m.push_back(m.p_m);
+    used.push_back(m);
+  }
+};
+
+struct RansacPose {
+  geometry::SE3d T_c_m;
+  std::vector<int> inliers;  // indices into the matches
+};
+
+// b. RANSAC pose of the query camera in the candidate map, on normalised coordinates; the rejection's text when
+// it fails.
+std::variant<RansacPose, std::string> ransacPose(const ServerKeyframe& q, const AgentCamera& camera,
+                                                 const std::vector<Correspondence>& matches,
+                                                 const RecognitionOptions& options) {
+  const double focal = camera.camera.calibration().fx;
+  std::vector<cv::Point3d> object;
+  std::vector<cv::Point2d> image;
+  object.reserve(matches.size());
+  image.reserve(matches.size());
+  for (const Correspondence& m : matches) {
+    const Eigen::Vector3d ray = camera.camera.unproject(q.keypoints[m.keypoint].px.cast<double>());
+    object.emplace_back(m.p_m.x(), m.p_m.y(), m.p_m.z());
+    image.emplace_back(ray.x() / ray.z(), ray.y() / ray.z());
+  }
+  cv::Mat rvec;
+  cv::Mat tvec;
+  RansacPose out;
+  cv::theRNG().state = options.seed;  // OpenCV's RANSAC samples from the thread's generator
+  bool solved = false;
+  try {
+    solved = cv::solvePnPRansac(object, image, cv::Mat::eye(3, 3, CV_64F), cv::noArray(), rvec, tvec, false,
+                                options.ransac_iterations, options.ransac_threshold_px / focal, 0.999, out.inliers,
+                                cv::SOLVEPNP_AP3P);
+  } catch (const cv::Exception& e) {
+    return std::string("RANSAC failed: ") + e.what();
+  }
+  if (!solved || static_cast<int>(out.inliers.size()) < options.min_ransac_inliers) {
+    return std::to_string(out.inliers.size()) + " RANSAC inliers of " + std::to_string(matches.size()) +
+           " matches (needs " + std::to_string(options.min_ransac_inliers) + ")";
+  }
+  const Eigen::Vector3d rotation_vector(rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2));
+  const Eigen::Vector3d translation(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+  out.T_c_m = geometry::SE3d(geometry::SO3d::exp(rotation_vector), translation);
+  return out;
+}
+
+// c. Guided search: the points of the candidate's covisible neighbourhood that are not matched yet, projected into
+// the query with T_c_m; each free query keypoint takes its closest point within the radius. Added to `support`.
+void guidedSearch(const ServerKeyframe& q, const AgentCamera& camera, const MapContent& candidate_map,
+                  const KeyframeId& candidate, const geometry::SE3d& T_c_m, const RecognitionOptions& options,
+                  PoseSupport& support) {
+  std::unordered_set<MapPointId> have;
+  std::vector<char> keypoint_taken(q.keypoints.size(), 0);
+  for (const Correspondence& m : support.used) {
+    have.insert(m.point);
+    keypoint_taken[m.keypoint] = 1;
+  }
+  std::vector<KeyframeId> neighbourhood{candidate};
+  for (const KeyframeId& n : mostCovisible(candidate_map, candidate, options.guided_neighbours)) {
+    neighbourhood.push_back(n);
+  }
+  std::unordered_map<std::uint16_t, Correspondence> best_for_keypoint;
+  const double radius2 = options.guided_radius_px * options.guided_radius_px;
+  for (const KeyframeId& id : neighbourhood) {
+    const ServerKeyframe* kf = candidate_map.keyframe(id);
+    if (kf == nullptr) continue;
+    for (std::size_t k = 0; k < kf->point.size(); ++k) {
+      if (!usablePoint(*kf, k)) continue;
+      const ServerMapPoint* p = candidate_map.point(kf->point[k]);
+      if (p == nullptr || !have.insert(p->id).second) continue;
+      const std::optional<Eigen::Vector2d> projected = camera.camera.project(T_c_m * p->p_w);
+      if (!projected || projected->x() < 0.0 || projected->y() < 0.0 || projected->x() >= camera.camera.width() ||
+          projected->y() >= camera.camera.height()) {
+        continue;
+      }
+      int best = options.guided_max_distance + 1;
+      int best_keypoint = -1;
+      for (std::size_t kq = 0; kq < q.keypoints.size(); ++kq) {
+        if (keypoint_taken[kq] != 0) continue;
+        if ((q.keypoints[kq].px.cast<double>() - *projected).squaredNorm() > radius2) continue;
+        const int d = features::hammingDistance(q.descriptors[kq], p->descriptor);
+        if (d < best) {
+          best = d;
+          best_keypoint = static_cast<int>(kq);
+        }
+      }
+      if (best_keypoint < 0) continue;
+      const auto key = static_cast<std::uint16_t>(best_keypoint);
+      const auto it = best_for_keypoint.find(key);
+      if (it == best_for_keypoint.end() || best < it->second.distance) {
+        best_for_keypoint[key] = Correspondence{key, p->id, p->p_w, best};
+      }
+    }
+  }
+  std::vector<std::uint16_t> keys;
+  for (const auto& [k, m] : best_for_keypoint) keys.push_back(k);
+  std::sort(keys.begin(), keys.end());
+  for (const std::uint16_t k : keys) support.add(q, best_for_keypoint[k]);
+}
+
+// The scale between the maps from the point pairs that agree with the transform, when there are enough of them.
+std::optional<std::pair<double, std::size_t>> pairScale(const VerifiedMatch& match, const MapContent& query_map,
+                                                        const MapContent& candidate_map,
+                                                        const RecognitionOptions& options) {
+  std::vector<Eigen::Vector3d> from_candidate;
+  std::vector<Eigen::Vector3d> in_query;
+  for (const auto& [pq, pc] : match.point_pairs) {
+    const Eigen::Vector3d a = query_map.point(pq)->p_w;
+    const Eigen::Vector3d b = match.T_qmap_cmap * candidate_map.point(pc)->p_w;
+    if ((a - b).norm() > options.pair_inlier_distance_m) continue;
+    from_candidate.push_back(candidate_map.point(pc)->p_w);
+    in_query.push_back(a);
+  }
+  if (static_cast<int>(from_candidate.size()) < options.min_pairs_for_scale) return std::nullopt;
+  const Result<geometry::Sim3d> sim3 = geometry::alignSim3(from_candidate, in_query);
+  if (!sim3.ok()) return std::nullopt;
+  return std::pair{sim3->scale(), from_candidate.size()};
+}
+
+}  // namespace
+
 Verification verifyCandidate(const KeyframeDatabase& database, const MapContent& query_map, const KeyframeId& query,
                              const MapContent& candidate_map, const KeyframeId& candidate, double bow_score,
                              const CameraLookup& cameras, const RecognitionOptions& options) {
@@ -261,176 +464,21 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
     return reject(Rejection::kMissing, "keyframe, database entry or camera of " + query.toString() + " / " +
                                            candidate.toString() + " unknown");
   }
-
-  // a. Descriptor matching through the direct index: query features against the candidate's features that
-  // observe a map point, under the same node.
-  std::vector<Correspondence> matches;
-  {
-    std::unordered_map<MapPointId, std::size_t> by_point;  // one query keypoint per candidate point: the closest
-    std::size_t i = 0;
-    std::size_t j = 0;
-    const features::FeatureVector& fq = qe->features;
-    const features::FeatureVector& fc = ce->features;
-    while (i < fq.size() && j < fc.size()) {
-      if (fq[i].node < fc[j].node) {
-        ++i;
-      } else if (fc[j].node < fq[i].node) {
-        ++j;
-      } else {
-        const features::NodeId node = fq[i].node;
-        std::size_t i_end = i;
-        while (i_end < fq.size() && fq[i_end].node == node) ++i_end;
-        std::size_t j_end = j;
-        while (j_end < fc.size() && fc[j_end].node == node) ++j_end;
-        for (std::size_t a = i; a < i_end; ++a) {
-          const std::uint16_t kq = fq[a].feature;
-          if (kq >= q->descriptors.size()) continue;
-          int best = std::numeric_limits<int>::max();
-          int second = std::numeric_limits<int>::max();
-          const ServerMapPoint* best_point = nullptr;
-          for (std::size_t b = j; b < j_end; ++b) {
-            const std::uint16_t kc = fc[b].feature;
-            if (!usablePoint(*c, kc)) continue;
-            const ServerMapPoint* p = candidate_map.point(c->point[kc]);
-            if (p == nullptr) continue;
-            const int d = features::hammingDistance(q->descriptors[kq], c->descriptors[kc]);
-            if (d < best) {
-              second = best;
-              best = d;
-              best_point = p;
-            } else if (d < second) {
-              second = d;
-            }
-          }
-          if (best_point == nullptr || best > options.max_descriptor_distance) continue;
-          if (second != std::numeric_limits<int>::max() &&
-              static_cast<float>(best) >= options.match_ratio * static_cast<float>(second)) {
-            continue;
-          }
-          const auto [it, inserted] = by_point.emplace(best_point->id, matches.size());
-          if (inserted) {
-            matches.push_back(Correspondence{kq, best_point->id, best_point->p_w, best});
-          } else if (best < matches[it->second].distance) {
-            matches[it->second] = Correspondence{kq, best_point->id, best_point->p_w, best};
-          }
-        }
-        i = i_end;
-        j = j_end;
-      }
-    }
-  }
+  const std::vector<Correspondence> matches = matchThroughDirectIndex(*q, *qe, *c, *ce, candidate_map, options);
   if (static_cast<int>(matches.size()) < options.min_matches) {
     return reject(Rejection::kTooFewMatches, std::to_string(matches.size()) + " descriptor matches (needs " +
                                                  std::to_string(options.min_matches) + ")");
   }
-
-  // b. RANSAC pose of the query camera in the candidate map, on normalised coordinates.
-  const double focal = camera->camera.calibration().fx;
-  std::vector<cv::Point3d> object;
-  std::vector<cv::Point2d> image;
-  object.reserve(matches.size());
-  image.reserve(matches.size());
-  for (const Correspondence& m : matches) {
-    const Eigen::Vector3d ray = camera->camera.unproject(q->keypoints[m.keypoint].px.cast<double>());
-    object.emplace_back(m.p_m.x(), m.p_m.y(), m.p_m.z());
-    image.emplace_back(ray.x() / ray.z(), ray.y() / ray.z());
-  }
-  cv::Mat rvec;
-  cv::Mat tvec;
-  std::vector<int> ransac_inliers;
-  cv::theRNG().state = options.seed;  // OpenCV's RANSAC samples from the thread's generator
-  bool solved = false;
-  try {
-    solved = cv::solvePnPRansac(object, image, cv::Mat::eye(3, 3, CV_64F), cv::noArray(), rvec, tvec, false,
-                                options.ransac_iterations, options.ransac_threshold_px / focal, 0.999, ransac_inliers,
-                                cv::SOLVEPNP_AP3P);
-  } catch (const cv::Exception& e) {
-    return reject(Rejection::kPoseFailed, std::string("RANSAC failed: ") + e.what());
-  }
-  if (!solved || static_cast<int>(ransac_inliers.size()) < options.min_ransac_inliers) {
-    return reject(Rejection::kPoseFailed, std::to_string(ransac_inliers.size()) + " RANSAC inliers of " +
-                                              std::to_string(matches.size()) + " matches (needs " +
-                                              std::to_string(options.min_ransac_inliers) + ")");
-  }
-  Eigen::Vector3d rotation_vector(rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2));
-  Eigen::Vector3d translation(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
-  geometry::SE3d T_c_m(geometry::SO3d::exp(rotation_vector), translation);
-
-  std::vector<Eigen::Vector2d> px;
-  std::vector<Eigen::Vector3d> p_m;
-  std::vector<Correspondence> used;
-  for (const int index : ransac_inliers) {
-    const Correspondence& m = matches[static_cast<std::size_t>(index)];
-    px.push_back(q->keypoints[m.keypoint].px.cast<double>());
-    p_m.push_back(m.p_m);
-    used.push_back(m);
-  }
-  T_c_m = refinePose(camera->camera, px, p_m, T_c_m, options.max_reprojection_px);
-
-  // c. Guided search: the points of the candidate's covisible neighbourhood, projected into the query.
-  {
-    std::unordered_set<MapPointId> have;
-    std::vector<char> keypoint_taken(q->keypoints.size(), 0);
-    for (const Correspondence& m : used) {
-      have.insert(m.point);
-      keypoint_taken[m.keypoint] = 1;
-    }
-    std::vector<std::pair<int, KeyframeId>> neighbours;
-    for (const auto& [n, shared] : candidate_map.covisible(candidate)) neighbours.emplace_back(shared, n);
-    std::sort(neighbours.begin(), neighbours.end(), [](const auto& a, const auto& b) {
-      return a.first != b.first ? a.first > b.first : a.second < b.second;
-    });
-    if (neighbours.size() > static_cast<std::size_t>(options.guided_neighbours)) {
-      neighbours.resize(static_cast<std::size_t>(options.guided_neighbours));
-    }
-    std::vector<KeyframeId> neighbourhood{candidate};
-    for (const auto& [shared, n] : neighbours) neighbourhood.push_back(n);
-    // Best candidate point per query keypoint.
-    std::unordered_map<std::uint16_t, Correspondence> best_for_keypoint;
-    const double radius2 = options.guided_radius_px * options.guided_radius_px;
-    for (const KeyframeId& id : neighbourhood) {
-      const ServerKeyframe* kf = candidate_map.keyframe(id);
-      if (kf == nullptr) continue;
-      for (std::size_t k = 0; k < kf->point.size(); ++k) {
-        if (!usablePoint(*kf, k)) continue;
-        const ServerMapPoint* p = candidate_map.point(kf->point[k]);
-        if (p == nullptr || !have.insert(p->id).second) continue;
-        const std::optional<Eigen::Vector2d> projected = camera->camera.project(T_c_m * p->p_w);
-        if (!projected || projected->x() < 0.0 || projected->y() < 0.0 || projected->x() >= camera->camera.width() ||
-            projected->y() >= camera->camera.height()) {
-          continue;
-        }
-        int best = options.guided_max_distance + 1;
-        int best_keypoint = -1;
-        for (std::size_t kq = 0; kq < q->keypoints.size(); ++kq) {
-          if (keypoint_taken[kq] != 0) continue;
-          if ((q->keypoints[kq].px.cast<double>() - *projected).squaredNorm() > radius2) continue;
-          const int d = features::hammingDistance(q->descriptors[kq], p->descriptor);
-          if (d < best) {
-            best = d;
-            best_keypoint = static_cast<int>(kq);
-          }
-        }
-        if (best_keypoint < 0) continue;
-        const auto key = static_cast<std::uint16_t>(best_keypoint);
-        const auto it = best_for_keypoint.find(key);
-        if (it == best_for_keypoint.end() || best < it->second.distance) {
-          best_for_keypoint[key] = Correspondence{key, p->id, p->p_w, best};
-        }
-      }
-    }
-    std::vector<std::uint16_t> keys;
-    for (const auto& [k, m] : best_for_keypoint) keys.push_back(k);
-    std::sort(keys.begin(), keys.end());
-    for (const std::uint16_t k : keys) {
-      const Correspondence& m = best_for_keypoint[k];
-      px.push_back(q->keypoints[m.keypoint].px.cast<double>());
-      p_m.push_back(m.p_m);
-      used.push_back(m);
-    }
-  }
-  T_c_m = refinePose(camera->camera, px, p_m, T_c_m, options.max_reprojection_px);
-  const std::vector<bool> inlier = reprojectionInliers(camera->camera, px, p_m, T_c_m, options.max_reprojection_px);
+  auto ransac = ransacPose(*q, *camera, matches, options);
+  if (const std::string* failure = std::get_if<std::string>(&ransac)) return reject(Rejection::kPoseFailed, *failure);
+  const RansacPose& pose = std::get<RansacPose>(ransac);
+  PoseSupport support;
+  for (const int index : pose.inliers) support.add(*q, matches[static_cast<std::size_t>(index)]);
+  geometry::SE3d T_c_m = refinePose(camera->camera, support.px, support.p_m, pose.T_c_m, options.max_reprojection_px);
+  guidedSearch(*q, *camera, candidate_map, candidate, T_c_m, options, support);
+  T_c_m = refinePose(camera->camera, support.px, support.p_m, T_c_m, options.max_reprojection_px);
+  const std::vector<bool> inlier =
+      reprojectionInliers(camera->camera, support.px, support.p_m, T_c_m, options.max_reprojection_px);
 
   VerifiedMatch match;
   match.query = query;
@@ -439,17 +487,18 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
   match.candidate_map = candidate_map.id();
   match.bow_score = bow_score;
   match.matches = static_cast<int>(matches.size());
-  match.ransac_inliers = static_cast<int>(ransac_inliers.size());
+  match.ransac_inliers = static_cast<int>(pose.inliers.size());
   match.T_cmap_cq = T_c_m.inverse();
   const geometry::SE3d T_qmap_cq = q->T_w_s * camera->T_s_c;
   match.T_qmap_cmap = T_qmap_cq * T_c_m;
   match.tilt_deg = tiltDeg(match.T_qmap_cmap);
-  for (std::size_t i = 0; i < used.size(); ++i) {
+  for (std::size_t i = 0; i < support.used.size(); ++i) {
     if (!inlier[i]) continue;
+    const Correspondence& m = support.used[i];
     ++match.inliers;
-    match.keypoint_matches.emplace_back(used[i].keypoint, used[i].point);
-    if (usablePoint(*q, used[i].keypoint) && query_map.point(q->point[used[i].keypoint]) != nullptr) {
-      match.point_pairs.emplace_back(q->point[used[i].keypoint], used[i].point);
+    match.keypoint_matches.emplace_back(m.keypoint, m.point);
+    if (usablePoint(*q, m.keypoint) && query_map.point(q->point[m.keypoint]) != nullptr) {
+      match.point_pairs.emplace_back(q->point[m.keypoint], m.point);
     }
   }
   std::ostringstream figures;
@@ -464,24 +513,12 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
     return reject(Rejection::kTilted, figures.str() + " (roll/pitch above " + std::to_string(options.max_tilt_deg) +
                                           " deg: the maps are gravity-aligned)");
   }
-  // Scale: the pairs that agree with the transform, aligned with scale.
-  std::vector<Eigen::Vector3d> from_candidate;
-  std::vector<Eigen::Vector3d> in_query;
-  for (const auto& [pq, pc] : match.point_pairs) {
-    const Eigen::Vector3d a = query_map.point(pq)->p_w;
-    const Eigen::Vector3d b = match.T_qmap_cmap * candidate_map.point(pc)->p_w;
-    if ((a - b).norm() > options.pair_inlier_distance_m) continue;
-    from_candidate.push_back(candidate_map.point(pc)->p_w);
-    in_query.push_back(a);
-  }
-  if (static_cast<int>(from_candidate.size()) >= options.min_pairs_for_scale) {
-    if (const Result<geometry::Sim3d> sim3 = geometry::alignSim3(from_candidate, in_query); sim3.ok()) {
-      match.scale = sim3->scale();
-      out.match = match;
-      if (std::abs(*match.scale - 1.0) > options.max_scale_error) {
-        return reject(Rejection::kScale, figures.str() + ", scale " + std::to_string(*match.scale) + " from " +
-                                             std::to_string(from_candidate.size()) + " point pairs");
-      }
+  if (const auto scale = pairScale(match, query_map, candidate_map, options)) {
+    match.scale = scale->first;
+    out.match = match;
+    if (std::abs(scale->first - 1.0) > options.max_scale_error) {
+      return reject(Rejection::kScale, figures.str() + ", scale " + std::to_string(scale->first) + " from " +
+                                           std::to_string(scale->second) + " point pairs");
     }
   }
   out.detail = figures.str();
