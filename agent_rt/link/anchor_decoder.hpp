@@ -6,7 +6,7 @@
 // may have evicted it): the decoder checks the form, not the agent's map.
 #pragma once
 
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "common/core/result.hpp"
 
 #include <google/protobuf/repeated_ptr_field.h>

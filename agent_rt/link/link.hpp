@@ -27,7 +27,7 @@
 
 #include "agent_rt/link/link_store.hpp"
 #include "agent_rt/link/uplink_pacer.hpp"
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "common/core/result.hpp"
 #include "common/dataset/types.hpp"
 #include "common/geometry/lie.hpp"

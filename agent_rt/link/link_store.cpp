@@ -5,7 +5,7 @@
 #include <optional>
 #include <string>
 
-#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/messages/conversions.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 

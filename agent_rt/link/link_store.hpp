@@ -26,7 +26,7 @@
 #include "agent_rt/link/id_index.hpp"
 #include "agent_rt/map/capacities.hpp"
 #include "agent_rt/map/fixed_pool.hpp"
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "common/core/ids.hpp"
 #include "common/core/result.hpp"
 

@@ -1,4 +1,4 @@
-// The map delta for the link to the server (runtime/messages.hpp: MapDeltaMessage). While mapping processes a
+// The map delta for the link to the server (messages/messages.hpp: MapDeltaMessage). While mapping processes a
 // keyframe, the local map reports its structural changes here and they go straight into the delta; afterwards
 // finish() adds the keyframe in full, the points made with it, and the states and positions of everything in
 // the local map.
@@ -9,7 +9,7 @@
 
 #include "agent_rt/map/local_map.hpp"
 #include "agent_rt/map/map_events.hpp"
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 
 namespace cvislam::agent {
 

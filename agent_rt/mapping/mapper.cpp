@@ -10,7 +10,7 @@
 
 #include "agent_rt/mapping/mapper_state.hpp"
 #include "agent_rt/mapping/two_view_initialiser.hpp"
-#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/messages/conversions.hpp"
 
 namespace cvislam::agent {
 

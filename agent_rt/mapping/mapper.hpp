@@ -17,7 +17,7 @@
 
 #include "agent_rt/map/local_map.hpp"
 #include "agent_rt/mapping/local_bundle_adjustment.hpp"
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "common/camera/camera_model.hpp"
 #include "common/core/result.hpp"
 #include "common/features/orb.hpp"

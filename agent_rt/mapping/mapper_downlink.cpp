@@ -8,7 +8,7 @@
 #include <vector>
 
 #include "agent_rt/mapping/mapper_state.hpp"
-#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/messages/conversions.hpp"
 
 namespace cvislam::agent {
 

@@ -15,10 +15,10 @@
 #include <nlohmann/json.hpp>
 
 #include "agent_rt/ipc/embedded_roudi.hpp"
+#include "agent_rt/messages/conversions.hpp"
 #include "agent_rt/runtime/frame_ring.hpp"
 #include "agent_rt/runtime/iceoryx_channels.hpp"
 #include "agent_rt/runtime/mapping_thread.hpp"
-#include "agent_rt/runtime/message_conversions.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
 #include "common/dataset/euroc.hpp"

@@ -10,8 +10,8 @@
 #include <string>
 
 #include "agent_rt/link/link.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "agent_rt/runtime/channel_depths.hpp"
-#include "agent_rt/runtime/messages.hpp"
 #include "agent_rt/tracking/tracker.hpp"
 #include "iceoryx_posh/popo/publisher.hpp"
 #include "iceoryx_posh/popo/subscriber.hpp"

@@ -2,7 +2,7 @@
 
 #include <algorithm>
 
-#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/messages/conversions.hpp"
 
 namespace cvislam::agent {
 

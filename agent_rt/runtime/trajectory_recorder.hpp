@@ -7,7 +7,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "agent_rt/tracking/tracker.hpp"
 #include "common/dataset/types.hpp"
 #include "common/geometry/lie.hpp"

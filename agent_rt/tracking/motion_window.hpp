@@ -10,7 +10,7 @@
 
 #include <Eigen/Core>
 
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "agent_rt/tracking/inertial_pose_optimizer.hpp"
 #include "common/core/ids.hpp"
 #include "common/geometry/lie.hpp"

@@ -8,7 +8,7 @@
 #include <optional>
 #include <string>
 
-#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/messages/conversions.hpp"
 #include "agent_rt/tracking/inertial_pose_optimizer.hpp"
 #include "agent_rt/tracking/motion_window.hpp"
 

@@ -18,7 +18,7 @@
 
 #include <Eigen/Core>
 
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "agent_rt/tracking/keyframe_decision.hpp"
 #include "agent_rt/tracking/mapping_backlog.hpp"
 #include "agent_rt/tracking/pose_optimizer.hpp"

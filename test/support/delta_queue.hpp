@@ -9,7 +9,7 @@
 #include <vector>
 
 #include "agent_rt/link/link.hpp"
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 
 namespace cvislam::agent::test {
 

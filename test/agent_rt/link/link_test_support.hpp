@@ -12,8 +12,8 @@
 
 #include <gtest/gtest.h>
 
-#include "agent_rt/runtime/message_conversions.hpp"
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/conversions.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 #include "server_cloud/core/server_core.hpp"

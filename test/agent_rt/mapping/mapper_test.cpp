@@ -10,7 +10,7 @@
 
 #include <gtest/gtest.h>
 
-#include "agent_rt/runtime/message_conversions.hpp"
+#include "agent_rt/messages/conversions.hpp"
 #include "common/dataset/euroc_calibration.hpp"
 
 namespace cvislam::agent {

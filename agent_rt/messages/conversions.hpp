@@ -5,7 +5,7 @@
 
 #include <Eigen/Core>
 
-#include "agent_rt/runtime/messages.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "common/dataset/types.hpp"
 #include "common/geometry/lie.hpp"
 #include "common/imu/preintegration.hpp"
