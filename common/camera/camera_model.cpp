@@ -1,10 +1,11 @@
 #include "common/camera/camera_model.hpp"
 
-#include <cassert>
 #include <cmath>
 #include <string>
 
 #include <Eigen/LU>
+
+#include "common/core/check.hpp"
 
 namespace cvislam::camera {
 
@@ -127,7 +128,7 @@ Vector2d CameraModel::undistortPixel(const Vector2d& pixel) const {
 }
 
 void CameraModel::undistortPixels(std::span<const Vector2d> pixels, std::span<Vector2d> undistorted) const {
-  assert(pixels.size() == undistorted.size() && "undistortPixels: output must be as long as the input");
+  CVISLAM_CHECK(pixels.size() == undistorted.size(), "undistortPixels: output must be as long as the input");
   for (std::size_t i = 0; i < pixels.size(); ++i) undistorted[i] = undistortPixel(pixels[i]);
 }
 

@@ -4,12 +4,13 @@
 // returned value that names the problem. Exceptions do not cross module boundaries.
 #pragma once
 
-#include <cassert>
 #include <string>
 #include <string_view>
 #include <type_traits>
 #include <utility>
 #include <variant>
+
+#include "common/core/check.hpp"
 
 namespace cvislam {
 
@@ -61,19 +62,19 @@ class [[nodiscard]] Result {
   explicit operator bool() const noexcept { return ok(); }
 
   [[nodiscard]] T& value() & {
-    assert(ok() && "Result::value() on an error");
+    CVISLAM_CHECK(ok(), "Result::value() on an error");
     return std::get<0>(storage_);
   }
   [[nodiscard]] const T& value() const& {
-    assert(ok() && "Result::value() on an error");
+    CVISLAM_CHECK(ok(), "Result::value() on an error");
     return std::get<0>(storage_);
   }
   [[nodiscard]] T&& value() && {
-    assert(ok() && "Result::value() on an error");
+    CVISLAM_CHECK(ok(), "Result::value() on an error");
     return std::get<0>(std::move(storage_));
   }
   [[nodiscard]] const Error& error() const& {
-    assert(!ok() && "Result::error() on a value");
+    CVISLAM_CHECK(!ok(), "Result::error() on a value");
     return std::get<1>(storage_);
   }
 
@@ -96,7 +97,7 @@ class [[nodiscard]] Status {
   [[nodiscard]] bool ok() const noexcept { return ok_; }
   explicit operator bool() const noexcept { return ok_; }
   [[nodiscard]] const Error& error() const {
-    assert(!ok_ && "Status::error() on OK");
+    CVISLAM_CHECK(!ok_, "Status::error() on OK");
     return error_;
   }
 

@@ -5,6 +5,8 @@
 #include <sstream>
 #include <unordered_map>
 
+#include "server_cloud/backend/map_corrections.hpp"
+
 namespace cvislam::server::backend {
 
 namespace {
@@ -16,54 +18,6 @@ double secondsSince(Clock::time_point t) {
   return std::chrono::duration<double>(Clock::now() - t).count();
 }
 
-// The agent records of some agents and some maps, locked for writing in the stack's order.
-class StackLocks {
- public:
-  StackLocks(Mission& mission, const std::vector<std::shared_ptr<ServerMap>>& maps) {
-    std::set<AgentId> agents;
-    for (const auto& map : maps) {
-      const auto content = map->read();
-      agents.insert(content->agents().begin(), content->agents().end());
-    }
-    // Found first and locked after: the mission's agent map is not to be locked while a record is.
-    std::vector<std::pair<AgentId, SharedAgentRecord>> found;
-    for (AgentId agent : agents) {
-      if (SharedAgentRecord shared = mission.findAgent(agent)) found.emplace_back(agent, std::move(shared));
-    }
-    records_.reserve(found.size());
-    for (const auto& [agent, shared] : found) {
-      records_.push_back(shared->write());
-      by_agent_.emplace(agent, &*records_.back());
-    }
-    std::vector<std::shared_ptr<ServerMap>> sorted = maps;
-    std::sort(sorted.begin(), sorted.end(), [](const auto& a, const auto& b) { return a->id() < b->id(); });
-    sorted.erase(std::unique(sorted.begin(), sorted.end()), sorted.end());
-    for (const auto& map : sorted) {
-      maps_.push_back(map->write());
-      by_map_.emplace(map->id(), &*maps_.back());
-    }
-  }
-  [[nodiscard]] MapContent& map(MapId id) { return *by_map_.at(id); }
-  [[nodiscard]] std::map<AgentId, AgentRecord*>& records() { return by_agent_; }
-
- private:
-  std::vector<Synchronized<AgentRecord>::WriteLocked> records_;
-  std::vector<decltype(std::declval<ServerMap&>().write())> maps_;
-  std::map<AgentId, AgentRecord*> by_agent_;
-  std::map<MapId, MapContent*> by_map_;
-};
-
-// A map's keyframes moved (a GBA's or a loop's corrections): one event for the map service's watchers.
-void appendCorrected(Mission& mission, MapId map, const AppliedCorrections& applied, const char* cause) {
-  if (applied.changed.empty()) return;
-  MissionEvent corrected;
-  corrected.kind = MissionEvent::Kind::kMapCorrected;
-  corrected.map = map;
-  corrected.keyframes = static_cast<std::uint32_t>(applied.changed.size());
-  corrected.cause = cause;
-  mission.events().append(std::move(corrected));
-}
-
 AgentSensorsMap sensorsOf(const Mission& mission) {
   AgentSensorsMap out;
   for (const SharedAgentRecord& shared : mission.agents()) {
@@ -71,21 +25,6 @@ AgentSensorsMap sensorsOf(const Mission& mission) {
     if (record->sensors) out.emplace(record->id, *record->sensors);
   }
   return out;
-}
-
-// Brings the records up to date after `applied` changed the map: each agent map's T_m_w follows its frame's
-// change (its newest corrected keyframes'), and every changed keyframe is queued for the downlink.
-void updateRecords(std::map<AgentId, AgentRecord*>& records, const AppliedCorrections& applied) {
-  for (const auto& [key, change] : applied.frame_change) {
-    const auto it = records.find(key.first);
-    if (it == records.end()) continue;
-    const auto agent_map = it->second->agent_maps.find(key.second);
-    if (agent_map != it->second->agent_maps.end()) agent_map->second.T_m_w = change * agent_map->second.T_m_w;
-  }
-  for (const KeyframeId& id : applied.changed) {
-    const auto it = records.find(id.agent);
-    if (it != records.end()) it->second->corrections.insert(id.counter);
-  }
 }
 
 }  // namespace
@@ -528,12 +467,9 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
   const CameraTable cameras(sensors);
   {
     StackLocks locks(mission, {map});
-    MapContent& content = locks.map(map->id());
-    const AppliedCorrections applied = applyCorrections(
-        content, *corrections, {}, ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes});
-    updateRecords(locks.records(), applied);
-    appendCorrected(mission, map->id(), applied, "loop closure");
-    record.fusion = fuseMatch(content, match, cameras.lookup(), options_.fusion);
+    (void)applyToMission(mission, locks, map->id(), *corrections, {},
+                         ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes}, "loop closure");
+    record.fusion = fuseMatch(locks.map(map->id()), match, cameras.lookup(), options_.fusion);
   }
   std::size_t index = 0;
   {
@@ -689,10 +625,8 @@ void BackendWorker::gba(const GbaRequest& request) {
     } else {
       const auto start = Clock::now();
       const AppliedCorrections applied =
-          applyCorrections(locks.map(request.map), keyframeCorrections(*snapshot), pointCorrections(*snapshot),
-                           ApplyOptions{/*marks_refined=*/true, options_.frame_follows_keyframes});
-      updateRecords(locks.records(), applied);
-      appendCorrected(*mission, request.map, applied, "global BA");
+          applyToMission(*mission, locks, request.map, keyframeCorrections(*snapshot), pointCorrections(*snapshot),
+                         ApplyOptions{/*marks_refined=*/true, options_.frame_follows_keyframes}, "global BA");
       record.keyframes_propagated = applied.keyframes_propagated;
       record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
     }

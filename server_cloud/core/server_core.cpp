@@ -387,30 +387,6 @@ void ServerCore::sampleTimeline() {
   timeline->insert(timeline->end(), samples.begin(), samples.end());
 }
 
-Status ServerCore::correctKeyframe(const std::string& mission_name, const KeyframeId& id, const geometry::SE3d& T_m_s,
-                                   const Eigen::Vector3d& v_m, const imu::ImuBias& bias) {
-  auto mission = missions_.find(mission_name);
-  if (!mission) return Error{ErrorCode::kNotFound, "no mission '" + mission_name + "'"};
-  auto shared = mission->findAgent(id.agent);
-  if (!shared)
-    return Error{ErrorCode::kNotFound, "no agent " + std::to_string(id.agent) + " in '" + mission_name + "'"};
-  auto record = shared->write();
-  auto held = record->keyframes.find(id.counter);
-  if (held == record->keyframes.end()) return Error{ErrorCode::kNotFound, "no keyframe " + id.toString()};
-  auto map = mission->stack().find(held->second.map);
-  if (!map) return Error{ErrorCode::kInternal, "keyframe " + id.toString() + " in a vanished map"};
-  {
-    auto content = map->write();
-    ServerKeyframe* kf = content->keyframe(id);
-    if (kf == nullptr) return Error{ErrorCode::kInternal, "keyframe " + id.toString() + " not in its map"};
-    kf->T_w_s = T_m_s;
-    kf->v_w = v_m;
-    kf->bias = bias;
-  }
-  record->corrections.insert(id.counter);
-  return Status::Ok();
-}
-
 namespace {
 
 // `stack`, when given, names each match's map frames: the agent map each map was opened for (a scorer needs it

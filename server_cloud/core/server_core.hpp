@@ -222,11 +222,6 @@ class ServerCore {
   // Records one timeline sample per agent (the service calls it every timeline_interval_s).
   void sampleTimeline();
 
-  // The server's own change of a keyframe's state (global BA, loop closure, merge: later issues; tests now):
-  // stored, and sent down to the agent with its next message.
-  Status correctKeyframe(const std::string& mission, const KeyframeId& id, const geometry::SE3d& T_m_s,
-                         const Eigen::Vector3d& v_m, const imu::ImuBias& bias);
-
   // Lets the workers catch up (recognition queries every waiting keyframe, the back-end acts on every match and,
   // with options.final_gba, runs a last GBA on every map), then writes, under `dir`: stats.json, timeline.csv and,
   // per mission, <mission>/recognition.json (when recognition runs: its counters and every verified loop and map

@@ -1,9 +1,10 @@
 #include "server_cloud/recognition/keyframe_database.hpp"
 
 #include <algorithm>
-#include <cassert>
 #include <cmath>
 #include <string>
+
+#include "common/core/check.hpp"
 
 namespace cvislam::server::recognition {
 
@@ -24,7 +25,7 @@ Status KeyframeDatabase::add(const KeyframeId& keyframe, MapId map, features::Bo
     used_.push_back(0);
   }
   for (const features::BowEntry& e : bow) {
-    assert(e.word < postings_.size() && "a word outside the vocabulary");
+    CVISLAM_CHECK(e.word < postings_.size(), "a word outside the vocabulary");
     postings_[e.word].push_back(Posting{slot, e.weight});
   }
   entries_[slot] = DatabaseEntry{keyframe, map, std::move(bow), std::move(features)};
@@ -43,7 +44,7 @@ Status KeyframeDatabase::remove(const KeyframeId& keyframe) {
   for (const features::BowEntry& e : entry.bow) {
     std::vector<Posting>& list = postings_[e.word];
     const auto p = std::find_if(list.begin(), list.end(), [slot](const Posting& q) { return q.slot == slot; });
-    assert(p != list.end());
+    CVISLAM_CHECK(p != list.end(), "a posting to remove that the list does not hold");
     *p = list.back();  // order inside a posting list does not matter
     list.pop_back();
   }

@@ -6,7 +6,7 @@
 //   MapStack::maps_  the list of maps; held only to find or add a map.
 //   ServerMap        one per map; a batch locks the maps it touches, in id order, for its validation and apply.
 // Order: an agent record before the stack, the stack before a map, maps in increasing id. Long work (place
-// recognition, global BA; later issues) copies what it needs under a map's read lock and works on the copy.
+// recognition, global BA) copies what it needs under a map's read lock and works on the copy.
 #pragma once
 
 #include <algorithm>

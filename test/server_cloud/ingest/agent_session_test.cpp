@@ -16,6 +16,7 @@
 
 #include "cvislam/v1/agent_link.pb.h"
 #include "server_cloud/core/server_core.hpp"
+#include "test/server_cloud/backend_corrections.hpp"
 #include "test/server_cloud/link_messages.hpp"
 #include "test/server_cloud/session_driver.hpp"
 
@@ -574,43 +575,57 @@ TEST_F(AgentSessionTest, ANewProcessIsWelcomedWhenTheOneBeforeStoredNothing) {
 
 // ---- The server's corrections ----
 
-TEST_F(AgentSessionTest, CorrectedKeyframeIsSentDownOnceUntilCorrectedAgain) {
+// A correction as the back-end applies it: the corrected keyframe and those it carries along are sent down once
+// each, in the agent's world frame (the agent map's T_m_w, which followed the newest corrected keyframe), and
+// again only after the next correction.
+TEST_F(AgentSessionTest, CorrectedKeyframesAreSentDownOnceInTheAgentsFrameUntilCorrectedAgain) {
   greet(*sut);
   sendBatch(*sut, 1, 0, 3);
   v1::ServerDownlink down;
   ASSERT_TRUE(sut->nextDownlink(later(1), down));
   ASSERT_EQ(down.corrected_keyframes_size(), 0);
-  const geometry::SE3d T_m_s(geometry::SO3d::exp(Eigen::Vector3d(0.1, -0.2, 0.3)), Eigen::Vector3d(1.5, -2.5, 0.25));
-  const Eigen::Vector3d v_m(0.5, 0.25, -0.125);
-  imu::ImuBias bias;
-  bias.gyro = Eigen::Vector3d(0.01, 0.02, 0.03);
-  bias.accel = Eigen::Vector3d(-0.1, -0.2, -0.3);
+  test::KeyframeStateChange change;
+  change.id = KeyframeId{kAgent, 1};
+  change.T_m_s = geometry::SE3d(geometry::SO3d::exp(Eigen::Vector3d(0.1, -0.2, 0.3)), Eigen::Vector3d(1.5, -2.5, 0.25));
+  change.v_m = Eigen::Vector3d(0.5, 0.25, -0.125);
+  change.bias.gyro = Eigen::Vector3d(0.01, 0.02, 0.03);
+  change.bias.accel = Eigen::Vector3d(-0.1, -0.2, -0.3);
 
-  ASSERT_TRUE(core_.correctKeyframe(kMission, KeyframeId{kAgent, 1}, T_m_s, v_m, bias).ok());
+  const auto applied = test::correctAsTheBackend(core_, kMission, {change});
+  ASSERT_TRUE(applied.ok()) << applied.error().toString();
   v1::ServerDownlink corrected;
   v1::ServerDownlink after;
   const bool sent = sut->nextDownlink(later(2), corrected);
   const bool sent_again = sut->nextDownlink(later(4), after);
 
   ASSERT_TRUE(sent);
-  ASSERT_EQ(corrected.corrected_keyframes_size(), 1);
-  const v1::KeyframeState& state = corrected.corrected_keyframes(0);
-  EXPECT_EQ(state.counter(), 1U);
-  EXPECT_NEAR(state.t_w_s().px(), 1.5, 1e-12);  // the agent map's frame is the server map's (no merge yet)
-  EXPECT_NEAR(state.t_w_s().pz(), 0.25, 1e-12);
-  EXPECT_NEAR(state.t_w_s().qx(), T_m_s.so3().quaternion().x(), 1e-7);
-  EXPECT_NEAR(state.t_w_s().qw(), T_m_s.so3().quaternion().w(), 1e-7);
-  EXPECT_FLOAT_EQ(state.v_w(2), -0.125F);
-  EXPECT_FLOAT_EQ(state.bias_accel(1), -0.2F);
+  ASSERT_EQ(corrected.corrected_keyframes_size(), static_cast<int>(applied->changed.size()));
+  EXPECT_EQ(applied->changed.size(), 3U) << "keyframe 1 corrected, 0 and 2 carried along";
+  const auto r = record()->read();
+  const geometry::SE3d T_w_m = r->agent_maps.begin()->second.T_m_w.inverse();
+  const auto map = core_.missions().find(kMission)->stack().find(r->keyframes.at(1).map)->read();
+  for (const v1::KeyframeState& state : corrected.corrected_keyframes()) {
+    const ServerKeyframe* kf = map->keyframe(KeyframeId{kAgent, state.counter()});
+    ASSERT_NE(kf, nullptr);
+    const geometry::SE3d T_w_s = T_w_m * kf->T_w_s;
+    EXPECT_NEAR(state.t_w_s().px(), T_w_s.translation().x(), 1e-6) << "keyframe " << state.counter();
+    EXPECT_NEAR(state.t_w_s().pz(), T_w_s.translation().z(), 1e-6);
+    EXPECT_NEAR(std::abs(state.t_w_s().qw()), std::abs(T_w_s.so3().quaternion().w()), 1e-6);
+    if (state.counter() == 1) {
+      EXPECT_NEAR(kf->T_w_s.translation().x(), 1.5, 1e-12) << "the server map holds the corrected state";
+      EXPECT_FLOAT_EQ(state.bias_accel(1), -0.2F);
+      EXPECT_NEAR(state.v_w(2), (T_w_m.so3() * change.v_m).z(), 1e-6);
+    }
+  }
   EXPECT_EQ(corrected.acked_sequence(), 1U);
   EXPECT_FALSE(sent_again);  // sent once
 
-  ASSERT_TRUE(core_.correctKeyframe(kMission, KeyframeId{kAgent, 1}, T_m_s, v_m, bias).ok());
+  change.T_m_s = geometry::SE3d(change.T_m_s.so3(), Eigen::Vector3d(1.6, -2.5, 0.25));
+  ASSERT_TRUE(test::correctAsTheBackend(core_, kMission, {change}).ok());
   v1::ServerDownlink again;
   ASSERT_TRUE(sut->nextDownlink(later(6), again));
-  ASSERT_EQ(again.corrected_keyframes_size(), 1);
-  EXPECT_EQ(again.corrected_keyframes(0).counter(), 1U);
-  EXPECT_EQ(record()->read()->down.at("correction").messages, 2U);
+  EXPECT_EQ(again.corrected_keyframes_size(), 3);
+  EXPECT_EQ(record()->read()->down.at("correction").messages, 6U);
 }
 
 TEST_F(AgentSessionTest, AKeyframeRemovedAsRedundantIsSentDownOnce) {
@@ -670,20 +685,6 @@ TEST_F(AgentSessionTest, AnAgentBackWhereItStartedIsSentItsOldKeyframesWithTheir
   const auto r = record()->read();
   EXPECT_EQ(r->down.at("covisible_keyframe").messages, 5U);
   EXPECT_EQ(r->down.at("covisible_point").messages, 6U);
-}
-
-TEST_F(AgentSessionTest, CorrectingAKeyframeTheServerDoesNotHoldIsNotFound) {
-  greet(*sut);
-  sendBatch(*sut, 1, 0, 1);
-
-  const Status unknown_keyframe = core_.correctKeyframe(kMission, KeyframeId{kAgent, 9}, {}, {}, {});
-  const Status unknown_mission = core_.correctKeyframe("elsewhere", KeyframeId{kAgent, 0}, {}, {}, {});
-
-  ASSERT_FALSE(unknown_keyframe.ok());
-  EXPECT_EQ(unknown_keyframe.error().code(), ErrorCode::kNotFound);
-  EXPECT_THAT(unknown_keyframe.error().message(), HasSubstr("keyframe 4:9"));
-  ASSERT_FALSE(unknown_mission.ok());
-  EXPECT_EQ(unknown_mission.error().code(), ErrorCode::kNotFound);
 }
 
 // Scale-out: a replica takes a mission's lease for a Hello only once the Hello is one it would serve. A Hello

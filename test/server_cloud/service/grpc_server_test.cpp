@@ -27,6 +27,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
+#include "test/server_cloud/backend_corrections.hpp"
 #include "test/server_cloud/link_messages.hpp"
 #include "test/server_cloud/store/faulty_stores.hpp"
 #include "test/support/temp_dir.hpp"
@@ -195,12 +196,10 @@ class GrpcServerTest : public ::testing::Test {
   void startLargeDownlink(AgentClient& agent) {
     ASSERT_TRUE(agent.greet(kHostileAgent, kHostileSession).has_value());
     ASSERT_TRUE(agent.sendAndAwaitAck(makeKeyframeBatch(1, 0, kInFlightKeyframes)));
-    for (std::uint32_t c = 0; c < kInFlightKeyframes; ++c) {
-      ASSERT_TRUE(core_
-                      ->correctKeyframe(kMission, KeyframeId{kHostileAgent, c}, geometry::SE3d(),
-                                        Eigen::Vector3d::Zero(), imu::ImuBias{})
-                      .ok());
-    }
+    std::vector<test::KeyframeStateChange> changes(kInFlightKeyframes);
+    for (std::uint32_t c = 0; c < kInFlightKeyframes; ++c) changes[c].id = KeyframeId{kHostileAgent, c};
+    const auto applied = test::correctAsTheBackend(*core_, kMission, changes);
+    ASSERT_TRUE(applied.ok()) << applied.error().toString();
     std::this_thread::sleep_for(std::chrono::milliseconds(300));  // the periodic thread starts writing them
   }
 
