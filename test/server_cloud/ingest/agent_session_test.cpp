@@ -601,20 +601,22 @@ TEST_F(AgentSessionTest, CorrectedKeyframesAreSentDownOnceInTheAgentsFrameUntilC
   ASSERT_TRUE(sent);
   ASSERT_EQ(corrected.corrected_keyframes_size(), static_cast<int>(applied->changed.size()));
   EXPECT_EQ(applied->changed.size(), 3U) << "keyframe 1 corrected, 0 and 2 carried along";
-  const auto r = record()->read();
-  const geometry::SE3d T_w_m = r->agent_maps.begin()->second.T_m_w.inverse();
-  const auto map = core_.missions().find(kMission)->stack().find(r->keyframes.at(1).map)->read();
-  for (const v1::KeyframeState& state : corrected.corrected_keyframes()) {
-    const ServerKeyframe* kf = map->keyframe(KeyframeId{kAgent, state.counter()});
-    ASSERT_NE(kf, nullptr);
-    const geometry::SE3d T_w_s = T_w_m * kf->T_w_s;
-    EXPECT_NEAR(state.t_w_s().px(), T_w_s.translation().x(), 1e-6) << "keyframe " << state.counter();
-    EXPECT_NEAR(state.t_w_s().pz(), T_w_s.translation().z(), 1e-6);
-    EXPECT_NEAR(std::abs(state.t_w_s().qw()), std::abs(T_w_s.so3().quaternion().w()), 1e-6);
-    if (state.counter() == 1) {
-      EXPECT_NEAR(kf->T_w_s.translation().x(), 1.5, 1e-12) << "the server map holds the corrected state";
-      EXPECT_FLOAT_EQ(state.bias_accel(1), -0.2F);
-      EXPECT_NEAR(state.v_w(2), (T_w_m.so3() * change.v_m).z(), 1e-6);
+  {  // read locks, released before the next correction takes the stack's write locks
+    const auto r = record()->read();
+    const geometry::SE3d T_w_m = r->agent_maps.begin()->second.T_m_w.inverse();
+    const auto map = core_.missions().find(kMission)->stack().find(r->keyframes.at(1).map)->read();
+    for (const v1::KeyframeState& state : corrected.corrected_keyframes()) {
+      const ServerKeyframe* kf = map->keyframe(KeyframeId{kAgent, state.counter()});
+      ASSERT_NE(kf, nullptr);
+      const geometry::SE3d T_w_s = T_w_m * kf->T_w_s;
+      EXPECT_NEAR(state.t_w_s().px(), T_w_s.translation().x(), 1e-6) << "keyframe " << state.counter();
+      EXPECT_NEAR(state.t_w_s().pz(), T_w_s.translation().z(), 1e-6);
+      EXPECT_NEAR(std::abs(state.t_w_s().qw()), std::abs(T_w_s.so3().quaternion().w()), 1e-6);
+      if (state.counter() == 1) {
+        EXPECT_NEAR(kf->T_w_s.translation().x(), 1.5, 1e-12) << "the server map holds the corrected state";
+        EXPECT_FLOAT_EQ(state.bias_accel(1), -0.2F);
+        EXPECT_NEAR(state.v_w(2), (T_w_m.so3() * change.v_m).z(), 1e-6);
+      }
     }
   }
   EXPECT_EQ(corrected.acked_sequence(), 1U);
