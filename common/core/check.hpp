@@ -17,9 +17,9 @@ namespace cvislam::detail {
 
 }  // namespace cvislam::detail
 
-#define CVISLAM_CHECK(condition, message)                                         \
-  do {                                                                            \
-    if (!(condition)) [[unlikely]] {                                              \
+#define CVISLAM_CHECK(condition, message)                                        \
+  do {                                                                           \
+    if (!(condition)) [[unlikely]] {                                             \
       ::cvislam::detail::checkFailed(__FILE__, __LINE__, #condition, (message)); \
-    }                                                                             \
+    }                                                                            \
   } while (false)
