@@ -7,7 +7,8 @@
 #   docker run --shm-size=256m -v /data/V1_01_easy:/data:ro cvislam-agent \
 #     --dataset /data --output /tmp/out --server cvislam-server:50051 --mission m1 --agent-id 0
 #
-# RUNTIME_PACKAGES is checked against the binary's ELF NEEDED entries by test/deploy/runtime_packages_test.py.
+# RUNTIME_PACKAGES is checked against the binary's ELF NEEDED entries by test/deploy/container_files_test.py
+# (CTest: deploy_container_agent).
 FROM debian:12.8 AS build
 WORKDIR /src
 COPY deploy/install_deps.sh deploy/install_deps.sh

@@ -5,7 +5,7 @@
 #
 # Stage 1 builds with the project's own dependency script and the release preset; stage 2 has only the shared
 # libraries the binaries link. RUNTIME_PACKAGES is checked against the binaries' ELF NEEDED entries by
-# test/deploy/runtime_packages_test.py (CTest: deploy_runtime_packages), so it cannot drift from the build.
+# test/deploy/container_files_test.py (CTest: deploy_container_server), so it cannot drift from the build.
 FROM debian:12.8 AS build
 WORKDIR /src
 COPY deploy/install_deps.sh deploy/install_deps.sh
