@@ -44,9 +44,9 @@ struct AgentOptions {
   AgentMode mode = AgentMode::kAuto;
   AgentId agent = 0;
   bool use_imu = true;
-  // The sensor.yaml noise densities and random walks are multiplied by this. 0 = automatic: 1 on the project's simulated
-  // sequences (their noise is exactly the stated model), 10 on real ones (EuRoC's densities are too small
-  // by a factor of 6-12 for preintegration over keyframe intervals: with them as stated, the IMU terms outweigh the
+  // The sensor.yaml noise densities and random walks are multiplied by this. 0 = automatic: 1 on the project's
+  // simulated sequences (their noise is exactly the stated model), 10 on real ones (EuRoC's densities are too small by
+  // a factor of 6-12 for preintegration over keyframe intervals: with them as stated, the IMU terms outweigh the
   // reprojections and bend the trajectory).
   double imu_noise_inflation = 0.0;
   TrackerOptions tracking;
