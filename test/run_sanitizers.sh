@@ -58,8 +58,10 @@ if [ "$run_asan" = 1 ]; then
   export ASAN_OPTIONS="detect_leaks=1 log_path=$reports/asan"
   export UBSAN_OPTIONS="print_stacktrace=1 halt_on_error=1 log_path=$reports/asan"
   echo "== AddressSanitizer and UndefinedBehaviorSanitizer: every test, the integration tests included"
-  # The allocation-counting tests replace malloc and are not built with sanitizers.
-  ctest --test-dir build/asan -j2 --output-on-failure --timeout 1800 >"$reports/asan-ctest.log" 2>&1 ||
+  # The allocation-counting tests replace malloc and are not built with sanitizers. The deployment checks (label
+  # deploy) are left out: they compare the default build's binaries with the container images' package lists, and
+  # an instrumented binary links libasan and more by design.
+  ctest --test-dir build/asan -j2 --output-on-failure --timeout 1800 -LE deploy >"$reports/asan-ctest.log" 2>&1 ||
     { echo "  some tests failed under ASan/UBSan (see $reports/asan-ctest.log)"; status=1; }
   tail -3 "$reports/asan-ctest.log"
   echo "AddressSanitizer/UBSan reports: $(count asan) (in $reports)"
