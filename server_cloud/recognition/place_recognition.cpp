@@ -7,7 +7,6 @@
 #include <sstream>
 #include <unordered_map>
 #include <unordered_set>
-#include <variant>
 
 #include <Eigen/Cholesky>
 #include <opencv2/calib3d.hpp>
@@ -334,11 +333,10 @@ struct RansacPose {
   std::vector<int> inliers;  // indices into the matches
 };
 
-// b. RANSAC pose of the query camera in the candidate map, on normalised coordinates; the rejection's text when
-// it fails.
-std::variant<RansacPose, std::string> ransacPose(const ServerKeyframe& q, const AgentCamera& camera,
-                                                 const std::vector<Correspondence>& matches,
-                                                 const RecognitionOptions& options) {
+// b. RANSAC pose of the query camera in the candidate map, on normalised coordinates; an error saying why when it
+// fails.
+Result<RansacPose> ransacPose(const ServerKeyframe& q, const AgentCamera& camera,
+                              const std::vector<Correspondence>& matches, const RecognitionOptions& options) {
   const double focal = camera.camera.calibration().fx;
   std::vector<cv::Point3d> object;
   std::vector<cv::Point2d> image;
@@ -359,11 +357,12 @@ std::variant<RansacPose, std::string> ransacPose(const ServerKeyframe& q, const 
                                 options.ransac_iterations, options.ransac_threshold_px / focal, 0.999, out.inliers,
                                 cv::SOLVEPNP_AP3P);
   } catch (const cv::Exception& e) {
-    return std::string("RANSAC failed: ") + e.what();
+    return Error{ErrorCode::kNotFound, std::string("RANSAC failed: ") + e.what()};
   }
   if (!solved || static_cast<int>(out.inliers.size()) < options.min_ransac_inliers) {
-    return std::to_string(out.inliers.size()) + " RANSAC inliers of " + std::to_string(matches.size()) +
-           " matches (needs " + std::to_string(options.min_ransac_inliers) + ")";
+    return Error{ErrorCode::kNotFound, std::to_string(out.inliers.size()) + " RANSAC inliers of " +
+                                           std::to_string(matches.size()) + " matches (needs " +
+                                           std::to_string(options.min_ransac_inliers) + ")"};
   }
   const Eigen::Vector3d rotation_vector(rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2));
   const Eigen::Vector3d translation(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
@@ -469,9 +468,9 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
     return reject(Rejection::kTooFewMatches, std::to_string(matches.size()) + " descriptor matches (needs " +
                                                  std::to_string(options.min_matches) + ")");
   }
-  auto ransac = ransacPose(*q, *camera, matches, options);
-  if (const std::string* failure = std::get_if<std::string>(&ransac)) return reject(Rejection::kPoseFailed, *failure);
-  const RansacPose& pose = std::get<RansacPose>(ransac);
+  const Result<RansacPose> ransac = ransacPose(*q, *camera, matches, options);
+  if (!ransac) return reject(Rejection::kPoseFailed, ransac.error().message());
+  const RansacPose& pose = *ransac;
   PoseSupport support;
   for (const int index : pose.inliers) support.add(*q, matches[static_cast<std::size_t>(index)]);
   geometry::SE3d T_c_m = refinePose(camera->camera, support.px, support.p_m, pose.T_c_m, options.max_reprojection_px);
