@@ -22,7 +22,7 @@
 
 #include "agent_rt/map/local_map.hpp"
 #include "common/core/result.hpp"
-#include "common/factors/reprojection_factor.hpp"  // PinholeIntrinsics
+#include "common/factors/pinhole_intrinsics.hpp"
 #include "common/imu/preintegration.hpp"
 
 namespace cvislam::agent {

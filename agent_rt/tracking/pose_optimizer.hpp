@@ -23,7 +23,7 @@
 #include <Eigen/Core>
 
 #include "common/core/result.hpp"
-#include "common/factors/reprojection_factor.hpp"
+#include "common/factors/pinhole_intrinsics.hpp"
 #include "common/geometry/lie.hpp"
 
 namespace cvislam::agent {

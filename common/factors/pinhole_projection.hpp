@@ -4,7 +4,7 @@
 
 #include <Eigen/Core>
 
-#include "common/factors/reprojection_factor.hpp"
+#include "common/factors/pinhole_intrinsics.hpp"
 
 namespace cvislam::factors::detail {
 

@@ -17,20 +17,10 @@
 
 #include <ceres/sized_cost_function.h>
 
+#include "common/factors/pinhole_intrinsics.hpp"
 #include "common/factors/state_layout.hpp"
 
 namespace cvislam::factors {
-
-struct PinholeIntrinsics {
-  double fx = 458.654;
-  double fy = 457.296;
-  double cx = 367.215;
-  double cy = 248.375;
-};
-
-// Residuals whose point lies closer to the image plane than this (h_z <= kMinDepth * |h|) are reported as
-// not evaluable, so Ceres rejects the step that put the point behind the camera.
-inline constexpr double kMinProjectionDepth = 1e-6;
 
 // Parameter blocks: pose of the observing keyframe T_w_si (7), pose of the reference keyframe T_w_sr (7),
 // camera-IMU extrinsics T_s_c (7, same layout as a pose; hold it constant when it is calibrated), bearing

@@ -25,7 +25,7 @@
 
 #include "common/core/ids.hpp"
 #include "common/core/result.hpp"
-#include "common/factors/reprojection_factor.hpp"
+#include "common/factors/pinhole_intrinsics.hpp"
 #include "common/geometry/lie.hpp"
 #include "common/imu/preintegration.hpp"
 #include "server_cloud/stack/map_content.hpp"
