@@ -16,6 +16,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -84,10 +85,7 @@ void printSummary(const cvislam::server::ServerCore& core) {
   }
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  CLI::App app{"cvislam_server: the collaborative SLAM server (agent link, map stacks, monitoring)"};
+struct CommandLine {
   std::string listen;
   std::string config;
   std::string output;
@@ -96,82 +94,87 @@ int main(int argc, char** argv) {
   bool quiet = false;
   std::string vocabulary;
   bool no_recognition = false;
-  app.add_option("--listen", listen, "host:port to serve on; port 0 takes a free port [127.0.0.1:50051]");
-  app.add_option("--config", config, "YAML config (see deploy/server_config.yaml); command-line options win");
-  app.add_option("--output", output,
-                 "Folder written at shutdown: stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt");
-  app.add_option("--port-file", port_file, "Write the bound port here once serving (for scripts using port 0)");
-  app.add_option("--status-interval", status_interval_s, "Seconds between status lines on stderr; 0: none [10]");
-  app.add_flag("--quiet", quiet, "Print neither the options nor status lines");
-  app.add_option("--vocabulary", vocabulary,
-                 "Place recognition's vocabulary file [the shipped deploy/vocabulary/orb_k10_l5.cvvoc]");
-  app.add_flag("--no-recognition", no_recognition, "Run without place recognition (and so without merges and loops)");
   bool no_backend = false;
   bool no_redundancy = false;
   bool no_gba = false;
-  app.add_flag("--no-backend", no_backend, "Run without the back-end: no map fusion, loop closure, GBA or removal");
-  app.add_flag("--no-redundancy", no_redundancy, "Keep every keyframe (no redundancy removal)");
-  app.add_flag("--no-gba", no_gba,
-               "No global BA (neither after merges and loops, nor periodic, nor on every map at shutdown): the "
-               "server's keyframes "
-               "keep the agents' estimates, moved only by merges and pose graphs");
   std::string store;
   std::string store_sync;
-  app.add_option("--store", store,
-                 "Map store file (SQLite): every batch is durable before it is acknowledged, and a restarted server "
-                 "replays it and holds everything it acknowledged. Made when missing [none: maps in memory only]");
-  app.add_option("--store-sync", store_sync,
-                 "full: a commit survives power loss; normal: it survives a crash of the process (SIGKILL) but maybe "
-                 "not of the machine; off: left to the OS [full]");
   std::string tokens;
   std::string tls_cert;
   std::string tls_key;
-  app.add_option("--tokens", tokens,
-                 "Tokens file: one 'MISSION TOKEN' line per mission ('*': an operator token for every mission). "
-                 "Agents and clients then present their mission's token; a mission not listed cannot be opened "
-                 "[none: every mission open to every client]");
-  app.add_option("--tls-cert", tls_cert, "PEM certificate (chain) for TLS on the port [none: plaintext]");
-  app.add_option("--tls-key", tls_key, "PEM private key of --tls-cert");
   bool insecure = false;
-  app.add_flag("--insecure", insecure,
-               "Start on an address other machines can reach (e.g. 0.0.0.0) without TLS or without tokens; without "
-               "it such a server refuses to start. For a network you trust");
   std::string health_listen;
-  app.add_option("--health-listen", health_listen,
-                 "Also serve grpc.health.v1 alone, in plaintext, on this host:port (for Kubernetes probes, which "
-                 "cannot speak TLS) [none]");
   std::optional<std::size_t> max_missions;
   std::optional<std::size_t> max_agents;
   std::optional<double> requests_per_s;
-  app.add_option("--max-missions", max_missions, "Missions this server holds at most [64]");
-  app.add_option("--max-agents-per-mission", max_agents, "Agents of one mission at most [32]");
-  app.add_option("--requests-per-s", requests_per_s,
-                 "Requests per second per client (map service and monitor calls, agent streams opened), with a "
-                 "burst of twice as many; 0: no limit [50]");
   std::string postgres;
   std::string replica;
   std::string advertise;
   std::optional<double> lease_ttl_s;
   std::string peer_ca;
-  app.add_option("--postgres", postgres,
+  std::vector<std::string> load_missions;
+  std::string load_from;
+};
+
+// Every option, bound to `cl`.
+void addOptions(CLI::App& app, CommandLine& cl) {
+  app.add_option("--listen", cl.listen, "host:port to serve on; port 0 takes a free port [127.0.0.1:50051]");
+  app.add_option("--config", cl.config, "YAML config (see deploy/server_config.yaml); command-line options win");
+  app.add_option("--output", cl.output,
+                 "Folder written at shutdown: stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt");
+  app.add_option("--port-file", cl.port_file, "Write the bound port here once serving (for scripts using port 0)");
+  app.add_option("--status-interval", cl.status_interval_s, "Seconds between status lines on stderr; 0: none [10]");
+  app.add_flag("--quiet", cl.quiet, "Print neither the options nor status lines");
+  app.add_option("--vocabulary", cl.vocabulary,
+                 "Place recognition's vocabulary file [the shipped deploy/vocabulary/orb_k10_l5.cvvoc]");
+  app.add_flag("--no-recognition", cl.no_recognition,
+               "Run without place recognition (and so without merges and loops)");
+  app.add_flag("--no-backend", cl.no_backend, "Run without the back-end: no map fusion, loop closure, GBA or removal");
+  app.add_flag("--no-redundancy", cl.no_redundancy, "Keep every keyframe (no redundancy removal)");
+  app.add_flag("--no-gba", cl.no_gba,
+               "No global BA (neither after merges and loops, nor periodic, nor on every map at shutdown): the "
+               "server's keyframes "
+               "keep the agents' estimates, moved only by merges and pose graphs");
+  app.add_option("--store", cl.store,
+                 "Map store file (SQLite): every batch is durable before it is acknowledged, and a restarted server "
+                 "replays it and holds everything it acknowledged. Made when missing [none: maps in memory only]");
+  app.add_option("--store-sync", cl.store_sync,
+                 "full: a commit survives power loss; normal: it survives a crash of the process (SIGKILL) but maybe "
+                 "not of the machine; off: left to the OS [full]");
+  app.add_option("--tokens", cl.tokens,
+                 "Tokens file: one 'MISSION TOKEN' line per mission ('*': an operator token for every mission). "
+                 "Agents and clients then present their mission's token; a mission not listed cannot be opened "
+                 "[none: every mission open to every client]");
+  app.add_option("--tls-cert", cl.tls_cert, "PEM certificate (chain) for TLS on the port [none: plaintext]");
+  app.add_option("--tls-key", cl.tls_key, "PEM private key of --tls-cert");
+  app.add_flag("--insecure", cl.insecure,
+               "Start on an address other machines can reach (e.g. 0.0.0.0) without TLS or without tokens; without "
+               "it such a server refuses to start. For a network you trust");
+  app.add_option("--health-listen", cl.health_listen,
+                 "Also serve grpc.health.v1 alone, in plaintext, on this host:port (for Kubernetes probes, which "
+                 "cannot speak TLS) [none]");
+  app.add_option("--max-missions", cl.max_missions, "Missions this server holds at most [64]");
+  app.add_option("--max-agents-per-mission", cl.max_agents, "Agents of one mission at most [32]");
+  app.add_option("--requests-per-s", cl.requests_per_s,
+                 "Requests per second per client (map service and monitor calls, agent streams opened), with a "
+                 "burst of twice as many; 0: no limit [50]");
+  app.add_option("--postgres", cl.postgres,
                  "Scale-out: run as one of several replicas sharing this PostgreSQL store (a libpq connection "
                  "string, e.g. 'host=db port=5432 user=cvislam dbname=cvislam'). Each mission is served by the "
                  "replica holding its lease; agents that reach another replica are redirected, and a replica that "
                  "dies has its missions taken over once its leases lapse. Replaces --store [none]");
-  app.add_option("--replica", replica, "Scale-out: this replica's name in leases and logs [the host name]");
-  app.add_option("--advertise", advertise,
+  app.add_option("--replica", cl.replica, "Scale-out: this replica's name in leases and logs [the host name]");
+  app.add_option("--advertise", cl.advertise,
                  "Scale-out: host:port where agents and clients reach this replica (redirects name it) [--listen, "
                  "unless it is a wildcard address or port 0]");
-  app.add_option("--lease-ttl", lease_ttl_s,
+  app.add_option("--lease-ttl", cl.lease_ttl_s,
                  "Scale-out: seconds a replica that stops renewing keeps its missions; the takeover time after a "
                  "crash is about this plus a third of it [3]");
-  app.add_option("--peer-ca", peer_ca,
+  app.add_option("--peer-ca", cl.peer_ca,
                  "Scale-out with TLS: the CA (PEM) of the other replicas' certificates; a map-service read of a "
                  "mission another replica serves is passed to it over TLS [the --tls-cert file]")
       ->check(CLI::ExistingFile);
-  std::vector<std::string> load_missions;
-  std::string load_from;
-  app.add_option("--load-mission", load_missions,
+  app.add_option("--load-mission", cl.load_missions,
                  "Map reuse: FROM=AS loads mission FROM (a finished one) as the new mission AS before serving, "
                  "stored in --store; agents of AS are matched against its map. Repeatable. Loaded agents keep their "
                  "ids: give AS's agents other ids")
@@ -179,49 +182,51 @@ int main(int argc, char** argv) {
         const auto eq = v.find('=');
         return eq == std::string::npos || eq == 0 || eq + 1 == v.size() ? std::string("give FROM=AS") : std::string();
       });
-  app.add_option("--load-from", load_from,
+  app.add_option("--load-from", cl.load_from,
                  "The store --load-mission reads (not in use by a running server) [this server's --store]");
-  CLI11_PARSE(app, argc, argv);
+}
 
-  ServerOptions options;
-  if (!config.empty()) {
-    if (auto s = cvislam::server::loadServerConfig(config, options); !s.ok()) {
+// The command line over the config file: each option given replaces the config's value. Returns the exit
+// status on an error (2: a bad value), nothing when the options hold.
+std::optional<int> applyCommandLine(const CommandLine& cl, ServerOptions& options) {
+  if (!cl.config.empty()) {
+    if (auto s = cvislam::server::loadServerConfig(cl.config, options); !s.ok()) {
       std::cerr << "cvislam_server: " << s.error().toString() << "\n";
       return 2;
     }
   }
-  if (!listen.empty()) options.listen = listen;
-  if (!output.empty()) options.output = output;
-  if (!vocabulary.empty()) options.recognition.vocabulary = vocabulary;
-  if (!store.empty()) options.store = store;
-  if (!store_sync.empty()) {
-    auto sync = cvislam::server::parseStoreSync(store_sync);
+  if (!cl.listen.empty()) options.listen = cl.listen;
+  if (!cl.output.empty()) options.output = cl.output;
+  if (!cl.vocabulary.empty()) options.recognition.vocabulary = cl.vocabulary;
+  if (!cl.store.empty()) options.store = cl.store;
+  if (!cl.store_sync.empty()) {
+    auto sync = cvislam::server::parseStoreSync(cl.store_sync);
     if (!sync) {
       std::cerr << "cvislam_server: --store-sync: " << sync.error().message() << "\n";
       return 2;
     }
     options.store_sync = *sync;
   }
-  if (!tokens.empty()) options.tokens_file = tokens;
-  if (!tls_cert.empty()) options.tls_certificate = tls_cert;
-  if (!tls_key.empty()) options.tls_private_key = tls_key;
-  if (!health_listen.empty()) options.health_listen = health_listen;
-  if (insecure) options.insecure = true;
-  if (!postgres.empty()) options.cluster.postgres = postgres;
-  if (!replica.empty()) options.cluster.replica = replica;
-  if (!advertise.empty()) options.cluster.advertise = advertise;
-  if (lease_ttl_s) options.cluster.lease_ttl_s = *lease_ttl_s;
-  if (!peer_ca.empty()) options.cluster.peer_ca = peer_ca;
-  if (max_missions) options.session.max_missions = *max_missions;
-  if (max_agents) options.session.max_agents_per_mission = *max_agents;
-  if (requests_per_s) {
-    options.rate_limit.rate_per_s = *requests_per_s;
-    options.rate_limit.burst = std::max(1.0, 2.0 * *requests_per_s);
+  if (!cl.tokens.empty()) options.tokens_file = cl.tokens;
+  if (!cl.tls_cert.empty()) options.tls_certificate = cl.tls_cert;
+  if (!cl.tls_key.empty()) options.tls_private_key = cl.tls_key;
+  if (!cl.health_listen.empty()) options.health_listen = cl.health_listen;
+  if (cl.insecure) options.insecure = true;
+  if (!cl.postgres.empty()) options.cluster.postgres = cl.postgres;
+  if (!cl.replica.empty()) options.cluster.replica = cl.replica;
+  if (!cl.advertise.empty()) options.cluster.advertise = cl.advertise;
+  if (cl.lease_ttl_s) options.cluster.lease_ttl_s = *cl.lease_ttl_s;
+  if (!cl.peer_ca.empty()) options.cluster.peer_ca = cl.peer_ca;
+  if (cl.max_missions) options.session.max_missions = *cl.max_missions;
+  if (cl.max_agents) options.session.max_agents_per_mission = *cl.max_agents;
+  if (cl.requests_per_s) {
+    options.rate_limit.rate_per_s = *cl.requests_per_s;
+    options.rate_limit.burst = std::max(1.0, 2.0 * *cl.requests_per_s);
   }
-  if (no_recognition) options.recognition.enabled = false;
-  if (no_backend) options.backend.enabled = false;
-  if (no_redundancy) options.backend.redundancy.enabled = false;
-  if (no_gba) {
+  if (cl.no_recognition) options.recognition.enabled = false;
+  if (cl.no_backend) options.backend.enabled = false;
+  if (cl.no_redundancy) options.backend.redundancy.enabled = false;
+  if (cl.no_gba) {
     options.backend.gba_after_change = false;
     options.backend.gba_every_keyframes = 0;
     options.final_gba = false;
@@ -230,13 +235,114 @@ int main(int argc, char** argv) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 2;
   }
-  if (status_interval_s < 0) {
+  if (cl.status_interval_s < 0) {
     std::cerr << "cvislam_server: --status-interval must be >= 0\n";
     return 2;
   }
-  if (!port_file.empty()) std::filesystem::remove(port_file);
+  return std::nullopt;
+}
 
-  // Signals go to this thread only (sigtimedwait below); every thread made from here on inherits the mask.
+// Opens the single-node store and replays it, or joins the replicas' shared store. False (after saying why)
+// when it cannot.
+bool openStore(cvislam::server::ServerCore& core, const ServerOptions& options) {
+  if (options.cluster.enabled()) {
+    auto joined = core.openStore();
+    if (!joined) {
+      std::cerr << "cvislam_server: " << joined.error().message() << "\n";
+      return false;
+    }
+    std::fprintf(stderr, "[server] scale-out: shared store %s; missions are loaded as this replica takes them\n",
+                 joined->store.c_str());
+  } else if (!options.store.empty()) {
+    std::fprintf(stderr, "[server] opening the map store %s\n", options.store.string().c_str());
+    auto recovered = core.openStore();
+    if (!recovered) {
+      std::cerr << "cvislam_server: " << recovered.error().message() << "\n";
+      return false;
+    }
+    const auto& r = *recovered;
+    std::fprintf(stderr,
+                 "[server] map store: %s; replayed %llu batches and %llu hellos (%.2f MB) of %zu agents in %zu "
+                 "missions, %llu keyframes, in %.2f s\n",
+                 r.store.c_str(), static_cast<unsigned long long>(r.batches), static_cast<unsigned long long>(r.hellos),
+                 static_cast<double>(r.bytes) / 1e6, r.agents, r.missions, static_cast<unsigned long long>(r.keyframes),
+                 r.seconds);
+  }
+  return true;
+}
+
+// Map reuse: each FROM=AS of --load-mission, read from --load-from or from this server's own store. False
+// (after saying why) when one cannot be loaded.
+bool loadMissions(cvislam::server::ServerCore& core, const CommandLine& cl) {
+  std::unique_ptr<cvislam::server::MapStore> source;
+  if (!cl.load_from.empty()) {
+    cvislam::server::SqliteStoreOptions source_options;
+    source_options.path = cl.load_from;
+    source_options.create_if_missing = false;
+    auto opened = cvislam::server::openSqliteStore(source_options);
+    if (!opened) {
+      std::cerr << "cvislam_server: --load-from: " << opened.error().message() << "\n";
+      return false;
+    }
+    source = std::move(opened).value();
+  }
+  for (const std::string& spec : cl.load_missions) {
+    const std::string from = spec.substr(0, spec.find('='));
+    const std::string as = spec.substr(spec.find('=') + 1);
+    auto loaded = core.loadMission(source.get(), from, as);
+    if (!loaded) {
+      std::cerr << "cvislam_server: --load-mission " << spec << ": " << loaded.error().message() << "\n";
+      return false;
+    }
+    if (loaded->already_held) {
+      std::fprintf(stderr, "[server] mission '%s' is held already (loaded before): not loaded again\n", as.c_str());
+    } else {
+      std::fprintf(stderr,
+                   "[server] loaded mission '%s' of %s as '%s': %llu batches and %llu hellos, %llu keyframes, in "
+                   "%.2f s\n",
+                   from.c_str(), loaded->source.c_str(), as.c_str(), static_cast<unsigned long long>(loaded->batches),
+                   static_cast<unsigned long long>(loaded->hellos), static_cast<unsigned long long>(loaded->keyframes),
+                   loaded->seconds);
+    }
+  }
+  return true;
+}
+
+// Written through a rename, so that a script polling for the file never reads half of it.
+void writePortFile(const std::string& port_file, int port) {
+  const std::string tmp = port_file + ".tmp";
+  std::ofstream(tmp) << port << "\n";
+  std::filesystem::rename(tmp, port_file);
+}
+
+// Waits for SIGINT or SIGTERM (blocked in every thread, so only this wait sees them), printing a status line
+// every `status_interval_s` (0: none). Returns the signal.
+int waitForStopSignal(const sigset_t& signals, const cvislam::server::ServerCore& core, double status_interval_s) {
+  double since_status = 0.0;
+  for (;;) {
+    timespec timeout{0, 500'000'000};
+    if (const int s = sigtimedwait(&signals, nullptr, &timeout); s > 0) return s;
+    since_status += 0.5;
+    if (status_interval_s > 0 && since_status >= status_interval_s) {
+      printStatus(core);
+      since_status = 0.0;
+    }
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"cvislam_server: the collaborative SLAM server (agent link, map stacks, monitoring)"};
+  CommandLine cl;
+  addOptions(app, cl);
+  CLI11_PARSE(app, argc, argv);
+
+  ServerOptions options;
+  if (auto status = applyCommandLine(cl, options)) return *status;
+  if (!cl.port_file.empty()) std::filesystem::remove(cl.port_file);
+
+  // Signals go to this thread only (sigtimedwait); every thread made from here on inherits the mask.
   sigset_t signals;
   sigemptyset(&signals);
   sigaddset(&signals, SIGINT);
@@ -244,7 +350,7 @@ int main(int argc, char** argv) {
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
   std::signal(SIGPIPE, SIG_IGN);
 
-  if (!quiet) std::fprintf(stderr, "[server] options:\n%s", options.describe().c_str());
+  if (!cl.quiet) std::fprintf(stderr, "[server] options:\n%s", options.describe().c_str());
   cvislam::server::ServerCore core(options);
   if (auto s = core.loadTokens(); !s.ok()) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
@@ -258,62 +364,8 @@ int main(int argc, char** argv) {
     std::cerr << "cvislam_server: " << s.error().message() << "\n";
     return 1;
   }
-  if (options.cluster.enabled()) {
-    auto joined = core.openStore();
-    if (!joined) {
-      std::cerr << "cvislam_server: " << joined.error().message() << "\n";
-      return 1;
-    }
-    std::fprintf(stderr, "[server] scale-out: shared store %s; missions are loaded as this replica takes them\n",
-                 joined->store.c_str());
-  } else if (!options.store.empty()) {
-    std::fprintf(stderr, "[server] opening the map store %s\n", options.store.string().c_str());
-    auto recovered = core.openStore();
-    if (!recovered) {
-      std::cerr << "cvislam_server: " << recovered.error().message() << "\n";
-      return 1;
-    }
-    const auto& r = *recovered;
-    std::fprintf(stderr,
-                 "[server] map store: %s; replayed %llu batches and %llu hellos (%.2f MB) of %zu agents in %zu "
-                 "missions, %llu keyframes, in %.2f s\n",
-                 r.store.c_str(), static_cast<unsigned long long>(r.batches), static_cast<unsigned long long>(r.hellos),
-                 static_cast<double>(r.bytes) / 1e6, r.agents, r.missions, static_cast<unsigned long long>(r.keyframes),
-                 r.seconds);
-  }
-  if (!load_missions.empty()) {
-    std::unique_ptr<cvislam::server::MapStore> source;
-    if (!load_from.empty()) {
-      cvislam::server::SqliteStoreOptions source_options;
-      source_options.path = load_from;
-      source_options.create_if_missing = false;
-      auto opened = cvislam::server::openSqliteStore(source_options);
-      if (!opened) {
-        std::cerr << "cvislam_server: --load-from: " << opened.error().message() << "\n";
-        return 1;
-      }
-      source = std::move(opened).value();
-    }
-    for (const std::string& spec : load_missions) {
-      const std::string from = spec.substr(0, spec.find('='));
-      const std::string as = spec.substr(spec.find('=') + 1);
-      auto loaded = core.loadMission(source.get(), from, as);
-      if (!loaded) {
-        std::cerr << "cvislam_server: --load-mission " << spec << ": " << loaded.error().message() << "\n";
-        return 1;
-      }
-      if (loaded->already_held) {
-        std::fprintf(stderr, "[server] mission '%s' is held already (loaded before): not loaded again\n", as.c_str());
-      } else {
-        std::fprintf(stderr,
-                     "[server] loaded mission '%s' of %s as '%s': %llu batches and %llu hellos, %llu keyframes, in "
-                     "%.2f s\n",
-                     from.c_str(), loaded->source.c_str(), as.c_str(), static_cast<unsigned long long>(loaded->batches),
-                     static_cast<unsigned long long>(loaded->hellos),
-                     static_cast<unsigned long long>(loaded->keyframes), loaded->seconds);
-      }
-    }
-  }
+  if (!openStore(core, options)) return 1;
+  if (!cl.load_missions.empty() && !loadMissions(core, cl)) return 1;
   auto server = cvislam::server::GrpcServer::start(core);
   if (!server) {
     std::cerr << "cvislam_server: " << server.error().message() << "\n";
@@ -322,27 +374,9 @@ int main(int argc, char** argv) {
   std::printf("listening on %s\n", (*server)->address().c_str());
   if ((*server)->healthPort() != 0) std::printf("health checks on port %d (plaintext)\n", (*server)->healthPort());
   std::fflush(stdout);
-  if (!port_file.empty()) {
-    const std::string tmp = port_file + ".tmp";
-    std::ofstream(tmp) << (*server)->port() << "\n";
-    std::filesystem::rename(tmp, port_file);
-  }
+  if (!cl.port_file.empty()) writePortFile(cl.port_file, (*server)->port());
 
-  int received = 0;
-  double since_status = 0.0;
-  while (received == 0) {
-    timespec timeout{0, 500'000'000};
-    const int s = sigtimedwait(&signals, nullptr, &timeout);
-    if (s > 0) {
-      received = s;
-      break;
-    }
-    since_status += 0.5;
-    if (!quiet && status_interval_s > 0 && since_status >= status_interval_s) {
-      printStatus(core);
-      since_status = 0.0;
-    }
-  }
+  const int received = waitForStopSignal(signals, core, cl.quiet ? 0.0 : cl.status_interval_s);
   std::fprintf(stderr, "[server] %s: stopping\n", received == SIGINT ? "SIGINT" : "SIGTERM");
   (*server)->shutdown();
   // Nothing is appended from here on: the other replicas may take the missions over while this one finishes.
