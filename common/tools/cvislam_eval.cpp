@@ -13,8 +13,10 @@
 #include <fstream>
 #include <iostream>
 #include <map>
+#include <optional>
 #include <set>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -65,16 +67,7 @@ std::vector<std::string> defaultLabels(const std::vector<std::string>& estimate_
   return labels;
 }
 
-}  // namespace
-
-static int run(int argc, char** argv) {
-  CLI::App app{
-      "Evaluate a trajectory estimate against ground truth: ATE after position+yaw, SE3 and Sim3 alignment, the "
-      "scale error, and RPE over path-length segments.\n"
-      "Estimates: TUM ('t[s] x y z qx qy qz qw') or EuRoC CSV ('t[ns],x,y,z,qw,qx,qy,qz'), detected from the "
-      "content. Ground truth: a EuRoC sequence folder (or its mav0), a state_groundtruth_estimate0 data.csv, or a "
-      "TUM file.",
-      "cvislam_eval"};
+struct CommandLine {
   std::vector<std::string> estimate_paths;
   std::vector<std::string> ground_truth_paths;
   std::vector<std::string> labels_given;
@@ -91,158 +84,212 @@ static int run(int argc, char** argv) {
   bool strict = false;
   bool per_pose = false;
   bool quiet = false;
+};
 
-  app.add_option("--estimate", estimate_paths,
+void addOptions(CLI::App& app, CommandLine& cl) {
+  app.add_option("--estimate", cl.estimate_paths,
                  "Estimated trajectory (TUM or EuRoC CSV). Give it once per agent, each with its --groundtruth, to "
                  "score several agents together")
       ->required()
       ->allow_extra_args(false);
-  app.add_option("--groundtruth", ground_truth_paths,
+  app.add_option("--groundtruth", cl.ground_truth_paths,
                  "Ground truth: EuRoC sequence folder, data.csv, or TUM file; one per --estimate, in the same order, "
                  "all in one world frame")
       ->required()
       ->allow_extra_args(false);
-  app.add_option("--align", align_mode,
+  app.add_option("--align", cl.align_mode,
                  "With several estimates: joint: one transform per alignment over all their poses (default); each: "
                  "every estimate its own, and the joint figure pools the errors")
       ->check(CLI::IsMember({"joint", "each"}));
-  app.add_option("--label", labels_given,
+  app.add_option("--label", cl.labels_given,
                  "With several estimates: their names, one per --estimate (default: the file stem; the parent "
                  "folder and stem where stems repeat)")
       ->allow_extra_args(false);
-  app.add_option("--associate", association,
+  app.add_option("--associate", cl.association,
                  "interpolate: ground truth interpolated at each estimate time (default); nearest: the nearest "
                  "ground-truth pose, as evo and rpg_trajectory_evaluation do")
       ->check(CLI::IsMember({"interpolate", "nearest"}));
-  app.add_option("--max-diff", max_diff_s,
+  app.add_option("--max-diff", cl.max_diff_s,
                  "Largest time difference in seconds to a ground-truth pose (default: 0.02 for nearest, 0.1 for "
                  "interpolate)")
       ->check(CLI::Range(0.0, 10.0));
-  app.add_option("--offset", offset_s, "Seconds added to the estimate's timestamps before association");
-  app.add_option("--estimate-format", estimate_format, "auto, tum or euroc")
+  app.add_option("--offset", cl.offset_s, "Seconds added to the estimate's timestamps before association");
+  app.add_option("--estimate-format", cl.estimate_format, "auto, tum or euroc")
       ->check(CLI::IsMember({"auto", "tum", "euroc"}));
-  app.add_option("--json", json_path, "Write the results as JSON to this file");
-  app.add_option("--plot", plot_path, "Write a top view of the ground truth(s) and estimate(s) as SVG to this file");
-  app.add_option("--plot-alignment", plot_alignment, "Alignment of the estimate in the plot")
+  app.add_option("--json", cl.json_path, "Write the results as JSON to this file");
+  app.add_option("--plot", cl.plot_path, "Write a top view of the ground truth(s) and estimate(s) as SVG to this file");
+  app.add_option("--plot-alignment", cl.plot_alignment, "Alignment of the estimate in the plot")
       ->check(CLI::IsMember({"posyaw", "se3", "sim3", "none"}));
-  app.add_option("--rpe", rpe_distances, "RPE segment lengths in metres, e.g. --rpe 1,5,10")
+  app.add_option("--rpe", cl.rpe_distances, "RPE segment lengths in metres, e.g. --rpe 1,5,10")
       ->delimiter(',')
       ->check(CLI::PositiveNumber);
-  app.add_option("--rpe-pairing", rpe_pairing,
+  app.add_option("--rpe-pairing", cl.rpe_pairing,
                  "all-starts: a segment from every pose (default); consecutive: back-to-back segments along the "
                  "estimate's path, as evo does")
       ->check(CLI::IsMember({"all-starts", "consecutive"}));
-  app.add_flag("--strict", strict, "Refuse files with any malformed row instead of skipping the row");
-  app.add_flag("--per-pose", per_pose,
+  app.add_flag("--strict", cl.strict, "Refuse files with any malformed row instead of skipping the row");
+  app.add_flag("--per-pose", cl.per_pose,
                "Add timestamps, per-pose errors, ground-truth positions and SE3-aligned estimate positions to the "
                "JSON");
-  app.add_flag("-q,--quiet", quiet, "Do not print the table");
+  app.add_flag("-q,--quiet", cl.quiet, "Do not print the table");
+}
+
+// The repeated options must pair up: one ground truth and at most one label per estimate. False after saying
+// what to fix.
+bool pairsHold(const CommandLine& cl) {
+  if (cl.estimate_paths.size() != cl.ground_truth_paths.size()) {
+    std::cerr << "cvislam_eval: --estimate given " << cl.estimate_paths.size() << " time(s) but --groundtruth "
+              << cl.ground_truth_paths.size() << " time(s); give one --groundtruth per --estimate, in the same order\n";
+    return false;
+  }
+  if (!cl.labels_given.empty() && cl.labels_given.size() != cl.estimate_paths.size()) {
+    std::cerr << "cvislam_eval: --label given " << cl.labels_given.size() << " time(s) for " << cl.estimate_paths.size()
+              << " estimate(s); give one per --estimate or none\n";
+    return false;
+  }
+  if (std::set<std::string>(cl.labels_given.begin(), cl.labels_given.end()).size() != cl.labels_given.size()) {
+    std::cerr << "cvislam_eval: --label: every estimate needs a different label\n";
+    return false;
+  }
+  return true;
+}
+
+cvislam::eval::EvaluationOptions evaluationOptions(const CommandLine& cl) {
+  cvislam::eval::EvaluationOptions options;
+  options.association.mode = cl.association == "nearest" ? cvislam::eval::AssociationMode::kNearest
+                                                         : cvislam::eval::AssociationMode::kInterpolate;
+  if (cl.max_diff_s >= 0.0) {
+    options.association.max_diff_ns = static_cast<std::int64_t>(std::llround(cl.max_diff_s * 1e9));
+  }
+  options.association.estimate_offset_ns = static_cast<std::int64_t>(std::llround(cl.offset_s * 1e9));
+  options.rpe.distances_m = cl.rpe_distances;
+  options.rpe.pairing =
+      cl.rpe_pairing == "consecutive" ? cvislam::eval::RpePairing::kConsecutive : cvislam::eval::RpePairing::kAllStarts;
+  return options;
+}
+
+struct Inputs {
+  std::vector<std::string> labels;  // as given, or made from the file names
+  std::vector<cvislam::dataset::Trajectory> estimates;
+  std::vector<cvislam::dataset::Trajectory> ground_truths;
+  std::vector<cvislam::eval::ReportLabels> report_labels;
+};
+
+// Every estimate with its ground truth, printing what was skipped in each; nothing after saying which file
+// could not be read.
+std::optional<Inputs> readInputs(const CommandLine& cl) {
+  cvislam::dataset::TrajectoryReadOptions read_estimate;
+  read_estimate.format = cvislam::dataset::parseTrajectoryFormat(cl.estimate_format).value();
+  read_estimate.strict = cl.strict;
+  cvislam::dataset::TrajectoryReadOptions read_gt;
+  read_gt.strict = cl.strict;
+  const bool several = cl.estimate_paths.size() > 1;
+  Inputs in;
+  in.labels = cl.labels_given.empty() ? defaultLabels(cl.estimate_paths) : cl.labels_given;
+  for (std::size_t i = 0; i < cl.estimate_paths.size(); ++i) {
+    cvislam::Diagnostics estimate_findings;
+    auto estimate = cvislam::dataset::readTrajectory(cl.estimate_paths[i], read_estimate, estimate_findings);
+    if (!estimate) {
+      std::cerr << "cvislam_eval: cannot read the estimate: " << estimate.error().message() << "\n";
+      return std::nullopt;
+    }
+    cvislam::Diagnostics gt_findings;
+    auto ground_truth = cvislam::dataset::readTrajectory(cl.ground_truth_paths[i], read_gt, gt_findings);
+    if (!ground_truth) {
+      std::cerr << "cvislam_eval: cannot read the ground truth: " << ground_truth.error().message() << "\n";
+      return std::nullopt;
+    }
+    const std::string suffix = several ? " " + in.labels[i] : "";
+    printFindings(("estimate" + suffix).c_str(), estimate_findings);
+    printFindings(("ground truth" + suffix).c_str(), gt_findings);
+    in.estimates.push_back(std::move(*estimate));
+    in.ground_truths.push_back(std::move(*ground_truth));
+    in.report_labels.push_back({std::filesystem::path(cl.estimate_paths[i]).filename().string(),
+                                std::filesystem::path(cl.ground_truth_paths[i]).filename().string(), cl.rpe_pairing,
+                                in.labels[i]});
+  }
+  return in;
+}
+
+// What the run writes: the table (unless quiet), the JSON and the SVG (when asked for).
+struct Outputs {
+  std::string table;
+  std::string json;
+  std::string svg;
+};
+
+cvislam::Result<Outputs> evaluateOne(const CommandLine& cl, const Inputs& in,
+                                     const cvislam::eval::EvaluationOptions& options) {
+  auto evaluation = cvislam::eval::evaluate(in.estimates.front(), in.ground_truths.front(), options);
+  if (!evaluation) return evaluation.error();
+  Outputs out;
+  if (!cl.quiet) out.table = cvislam::eval::formatTable(*evaluation, in.report_labels.front());
+  if (!cl.json_path.empty()) out.json = cvislam::eval::toJson(*evaluation, in.report_labels.front(), cl.per_pose);
+  if (!cl.plot_path.empty()) {
+    out.svg = cvislam::eval::topViewSvg(*evaluation, cvislam::eval::parseAlignment(cl.plot_alignment).value(),
+                                        in.ground_truths.front(), in.report_labels.front());
+  }
+  return out;
+}
+
+cvislam::Result<Outputs> evaluateSeveral(const CommandLine& cl, const Inputs& in,
+                                         const cvislam::eval::EvaluationOptions& options) {
+  std::vector<cvislam::eval::TrajectoryPair> pairs;
+  for (std::size_t i = 0; i < in.estimates.size(); ++i) {
+    pairs.push_back({"'" + in.labels[i] + "' (" + cl.estimate_paths[i] + " against " + cl.ground_truth_paths[i] + ")",
+                     &in.estimates[i], &in.ground_truths[i]});
+  }
+  const auto mode =
+      cl.align_mode == "each" ? cvislam::eval::JointAlignment::kEach : cvislam::eval::JointAlignment::kJoint;
+  auto joint = cvislam::eval::evaluateJoint(pairs, options, mode);
+  if (!joint) return joint.error();
+  Outputs out;
+  if (!cl.quiet) out.table = cvislam::eval::formatJointTable(*joint, in.report_labels);
+  if (!cl.json_path.empty()) out.json = cvislam::eval::toJointJson(*joint, in.report_labels, cl.per_pose);
+  if (!cl.plot_path.empty()) {
+    out.svg = cvislam::eval::jointTopViewSvg(*joint, cvislam::eval::parseAlignment(cl.plot_alignment).value(),
+                                             in.ground_truths, in.report_labels);
+  }
+  return out;
+}
+
+}  // namespace
+
+static int run(int argc, char** argv) {
+  CLI::App app{
+      "Evaluate a trajectory estimate against ground truth: ATE after position+yaw, SE3 and Sim3 alignment, the "
+      "scale error, and RPE over path-length segments.\n"
+      "Estimates: TUM ('t[s] x y z qx qy qz qw') or EuRoC CSV ('t[ns],x,y,z,qw,qx,qy,qz'), detected from the "
+      "content. Ground truth: a EuRoC sequence folder (or its mav0), a state_groundtruth_estimate0 data.csv, or a "
+      "TUM file.",
+      "cvislam_eval"};
+  CommandLine cl;
+  addOptions(app, cl);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     // --help and --version exit 0; any other command-line error exits 2 after CLI11 prints it.
     return app.exit(e) == 0 ? 0 : 2;
   }
-  if (estimate_paths.size() != ground_truth_paths.size()) {
-    std::cerr << "cvislam_eval: --estimate given " << estimate_paths.size() << " time(s) but --groundtruth "
-              << ground_truth_paths.size() << " time(s); give one --groundtruth per --estimate, in the same order\n";
-    return 2;
-  }
-  if (!labels_given.empty() && labels_given.size() != estimate_paths.size()) {
-    std::cerr << "cvislam_eval: --label given " << labels_given.size() << " time(s) for " << estimate_paths.size()
-              << " estimate(s); give one per --estimate or none\n";
-    return 2;
-  }
-  if (std::set<std::string>(labels_given.begin(), labels_given.end()).size() != labels_given.size()) {
-    std::cerr << "cvislam_eval: --label: every estimate needs a different label\n";
-    return 2;
-  }
+  if (!pairsHold(cl)) return 2;
 
-  cvislam::eval::EvaluationOptions options;
-  options.association.mode = association == "nearest" ? cvislam::eval::AssociationMode::kNearest
-                                                      : cvislam::eval::AssociationMode::kInterpolate;
-  if (max_diff_s >= 0.0) options.association.max_diff_ns = static_cast<std::int64_t>(std::llround(max_diff_s * 1e9));
-  options.association.estimate_offset_ns = static_cast<std::int64_t>(std::llround(offset_s * 1e9));
-  options.rpe.distances_m = rpe_distances;
-  options.rpe.pairing =
-      rpe_pairing == "consecutive" ? cvislam::eval::RpePairing::kConsecutive : cvislam::eval::RpePairing::kAllStarts;
-
-  cvislam::dataset::TrajectoryReadOptions read_estimate;
-  read_estimate.format = cvislam::dataset::parseTrajectoryFormat(estimate_format).value();
-  read_estimate.strict = strict;
-  cvislam::dataset::TrajectoryReadOptions read_gt;
-  read_gt.strict = strict;
-  const bool several = estimate_paths.size() > 1;
-  const std::vector<std::string> labels_used = labels_given.empty() ? defaultLabels(estimate_paths) : labels_given;
-  std::vector<cvislam::dataset::Trajectory> estimates;
-  std::vector<cvislam::dataset::Trajectory> ground_truths;
-  std::vector<cvislam::eval::ReportLabels> labels;
-  for (std::size_t i = 0; i < estimate_paths.size(); ++i) {
-    cvislam::Diagnostics estimate_findings;
-    auto estimate = cvislam::dataset::readTrajectory(estimate_paths[i], read_estimate, estimate_findings);
-    if (!estimate) {
-      std::cerr << "cvislam_eval: cannot read the estimate: " << estimate.error().message() << "\n";
-      return 1;
-    }
-    cvislam::Diagnostics gt_findings;
-    auto ground_truth = cvislam::dataset::readTrajectory(ground_truth_paths[i], read_gt, gt_findings);
-    if (!ground_truth) {
-      std::cerr << "cvislam_eval: cannot read the ground truth: " << ground_truth.error().message() << "\n";
-      return 1;
-    }
-    const std::string suffix = several ? " " + labels_used[i] : "";
-    printFindings(("estimate" + suffix).c_str(), estimate_findings);
-    printFindings(("ground truth" + suffix).c_str(), gt_findings);
-    estimates.push_back(std::move(*estimate));
-    ground_truths.push_back(std::move(*ground_truth));
-    labels.push_back({std::filesystem::path(estimate_paths[i]).filename().string(),
-                      std::filesystem::path(ground_truth_paths[i]).filename().string(), rpe_pairing, labels_used[i]});
+  const cvislam::eval::EvaluationOptions options = evaluationOptions(cl);
+  const std::optional<Inputs> in = readInputs(cl);
+  if (!in) return 1;
+  auto out = in->estimates.size() > 1 ? evaluateSeveral(cl, *in, options) : evaluateOne(cl, *in, options);
+  if (!out) {
+    std::cerr << "cvislam_eval: " << out.error().message() << "\n";
+    return 1;
   }
-  const std::string association_line =
-      "association:  " + association + ", max difference " +
-      cvislam::text::formatDouble(1e-9 * static_cast<double>(options.association.effectiveMaxDiffNs())) + " s\n";
-  const auto alignment = cvislam::eval::parseAlignment(plot_alignment).value();
-
-  std::string table;
-  std::string json;
-  std::string svg;
-  if (!several) {
-    auto evaluation = cvislam::eval::evaluate(estimates.front(), ground_truths.front(), options);
-    if (!evaluation) {
-      std::cerr << "cvislam_eval: " << evaluation.error().message() << "\n";
-      return 1;
-    }
-    if (!quiet) table = cvislam::eval::formatTable(*evaluation, labels.front());
-    if (!json_path.empty()) json = cvislam::eval::toJson(*evaluation, labels.front(), per_pose);
-    if (!plot_path.empty()) {
-      svg = cvislam::eval::topViewSvg(*evaluation, alignment, ground_truths.front(), labels.front());
-    }
-  } else {
-    std::vector<cvislam::eval::TrajectoryPair> pairs;
-    for (std::size_t i = 0; i < estimates.size(); ++i) {
-      pairs.push_back({"'" + labels_used[i] + "' (" + estimate_paths[i] + " against " + ground_truth_paths[i] + ")",
-                       &estimates[i], &ground_truths[i]});
-    }
-    const auto mode =
-        align_mode == "each" ? cvislam::eval::JointAlignment::kEach : cvislam::eval::JointAlignment::kJoint;
-    auto joint = cvislam::eval::evaluateJoint(pairs, options, mode);
-    if (!joint) {
-      std::cerr << "cvislam_eval: " << joint.error().message() << "\n";
-      return 1;
-    }
-    if (!quiet) table = cvislam::eval::formatJointTable(*joint, labels);
-    if (!json_path.empty()) json = cvislam::eval::toJointJson(*joint, labels, per_pose);
-    if (!plot_path.empty()) svg = cvislam::eval::jointTopViewSvg(*joint, alignment, ground_truths, labels);
+  if (!cl.quiet) {
+    std::cout << "association:  " << cl.association << ", max difference "
+              << cvislam::text::formatDouble(1e-9 * static_cast<double>(options.association.effectiveMaxDiffNs()))
+              << " s\n"
+              << out->table;
   }
-  if (!quiet) std::cout << association_line << table;
-  if (!json_path.empty()) {
-    if (Status st = writeFile(json_path, json); !st) {
-      std::cerr << "cvislam_eval: " << st.error().message() << "\n";
-      return 1;
-    }
-  }
-  if (!plot_path.empty()) {
-    if (Status st = writeFile(plot_path, svg); !st) {
+  for (const auto& [path, contents] : {std::pair{&cl.json_path, &out->json}, std::pair{&cl.plot_path, &out->svg}}) {
+    if (path->empty()) continue;
+    if (Status st = writeFile(*path, *contents); !st) {
       std::cerr << "cvislam_eval: " << st.error().message() << "\n";
       return 1;
     }
