@@ -81,31 +81,17 @@ class StopWhenAsked final : public ceres::IterationCallback {
   bool stopped_ = false;
 };
 
-}  // namespace
+// The problem's states: the window's keyframes (optimised), the keyframes that share its points (fixed), and
+// the points the window observes, each with its index by pool handle.
+class BaStates {
+ public:
+  explicit BaStates(LocalMap& map) : map_(map) {}
 
-Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
-                                                              const LocalBundleAdjustmentOptions& options,
-                                                              const std::function<bool()>& stop) {
-  if (Status status = options.validate(); !status.ok()) return status.error();
-  LocalBundleAdjustmentSummary summary;
-
-  // The window: the newest non-anchor keyframes, by sequence.
-  std::vector<std::pair<std::uint64_t, PoolHandle>> by_sequence;
-  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
-    if (!kf.anchor) by_sequence.emplace_back(kf.sequence, h);
-  });
-  std::sort(by_sequence.begin(), by_sequence.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
-  if (by_sequence.empty()) return Error{ErrorCode::kNotFound, "local BA: no keyframe to optimise"};
-  const std::size_t first = by_sequence.size() > static_cast<std::size_t>(options.window)
-                                ? by_sequence.size() - static_cast<std::size_t>(options.window)
-                                : 0;
-
-  std::unordered_map<std::uint64_t, std::size_t> keyframe_index;  // handle -> index in `keyframes`
-  std::vector<KeyframeState> keyframes;
-  const auto add_keyframe = [&](PoolHandle h, bool in_window) -> std::size_t {
-    const auto [it, inserted] = keyframe_index.emplace(handleKey(h), keyframes.size());
+  // Adds a keyframe once (later calls return its index); `in_window` is kept from the first call.
+  std::size_t addKeyframe(PoolHandle h, bool in_window) {
+    const auto [it, inserted] = keyframe_index_.emplace(handleKey(h), keyframes.size());
     if (inserted) {
-      const KeyframeData& kf = *map.keyframes().get(h);
+      const KeyframeData& kf = *map_.keyframes().get(h);
       KeyframeState s;
       s.handle = h;
       s.pose = factors::poseToBlock(kf.T_w_s);
@@ -115,164 +101,255 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
       keyframes.push_back(s);
     }
     return it->second;
-  };
-  for (std::size_t i = first; i < by_sequence.size(); ++i) add_keyframe(by_sequence[i].second, true);
-  summary.window_keyframes = static_cast<int>(keyframes.size());
+  }
+  [[nodiscard]] bool hasKeyframe(PoolHandle h) const { return keyframe_index_.count(handleKey(h)) != 0; }
+  KeyframeState& keyframe(PoolHandle h) { return keyframes[keyframe_index_.at(handleKey(h))]; }
 
-  // The points the window observes, and how many of them every other keyframe shares. A point without an
-  // inverse-depth point (a bearing nearly in its reference image plane, a non-finite or negative inverse
-  // distance: corrupt, no pinhole image saw it) or without its reference keyframe is left out, as are its
-  // observations, rather than failing the whole BA; it stays in the map as it was.
-  std::unordered_map<std::uint64_t, std::size_t> point_index;
-  std::unordered_set<std::uint64_t> left_out;
+  // Adds the point once.
+  void addPoint(PoolHandle h, const Vector3d& point) {
+    if (point_index_.emplace(handleKey(h), points.size()).second) points.push_back({h, point});
+  }
+  [[nodiscard]] bool seen(PoolHandle h) const {
+    return point_index_.count(handleKey(h)) != 0 || left_out.count(handleKey(h)) != 0;
+  }
+  [[nodiscard]] bool hasPoint(PoolHandle h) const { return point_index_.count(handleKey(h)) != 0; }
+  PointState* point(PoolHandle h) {
+    const auto it = point_index_.find(handleKey(h));
+    return it == point_index_.end() ? nullptr : &points[it->second];
+  }
+
+  std::vector<KeyframeState> keyframes;
   std::vector<PointState> points;
-  for (std::size_t i = 0; i < keyframes.size(); ++i) {
-    const KeyframeData& kf = *map.keyframes().get(keyframes[i].handle);
-    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
-      if (!kf.has_map_point[k]) continue;
-      const MapPointData* mp = map.mapPoints().get(kf.map_point[k]);
-      if (mp == nullptr) continue;
-      const std::uint64_t key = handleKey(kf.map_point[k]);
-      if (point_index.count(key) != 0 || left_out.count(key) != 0) continue;
-      Vector3d point;
-      if (!map.keyframes().valid(mp->reference) || !(mp->inverse_depth >= 0.0) ||
-          !factors::inverseDepthPointFromBearing(mp->bearing_c, mp->inverse_depth, point)) {
-        left_out.insert(key);
-        continue;
-      }
-      point.z() = std::max(point.z(), kMinInverseDepth);  // Ceres needs a feasible start
-      point_index.emplace(key, points.size());
-      points.push_back({kf.map_point[k], point});
-    }
-  }
-  summary.map_points_left_out = static_cast<int>(left_out.size());
-  std::unordered_map<std::uint64_t, int> shared;
-  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
-    if (keyframe_index.count(handleKey(h)) != 0) return;
-    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
-      if (kf.has_map_point[k] && point_index.count(handleKey(kf.map_point[k])) != 0) ++shared[handleKey(h)];
-    }
-  });
-  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
-    if (keyframe_index.count(handleKey(h)) != 0) return;
-    const auto it = shared.find(handleKey(h));
-    // An anchor (the server's) counts with any shared point: its pose is the server's refined one.
-    const int n = it != shared.end() ? it->second : 0;
-    if ((kf.anchor && n > 0) || n >= options.min_covisible) {
-      add_keyframe(h, false);
-      summary.anchor_keyframes += kf.anchor ? 1 : 0;
-    }
-  });
-  for (const PointState& p : points) {  // reference keyframes are needed as fixed poses at least
-    add_keyframe(map.mapPoints().get(p.handle)->reference, false);
-  }
-  summary.fixed_keyframes = static_cast<int>(keyframes.size()) - summary.window_keyframes;
-  summary.map_points = static_cast<int>(points.size());
+  std::unordered_set<std::uint64_t> left_out;  // points without a valid inverse-depth point or reference
 
-  ceres::Problem problem;
-  auto* pose_manifold = new factors::PoseManifold();  // owned by the problem, as are the cost functions
-  factors::PoseBlock extrinsics = factors::poseToBlock(map.extrinsics());
-  problem.AddParameterBlock(extrinsics.data(), factors::kPoseSize, pose_manifold);
-  problem.SetParameterBlockConstant(extrinsics.data());
-  for (KeyframeState& s : keyframes) {
-    problem.AddParameterBlock(s.pose.data(), factors::kPoseSize, pose_manifold);
-    if (!s.in_window) problem.SetParameterBlockConstant(s.pose.data());
-  }
-  for (PointState& p : points) {
-    problem.AddParameterBlock(p.point.data(), factors::kInverseDepthPointSize);
-    problem.SetParameterLowerBound(p.point.data(), 2, kMinInverseDepth);
-  }
+ private:
+  LocalMap& map_;
+  std::unordered_map<std::uint64_t, std::size_t> keyframe_index_;
+  std::unordered_map<std::uint64_t, std::size_t> point_index_;
+};
 
-  // Reprojection factors: every observation of a window point from a keyframe in the problem.
-  for (KeyframeState& s : keyframes) {
+// The window: the newest `window` non-anchor keyframes, oldest first.
+std::vector<PoolHandle> selectWindow(const LocalMap& map, int window) {
+  std::vector<std::pair<std::uint64_t, PoolHandle>> by_sequence;
+  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
+    if (!kf.anchor) by_sequence.emplace_back(kf.sequence, h);
+  });
+  std::sort(by_sequence.begin(), by_sequence.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  const std::size_t first =
+      by_sequence.size() > static_cast<std::size_t>(window) ? by_sequence.size() - static_cast<std::size_t>(window) : 0;
+  std::vector<PoolHandle> handles;
+  for (std::size_t i = first; i < by_sequence.size(); ++i) handles.push_back(by_sequence[i].second);
+  return handles;
+}
+
+// The points the window observes. A point without an inverse-depth point (a bearing nearly in its reference
+// image plane, a non-finite or negative inverse distance: corrupt, no pinhole image saw it) or without its
+// reference keyframe is left out, as are its observations, rather than failing the whole BA; it stays in the
+// map as it was.
+void collectPoints(const LocalMap& map, BaStates& states) {
+  for (const KeyframeState& s : states.keyframes) {
     const KeyframeData& kf = *map.keyframes().get(s.handle);
     for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
       if (!kf.has_map_point[k]) continue;
-      const auto pit = point_index.find(handleKey(kf.map_point[k]));
-      if (pit == point_index.end()) continue;
-      PointState& p = points[pit->second];
-      const PoolHandle ref = map.mapPoints().get(p.handle)->reference;
+      const MapPointData* mp = map.mapPoints().get(kf.map_point[k]);
+      if (mp == nullptr || states.seen(kf.map_point[k])) continue;
+      Vector3d point;
+      if (!map.keyframes().valid(mp->reference) || !(mp->inverse_depth >= 0.0) ||
+          !factors::inverseDepthPointFromBearing(mp->bearing_c, mp->inverse_depth, point)) {
+        states.left_out.insert(handleKey(kf.map_point[k]));
+        continue;
+      }
+      point.z() = std::max(point.z(), kMinInverseDepth);  // Ceres needs a feasible start
+      states.addPoint(kf.map_point[k], point);
+    }
+  }
+}
+
+// Fixed keyframes: every other keyframe sharing at least `min_covisible` of the window's points (an anchor,
+// the server's refined pose, with any), and every point's reference keyframe. Returns the anchors among them.
+int addFixedKeyframes(const LocalMap& map, int min_covisible, BaStates& states) {
+  std::unordered_map<std::uint64_t, int> shared;
+  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
+    if (states.hasKeyframe(h)) return;
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (kf.has_map_point[k] && states.hasPoint(kf.map_point[k])) ++shared[handleKey(h)];
+    }
+  });
+  int anchors = 0;
+  map.keyframes().forEach([&](PoolHandle h, const KeyframeData& kf) {
+    if (states.hasKeyframe(h)) return;
+    const auto it = shared.find(handleKey(h));
+    const int n = it != shared.end() ? it->second : 0;
+    if ((kf.anchor && n > 0) || n >= min_covisible) {
+      states.addKeyframe(h, false);
+      anchors += kf.anchor ? 1 : 0;
+    }
+  });
+  for (const PointState& p : states.points) states.addKeyframe(map.mapPoints().get(p.handle)->reference, false);
+  return anchors;
+}
+
+void addParameterBlocks(BaStates& states, factors::PoseBlock& extrinsics, ceres::Problem& problem) {
+  auto* pose_manifold = new factors::PoseManifold();  // owned by the problem, as are the cost functions
+  problem.AddParameterBlock(extrinsics.data(), factors::kPoseSize, pose_manifold);
+  problem.SetParameterBlockConstant(extrinsics.data());
+  for (KeyframeState& s : states.keyframes) {
+    problem.AddParameterBlock(s.pose.data(), factors::kPoseSize, pose_manifold);
+    if (!s.in_window) problem.SetParameterBlockConstant(s.pose.data());
+  }
+  for (PointState& p : states.points) {
+    problem.AddParameterBlock(p.point.data(), factors::kInverseDepthPointSize);
+    problem.SetParameterLowerBound(p.point.data(), 2, kMinInverseDepth);
+  }
+}
+
+// cam1's observation of keypoint k, kept only when it agrees with the current estimate: a wrong stereo
+// match would otherwise pull the point's depth. Returns whether it was added.
+bool addSecondCameraFactor(const KeyframeData& kf, std::uint16_t k, KeyframeState& s, KeyframeState& r, PointState& p,
+                           factors::PoseBlock& extrinsics, const LocalBundleAdjustmentOptions& options,
+                           ceres::Problem& problem) {
+  const double sigma1 = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.right_octave[k]);
+  std::unique_ptr<ceres::CostFunction> cost;
+  std::vector<double*> blocks;
+  if (&r == &s) {
+    cost = std::make_unique<factors::InverseDepthPointSecondCameraHostFactor>(
+        kf.right_undistorted_px[k], options.second_intrinsics, sigma1, options.T_c1_c0);
+    blocks = {p.point.data()};
+  } else {
+    cost = std::make_unique<factors::InverseDepthPointFactor>(kf.right_undistorted_px[k], options.second_intrinsics,
+                                                              sigma1, options.T_c1_c0);
+    blocks = {s.pose.data(), r.pose.data(), extrinsics.data(), p.point.data()};
+  }
+  Eigen::Vector2d residual;
+  const bool evaluable = cost->Evaluate(blocks.data(), residual.data(), nullptr);
+  if (!evaluable || residual.norm() > options.max_second_camera_error_sigma) return false;
+  problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), blocks);
+  return true;
+}
+
+// Reprojection factors: every observation of a window point from a keyframe in the problem.
+void addReprojectionFactors(const LocalMap& map, const LocalBundleAdjustmentOptions& options, BaStates& states,
+                            factors::PoseBlock& extrinsics, ceres::Problem& problem,
+                            LocalBundleAdjustmentSummary& summary) {
+  for (KeyframeState& s : states.keyframes) {
+    const KeyframeData& kf = *map.keyframes().get(s.handle);
+    for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
+      if (!kf.has_map_point[k]) continue;
+      PointState* p = states.point(kf.map_point[k]);
+      if (p == nullptr) continue;
+      const PoolHandle ref = map.mapPoints().get(p->handle)->reference;
+      KeyframeState& r = ref == s.handle ? s : states.keyframe(ref);
       const double sigma = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.keypoints[k].octave);
       auto* loss = new ceres::CauchyLoss(options.cauchy_scale);
-      if (ref == s.handle) {
+      if (&r == &s) {
         problem.AddResidualBlock(
             new factors::InverseDepthPointHostFactor(kf.undistorted_px[k], options.intrinsics, sigma), loss,
-            p.point.data());
+            p->point.data());
       } else {
-        KeyframeState& r = keyframes[keyframe_index.at(handleKey(ref))];
         problem.AddResidualBlock(new factors::InverseDepthPointFactor(kf.undistorted_px[k], options.intrinsics, sigma),
-                                 loss, s.pose.data(), r.pose.data(), extrinsics.data(), p.point.data());
+                                 loss, s.pose.data(), r.pose.data(), extrinsics.data(), p->point.data());
       }
       ++summary.reprojection_factors;
       summary.anchor_factors += kf.anchor ? 1 : 0;
       if (options.use_second_camera && kf.has_right[k]) {
-        const double sigma1 = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.right_octave[k]);
-        std::unique_ptr<ceres::CostFunction> cost;
-        std::vector<double*> blocks;
-        if (ref == s.handle) {
-          cost = std::make_unique<factors::InverseDepthPointSecondCameraHostFactor>(
-              kf.right_undistorted_px[k], options.second_intrinsics, sigma1, options.T_c1_c0);
-          blocks = {p.point.data()};
+        if (addSecondCameraFactor(kf, k, s, r, *p, extrinsics, options, problem)) {
+          ++summary.reprojection_factors;
+          ++summary.second_camera_factors;
         } else {
-          KeyframeState& r = keyframes[keyframe_index.at(handleKey(ref))];
-          cost = std::make_unique<factors::InverseDepthPointFactor>(kf.right_undistorted_px[k],
-                                                                    options.second_intrinsics, sigma1, options.T_c1_c0);
-          blocks = {s.pose.data(), r.pose.data(), extrinsics.data(), p.point.data()};
-        }
-        Eigen::Vector2d residual;
-        const bool evaluable = cost->Evaluate(blocks.data(), residual.data(), nullptr);
-        if (!evaluable || residual.norm() > options.max_second_camera_error_sigma) {
           ++summary.second_camera_rejected;
-          continue;
         }
-        problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), blocks);
-        ++summary.reprojection_factors;
-        ++summary.second_camera_factors;
       }
     }
   }
+}
 
-  // IMU and bias random-walk factors between consecutive window keyframes.
-  if (options.use_imu) {
-    for (std::size_t i = first + 1; i < by_sequence.size(); ++i) {
-      const KeyframeData& kf = *map.keyframes().get(by_sequence[i].second);
-      const KeyframeData& previous = *map.keyframes().get(by_sequence[i - 1].second);
-      // The preintegration must start at exactly the previous window keyframe: an anchor in between, or a
-      // removed keyframe, breaks the chain.
-      if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) continue;
-      KeyframeState& a = keyframes[keyframe_index.at(handleKey(by_sequence[i - 1].second))];
-      KeyframeState& b = keyframes[keyframe_index.at(handleKey(by_sequence[i].second))];
-      problem.AddResidualBlock(new factors::ImuFactor(kf.preintegration), nullptr, a.pose.data(), a.velocity.data(),
-                               a.bias.data(), b.pose.data(), b.velocity.data());
-      problem.AddResidualBlock(new factors::BiasRandomWalkFactor(options.noise, kf.preintegration.dt()), nullptr,
-                               a.bias.data(), b.bias.data());
-      ++summary.imu_factors;
-    }
+// IMU and bias random-walk factors between consecutive window keyframes. Returns how many pairs.
+int addImuFactors(const LocalMap& map, const LocalBundleAdjustmentOptions& options,
+                  const std::vector<PoolHandle>& window, BaStates& states, ceres::Problem& problem) {
+  int pairs = 0;
+  for (std::size_t i = 1; i < window.size(); ++i) {
+    const KeyframeData& kf = *map.keyframes().get(window[i]);
+    const KeyframeData& previous = *map.keyframes().get(window[i - 1]);
+    // The preintegration must start at exactly the previous window keyframe: an anchor in between, or a
+    // removed keyframe, breaks the chain.
+    if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) continue;
+    KeyframeState& a = states.keyframe(window[i - 1]);
+    KeyframeState& b = states.keyframe(window[i]);
+    problem.AddResidualBlock(new factors::ImuFactor(kf.preintegration), nullptr, a.pose.data(), a.velocity.data(),
+                             a.bias.data(), b.pose.data(), b.velocity.data());
+    problem.AddResidualBlock(new factors::BiasRandomWalkFactor(options.noise, kf.preintegration.dt()), nullptr,
+                             a.bias.data(), b.bias.data());
+    ++pairs;
   }
+  return pairs;
+}
+
+// Points first, everything else after: each point is one block, seen only with keyframe states, so the
+// Schur complement eliminates all of them and the reduced system holds the keyframes alone. Ceres wants
+// every block of the problem in the ordering, constant ones too.
+std::shared_ptr<ceres::ParameterBlockOrdering> pointsFirstOrdering(std::vector<PointState>& points,
+                                                                   const ceres::Problem& problem) {
+  auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
+  for (PointState& p : points) ordering->AddElementToGroup(p.point.data(), 0);
+  std::vector<double*> blocks_in_problem;
+  problem.GetParameterBlocks(&blocks_in_problem);
+  for (double* block : blocks_in_problem) {
+    if (!ordering->IsMember(block)) ordering->AddElementToGroup(block, 1);
+  }
+  return ordering;
+}
+
+void writeBack(const BaStates& states, LocalMap& map) {
+  for (const KeyframeState& s : states.keyframes) {
+    if (!s.in_window) continue;
+    KeyframeData& kf = *map.keyframes().get(s.handle);
+    kf.T_w_s = factors::poseFromBlock(s.pose.data());
+    kf.v_w = s.velocity;
+    kf.bias.gyro = s.bias.head<3>();
+    kf.bias.accel = s.bias.tail<3>();
+  }
+  for (const PointState& p : states.points) {
+    MapPointData& mp = *map.mapPoints().get(p.handle);
+    factors::bearingFromInverseDepthPoint(p.point, mp.bearing_c, mp.inverse_depth);
+  }
+}
+
+}  // namespace
+
+Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
+                                                              const LocalBundleAdjustmentOptions& options,
+                                                              const std::function<bool()>& stop) {
+  if (Status status = options.validate(); !status.ok()) return status.error();
+  LocalBundleAdjustmentSummary summary;
+
+  const std::vector<PoolHandle> window = selectWindow(map, options.window);
+  if (window.empty()) return Error{ErrorCode::kNotFound, "local BA: no keyframe to optimise"};
+  BaStates states(map);
+  for (PoolHandle h : window) states.addKeyframe(h, true);
+  summary.window_keyframes = static_cast<int>(states.keyframes.size());
+  collectPoints(map, states);
+  summary.map_points_left_out = static_cast<int>(states.left_out.size());
+  summary.anchor_keyframes = addFixedKeyframes(map, options.min_covisible, states);
+  summary.fixed_keyframes = static_cast<int>(states.keyframes.size()) - summary.window_keyframes;
+  summary.map_points = static_cast<int>(states.points.size());
+
+  ceres::Problem problem;
+  factors::PoseBlock extrinsics = factors::poseToBlock(map.extrinsics());
+  addParameterBlocks(states, extrinsics, problem);
+  addReprojectionFactors(map, options, states, extrinsics, problem, summary);
+  if (options.use_imu) summary.imu_factors = addImuFactors(map, options, window, states, problem);
   if (summary.fixed_keyframes == 0) {  // the gauge
-    problem.SetParameterBlockConstant(keyframes.front().pose.data());
+    problem.SetParameterBlockConstant(states.keyframes.front().pose.data());
     // Without the IMU (or with no IMU link) and without stereo, scale is free as well: hold a second pose.
-    if (summary.imu_factors == 0 && summary.second_camera_factors == 0 && keyframes.size() > 1) {
-      problem.SetParameterBlockConstant(keyframes[1].pose.data());
+    if (summary.imu_factors == 0 && summary.second_camera_factors == 0 && states.keyframes.size() > 1) {
+      problem.SetParameterBlockConstant(states.keyframes[1].pose.data());
     }
   }
 
-  // Points first, everything else after: each point is one block, seen only with keyframe states, so the
-  // Schur complement eliminates all of them and the reduced system holds the keyframes alone. Ceres wants
-  // every block of the problem in the ordering, constant ones too.
-  // Without points (all left out) Ceres picks the elimination itself, as group 0 would be empty.
   ceres::Solver::Options solver_options;
   solver_options.linear_solver_type = ceres::SPARSE_SCHUR;
-  if (!points.empty()) {
-    auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
-    for (PointState& p : points) ordering->AddElementToGroup(p.point.data(), 0);
-    std::vector<double*> blocks_in_problem;
-    problem.GetParameterBlocks(&blocks_in_problem);
-    for (double* block : blocks_in_problem) {
-      if (!ordering->IsMember(block)) ordering->AddElementToGroup(block, 1);
-    }
-    solver_options.linear_solver_ordering = ordering;
-  }
+  // Without points (all left out) Ceres picks the elimination itself, as group 0 would be empty.
+  if (!states.points.empty()) solver_options.linear_solver_ordering = pointsFirstOrdering(states.points, problem);
   solver_options.max_num_iterations = options.max_iterations;
   solver_options.num_threads = 1;
   std::optional<StopWhenAsked> stop_when_asked;
@@ -289,20 +366,7 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   summary.iterations = static_cast<int>(ceres_summary.iterations.size()) - 1;
   summary.initial_cost = ceres_summary.initial_cost;
   summary.final_cost = ceres_summary.final_cost;
-
-  // Write back what was optimised.
-  for (const KeyframeState& s : keyframes) {
-    if (!s.in_window) continue;
-    KeyframeData& kf = *map.keyframes().get(s.handle);
-    kf.T_w_s = factors::poseFromBlock(s.pose.data());
-    kf.v_w = s.velocity;
-    kf.bias.gyro = s.bias.head<3>();
-    kf.bias.accel = s.bias.tail<3>();
-  }
-  for (const PointState& p : points) {
-    MapPointData& mp = *map.mapPoints().get(p.handle);
-    factors::bearingFromInverseDepthPoint(p.point, mp.bearing_c, mp.inverse_depth);
-  }
+  writeBack(states, map);
   return summary;
 }
 
