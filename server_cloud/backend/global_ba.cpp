@@ -151,37 +151,52 @@ Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap
   return snapshot;
 }
 
-Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions& options,
-                                    const std::atomic<bool>* cancel) {
-  if (Status s = options.validate(); !s.ok()) return s.error();
-  GlobalBaSummary summary;
-  summary.keyframes = static_cast<int>(snapshot.keyframes.size());
-  summary.points = static_cast<int>(snapshot.points.size());
-  if (snapshot.keyframes.size() < 2) return summary;
+namespace {
 
-  const std::size_t n = snapshot.keyframes.size();
-  std::vector<factors::PoseBlock> poses(n);
-  std::vector<Eigen::Vector3d> velocities(n);
-  std::vector<Eigen::Matrix<double, 6, 1>> biases(n);
-  std::vector<Eigen::Vector3d> points(snapshot.points.size());
-  for (std::size_t i = 0; i < n; ++i) {
-    const GbaKeyframe& kf = snapshot.keyframes[i];
-    poses[i] = factors::poseToBlock(kf.T_w_s);
-    velocities[i] = kf.v_w;
-    biases[i] << kf.bias.gyro, kf.bias.accel;
+// The optimised states, copied out of the snapshot so that a cancelled or failed solve leaves it untouched.
+struct GbaStates {
+  explicit GbaStates(const GbaSnapshot& snapshot)
+      : poses(snapshot.keyframes.size()),
+        velocities(snapshot.keyframes.size()),
+        biases(snapshot.keyframes.size()),
+        has_imu_state(snapshot.keyframes.size(), 0),
+        points(snapshot.points.size()) {
+    for (std::size_t i = 0; i < snapshot.keyframes.size(); ++i) {
+      const GbaKeyframe& kf = snapshot.keyframes[i];
+      poses[i] = factors::poseToBlock(kf.T_w_s);
+      velocities[i] = kf.v_w;
+      biases[i] << kf.bias.gyro, kf.bias.accel;
+    }
+    for (std::size_t p = 0; p < points.size(); ++p) points[p] = snapshot.points[p].p_w;
   }
-  for (std::size_t p = 0; p < points.size(); ++p) points[p] = snapshot.points[p].p_w;
 
-  ceres::Problem::Options problem_options;
-  problem_options.manifold_ownership = ceres::TAKE_OWNERSHIP;
-  ceres::Problem problem(problem_options);
-  auto* pose_manifold = new factors::PoseManifold();
-  for (std::size_t i = 0; i < n; ++i) problem.AddParameterBlock(poses[i].data(), factors::kPoseSize, pose_manifold);
-  for (Eigen::Vector3d& p : points) problem.AddParameterBlock(p.data(), factors::kPointSize);
+  void writeBack(GbaSnapshot& snapshot) const {
+    for (std::size_t i = 0; i < snapshot.keyframes.size(); ++i) {
+      GbaKeyframe& kf = snapshot.keyframes[i];
+      kf.T_w_s = factors::poseFromBlock(poses[i].data());
+      if (has_imu_state[i] != 0) {
+        kf.v_w = velocities[i];
+        kf.bias.gyro = biases[i].head<3>();
+        kf.bias.accel = biases[i].tail<3>();
+      }
+    }
+    for (std::size_t p = 0; p < points.size(); ++p) snapshot.points[p].p_w = points[p];
+  }
 
-  // Reprojection.
-  std::vector<std::uint8_t> point_used(points.size(), 0);
-  for (std::size_t i = 0; i < n; ++i) {
+  std::vector<factors::PoseBlock> poses;
+  std::vector<Eigen::Vector3d> velocities;
+  std::vector<Eigen::Matrix<double, 6, 1>> biases;
+  std::vector<std::uint8_t> has_imu_state;  // velocity and bias are in the problem (the keyframe has an IMU link)
+  std::vector<Eigen::Vector3d> points;
+};
+
+// Every observation whose point is in front of its camera at the start; a point no factor uses is held.
+// Returns the number of factors.
+int addReprojectionFactors(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaStates& states,
+                           ceres::Problem& problem) {
+  int factors = 0;
+  std::vector<std::uint8_t> point_used(states.points.size(), 0);
+  for (std::size_t i = 0; i < snapshot.keyframes.size(); ++i) {
     const GbaKeyframe& kf = snapshot.keyframes[i];
     const GbaAgent& agent = snapshot.agents.at(kf.id.agent);
     for (const GbaObservation& o : kf.observations) {
@@ -195,42 +210,50 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
             std::make_unique<factors::WorldPointReprojectionFactor>(o.px_undistorted, agent.cam0, sigma, agent.T_c0_s);
       }
       // A point behind the camera at the start (a bad association) cannot be evaluated: leave it out.
-      const double* blocks[] = {poses[i].data(), points[o.point].data()};
+      const double* blocks[] = {states.poses[i].data(), states.points[o.point].data()};
       Eigen::Vector2d residual;
       if (!cost->Evaluate(blocks, residual.data(), nullptr)) continue;
-      problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), poses[i].data(),
-                               points[o.point].data());
+      problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), states.poses[i].data(),
+                               states.points[o.point].data());
       point_used[o.point] = 1;
-      ++summary.reprojection_factors;
+      ++factors;
     }
   }
-  for (std::size_t p = 0; p < points.size(); ++p) {
-    if (point_used[p] == 0) problem.SetParameterBlockConstant(points[p].data());
+  for (std::size_t p = 0; p < states.points.size(); ++p) {
+    if (point_used[p] == 0) problem.SetParameterBlockConstant(states.points[p].data());
   }
+  return factors;
+}
 
-  // IMU links inside each agent.
-  std::vector<std::uint8_t> has_imu_state(n, 0);
-  for (std::size_t j = 0; j < n; ++j) {
+// IMU and bias random-walk factors along each agent's preintegration links. Returns the number of links.
+int addImuFactors(const GbaSnapshot& snapshot, GbaStates& states, ceres::Problem& problem) {
+  int links = 0;
+  for (std::size_t j = 0; j < snapshot.keyframes.size(); ++j) {
     const GbaKeyframe& kf = snapshot.keyframes[j];
     if (kf.imu_from < 0 || !kf.preintegration) continue;
     const auto i = static_cast<std::size_t>(kf.imu_from);
     for (const std::size_t k : {i, j}) {
-      if (has_imu_state[k] != 0) continue;
-      has_imu_state[k] = 1;
-      problem.AddParameterBlock(velocities[k].data(), 3);
-      problem.AddParameterBlock(biases[k].data(), 6);
+      if (states.has_imu_state[k] != 0) continue;
+      states.has_imu_state[k] = 1;
+      problem.AddParameterBlock(states.velocities[k].data(), 3);
+      problem.AddParameterBlock(states.biases[k].data(), 6);
     }
-    problem.AddResidualBlock(new factors::ImuFactor(*kf.preintegration), nullptr, poses[i].data(), velocities[i].data(),
-                             biases[i].data(), poses[j].data(), velocities[j].data());
+    problem.AddResidualBlock(new factors::ImuFactor(*kf.preintegration), nullptr, states.poses[i].data(),
+                             states.velocities[i].data(), states.biases[i].data(), states.poses[j].data(),
+                             states.velocities[j].data());
     problem.AddResidualBlock(
         new factors::BiasRandomWalkFactor(snapshot.agents.at(kf.id.agent).noise, kf.preintegration->dt()), nullptr,
-        biases[i].data(), biases[j].data());
-    ++summary.imu_factors;
+        states.biases[i].data(), states.biases[j].data());
+    ++links;
   }
+  return links;
+}
 
-  // The gauge: the oldest keyframe's pose.
+// The gauge: a prior on the oldest keyframe's pose. With every agent inertial, gravity fixes roll and pitch,
+// so only position and yaw are held.
+void addGauge(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaStates& states, ceres::Problem& problem) {
   std::size_t oldest = 0;
-  for (std::size_t i = 1; i < n; ++i) {
+  for (std::size_t i = 1; i < snapshot.keyframes.size(); ++i) {
     if (snapshot.keyframes[i].t_ns < snapshot.keyframes[oldest].t_ns) oldest = i;
   }
   Eigen::Matrix<double, 6, 6> gauge_sqrt_information = Eigen::Matrix<double, 6, 6>::Zero();
@@ -247,7 +270,63 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
     gauge_sqrt_information.bottomRightCorner<3, 3>() = Eigen::Matrix3d::Identity() / options.gauge_sigma_rad;
   }
   problem.AddResidualBlock(new factors::PosePriorFactor(snapshot.keyframes[oldest].T_w_s, gauge_sqrt_information),
-                           nullptr, poses[oldest].data());
+                           nullptr, states.poses[oldest].data());
+}
+
+// One stage of the solve: at most `iterations` (0: none), with the blocks held as the caller set them.
+// Cancellation is reported in the summary, not as an error.
+Status solveStage(ceres::Problem& problem, ceres::Solver::Options& solver, GbaStates& states, int iterations, int& done,
+                  double& seconds, GlobalBaSummary& summary) {
+  if (iterations == 0) return Status::Ok();
+  solver.max_num_iterations = iterations;
+  // Points first (Schur-eliminated), then the keyframe states; Ceres prunes the held blocks from the ordering
+  // it is given, so each solve gets its own.
+  auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
+  for (Eigen::Vector3d& p : states.points) ordering->AddElementToGroup(p.data(), 0);
+  for (std::size_t i = 0; i < states.poses.size(); ++i) {
+    ordering->AddElementToGroup(states.poses[i].data(), 1);
+    if (states.has_imu_state[i] != 0) {
+      ordering->AddElementToGroup(states.velocities[i].data(), 1);
+      ordering->AddElementToGroup(states.biases[i].data(), 1);
+    }
+  }
+  solver.linear_solver_ordering = ordering;
+  ceres::Solver::Summary s;
+  const auto start = std::chrono::steady_clock::now();
+  ceres::Solve(solver, &problem, &s);
+  seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (s.termination_type == ceres::USER_FAILURE) {
+    summary.cancelled = true;
+    return Status::Ok();
+  }
+  if (!s.IsSolutionUsable()) return Error{ErrorCode::kDegenerate, "global BA failed: " + s.message};
+  done = static_cast<int>(s.iterations.size()) - 1;
+  if (summary.initial_cost == 0.0) summary.initial_cost = s.initial_cost;
+  summary.final_cost = s.final_cost;
+  return Status::Ok();
+}
+
+}  // namespace
+
+Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions& options,
+                                    const std::atomic<bool>* cancel) {
+  if (Status s = options.validate(); !s.ok()) return s.error();
+  GlobalBaSummary summary;
+  summary.keyframes = static_cast<int>(snapshot.keyframes.size());
+  summary.points = static_cast<int>(snapshot.points.size());
+  if (snapshot.keyframes.size() < 2) return summary;
+
+  GbaStates states(snapshot);
+  ceres::Problem::Options problem_options;
+  problem_options.manifold_ownership = ceres::TAKE_OWNERSHIP;
+  ceres::Problem problem(problem_options);
+  auto* pose_manifold = new factors::PoseManifold();
+  for (factors::PoseBlock& pose : states.poses)
+    problem.AddParameterBlock(pose.data(), factors::kPoseSize, pose_manifold);
+  for (Eigen::Vector3d& p : states.points) problem.AddParameterBlock(p.data(), factors::kPointSize);
+  summary.reprojection_factors = addReprojectionFactors(snapshot, options, states, problem);
+  summary.imu_factors = addImuFactors(snapshot, states, problem);
+  addGauge(snapshot, options, states, problem);
 
   CancelCallback callback(cancel);
   ceres::Solver::Options solver;
@@ -257,57 +336,23 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
   solver.callbacks.push_back(&callback);
   solver.update_state_every_iteration = false;
 
-  const auto solve = [&](int iterations, int& done, double& seconds) -> Status {
-    if (iterations == 0) return Status::Ok();
-    solver.max_num_iterations = iterations;
-    // Points first (Schur-eliminated), then the keyframe states; Ceres prunes the held blocks from the ordering
-    // it is given, so each solve gets its own.
-    auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
-    for (Eigen::Vector3d& p : points) ordering->AddElementToGroup(p.data(), 0);
-    for (std::size_t i = 0; i < n; ++i) {
-      ordering->AddElementToGroup(poses[i].data(), 1);
-      if (has_imu_state[i] != 0) {
-        ordering->AddElementToGroup(velocities[i].data(), 1);
-        ordering->AddElementToGroup(biases[i].data(), 1);
-      }
-    }
-    solver.linear_solver_ordering = ordering;
-    ceres::Solver::Summary s;
-    const auto start = std::chrono::steady_clock::now();
-    ceres::Solve(solver, &problem, &s);
-    seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (s.termination_type == ceres::USER_FAILURE) {
-      summary.cancelled = true;
-      return Status::Ok();
-    }
-    if (!s.IsSolutionUsable()) return Error{ErrorCode::kDegenerate, "global BA failed: " + s.message};
-    done = static_cast<int>(s.iterations.size()) - 1;
-    if (summary.initial_cost == 0.0) summary.initial_cost = s.initial_cost;
-    summary.final_cost = s.final_cost;
-    return Status::Ok();
-  };
-
   // Step 1: structure, velocities and biases with the poses held.
-  for (std::size_t i = 0; i < n; ++i) problem.SetParameterBlockConstant(poses[i].data());
-  if (Status s = solve(options.structure_iterations, summary.structure_iterations, summary.structure_s); !s.ok()) {
+  for (factors::PoseBlock& pose : states.poses) problem.SetParameterBlockConstant(pose.data());
+  if (Status s = solveStage(problem, solver, states, options.structure_iterations, summary.structure_iterations,
+                            summary.structure_s, summary);
+      !s.ok()) {
     return s.error();
   }
   if (summary.cancelled) return summary;
   // Step 2: everything.
-  for (std::size_t i = 0; i < n; ++i) problem.SetParameterBlockVariable(poses[i].data());
-  if (Status s = solve(options.full_iterations, summary.full_iterations, summary.full_s); !s.ok()) return s.error();
-  if (summary.cancelled) return summary;
-
-  for (std::size_t i = 0; i < n; ++i) {
-    GbaKeyframe& kf = snapshot.keyframes[i];
-    kf.T_w_s = factors::poseFromBlock(poses[i].data());
-    if (has_imu_state[i] != 0) {
-      kf.v_w = velocities[i];
-      kf.bias.gyro = biases[i].head<3>();
-      kf.bias.accel = biases[i].tail<3>();
-    }
+  for (factors::PoseBlock& pose : states.poses) problem.SetParameterBlockVariable(pose.data());
+  if (Status s = solveStage(problem, solver, states, options.full_iterations, summary.full_iterations, summary.full_s,
+                            summary);
+      !s.ok()) {
+    return s.error();
   }
-  for (std::size_t p = 0; p < points.size(); ++p) snapshot.points[p].p_w = points[p];
+  if (summary.cancelled) return summary;
+  states.writeBack(snapshot);
   return summary;
 }
 
