@@ -112,6 +112,48 @@ void writeState(std::uint32_t counter, const KeyframeStateMsg& m, v1::KeyframeSt
   wire::toProto(counter, wire::KeyframeStateValues{fromMsg(m.T_w_s), toVector3(m.v_w), biasFromMsg(m.bias)}, out);
 }
 
+// A new keyframe whole: state, IMU since the previous keyframe, keypoints with packed descriptors, and its
+// stereo matches.
+void writeKeyframe(const LinkStore::Keyframe& kf, v1::Keyframe& k) {
+  k.set_counter(kf.id.counter);
+  k.set_agent_map(kf.map_id);
+  k.set_t_ns(kf.t_ns);
+  writeState(kf.id.counter, kf.state, k.mutable_state());
+  if (kf.has_imu_from) k.set_imu_from(kf.imu_from);
+  v1::ImuSamples& imu = *k.mutable_imu();
+  std::int64_t previous = kf.t_ns;
+  for (std::uint32_t i = 0; i < kf.imu_count; ++i) {
+    const LinkStore::Keyframe::Imu& s = kf.imu[i];
+    imu.add_dt_ns(s.t_ns - previous);
+    previous = s.t_ns;
+    for (int a = 0; a < 3; ++a) {
+      imu.add_gyro(s.gyro[static_cast<std::size_t>(a)]);
+      imu.add_accel(s.accel[static_cast<std::size_t>(a)]);
+    }
+  }
+  v1::Keypoints& kp = *k.mutable_keypoints();
+  std::string* octave = kp.mutable_octave();
+  std::string* angle = kp.mutable_angle();
+  octave->resize(kf.keypoint_count);
+  angle->resize(kf.keypoint_count);
+  kp.mutable_xy()->Reserve(2 * kf.keypoint_count);
+  kp.mutable_descriptors()->Reserve(4 * kf.keypoint_count);
+  v1::StereoMatches& right = *k.mutable_right();
+  for (std::uint16_t i = 0; i < kf.keypoint_count; ++i) {
+    kp.add_xy(kf.keypoints[i].x);
+    kp.add_xy(kf.keypoints[i].y);
+    (*octave)[i] = static_cast<char>(kf.keypoints[i].octave);
+    (*angle)[i] = static_cast<char>(wire::encodeAngle(kf.keypoints[i].angle_deg));
+    wire::packDescriptor(kf.descriptors[i].data(), kp.mutable_descriptors());
+    if (kf.has_right[i] != 0) {
+      right.add_keypoint(i);
+      right.add_xy(kf.right_px[i][0]);
+      right.add_xy(kf.right_px[i][1]);
+      right.mutable_octave()->push_back(static_cast<char>(kf.right_octave[i]));
+    }
+  }
+}
+
 }  // namespace
 
 Status LinkStoreOptions::validate() const {
@@ -509,71 +551,46 @@ bool LinkStore::buildBatch(std::uint64_t sequence, std::int64_t sensor_t_ns, std
   batch.Clear();
   batch.set_sequence(sequence);
   batch.set_sensor_time_ns(sensor_t_ns);
-  std::size_t bytes = 16;
-  bool content = false;
-  const auto full = [&] { return content && bytes >= max_bytes; };
+  BatchBudget budget;
+  budget.max_bytes = max_bytes;
 
   order_.clear();
   keyframes_->forEach([&](PoolHandle h, const Keyframe&) { order_.push_back(h); });
   std::sort(order_.begin(), order_.end(), [&](PoolHandle a, PoolHandle b) {
     return keyframes_->get(a)->id.counter < keyframes_->get(b)->id.counter;
   });
+  addNewKeyframes(sequence, budget, batch);
+  addNewPoints(sequence, budget, batch);
+  addObservations(sequence, budget, batch);
+  addMergesAndCulls(sequence, budget, batch);
+  addKeyframeUpdates(sequence, budget, batch);
+  addPointUpdates(sequence, budget, batch);
+  if (budget.content) last_sent_ = sequence;
+  return budget.content;
+}
 
-  // 1. New keyframes, oldest first.
+// 1. New keyframes, oldest first.
+void LinkStore::addNewKeyframes(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch) {
   for (PoolHandle h : order_) {
-    if (full()) break;
+    if (budget.full()) break;
     Keyframe& kf = *keyframes_->get(h);
     if (kf.full_sent != 0 || !mapReady(kf.map_id)) continue;
     v1::Keyframe& k = *batch.add_keyframes();
-    k.set_counter(kf.id.counter);
-    k.set_agent_map(kf.map_id);
-    k.set_t_ns(kf.t_ns);
-    writeState(kf.id.counter, kf.state, k.mutable_state());
-    if (kf.has_imu_from) k.set_imu_from(kf.imu_from);
-    v1::ImuSamples& imu = *k.mutable_imu();
-    std::int64_t previous = kf.t_ns;
-    for (std::uint32_t i = 0; i < kf.imu_count; ++i) {
-      const Keyframe::Imu& s = kf.imu[i];
-      imu.add_dt_ns(s.t_ns - previous);
-      previous = s.t_ns;
-      for (int a = 0; a < 3; ++a) {
-        imu.add_gyro(s.gyro[static_cast<std::size_t>(a)]);
-        imu.add_accel(s.accel[static_cast<std::size_t>(a)]);
-      }
-    }
-    v1::Keypoints& kp = *k.mutable_keypoints();
-    std::string* octave = kp.mutable_octave();
-    std::string* angle = kp.mutable_angle();
-    octave->resize(kf.keypoint_count);
-    angle->resize(kf.keypoint_count);
-    kp.mutable_xy()->Reserve(2 * kf.keypoint_count);
-    kp.mutable_descriptors()->Reserve(4 * kf.keypoint_count);
-    v1::StereoMatches& right = *k.mutable_right();
-    for (std::uint16_t i = 0; i < kf.keypoint_count; ++i) {
-      kp.add_xy(kf.keypoints[i].x);
-      kp.add_xy(kf.keypoints[i].y);
-      (*octave)[i] = static_cast<char>(kf.keypoints[i].octave);
-      (*angle)[i] = static_cast<char>(wire::encodeAngle(kf.keypoints[i].angle_deg));
-      wire::packDescriptor(kf.descriptors[i].data(), kp.mutable_descriptors());
-      if (kf.has_right[i] != 0) {
-        right.add_keypoint(i);
-        right.add_xy(kf.right_px[i][0]);
-        right.add_xy(kf.right_px[i][1]);
-        right.mutable_octave()->push_back(static_cast<char>(kf.right_octave[i]));
-      }
-    }
+    writeKeyframe(kf, k);
     kf.full_sent = sequence;
     kf.state_sent = sequence;
     kf.sent_state = kf.state;
-    bytes += k.ByteSizeLong();
-    content = true;
+    budget.add(k.ByteSizeLong());
   }
+}
 
-  // 2. New points whose reference keyframe the server holds (or gets in this batch).
+// 2. New points whose reference keyframe the server holds (or gets in this batch). A point no stored
+// keyframe observes any more cannot be placed on the server: it is dropped.
+void LinkStore::addNewPoints(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch) {
   std::vector<std::uint32_t>& unplaceable = order_scratch_;
   unplaceable.clear();
   points_->forEach([&](PoolHandle, Point& p) {
-    if (full() || p.full_sent != 0 || !mapReady(p.map_id)) return;
+    if (budget.full() || p.full_sent != 0 || !mapReady(p.map_id)) return;
     if (!resolveReference(p)) {
       unplaceable.push_back(p.counter);
       return;
@@ -591,18 +608,18 @@ bool LinkStore::buildBatch(std::uint64_t sequence, std::int64_t sensor_t_ns, std
     p.full_sent = sequence;
     p.pos_sent = sequence;
     p.sent_p_w = p.p_w;
-    bytes += 64;
-    content = true;
+    budget.add(64);
   });
   for (std::uint32_t c : unplaceable) {
-    // No stored keyframe observes it any more: it cannot be placed on the server.
     if (const PoolHandle* h = point_index_->find(c)) erasePoint(*h);
     ++counters_.points_dropped;
   }
+}
 
-  // 3. Observations of keyframes the server holds, of points it holds.
+// 3. Observations of keyframes the server holds, of points it holds.
+void LinkStore::addObservations(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch) {
   for (PoolHandle h : order_) {
-    if (full()) break;
+    if (budget.full()) break;
     Keyframe& kf = *keyframes_->get(h);
     if (kf.full_sent == 0) continue;
     v1::Observations* o = nullptr;
@@ -617,19 +634,20 @@ bool LinkStore::buildBatch(std::uint64_t sequence, std::int64_t sensor_t_ns, std
       if (o == nullptr) {
         o = batch.add_observations();
         o->set_keyframe(kf.id.counter);
-        bytes += 4;
+        budget.add(4);
       }
       o->add_keypoint(i);
       o->add_point(kf.obs[i]);
       kf.obs_sent[i] = sequence;
-      bytes += 5;
-      content = true;
+      budget.add(5);
     }
   }
+}
 
-  // 4. Merges and culls of points the server holds.
+// 4. Merges and culls of points the server holds.
+void LinkStore::addMergesAndCulls(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch) {
   auto& stones = *tombstones_;
-  for (std::size_t i = 0; i < tombstone_count_ && !full(); ++i) {
+  for (std::size_t i = 0; i < tombstone_count_ && !budget.full(); ++i) {
     Tombstone& t = stones[i];
     if (t.sent != 0) continue;
     if (t.merge) {
@@ -645,27 +663,29 @@ bool LinkStore::buildBatch(std::uint64_t sequence, std::int64_t sensor_t_ns, std
       batch.add_removed_points(t.point);
     }
     t.sent = sequence;
-    bytes += 6;
-    content = true;
+    budget.add(6);
   }
+}
 
-  // 5. Keyframe states that changed since they were sent.
+// 5. Keyframe states that changed since they were sent.
+void LinkStore::addKeyframeUpdates(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch) {
   for (PoolHandle h : order_) {
-    if (full()) break;
+    if (budget.full()) break;
     Keyframe& kf = *keyframes_->get(h);
     if (kf.full_sent == 0 || kf.full_sent == sequence) continue;
     if (kf.state_sent != 0 && !stateChanged(kf.state, kf.sent_state, options_)) continue;
     writeState(kf.id.counter, kf.state, batch.add_keyframe_updates());
     kf.sent_state = kf.state;
     kf.state_sent = sequence;
-    bytes += 100;
-    content = true;
+    budget.add(100);
   }
+}
 
-  // 6. Point positions that moved since they were sent.
+// 6. Point positions that moved since they were sent.
+void LinkStore::addPointUpdates(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch) {
   v1::PointPositions* positions = nullptr;
   points_->forEach([&](PoolHandle, Point& p) {
-    if (full() || p.full_sent == 0 || p.full_sent == sequence) return;
+    if (budget.full() || p.full_sent == 0 || p.full_sent == sequence) return;
     if (p.pos_sent != 0 && distance(p.p_w, p.sent_p_w) <= static_cast<float>(options_.point_update_min_m)) return;
     if (positions == nullptr) positions = batch.mutable_point_updates();
     positions->add_point(p.counter);
@@ -674,11 +694,8 @@ bool LinkStore::buildBatch(std::uint64_t sequence, std::int64_t sensor_t_ns, std
     positions->add_p_w(p.p_w[2]);
     p.sent_p_w = p.p_w;
     p.pos_sent = sequence;
-    bytes += 16;
-    content = true;
+    budget.add(16);
   });
-  if (content) last_sent_ = sequence;
-  return content;
 }
 
 bool LinkStore::allAcknowledged() const {

@@ -124,6 +124,26 @@ class LinkStore {
   [[nodiscard]] bool resolveReference(Point& p);
   [[nodiscard]] std::size_t tombstonesPending() const;
 
+  // The bytes a batch holds so far (estimated for all but keyframes) against its limit. A batch takes at
+  // least one item, however large.
+  struct BatchBudget {
+    std::size_t max_bytes = 0;
+    std::size_t bytes = 16;
+    bool content = false;
+    [[nodiscard]] bool full() const { return content && bytes >= max_bytes; }
+    void add(std::size_t n) {
+      bytes += n;
+      content = true;
+    }
+  };
+  // The parts of a batch, in the order the server must apply them.
+  void addNewKeyframes(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch);
+  void addNewPoints(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch);
+  void addObservations(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch);
+  void addMergesAndCulls(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch);
+  void addKeyframeUpdates(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch);
+  void addPointUpdates(std::uint64_t sequence, BatchBudget& budget, v1::MapBatch& batch);
+
   AgentId agent_;
   LinkStoreOptions options_;
   std::unique_ptr<FixedPool<Keyframe, kLinkMaxKeyframes>> keyframes_;
