@@ -87,6 +87,49 @@ std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& conten
   return out;
 }
 
+namespace {
+
+const CovisibleCamera* cameraOf(const CovisibleCameras& cameras, AgentId agent) {
+  const auto it = cameras.find(agent);
+  return it == cameras.end() ? nullptr : &it->second;
+}
+
+// A keyframe as the agent gets it: its camera pose in the agent's map, and the keypoints that observe a map
+// point, on an ideal pinhole of unit focal length (any agent's camera can take them from there). The points
+// among them that the stream has not carried yet are appended to `new_points`, once each.
+v1::CovisibleKeyframe describeKeyframe(const MapContent& content, const KeyframeId& id, const ServerKeyframe& kf,
+                                       const CovisibleCamera& camera, const geometry::SE3d& T_w_c,
+                                       const std::unordered_map<MapPointId, Eigen::Vector3d>& points_sent,
+                                       std::vector<const ServerMapPoint*>& new_points) {
+  v1::CovisibleKeyframe keyframe;
+  keyframe.set_agent(id.agent);
+  keyframe.set_counter(id.counter);
+  keyframe.set_t_ns(kf.t_ns);
+  wire::toProto(T_w_c, keyframe.mutable_t_w_c());
+  std::string octaves;
+  for (std::size_t k = 0; k < kf.point.size() && k < kf.keypoints.size(); ++k) {
+    if (k >= kf.has_point.size() || kf.has_point[k] == 0) continue;
+    const ServerMapPoint* point = content.point(kf.point[k]);
+    if (point == nullptr) continue;
+    const Eigen::Vector2d px = k < kf.keypoints_undistorted.size()
+                                   ? kf.keypoints_undistorted[k].cast<double>()
+                                   : kf.keypoints[k].px.cast<double>();  // no distortion recorded (tests)
+    keyframe.add_xy(static_cast<float>((px.x() - camera.cx) / camera.fx));
+    keyframe.add_xy(static_cast<float>((px.y() - camera.cy) / camera.fy));
+    keyframe.add_point_agent(point->id.agent);
+    keyframe.add_point_counter(point->id.counter);
+    octaves.push_back(static_cast<char>(kf.keypoints[k].octave));
+    if (points_sent.count(point->id) == 0 &&
+        std::find(new_points.begin(), new_points.end(), point) == new_points.end()) {
+      new_points.push_back(point);
+    }
+  }
+  keyframe.set_octave(std::move(octaves));
+  return keyframe;
+}
+
+}  // namespace
+
 CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vector<KeyframeId>& seeds,
                                       std::uint32_t agent_map, const geometry::SE3d& T_w_m,
                                       const CovisibleCameras& cameras, v1::CovisibleMap& out,
@@ -110,9 +153,26 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
   selection.reserve(ranked.size());
   for (const auto& [id, weight] : ranked) selection.push_back(id);
 
-  // The agent holds only the selected keyframes it has received (and lets go of the rest): a keyframe that left
-  // the selection is forgotten here, to be sent in full again if it is selected again, and so are the points
-  // that no keyframe still held observes.
+  releaseUnselected(content, selection);
+  out.set_agent_map(agent_map);
+  for (const KeyframeId& id : selection) {
+    out.add_selected_agent(id.agent);
+    out.add_selected_counter(id.counter);
+  }
+  report.selected = static_cast<int>(selection.size());
+  addUpdates(content, selection, T_w_m, cameras, out, report);
+  addNewKeyframes(content, selection, T_w_m, cameras, out, report);
+
+  const bool same_selection = selection == last_selection_;
+  last_selection_ = std::move(selection);
+  if (!report.carriesData() && same_selection) out.Clear();  // nothing new to say
+  return report;
+}
+
+// The agent holds only the selected keyframes it has received (and lets go of the rest): a keyframe that left
+// the selection is forgotten here, to be sent in full again if it is selected again, and so are the points
+// that no keyframe still held observes.
+void CovisibleSender::releaseUnselected(const MapContent& content, const std::vector<KeyframeId>& selection) {
   bool released = false;
   for (auto it = keyframes_sent_.begin(); it != keyframes_sent_.end();) {
     if (std::find(selection.begin(), selection.end(), it->first) == selection.end()) {
@@ -122,37 +182,28 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
       ++it;
     }
   }
-  if (released) {
-    std::unordered_set<MapPointId> held;
-    for (const auto& [id, T_w_c] : keyframes_sent_) {
-      const ServerKeyframe* kf = content.keyframe(id);
-      if (kf == nullptr) continue;
-      for (std::size_t k = 0; k < kf->point.size() && k < kf->has_point.size(); ++k) {
-        if (kf->has_point[k] != 0) held.insert(kf->point[k]);
-      }
-    }
-    for (auto it = points_sent_.begin(); it != points_sent_.end();) {
-      it = held.count(it->first) == 0 ? points_sent_.erase(it) : std::next(it);
+  if (!released) return;
+  std::unordered_set<MapPointId> held;
+  for (const auto& [id, T_w_c] : keyframes_sent_) {
+    const ServerKeyframe* kf = content.keyframe(id);
+    if (kf == nullptr) continue;
+    for (std::size_t k = 0; k < kf->point.size() && k < kf->has_point.size(); ++k) {
+      if (kf->has_point[k] != 0) held.insert(kf->point[k]);
     }
   }
-
-  out.set_agent_map(agent_map);
-  for (const KeyframeId& id : selection) {
-    out.add_selected_agent(id.agent);
-    out.add_selected_counter(id.counter);
+  for (auto it = points_sent_.begin(); it != points_sent_.end();) {
+    it = held.count(it->first) == 0 ? points_sent_.erase(it) : std::next(it);
   }
-  report.selected = static_cast<int>(selection.size());
+}
 
-  // Updates of what was sent before and is selected now: keyframe poses, then the positions of their points.
-  const auto cameraOf = [&](AgentId agent) -> const CovisibleCamera* {
-    const auto it = cameras.find(agent);
-    return it == cameras.end() ? nullptr : &it->second;
-  };
+void CovisibleSender::addUpdates(const MapContent& content, const std::vector<KeyframeId>& selection,
+                                 const geometry::SE3d& T_w_m, const CovisibleCameras& cameras, v1::CovisibleMap& out,
+                                 CovisibleReport& report) {
   for (const KeyframeId& id : selection) {
     const auto sent = keyframes_sent_.find(id);
     if (sent == keyframes_sent_.end()) continue;
     const ServerKeyframe* kf = content.keyframe(id);
-    const CovisibleCamera* camera = cameraOf(id.agent);
+    const CovisibleCamera* camera = cameraOf(cameras, id.agent);
     if (kf == nullptr || camera == nullptr) continue;
     const geometry::SE3d T_w_c = T_w_m * kf->T_w_s * camera->T_s_c;
     if (movedBeyond(sent->second, T_w_c, options_)) {
@@ -179,42 +230,21 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
       point_sent->second = p_w;
     }
   }
+}
 
-  // New keyframes, best first, each with the points it brings, within the budget.
+void CovisibleSender::addNewKeyframes(const MapContent& content, const std::vector<KeyframeId>& selection,
+                                      const geometry::SE3d& T_w_m, const CovisibleCameras& cameras,
+                                      v1::CovisibleMap& out, CovisibleReport& report) {
   std::size_t bytes = out.ByteSizeLong();
   for (std::size_t rank = 0; rank < selection.size(); ++rank) {
     const KeyframeId& id = selection[rank];
     if (keyframes_sent_.count(id) != 0) continue;
     const ServerKeyframe* kf = content.keyframe(id);
-    const CovisibleCamera* camera = cameraOf(id.agent);
+    const CovisibleCamera* camera = cameraOf(cameras, id.agent);
     if (kf == nullptr || camera == nullptr) continue;
-    v1::CovisibleKeyframe keyframe;
-    std::vector<const ServerMapPoint*> new_points;
-    keyframe.set_agent(id.agent);
-    keyframe.set_counter(id.counter);
-    keyframe.set_t_ns(kf->t_ns);
     const geometry::SE3d T_w_c = T_w_m * kf->T_w_s * camera->T_s_c;
-    wire::toProto(T_w_c, keyframe.mutable_t_w_c());
-    std::string octaves;
-    for (std::size_t k = 0; k < kf->point.size() && k < kf->keypoints.size(); ++k) {
-      if (k >= kf->has_point.size() || kf->has_point[k] == 0) continue;
-      const ServerMapPoint* point = content.point(kf->point[k]);
-      if (point == nullptr) continue;
-      // The keypoint on an ideal pinhole of unit focal length: any agent's camera can take it from there.
-      const Eigen::Vector2d px = k < kf->keypoints_undistorted.size()
-                                     ? kf->keypoints_undistorted[k].cast<double>()
-                                     : kf->keypoints[k].px.cast<double>();  // no distortion recorded (tests)
-      keyframe.add_xy(static_cast<float>((px.x() - camera->cx) / camera->fx));
-      keyframe.add_xy(static_cast<float>((px.y() - camera->cy) / camera->fy));
-      keyframe.add_point_agent(point->id.agent);
-      keyframe.add_point_counter(point->id.counter);
-      octaves.push_back(static_cast<char>(kf->keypoints[k].octave));
-      if (points_sent_.count(point->id) == 0 &&
-          std::find(new_points.begin(), new_points.end(), point) == new_points.end()) {
-        new_points.push_back(point);
-      }
-    }
-    keyframe.set_octave(std::move(octaves));
+    std::vector<const ServerMapPoint*> new_points;
+    v1::CovisibleKeyframe keyframe = describeKeyframe(content, id, *kf, *camera, T_w_c, points_sent_, new_points);
     // Points new to the stream that an earlier keyframe of this message brings are not sent twice.
     std::vector<v1::CovisiblePoint> points;
     points.reserve(new_points.size());
@@ -231,7 +261,7 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
     if ((bytes + keyframe_bytes + point_bytes > options_.budget_bytes && report.keyframes > 0) || over_capacity) {
       // Ranked below this one, the rest waits too: the next message starts with the best keyframe not yet sent.
       for (std::size_t r = rank; r < selection.size(); ++r) report.deferred += keyframes_sent_.count(selection[r]) == 0;
-      break;
+      return;
     }
     bytes += keyframe_bytes + point_bytes;
     for (v1::CovisiblePoint& point : points) {
@@ -244,11 +274,6 @@ CovisibleReport CovisibleSender::fill(const MapContent& content, const std::vect
     *out.add_keyframes() = std::move(keyframe);
     keyframes_sent_[id] = T_w_c;
   }
-
-  const bool same_selection = selection == last_selection_;
-  last_selection_ = std::move(selection);
-  if (!report.carriesData() && same_selection) out.Clear();  // nothing new to say
-  return report;
 }
 
 }  // namespace cvislam::server

@@ -99,6 +99,15 @@ class CovisibleSender {
   [[nodiscard]] std::size_t pointsSent() const { return points_sent_.size(); }
 
  private:
+  // Forgets the sent keyframes that left the selection, and the points no keyframe still held observes.
+  void releaseUnselected(const MapContent& content, const std::vector<KeyframeId>& selection);
+  // Updates of what was sent before and is selected now: keyframe poses, then the positions of their points.
+  void addUpdates(const MapContent& content, const std::vector<KeyframeId>& selection, const geometry::SE3d& T_w_m,
+                  const CovisibleCameras& cameras, v1::CovisibleMap& out, CovisibleReport& report);
+  // New keyframes, best first, each with the points it brings, within the budget.
+  void addNewKeyframes(const MapContent& content, const std::vector<KeyframeId>& selection, const geometry::SE3d& T_w_m,
+                       const CovisibleCameras& cameras, v1::CovisibleMap& out, CovisibleReport& report);
+
   CovisibleOptions options_;
   bool started_ = false;
   std::uint32_t agent_map_ = 0;
