@@ -1,4 +1,5 @@
 #include "agent_rt/tracking/projection_search.hpp"
+#include "common/features/best_two.hpp"
 
 #include <algorithm>
 #include <limits>
@@ -38,23 +39,16 @@ int ProjectionMatcher::search(std::span<const ProjectedMapPoint> points, const K
   std::fill(owner_.begin(), owner_.begin() + static_cast<std::ptrdiff_t>(keypoints), -1);
   for (std::size_t i = 0; i < points.size() && i < match_of_point.size(); ++i) {
     match_of_point[i] = -1;
-    int best = std::numeric_limits<int>::max();
-    int second = std::numeric_limits<int>::max();
-    int best_keypoint = -1;
+    features::BestTwo<int> nearest(std::numeric_limits<int>::max(), -1);
     grid.forEachWithin(points[i].px, points[i].radius_px, [&](int k) {
       if (static_cast<std::size_t>(k) >= keypoints) return;
-      const int d = features::hammingDistance(points[i].descriptor, frame_descriptors[static_cast<std::size_t>(k)]);
-      if (d < best) {
-        second = best;
-        best = d;
-        best_keypoint = k;
-      } else if (d < second) {
-        second = d;
-      }
+      nearest.offer(features::hammingDistance(points[i].descriptor, frame_descriptors[static_cast<std::size_t>(k)]), k);
     });
+    const int best = nearest.best;
+    const int best_keypoint = nearest.candidate;
     if (best_keypoint < 0 || best > options.max_distance) continue;
-    if (second != std::numeric_limits<int>::max() &&
-        (best == second || static_cast<float>(best) > options.ratio * static_cast<float>(second))) {
+    if (nearest.hasSecond() &&
+        (best == nearest.second || static_cast<float>(best) > options.ratio * static_cast<float>(nearest.second))) {
       continue;  // ambiguous, a tie included
     }
     const auto k = static_cast<std::size_t>(best_keypoint);

@@ -4,6 +4,7 @@
 #include <limits>
 #include <span>
 
+#include "common/features/best_two.hpp"
 #include "common/features/orb.hpp"
 
 namespace cvislam::features {
@@ -24,22 +25,12 @@ int matchDescriptors(std::span<const Descriptor> query, std::span<const Descript
                      std::span<DescriptorMatch> matches) {
   int count = 0;
   for (std::size_t q = 0; q < query.size() && static_cast<std::size_t>(count) < matches.size(); ++q) {
-    int best = std::numeric_limits<int>::max();
-    int second = std::numeric_limits<int>::max();
-    std::size_t best_train = 0;
-    for (std::size_t t = 0; t < train.size(); ++t) {
-      const int d = hammingDistance(query[q], train[t]);
-      if (d < best) {
-        second = best;
-        best = d;
-        best_train = t;
-      } else if (d < second) {
-        second = d;
-      }
-    }
+    BestTwo<std::size_t> nearest;
+    for (std::size_t t = 0; t < train.size(); ++t) nearest.offer(hammingDistance(query[q], train[t]), t);
+    const int best = nearest.best;
+    const std::size_t best_train = nearest.candidate;
     if (best > options.max_distance) continue;
-    if (second != std::numeric_limits<int>::max() &&
-        static_cast<float>(best) > options.ratio * static_cast<float>(second)) {
+    if (nearest.hasSecond() && static_cast<float>(best) > options.ratio * static_cast<float>(nearest.second)) {
       continue;
     }
     if (options.mutual) {

@@ -12,6 +12,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
 
+#include "common/features/best_two.hpp"
 #include "common/geometry/alignment.hpp"
 
 namespace cvislam::server::recognition {
@@ -279,26 +280,18 @@ std::vector<Correspondence> matchThroughDirectIndex(const ServerKeyframe& q, con
     for (std::size_t a = i; a < i_end; ++a) {
       const std::uint16_t kq = fq[a].feature;
       if (kq >= q.descriptors.size()) continue;
-      int best = std::numeric_limits<int>::max();
-      int second = std::numeric_limits<int>::max();
-      const ServerMapPoint* best_point = nullptr;
+      features::BestTwo<const ServerMapPoint*> nearest;
       for (std::size_t b = j; b < j_end; ++b) {
         const std::uint16_t kc = fc[b].feature;
         if (!usablePoint(c, kc)) continue;
         const ServerMapPoint* p = candidate_map.point(c.point[kc]);
         if (p == nullptr) continue;
-        const int d = features::hammingDistance(q.descriptors[kq], c.descriptors[kc]);
-        if (d < best) {
-          second = best;
-          best = d;
-          best_point = p;
-        } else if (d < second) {
-          second = d;
-        }
+        nearest.offer(features::hammingDistance(q.descriptors[kq], c.descriptors[kc]), p);
       }
+      const int best = nearest.best;
+      const ServerMapPoint* best_point = nearest.candidate;
       if (best_point == nullptr || best > options.max_descriptor_distance) continue;
-      if (second != std::numeric_limits<int>::max() &&
-          static_cast<float>(best) >= options.match_ratio * static_cast<float>(second)) {
+      if (nearest.hasSecond() && static_cast<float>(best) >= options.match_ratio * static_cast<float>(nearest.second)) {
         continue;
       }
       const auto [it, inserted] = by_point.emplace(best_point->id, matches.size());
