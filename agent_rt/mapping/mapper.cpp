@@ -11,6 +11,7 @@
 #include "agent_rt/mapping/mapper_state.hpp"
 #include "agent_rt/mapping/two_view_initialiser.hpp"
 #include "agent_rt/messages/conversions.hpp"
+#include "common/features/best_two.hpp"
 
 namespace cvislam::agent {
 
@@ -83,23 +84,17 @@ Result<std::unique_ptr<Mapper>> Mapper::create(const MapperOptions& options, con
 
 namespace {
 
-// The best and second-best descriptor distance among candidates, for the ratio test.
-struct BestTwo {
-  int best = 256;
-  int second = 256;
-  int index = -1;
+// The nearest keypoint by descriptor among the candidates, accepted by distance and ratio. Distances run from 0
+// to 256 (bits); 256 stands for "none" here, so a lone candidate is held to the ratio against 256.
+struct BestTwoKeypoints {
+  features::BestTwo<int> nearest{256, -1};
 
-  void offer(int distance, int candidate) {
-    if (distance < best) {
-      second = best;
-      best = distance;
-      index = candidate;
-    } else if (distance < second) {
-      second = distance;
-    }
-  }
+  void offer(int distance, int candidate) { nearest.offer(distance, candidate); }
+  [[nodiscard]] int index() const { return nearest.candidate; }
+  [[nodiscard]] int best() const { return nearest.best; }
   [[nodiscard]] bool accepted(int max_distance, float ratio) const {
-    return index >= 0 && best <= max_distance && static_cast<float>(best) <= ratio * static_cast<float>(second);
+    return nearest.candidate >= 0 && nearest.best <= max_distance &&
+           static_cast<float>(nearest.best) <= ratio * static_cast<float>(nearest.second);
   }
 };
 
@@ -150,7 +145,7 @@ int matchStereo(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg)
   for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
     const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>());
     const EpipolarLine line(b0, T_c1_c0, f);
-    BestTwo match;
+    BestTwoKeypoints match;
     for (int j = 0; j < n_right; ++j) {
       const auto& rk = s.right_keypoints[static_cast<std::size_t>(j)];
       if (std::abs(static_cast<int>(rk.octave) - static_cast<int>(kf.keypoints[k].octave)) > 1) continue;
@@ -161,14 +156,14 @@ int matchStereo(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg)
       match.offer(features::hammingDistance(kf.descriptors[k], s.right_descriptors[static_cast<std::size_t>(j)]), j);
     }
     if (!match.accepted(o.max_distance, o.ratio)) continue;
-    const auto best_j = static_cast<std::size_t>(match.index);
+    const auto best_j = static_cast<std::size_t>(match.index());
     const Vector3d& b1 = s.right_bearings[best_j];
     auto p = geometry::triangulateMidpoint(SE3d(), b0.normalized(), s.T_c0_c1, b1.normalized());
     if (!p || p->z() < o.min_depth_m) continue;
     const double tolerance = 2.0 * s.levelScale(kf.keypoints[k].octave) / f;
     if (geometry::rayAngle(*p, b0) > tolerance || geometry::rayAngle(T_c1_c0 * *p, b1) > tolerance) continue;
     // One right keypoint serves one left keypoint: the closer in descriptor keeps it.
-    const int distance = match.best;
+    const int distance = match.best();
     if (s.right_owner[best_j] >= 0) {
       if (s.right_owner_distance[best_j] <= distance) continue;
       const auto previous = static_cast<std::uint16_t>(s.right_owner[best_j]);
@@ -222,14 +217,14 @@ int triangulateWithNeighbours(Mapper::State& s, PoolHandle handle, const std::ve
       if (kf.has_map_point[k]) continue;
       const Vector3d b0 = s.left.unproject(kf.keypoints[k].px.cast<double>());
       const EpipolarLine line(b0, T_c1_c0, f);
-      BestTwo match;
+      BestTwoKeypoints match;
       for (std::uint16_t j = 0; j < other.keypoint_count; ++j) {
         if (other.has_map_point[j] || taken[j] != 0) continue;
         if (line.distancePx(b1[j]) > 2.0 * s.levelScale(other.keypoints[j].octave)) continue;
         match.offer(features::hammingDistance(kf.descriptors[k], other.descriptors[j]), j);
       }
       if (!match.accepted(s.options.stereo.max_distance, s.options.stereo.ratio)) continue;
-      const int best_j = match.index;
+      const int best_j = match.index();
       const std::array<SE3d, 2> T_c_w{T_w_c0.inverse(), T_w_c1.inverse()};
       const std::array<Vector3d, 2> bearings{b0, b1[static_cast<std::size_t>(best_j)]};
       auto p_w = geometry::triangulateLinear(T_c_w, bearings, s.options.triangulation);
@@ -514,6 +509,154 @@ Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& re
 // No keyframe ever waits (the default of process()).
 const std::function<bool()> kNeverYield;
 
+// A new map begins: the old one is cleared and the frame starts over.
+void startNewMap(Mapper::State& s, const KeyframeMessage& msg, MapperReport& report) {
+  s.clearMap();
+  ++s.map_id;
+  s.epoch_scale = 1.0;
+  s.epoch_transform = SE3d();
+  report.new_map = true;
+  // The IMU was initialised: the new map continues the metric, gravity-aligned frame, and a monocular one
+  // needs no two-view start (its first points are triangulated from the keyframes' IMU-carried poses).
+  if (msg.continues_frame != 0 && s.options.use_imu) {
+    s.imu_initialised = true;
+    s.mono_initialised = true;
+  }
+}
+
+// The keyframe as the map holds it, in s.scratch: its state in the map's current frame, its undistorted
+// keypoints, and its preintegration from the newest keyframe (`newest`, when there is one).
+KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, const PoolHandle* newest) {
+  KeyframeData& kf = s.scratch;
+  kf.id = msg.state.id;
+  kf.t_ns = msg.state.t_ns;
+  kf.T_w_s = fromMsg(msg.state.T_w_s);
+  kf.v_w = toVector3(msg.state.v_w);
+  kf.bias = biasFromMsg(msg.state.bias);
+  kf.anchor = false;
+  kf.keypoint_count = msg.keypoint_count;
+  for (std::uint16_t k = 0; k < msg.keypoint_count; ++k) {
+    const KeypointMsg& m = msg.keypoints[k];
+    kf.keypoints[k] = features::Keypoint{Eigen::Vector2f(m.x, m.y), m.response, m.angle_deg, m.octave};
+    kf.descriptors[k] = msg.descriptors[k];
+    kf.undistorted_px[k] = s.left.undistortPixel(kf.keypoints[k].px.cast<double>());
+  }
+  if (msg.map_epoch + 1 == s.epoch && s.epoch > 0) {
+    // Tracking made this keyframe before it heard of the last change of frame: move it over.
+    const SE3d T = s.epoch_transform;
+    kf.T_w_s = SE3d(T.so3() * kf.T_w_s.so3(), s.epoch_scale * (T.so3() * kf.T_w_s.translation()));
+    kf.v_w = s.epoch_scale * (T.so3() * kf.v_w);
+  }
+  kf.has_preintegration = false;
+  if (newest != nullptr && msg.imu_count > 1 && msg.kind == KeyframeKind::kTracked) {
+    const KeyframeData& previous = *s.map.keyframes().get(*newest);
+    s.imu_samples.clear();
+    for (std::uint32_t i = 0; i < msg.imu_count; ++i) s.imu_samples.push_back(fromMsg(msg.imu[i]));
+    kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
+    if (kf.preintegration.integrateInterval(s.imu_samples, previous.t_ns, kf.t_ns).ok()) {
+      kf.has_preintegration = true;
+      kf.preintegration_from = previous.id;
+    }
+  }
+  return kf;
+}
+
+// The window keeps at most N own keyframes (the oldest goes) and leaves room in the pool. A monocular map
+// waiting for its two-view start keeps its reference.
+void makeRoomForKeyframe(Mapper::State& s, MapperReport& report) {
+  int own = 0;
+  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& k) { own += k.anchor ? 0 : 1; });
+  while (own >= s.options.max_keyframes || s.map.keyframes().size() >= kMaxKeyframes) {
+    if (s.mono_reference && !s.mono_initialised) break;
+    if (!s.map.evictOldestKeyframe().ok()) break;
+    ++report.evicted;
+    --own;
+  }
+}
+
+// Tracking's matches become observations of the new keyframe.
+void linkTrackedMatches(Mapper::State& s, PoolHandle handle, const KeyframeMessage& msg, MapperReport& report) {
+  s.rebuildPointIndex();
+  for (std::uint16_t k = 0; k < msg.keypoint_count; ++k) {
+    if (msg.has_match[k] == 0) continue;
+    const auto found = s.point_index.find(msg.matched[k]);
+    if (found == s.point_index.end()) continue;  // culled since tracking saw it
+    if (s.map.addObservation(handle, k, found->second).ok()) {
+      ++report.linked;
+      // The newest view's descriptor: tracking compares frames with it, and the newest is the closest to
+      // what the camera sees next.
+      if (MapPointData* p = s.map.mapPoints().get(found->second)) p->descriptor = msg.descriptors[k];
+    }
+  }
+}
+
+// Monocular start: the first keyframe is the reference; later ones try the two-view initialisation.
+void tryMonocularStart(Mapper::State& s, PoolHandle handle, std::int64_t t_ns, MapperReport& report) {
+  if (!s.mono_reference || s.map.keyframes().get(*s.mono_reference) == nullptr) {
+    s.mono_reference = handle;
+    return;
+  }
+  const Status st = initialiseMonocular(s, handle, report);
+  if (st.ok()) return;
+  report.note = st.error().message();
+  // Too old a reference (far apart views match badly): start over from this keyframe.
+  const KeyframeData* ref = s.map.keyframes().get(*s.mono_reference);
+  if (ref != nullptr && t_ns - ref->t_ns > 2'000'000'000) {
+    std::vector<PoolHandle> others;
+    s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) {
+      if (!(h == handle)) others.push_back(h);
+    });
+    for (PoolHandle h : others) (void)s.map.removeKeyframe(h);
+    s.mono_reference = handle;
+  }
+}
+
+// Local BA over the window, skipped (at most every other keyframe, never for the keyframe that made the
+// monocular map) when tracking has keyframes waiting.
+void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyframe_waiting, MapperReport& report) {
+  const std::function<bool()>& yield =
+      s.options.yield_to_waiting_keyframes && keyframe_waiting ? keyframe_waiting : kNeverYield;
+  const bool may_skip = yield && !s.ba_skipped_last && !report.mono_initialised_now;
+  s.ba_skipped_last = false;
+  if (may_skip && yield()) {
+    report.ba_skipped = true;
+    s.ba_skipped_last = true;
+    return;
+  }
+  LocalBundleAdjustmentOptions ba = s.options.ba;
+  ba.use_imu = s.imu_initialised && s.options.use_imu;
+  const auto t0 = std::chrono::steady_clock::now();
+  auto summary = runLocalBundleAdjustment(s.map, ba, yield);
+  report.ba_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - t0).count();
+  if (summary) {
+    report.ba_ran = true;
+    report.ba = *summary;
+  }
+}
+
+// The IMU initialisation when due, with a full-window visual-inertial BA when it succeeds.
+void tryImuInitialisation(Mapper::State& s, bool stereo, MapperReport& report) {
+  const Status st = initialiseImu(s, report);
+  if (st.ok()) {
+    LocalBundleAdjustmentOptions ba = s.options.ba;
+    ba.use_imu = true;
+    ba.window = s.options.max_keyframes;
+    (void)runLocalBundleAdjustment(s.map, ba);
+    return;
+  }
+  if (st.error().code() == ErrorCode::kNotFound) return;  // not enough keyframes yet
+  report.imu_initialisation_failed = true;
+  report.note = st.error().message();
+  int linked = 0;
+  for (PoolHandle h : s.keyframesBySequence()) linked += s.map.keyframes().get(h)->has_preintegration ? 1 : 0;
+  if (!stereo && linked + 1 >= s.options.imu_init_max_keyframes) {
+    // Monocular: the paper reinitialises when 20 keyframes did not give the IMU.
+    s.clearMap();
+    ++s.map_id;
+    report.map_restarted = true;
+  }
+}
+
 }  // namespace
 
 Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta,
@@ -545,104 +688,23 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
                                             " keypoints, more than the capacity " +
                                             std::to_string(kMaxKeypointsPerKeyframe)};
   }
+  if (msg.kind == KeyframeKind::kNewMap) startNewMap(s, msg, report);
 
-  if (msg.kind == KeyframeKind::kNewMap) {
-    s.clearMap();
-    ++s.map_id;
-    s.epoch_scale = 1.0;
-    s.epoch_transform = SE3d();
-    report.new_map = true;
-    // The IMU was initialised: the new map continues the metric, gravity-aligned frame, and a monocular one
-    // needs no two-view start (its first points are triangulated from the keyframes' IMU-carried poses).
-    if (msg.continues_frame != 0 && s.options.use_imu) {
-      s.imu_initialised = true;
-      s.mono_initialised = true;
-    }
-  }
-
-  // The keyframe.
-  KeyframeData& kf = s.scratch;
-  kf.id = msg.state.id;
-  kf.t_ns = msg.state.t_ns;
-  kf.T_w_s = fromMsg(msg.state.T_w_s);
-  kf.v_w = toVector3(msg.state.v_w);
-  kf.bias = biasFromMsg(msg.state.bias);
-  kf.anchor = false;
-  kf.keypoint_count = msg.keypoint_count;
-  for (std::uint16_t k = 0; k < msg.keypoint_count; ++k) {
-    const KeypointMsg& m = msg.keypoints[k];
-    kf.keypoints[k] = features::Keypoint{Eigen::Vector2f(m.x, m.y), m.response, m.angle_deg, m.octave};
-    kf.descriptors[k] = msg.descriptors[k];
-    kf.undistorted_px[k] = s.left.undistortPixel(kf.keypoints[k].px.cast<double>());
-  }
-  if (msg.map_epoch + 1 == s.epoch && s.epoch > 0) {
-    // Tracking made this keyframe before it heard of the last change of frame: move it over.
-    const SE3d T = s.epoch_transform;
-    kf.T_w_s = SE3d(T.so3() * kf.T_w_s.so3(), s.epoch_scale * (T.so3() * kf.T_w_s.translation()));
-    kf.v_w = s.epoch_scale * (T.so3() * kf.v_w);
-  }
-  kf.has_preintegration = false;
   std::vector<PoolHandle> order = s.keyframesBySequence();
-  if (!order.empty() && msg.imu_count > 1 && msg.kind == KeyframeKind::kTracked) {
-    const KeyframeData& previous = *s.map.keyframes().get(order.back());
-    s.imu_samples.clear();
-    for (std::uint32_t i = 0; i < msg.imu_count; ++i) s.imu_samples.push_back(fromMsg(msg.imu[i]));
-    kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
-    if (kf.preintegration.integrateInterval(s.imu_samples, previous.t_ns, kf.t_ns).ok()) {
-      kf.has_preintegration = true;
-      kf.preintegration_from = previous.id;
-    }
-  }
-
-  // The window: at most N own keyframes (the oldest goes), and room in the pool.
-  int own = 0;
-  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& k) { own += k.anchor ? 0 : 1; });
-  while (own >= s.options.max_keyframes || s.map.keyframes().size() >= kMaxKeyframes) {
-    if (s.mono_reference && !s.mono_initialised) break;
-    if (!s.map.evictOldestKeyframe().ok()) break;
-    ++report.evicted;
-    --own;
-  }
+  const KeyframeData& kf = keyframeFromMessage(s, msg, order.empty() ? nullptr : &order.back());
+  makeRoomForKeyframe(s, report);
   auto inserted = s.map.insertKeyframe(kf);
   if (!inserted) return inserted.error();
   const PoolHandle handle = *inserted;
   s.keyframe_map_id = s.map_id;
   s.applyPendingCorrections();
   order = s.keyframesBySequence();
-
-  // Tracking's matches.
-  s.rebuildPointIndex();
-  for (std::uint16_t k = 0; k < msg.keypoint_count; ++k) {
-    if (msg.has_match[k] == 0) continue;
-    const auto found = s.point_index.find(msg.matched[k]);
-    if (found == s.point_index.end()) continue;  // culled since tracking saw it
-    if (s.map.addObservation(handle, k, found->second).ok()) {
-      ++report.linked;
-      // The newest view's descriptor: tracking compares frames with it, and the newest is the closest to
-      // what the camera sees next.
-      if (MapPointData* p = s.map.mapPoints().get(found->second)) p->descriptor = msg.descriptors[k];
-    }
-  }
+  linkTrackedMatches(s, handle, msg, report);
 
   const bool stereo = s.right.has_value();
   if (stereo) report.stereo_matches = matchStereo(s, handle, msg);
   if (!stereo && !s.mono_initialised) {
-    // Monocular start: the first keyframe is the reference; later ones try the two-view initialisation.
-    if (!s.mono_reference || s.map.keyframes().get(*s.mono_reference) == nullptr) {
-      s.mono_reference = handle;
-    } else if (Status st = initialiseMonocular(s, handle, report); !st.ok()) {
-      report.note = st.error().message();
-      // Too old a reference (far apart views match badly): start over from this keyframe.
-      const KeyframeData* ref = s.map.keyframes().get(*s.mono_reference);
-      if (ref != nullptr && kf.t_ns - ref->t_ns > 2'000'000'000) {
-        std::vector<PoolHandle> others;
-        s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) {
-          if (!(h == handle)) others.push_back(h);
-        });
-        for (PoolHandle h : others) (void)s.map.removeKeyframe(h);
-        s.mono_reference = handle;
-      }
-    }
+    tryMonocularStart(s, handle, msg.state.t_ns, report);
   } else {
     report.fused = fusePoints(s, handle, &report.merged);
     if (stereo) report.stereo_points = addStereoPoints(s, handle);
@@ -650,46 +712,13 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     report.culled = s.map.cullMapPoints(s.options.cull);
   }
 
-  // Local BA, then the IMU initialisation when due.
   const bool map_ready = stereo || s.mono_initialised;
-  const std::function<bool()>& yield =
-      s.options.yield_to_waiting_keyframes && keyframe_waiting ? keyframe_waiting : kNeverYield;
-  // Skipped at most every other keyframe, and never for the keyframe that made the monocular map.
-  const bool may_skip = yield && !s.ba_skipped_last && !report.mono_initialised_now;
-  s.ba_skipped_last = false;
-  if (map_ready && s.map.keyframes().size() >= 2 && may_skip && yield()) {
-    report.ba_skipped = true;
-    s.ba_skipped_last = true;
-  } else if (map_ready && s.map.keyframes().size() >= 2) {
-    LocalBundleAdjustmentOptions ba = s.options.ba;
-    ba.use_imu = s.imu_initialised && s.options.use_imu;
-    const auto t0 = std::chrono::steady_clock::now();
-    auto summary = runLocalBundleAdjustment(s.map, ba, yield);
-    report.ba_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - t0).count();
-    if (summary) {
-      report.ba_ran = true;
-      report.ba = *summary;
-    }
+  if (map_ready && s.map.keyframes().size() >= 2) {
+    localBundleAdjustment(s, keyframe_waiting, report);
+  } else {
+    s.ba_skipped_last = false;
   }
-  if (map_ready && s.options.use_imu && !s.imu_initialised) {
-    if (Status st = initialiseImu(s, report); st.ok()) {
-      LocalBundleAdjustmentOptions ba = s.options.ba;
-      ba.use_imu = true;
-      ba.window = s.options.max_keyframes;
-      (void)runLocalBundleAdjustment(s.map, ba);
-    } else if (st.error().code() != ErrorCode::kNotFound) {
-      report.imu_initialisation_failed = true;
-      report.note = st.error().message();
-      int linked = 0;
-      for (PoolHandle h : s.keyframesBySequence()) linked += s.map.keyframes().get(h)->has_preintegration ? 1 : 0;
-      if (!stereo && linked + 1 >= s.options.imu_init_max_keyframes) {
-        // Monocular: the paper reinitialises when 20 keyframes did not give the IMU.
-        s.clearMap();
-        ++s.map_id;
-        report.map_restarted = true;
-      }
-    }
-  }
+  if (map_ready && s.options.use_imu && !s.imu_initialised) tryImuInitialisation(s, stereo, report);
   writeSnapshot(s, msg.state.id, snapshot);
   return report;
 }
