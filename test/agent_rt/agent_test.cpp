@@ -29,6 +29,7 @@
 #include "common/eval/trajectory_eval.hpp"
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
+#include "test/support/rendered_mission.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::agent {
@@ -40,15 +41,16 @@ class AgentTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = new test::TempDir();
-    const Status rendered = sim::renderPreset("loop", 11, 12.0, /*stereo=*/true, dir_->path() / "sim");
+    auto rendered = test::renderedMission({"loop", 11, 12.0, /*stereo=*/true}, dir_->path() / "sim");
     ASSERT_TRUE(rendered.ok()) << rendered.error().toString();
+    mission_ = *rendered;
   }
   static void TearDownTestSuite() {
     delete dir_;
     dir_ = nullptr;
   }
 
-  static fs::path sequence() { return dir_->path() / "sim" / "agent0"; }
+  static fs::path sequence() { return mission_ / "agent0"; }
 
   static AgentOptions options(const fs::path& dataset, const std::string& name) {
     AgentOptions o;
@@ -74,9 +76,11 @@ class AgentTest : public ::testing::Test {
   }
 
   static test::TempDir* dir_;
+  static fs::path mission_;  // read-only: shared with the other tests of the CTest run
 };
 
 test::TempDir* AgentTest::dir_ = nullptr;
+fs::path AgentTest::mission_;
 
 TEST_F(AgentTest, StereoInertialTracksTheSimulatedLoop) {
   const std::atomic<bool> stop{false};
@@ -131,8 +135,7 @@ void filterImu(const fs::path& mav0, const std::function<bool(std::int64_t)>& ke
 }
 
 fs::path damagedCopy(const fs::path& source, const fs::path& target) {
-  fs::create_directories(target);
-  fs::copy(source, target, fs::copy_options::recursive | fs::copy_options::create_hard_links);
+  test::linkedCopy(source, target);
   const fs::path mav0 = target / "mav0";
   // IMU: drop 0.3 s of samples at t0 + 6 s.
   filterImu(mav0, [](std::int64_t dt) { return !(dt > 6'000'000'000 && dt < 6'300'000'000); });
@@ -173,8 +176,7 @@ TEST_F(AgentTest, BadInputIsReportedAndTrackingGoesOn) {
 
 // A copy whose IMU starts `skip_s` seconds late: the first frames have no IMU sample at all.
 fs::path imuStartsLateCopy(const fs::path& source, const fs::path& target, double skip_s) {
-  fs::create_directories(target);
-  fs::copy(source, target, fs::copy_options::recursive | fs::copy_options::create_hard_links);
+  test::linkedCopy(source, target);
   const auto skip_ns = static_cast<std::int64_t>(skip_s * 1e9);
   filterImu(target / "mav0", [skip_ns](std::int64_t dt) { return dt >= skip_ns; });
   return target;

@@ -24,6 +24,7 @@
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
 #include "test/support/child_process.hpp"
+#include "test/support/rendered_mission.hpp"
 #include "test/support/tcp_proxy.hpp"
 #include "test/support/temp_dir.hpp"
 
@@ -64,10 +65,12 @@ std::size_t poseLines(const std::filesystem::path& path) {
 class MissionProcesses : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    mission_ = new test::TempDir();
-    ASSERT_TRUE(sim::renderPreset("overlap2", 3, 8.0, /*stereo=*/true, mission_->path(), /*threads=*/2).ok());
+    mission_dir_ = new test::TempDir();
+    auto rendered = test::renderedMission({"overlap2", 3, 8.0, /*stereo=*/true, /*threads=*/2}, mission_dir_->path());
+    ASSERT_TRUE(rendered.ok()) << rendered.error().toString();
+    mission_ = *rendered;
   }
-  static void TearDownTestSuite() { delete mission_; }
+  static void TearDownTestSuite() { delete mission_dir_; }
 
   // A server on `port` (0: any), writing `output` at shutdown; returns it once it serves, and its port.
   // With `store`, the server keeps its maps there (--store) and replays them when it starts.
@@ -93,7 +96,7 @@ class MissionProcesses : public ::testing::Test {
                                            const std::vector<std::string>& extra) {
     std::vector<std::string> argv = {CVISLAM_AGENT_BINARY,
                                      "--dataset",
-                                     (mission_->path() / ("agent" + std::to_string(agent))).string(),
+                                     (mission_ / ("agent" + std::to_string(agent))).string(),
                                      "--output",
                                      agentOut(agent).string(),
                                      "--agent-id",
@@ -143,11 +146,13 @@ class MissionProcesses : public ::testing::Test {
     EXPECT_GE(summary["tracked_frames"].get<double>(), 0.95 * summary["frames"].get<double>()) << why;
   }
 
-  static test::TempDir* mission_;
+  static test::TempDir* mission_dir_;
+  static std::filesystem::path mission_;  // read-only: shared with the other tests of the CTest run
   test::TempDir dir_;
   int servers_ = 0;
 };
-test::TempDir* MissionProcesses::mission_ = nullptr;
+test::TempDir* MissionProcesses::mission_dir_ = nullptr;
+std::filesystem::path MissionProcesses::mission_;
 
 TEST_F(MissionProcesses, TwoAgentProcessesSendTheServerEveryKeyframeWithItsFinalState) {
   // Two agents on one machine share an external RouDi.

@@ -20,6 +20,7 @@
 #include "test/sim/presets.hpp"
 #include "test/support/inline_agent.hpp"
 #include "test/support/malloc_counter.hpp"
+#include "test/support/rendered_mission.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::agent {
@@ -30,8 +31,9 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   // Long enough for the loop to come back over its start: the server then sends the agent's own older
   // keyframes down, and tracking runs against a local map with anchors in it.
   constexpr double kDurationS = 16.0;
-  ASSERT_TRUE(sim::renderPreset("loop", 5, kDurationS, /*stereo=*/true, dir.path()).ok());
-  auto seq = dataset::EurocSequence::open(dir.path() / "agent0");
+  auto mission = cvislam::test::renderedMission({"loop", 5, kDurationS, /*stereo=*/true}, dir.path());
+  ASSERT_TRUE(mission.ok()) << mission.error().toString();
+  auto seq = dataset::EurocSequence::open(*mission / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
 
   // A real server on loopback.

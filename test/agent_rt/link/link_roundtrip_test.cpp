@@ -15,6 +15,7 @@
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
 #include "test/support/inline_agent.hpp"
+#include "test/support/rendered_mission.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::agent {
@@ -69,14 +70,16 @@ class LinkRoundTrip : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = new cvislam::test::TempDir();
-    ASSERT_TRUE(sim::renderPreset("loop", 11, 9.0, /*stereo=*/true, dir_->path()).ok());
+    auto rendered = cvislam::test::renderedMission({"loop", 11, 9.0, /*stereo=*/true}, dir_->path());
+    ASSERT_TRUE(rendered.ok()) << rendered.error().toString();
+    mission_ = *rendered;
   }
   static void TearDownTestSuite() { delete dir_; }
 
   // Runs the agent over the sequence; `each_frame` is called after every frame with the newest delta count.
   template <typename F>
   void runAgent(F&& each_frame, const std::function<void(const MapDeltaMessage&)>& on_delta) {
-    auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+    auto seq = dataset::EurocSequence::open(mission_ / "agent0");
     ASSERT_TRUE(seq.ok()) << seq.error().toString();
     TrackerOptions tracker_options;
     tracker_options.agent = test::kAgent;
@@ -93,8 +96,10 @@ class LinkRoundTrip : public ::testing::Test {
   }
 
   static cvislam::test::TempDir* dir_;
+  static std::filesystem::path mission_;  // read-only: shared with the other tests of the CTest run
 };
 cvislam::test::TempDir* LinkRoundTrip::dir_ = nullptr;
+std::filesystem::path LinkRoundTrip::mission_;
 
 TEST_F(LinkRoundTrip, LostBatchesReconnectionsAndLateAcksChangeNothingTheServerEndsUpWith) {
   LinkUnderTest clean("clean");

@@ -11,6 +11,7 @@
 #include "test/sim/presets.hpp"
 #include "test/support/inline_agent.hpp"
 #include "test/support/malloc_counter.hpp"
+#include "test/support/rendered_mission.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::agent {
@@ -19,8 +20,9 @@ namespace {
 // Tracks the rendered loop and expects no allocation inside track() in the steady state.
 void expectSteadyStateAllocatesNothing(const TrackerOptions& options) {
   test::TempDir dir;
-  ASSERT_TRUE(sim::renderPreset("loop", 5, 8.0, /*stereo=*/true, dir.path()).ok());
-  auto seq = dataset::EurocSequence::open(dir.path() / "agent0");
+  auto mission = test::renderedMission({"loop", 5, 8.0, /*stereo=*/true}, dir.path());
+  ASSERT_TRUE(mission.ok()) << mission.error().toString();
+  auto seq = dataset::EurocSequence::open(*mission / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
   auto agent = test::InlineAgent::create(*seq, true, options);
   ASSERT_TRUE(agent.ok()) << agent.error().toString();

@@ -15,6 +15,7 @@
 #include "test/sim/presets.hpp"
 #include "test/support/inline_agent.hpp"
 #include "test/support/malloc_counter.hpp"
+#include "test/support/rendered_mission.hpp"
 #include "test/support/temp_dir.hpp"
 
 namespace cvislam::agent {
@@ -84,15 +85,19 @@ class MappingLag : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = new test::TempDir();
-    ASSERT_TRUE(sim::renderPreset("loop", 5, 20.0, /*stereo=*/true, dir_->path()).ok());
+    auto rendered = test::renderedMission({"loop", 5, 20.0, /*stereo=*/true}, dir_->path());
+    ASSERT_TRUE(rendered.ok()) << rendered.error().toString();
+    mission_ = *rendered;
   }
   static void TearDownTestSuite() {
     delete dir_;
     dir_ = nullptr;
   }
   static test::TempDir* dir_;
+  static std::filesystem::path mission_;  // read-only: shared with the other tests of the CTest run
 };
 test::TempDir* MappingLag::dir_ = nullptr;
+std::filesystem::path MappingLag::mission_;
 
 // Frames the slow mapper needs per keyframe: 16 (0.8 s of the sequence) is slower than the keyframe rate with an
 // idle mapper (a keyframe every 14 frames on this sequence), so it is starved unless tracking backs off.
@@ -102,7 +107,7 @@ constexpr int kSlow = 16;
 // frame but a few, makes fewer keyframes than with an idle mapper, never has more than the bound pending, and
 // does not allocate.
 TEST_F(MappingLag, AStarvedMapperLeavesTrackingOnOneMapWithFewerKeyframes) {
-  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  auto seq = dataset::EurocSequence::open(mission_ / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
   const LagRun idle = runWithMapper(*seq, true, 0, true);
   const LagRun slow = runWithMapper(*seq, true, kSlow, true);
@@ -123,7 +128,7 @@ TEST_F(MappingLag, AStarvedMapperLeavesTrackingOnOneMapWithFewerKeyframes) {
 // The same mapper without the back-off, as the agent once was: the backlog is not bounded, tracking
 // loses most frames and starts new maps.
 TEST_F(MappingLag, WithoutTheBackOffTheBacklogGrows) {
-  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  auto seq = dataset::EurocSequence::open(mission_ / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
   const LagRun slow = runWithMapper(*seq, true, kSlow, false);
   EXPECT_GT(slow.most_backlog, 2U * static_cast<std::size_t>(TrackerOptions{}.lag.max_pending_keyframes));
@@ -159,7 +164,7 @@ std::vector<KeyframeTrace> traceKeyframes(const dataset::EurocSequence& seq, dou
 // held back since yield_request_after_s before it, counted from the first one held back after the last keyframe
 // published (MappingLagOptions). That is what the agent turns into a request that mapping yield (YieldRequests).
 TEST_F(MappingLag, AKeyframeHeldBackForLongIsOverdue) {
-  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  auto seq = dataset::EurocSequence::open(mission_ / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
   constexpr double kFramePeriodS = 0.05;
   for (const double after_s : {0.1, 0.0}) {
@@ -241,7 +246,7 @@ LossRun runWithALongLoss(const dataset::EurocSequence& seq, double max_dead_reck
 }
 
 TEST_F(MappingLag, AfterALongLossTheNewMapIsTrackedAtOnce) {
-  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  auto seq = dataset::EurocSequence::open(mission_ / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
   const LossRun bounded = runWithALongLoss(*seq, TrackerOptions{}.max_dead_reckoning_s);
   ASSERT_GE(bounded.frames_after, 100);
@@ -257,7 +262,7 @@ TEST_F(MappingLag, AfterALongLossTheNewMapIsTrackedAtOnce) {
 // state is wrong, so the new map must start again from two views (and initialise the IMU again) rather than
 // triangulate from it.
 TEST_F(MappingLag, AfterALongLossAMonocularMapStartsAgainFromTwoViews) {
-  auto seq = dataset::EurocSequence::open(dir_->path() / "agent0");
+  auto seq = dataset::EurocSequence::open(mission_ / "agent0");
   ASSERT_TRUE(seq.ok()) << seq.error().toString();
   const LossRun mono = runWithALongLoss(*seq, TrackerOptions{}.max_dead_reckoning_s, /*stereo=*/false);
   ASSERT_GE(mono.frames_after, 100);
