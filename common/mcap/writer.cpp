@@ -510,7 +510,7 @@ Status Writer::flush() {
 Status Writer::close() {
   Impl& m = *impl_;
   if (Status s = m.usable(); !s.ok()) return s;
-  const Status s = m.finish();
+  Status s = m.finish();
   m.closed = true;
   return s;
 }

@@ -8,6 +8,7 @@
 // Exit status 1 with the error on stderr when anything fails.
 #include <cstdio>
 #include <cstring>
+#include <exception>
 #include <filesystem>
 #include <string>
 
@@ -18,7 +19,10 @@
 
 namespace {
 
-using namespace cvislam;
+namespace mcap = cvislam::mcap;
+namespace ros2 = cvislam::ros2;
+using cvislam::Error;
+using cvislam::Status;
 
 int failed(const Error& e) {
   std::fprintf(stderr, "%s\n", e.message().c_str());
@@ -27,7 +31,7 @@ int failed(const Error& e) {
 
 int writeAll(const std::filesystem::path& dir) {
   struct Layout {
-    const char* name;
+    const char* name = nullptr;
     mcap::WriterOptions options;
   };
   const Layout layouts[] = {
@@ -106,8 +110,6 @@ int decode(const std::filesystem::path& file) {
   }
 }
 
-}  // namespace
-
 int counts(const std::filesystem::path& file) {
   auto reader = mcap::Reader::open(file);
   if (!reader.ok()) return failed(reader.error());
@@ -120,7 +122,7 @@ int counts(const std::filesystem::path& file) {
   return 0;
 }
 
-int main(int argc, char** argv) {
+int run(int argc, char** argv) {
   if (argc != 3) {
     std::fprintf(stderr, "usage: mcap_interop_tool write DIR | list FILE | decode FILE | counts FILE\n");
     return 2;
@@ -132,4 +134,15 @@ int main(int argc, char** argv) {
   if (command == "counts") return counts(argv[2]);
   std::fprintf(stderr, "mcap_interop_tool: unknown command '%s'\n", command.c_str());
   return 2;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return run(argc, argv);
+  } catch (const std::exception& e) {  // a bug, or the system out of memory: say so instead of aborting
+    std::fprintf(stderr, "mcap_interop_tool: internal error: %s\n", e.what());
+    return 1;
+  }
 }

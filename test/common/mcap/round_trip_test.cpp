@@ -235,7 +235,7 @@ TEST(MessageIndex, OffsetsInAnUncompressedChunkLeadToMessagesWithTheirLogTimes) 
   ASSERT_EQ(reader.summary()->chunk_indexes.size(), 1U);
   const ChunkIndex& chunk = reader.summary()->chunk_indexes[0];
   // Chunk content: start, end, uncompressed_size (8 each), crc (4), compression "" (4), records length (8).
-  const std::uint64_t records_start = chunk.chunk_start_offset + kRecordPrefixBytes + 8 * 3 + 4 + 4 + 8;
+  const std::uint64_t records_start = chunk.chunk_start_offset + kRecordPrefixBytes + 8 + 8 + 8 + 4 + 4 + 8;
   int checked = 0;
 
   for (const auto& [channel_id, index_offset] : chunk.message_index_offsets) {

@@ -42,7 +42,7 @@ ImuView imuSample(std::string_view frame_id = "imu0") {
 }
 
 TEST(Image, EncodesAnEurocFrameAsTheReferenceSerializerDoes) {
-  const Bytes pixels(752 * 480, 0x5a);
+  const Bytes pixels(std::size_t{752} * 480, 0x5a);
   Bytes cdr;
 
   ASSERT_TRUE(encodeImage(euroCFrame(pixels), cdr).ok());
@@ -56,7 +56,7 @@ TEST(Image, EncodesAnEurocFrameAsTheReferenceSerializerDoes) {
 }
 
 TEST(Image, RoundTripsEveryField) {
-  Bytes pixels(6 * 4 * 3);
+  Bytes pixels(std::size_t{6} * 4 * 3);  // 6x4 rgb8
   for (std::size_t i = 0; i < pixels.size(); ++i) pixels[i] = static_cast<std::uint8_t>(i * 3);
   ImageView image;
   image.header = {{-5, 999'999'999}, "cam0_optical"};
