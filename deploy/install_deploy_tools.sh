@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# Installs the tools that check the deployment files offline, from the npm registry, into out/deploy-tools
-# (never into the repository): kubernetes-models (Kubernetes schemas), yaml, dockerfilelint. Versions are pinned
-# in deploy/tools/package.json. Idempotent: with the same versions installed it returns at once, offline.
+# Installs the npm tools of the offline checks, from the npm registry, into out/deploy-tools (never into the
+# repository): for the deployment files kubernetes-models (Kubernetes schemas), yaml, dockerfilelint; for the
+# MCAP and ROS 2 interop test (test/common/mcap/interop_test.mjs) @mcap/core, @mcap/nodejs, @mcap/support,
+# @foxglove/wasm-zstd, @foxglove/rosmsg and @foxglove/rosmsg2-serialization. Versions are pinned in
+# deploy/tools/package.json. Idempotent: with the same versions installed it returns at once, offline.
 #
 #   deploy/install_deploy_tools.sh [--dir DIR]      (default: out/deploy-tools, or $CVISLAM_DEPLOY_TOOLS)
 #

@@ -18,6 +18,8 @@ packages=(
   libopencv-core-dev libopencv-imgproc-dev libopencv-features2d-dev libopencv-calib3d-dev libopencv-imgcodecs-dev
   # the agent's PNG decoding (common/dataset/png_gray.cpp)
   libdeflate-dev
+  # MCAP files (common/mcap): zstd and LZ4 chunk compression, zlib's CRC-32
+  libzstd-dev liblz4-dev zlib1g-dev
   # agent <-> server link and the map service
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   # the server's map store; openssl makes the throwaway certificate of the TLS tests

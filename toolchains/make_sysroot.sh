@@ -42,7 +42,7 @@ packages=(
   libc6-dev libstdc++-12-dev
   libeigen3-dev libceres-dev
   libopencv-core-dev libopencv-imgproc-dev libopencv-features2d-dev libopencv-calib3d-dev libopencv-imgcodecs-dev
-  libdeflate-dev
+  libdeflate-dev libzstd-dev liblz4-dev zlib1g-dev
   libgrpc++-dev libprotobuf-dev
   libiceoryx-posh-dev libiceoryx-hoofs-dev libacl1-dev
   libyaml-cpp-dev libcli11-dev libfmt-dev nlohmann-json3-dev

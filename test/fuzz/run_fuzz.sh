@@ -12,7 +12,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 
 runs=1000000
 max_len=65536
-targets=(fuzz_agent_link fuzz_map_service fuzz_store_records)
+targets=(fuzz_agent_link fuzz_map_service fuzz_store_records fuzz_mcap_reader)
 while [ $# -gt 0 ]; do
   case "$1" in
     --runs) runs="$2"; shift 2 ;;

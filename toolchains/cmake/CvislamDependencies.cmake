@@ -26,6 +26,20 @@ add_library(cvislam::libdeflate UNKNOWN IMPORTED)
 set_target_properties(cvislam::libdeflate PROPERTIES IMPORTED_LOCATION "${LIBDEFLATE_LIBRARY}"
   INTERFACE_INCLUDE_DIRECTORIES "${LIBDEFLATE_INCLUDE_DIR}")
 
+# common/mcap: zstd and LZ4 (frame format) chunk compression, zlib's CRC-32. libzstd-dev, liblz4-dev, zlib1g-dev.
+# Found like libdeflate (no pkg-config), so that a cross build takes them from the sysroot.
+find_path(ZSTD_INCLUDE_DIR zstd.h REQUIRED)
+find_library(ZSTD_LIBRARY NAMES zstd REQUIRED)
+add_library(cvislam::zstd UNKNOWN IMPORTED)
+set_target_properties(cvislam::zstd PROPERTIES IMPORTED_LOCATION "${ZSTD_LIBRARY}"
+  INTERFACE_INCLUDE_DIRECTORIES "${ZSTD_INCLUDE_DIR}")
+find_path(LZ4_INCLUDE_DIR lz4frame.h REQUIRED)
+find_library(LZ4_LIBRARY NAMES lz4 REQUIRED)
+add_library(cvislam::lz4 UNKNOWN IMPORTED)
+set_target_properties(cvislam::lz4 PROPERTIES IMPORTED_LOCATION "${LZ4_LIBRARY}"
+  INTERFACE_INCLUDE_DIRECTORIES "${LZ4_INCLUDE_DIR}")
+find_package(ZLIB REQUIRED)                           # zlib1g-dev (CMake's FindZLIB: ZLIB::ZLIB)
+
 # OpenCV: Debian ships OpenCVConfig.cmake only in the full libopencv-dev (+330 MB: VTK, dnn, contrib).
 # We install the per-module -dev packages and fall back to a small find-module; see docs/development.md, "Dependencies".
 find_package(OpenCV 4 QUIET CONFIG COMPONENTS core imgproc imgcodecs features2d calib3d)
