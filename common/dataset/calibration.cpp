@@ -6,84 +6,15 @@
 #include <string>
 #include <vector>
 
-#include <yaml-cpp/yaml.h>
-#include <Eigen/SVD>
-
 #include "common/core/text.hpp"
+#include "common/dataset/yaml_fields.hpp"
 
 namespace cvislam::dataset {
 namespace {
 
-// Context for error messages: the file, plus the line of a YAML node when it has one.
-struct YamlFile {
-  std::string path;
-
-  [[nodiscard]] Error error(const YAML::Node& node, const std::string& message) const {
-    std::string where = path;
-    if (node.IsDefined() && node.Mark().line >= 0) where += ":" + std::to_string(node.Mark().line + 1);
-    return Error{ErrorCode::kParseError, where + ": " + message};
-  }
-  [[nodiscard]] Error missing(const std::string& key, const std::string& what) const {
-    return Error{ErrorCode::kParseError, path + ": missing key '" + key + "' (" + what + ")"};
-  }
-};
-
-Result<YAML::Node> loadYaml(const std::filesystem::path& path) {
-  std::error_code ec;
-  if (!std::filesystem::is_regular_file(path, ec)) {
-    return Error{ErrorCode::kNotFound, path.string() + ": sensor.yaml does not exist"};
-  }
-  std::ifstream in(path);
-  if (!in) return Error{ErrorCode::kIoError, path.string() + ": cannot open for reading"};
-  std::stringstream ss;
-  ss << in.rdbuf();
-  std::string text = ss.str();
-  // ASL files start with OpenCV's "%YAML:1.0", which is not a YAML directive; blank it out, keeping the
-  // line so that reported line numbers still match the file.
-  if (text.rfind("%YAML:", 0) == 0) text.replace(0, text.find('\n'), "");
-  try {
-    YAML::Node root = YAML::Load(text);
-    if (!root.IsMap()) return Error{ErrorCode::kParseError, path.string() + ": expected a YAML mapping of keys"};
-    return root;
-  } catch (const YAML::Exception& e) {
-    return Error{ErrorCode::kParseError,
-                 path.string() + ":" + std::to_string(e.mark.line + 1) + ": invalid YAML: " + e.msg};
-  }
-}
-
-Result<double> getNumber(const YamlFile& file, const YAML::Node& root, const std::string& key,
-                         const std::string& what) {
-  const YAML::Node node = root[key];
-  if (!node) return file.missing(key, what);
-  if (!node.IsScalar()) return file.error(node, "key '" + key + "' must be a number (" + what + ")");
-  const auto value = text::parseDouble(node.Scalar());
-  if (!value) return file.error(node, "key '" + key + "' must be a number (" + what + "), got '" + node.Scalar() + "'");
-  return *value;
-}
-
-Result<std::vector<double>> getNumbers(const YamlFile& file, const YAML::Node& node, const std::string& key,
-                                       std::size_t count, const std::string& what) {
-  if (!node) return file.missing(key, what);
-  if (!node.IsSequence() || node.size() != count) {
-    return file.error(node, "key '" + key + "' must be a list of " + std::to_string(count) + " numbers (" + what + ")" +
-                                (node.IsSequence() ? ", got " + std::to_string(node.size()) : std::string()));
-  }
-  std::vector<double> values;
-  for (std::size_t i = 0; i < count; ++i) {
-    const auto value = node[i].IsScalar() ? text::parseDouble(node[i].Scalar()) : std::nullopt;
-    if (!value) return file.error(node, "key '" + key + "': element " + std::to_string(i + 1) + " is not a number");
-    values.push_back(*value);
-  }
-  return values;
-}
-
-Result<std::string> getString(const YamlFile& file, const YAML::Node& root, const std::string& key,
-                              const std::string& what) {
-  const YAML::Node node = root[key];
-  if (!node) return file.missing(key, what);
-  if (!node.IsScalar()) return file.error(node, "key '" + key + "' must be text (" + what + ")");
-  return node.Scalar();
-}
+using yaml::getNumber;
+using yaml::getNumbers;
+using yaml::YamlFile;
 
 // T_BS: {rows: 4, cols: 4, data: [16 numbers, row-major]} with a rigid top-left block.
 Result<geometry::SE3d> getExtrinsics(const YamlFile& file, const YAML::Node& root) {
@@ -101,20 +32,7 @@ Result<geometry::SE3d> getExtrinsics(const YamlFile& file, const YAML::Node& roo
   for (int r = 0; r < 4; ++r) {
     for (int c = 0; c < 4; ++c) T(r, c) = (*data)[4 * static_cast<std::size_t>(r) + static_cast<std::size_t>(c)];
   }
-  if ((T.row(3) - Eigen::RowVector4d(0, 0, 0, 1)).cwiseAbs().maxCoeff() > 1e-9) {
-    return file.error(node, "T_BS: the last row must be [0, 0, 0, 1]");
-  }
-  const Eigen::Matrix3d R = T.topLeftCorner<3, 3>();
-  const double orthonormality_error = (R.transpose() * R - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
-  if (orthonormality_error > 1e-3 || R.determinant() <= 0.0) {
-    return file.error(node, "T_BS: the top-left 3x3 block is not a rotation (|R^T R - I| = " +
-                                text::formatDouble(orthonormality_error) +
-                                ", det = " + text::formatDouble(R.determinant()) + ")");
-  }
-  // Project onto SO(3) so that the stored rotation is exactly orthonormal.
-  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(R, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  const Eigen::Matrix3d R_projected = svd.matrixU() * svd.matrixV().transpose();
-  return geometry::SE3d(geometry::SO3d(R_projected), T.topRightCorner<3, 1>());
+  return yaml::rigidTransform(file, node, "T_BS", T);
 }
 
 std::string optionalComment(const YAML::Node& root) {
@@ -198,54 +116,17 @@ Status validate(const ImuCalibration& imu) {
 }
 
 Result<CameraCalibration> readCameraCalibration(const std::filesystem::path& sensor_yaml, const std::string& name) {
-  auto root = loadYaml(sensor_yaml);
+  auto root = yaml::loadMapping(sensor_yaml);
   if (!root) return root.error();
   const YamlFile file{sensor_yaml.string()};
   CameraCalibration camera;
   camera.name = name;
   camera.comment = optionalComment(*root);
 
-  auto model = getString(file, *root, "camera_model", "e.g. pinhole");
-  if (!model) return model.error();
-  if (*model != "pinhole") {
-    return file.error((*root)["camera_model"], "camera_model '" + *model + "' is not supported (use pinhole)");
-  }
   auto rate = getNumber(file, *root, "rate_hz", "frame rate");
   if (!rate) return rate.error();
   camera.rate_hz = *rate;
-  auto resolution = getNumbers(file, (*root)["resolution"], "resolution", 2, "width, height");
-  if (!resolution) return resolution.error();
-  if ((*resolution)[0] != std::floor((*resolution)[0]) || (*resolution)[1] != std::floor((*resolution)[1])) {
-    return file.error((*root)["resolution"], "resolution must be whole pixels");
-  }
-  camera.width = static_cast<int>((*resolution)[0]);
-  camera.height = static_cast<int>((*resolution)[1]);
-  auto intrinsics = getNumbers(file, (*root)["intrinsics"], "intrinsics", 4, "fu, fv, cu, cv");
-  if (!intrinsics) return intrinsics.error();
-  camera.fx = (*intrinsics)[0];
-  camera.fy = (*intrinsics)[1];
-  camera.cx = (*intrinsics)[2];
-  camera.cy = (*intrinsics)[3];
-
-  auto distortion = getString(file, *root, "distortion_model", "radial-tangential or equidistant");
-  if (!distortion) return distortion.error();
-  if (*distortion == "radial-tangential" || *distortion == "radtan") {
-    camera.distortion = DistortionModel::kRadialTangential;
-  } else if (*distortion == "equidistant") {
-    camera.distortion = DistortionModel::kEquidistant;
-  } else if (*distortion == "none") {
-    camera.distortion = DistortionModel::kNone;
-  } else {
-    return file.error((*root)["distortion_model"],
-                      "distortion_model '" + *distortion + "' is not supported (radial-tangential, equidistant, none)");
-  }
-  if (camera.distortion != DistortionModel::kNone) {
-    auto coefficients =
-        getNumbers(file, (*root)["distortion_coefficients"], "distortion_coefficients", 4,
-                   camera.distortion == DistortionModel::kEquidistant ? "k1, k2, k3, k4" : "k1, k2, p1, p2");
-    if (!coefficients) return coefficients.error();
-    for (std::size_t i = 0; i < 4; ++i) camera.distortion_coefficients[i] = (*coefficients)[i];
-  }
+  if (Status st = yaml::readPinhole(file, *root, {}, camera); !st.ok()) return st.error();
   auto extrinsics = getExtrinsics(file, *root);
   if (!extrinsics) return extrinsics.error();
   camera.T_b_c = *extrinsics;
@@ -254,7 +135,7 @@ Result<CameraCalibration> readCameraCalibration(const std::filesystem::path& sen
 }
 
 Result<ImuCalibration> readImuCalibration(const std::filesystem::path& sensor_yaml) {
-  auto root = loadYaml(sensor_yaml);
+  auto root = yaml::loadMapping(sensor_yaml);
   if (!root) return root.error();
   const YamlFile file{sensor_yaml.string()};
   ImuCalibration imu;
