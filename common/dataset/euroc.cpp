@@ -55,48 +55,58 @@ std::string seconds(std::int64_t t_ns) {
 // Pairs cam0 and cam1 frames by nearest timestamp within max_dt (each frame used once, both lists sorted).
 std::vector<RigFrame> pairFrames(const CameraStream& cam0, const CameraStream* cam1, std::int64_t max_dt_ns,
                                  Diagnostics& diagnostics) {
-  std::vector<RigFrame> rig;
-  rig.reserve(cam0.frames.size());
+  const auto times = [](const CameraStream& c) {
+    std::vector<std::int64_t> t;
+    t.reserve(c.frames.size());
+    for (const ImageEntry& e : c.frames) t.push_back(e.t_ns);
+    return t;
+  };
+  const std::vector<std::int64_t> t0 = times(cam0);
+  const std::vector<std::int64_t> t1 = cam1 != nullptr ? times(*cam1) : std::vector<std::int64_t>{};
+  StereoPairing pairing =
+      pairStereoFrames(t0, cam1 != nullptr ? std::optional(std::span(t1)) : std::nullopt, max_dt_ns);
+  if (pairing.unpaired_cam0 > 0) {
+    diagnostics.warn(cam0.folder.string(), 0,
+                     std::to_string(pairing.unpaired_cam0) + " cam0 frame(s) have no cam1 frame within " +
+                         std::to_string(max_dt_ns) + " ns; a stereo run leaves them out, a mono run uses them");
+  }
+  if (pairing.unpaired_cam1 > 0) {
+    diagnostics.warn(cam1->folder.string(), 0,
+                     std::to_string(pairing.unpaired_cam1) + " cam1 frame(s) have no cam0 frame within " +
+                         std::to_string(max_dt_ns) + " ns; they are not used");
+  }
+  return std::move(pairing.frames);
+}
+
+}  // namespace
+
+StereoPairing pairStereoFrames(std::span<const std::int64_t> cam0_t_ns,
+                               std::optional<std::span<const std::int64_t>> cam1_t_ns, std::int64_t max_dt_ns) {
+  StereoPairing out;
+  out.frames.reserve(cam0_t_ns.size());
   std::size_t j = 0;
-  std::size_t unpaired0 = 0;
-  std::vector<bool> used1(cam1 != nullptr ? cam1->frames.size() : 0, false);
-  for (std::size_t i = 0; i < cam0.frames.size(); ++i) {
-    RigFrame frame{cam0.frames[i].t_ns, i, std::nullopt};
-    if (cam1 != nullptr) {
-      const auto& f1 = cam1->frames;
-      while (j < f1.size() && f1[j].t_ns < frame.t_ns - max_dt_ns) ++j;
+  const std::span<const std::int64_t> f1 = cam1_t_ns.value_or(std::span<const std::int64_t>{});
+  std::vector<bool> used1(f1.size(), false);
+  for (std::size_t i = 0; i < cam0_t_ns.size(); ++i) {
+    RigFrame frame{cam0_t_ns[i], i, std::nullopt};
+    if (cam1_t_ns) {
+      while (j < f1.size() && f1[j] < frame.t_ns - max_dt_ns) ++j;
       std::optional<std::size_t> best;
-      for (std::size_t k = j; k < f1.size() && f1[k].t_ns <= frame.t_ns + max_dt_ns; ++k) {
-        if (!used1[k] && (!best || std::llabs(f1[k].t_ns - frame.t_ns) < std::llabs(f1[*best].t_ns - frame.t_ns))) {
-          best = k;
-        }
+      for (std::size_t k = j; k < f1.size() && f1[k] <= frame.t_ns + max_dt_ns; ++k) {
+        if (!used1[k] && (!best || std::llabs(f1[k] - frame.t_ns) < std::llabs(f1[*best] - frame.t_ns))) best = k;
       }
       if (best) {
         used1[*best] = true;
         frame.cam1 = best;
       } else {
-        ++unpaired0;
+        ++out.unpaired_cam0;
       }
     }
-    rig.push_back(frame);
+    out.frames.push_back(frame);
   }
-  if (cam1 != nullptr) {
-    const auto unpaired1 = static_cast<std::size_t>(std::count(used1.begin(), used1.end(), false));
-    if (unpaired0 > 0) {
-      diagnostics.warn(cam0.folder.string(), 0,
-                       std::to_string(unpaired0) + " cam0 frame(s) have no cam1 frame within " +
-                           std::to_string(max_dt_ns) + " ns; they are used as mono frames");
-    }
-    if (unpaired1 > 0) {
-      diagnostics.warn(cam1->folder.string(), 0,
-                       std::to_string(unpaired1) + " cam1 frame(s) have no cam0 frame within " +
-                           std::to_string(max_dt_ns) + " ns; they are not used");
-    }
-  }
-  return rig;
+  out.unpaired_cam1 = static_cast<std::size_t>(std::count(used1.begin(), used1.end(), false));
+  return out;
 }
-
-}  // namespace
 
 Status EurocReaderOptions::validate() const {
   if (stereo_max_dt_ns < 0 || stereo_max_dt_ns > 1'000'000'000) {

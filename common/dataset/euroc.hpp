@@ -109,6 +109,16 @@ Result<std::vector<GroundTruthState>> readGroundTruthCsv(const std::filesystem::
 Result<std::vector<ImageEntry>> readImageListCsv(const std::filesystem::path& path, bool strict,
                                                  Diagnostics& diagnostics);
 
+// cam0 frames (times ascending) each paired with the closest unused cam1 frame within max_dt_ns, when there is
+// a cam1 stream. The counts are the frames of each camera left without a partner.
+struct StereoPairing {
+  std::vector<RigFrame> frames;
+  std::size_t unpaired_cam0 = 0;
+  std::size_t unpaired_cam1 = 0;
+};
+StereoPairing pairStereoFrames(std::span<const std::int64_t> cam0_t_ns,
+                               std::optional<std::span<const std::int64_t>> cam1_t_ns, std::int64_t max_dt_ns);
+
 // Locates the mav0 folder: `path` itself when it holds cam0 or state_groundtruth_estimate0, else path/mav0.
 Result<std::filesystem::path> findMav0(const std::filesystem::path& path);
 
