@@ -22,7 +22,6 @@
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
 #include "common/dataset/euroc.hpp"
-#include "common/dataset/png_gray.hpp"
 #include "common/dataset/trajectory_io.hpp"
 #include "iceoryx_posh/popo/user_trigger.hpp"
 #include "iceoryx_posh/popo/wait_set.hpp"
@@ -74,7 +73,10 @@ const char* toString(Pace pace) {
 
 Status AgentOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, what}; };
-  if (dataset.empty()) return bad("no dataset given (--dataset SEQ_DIR, the folder that holds mav0)");
+  if (dataset.empty() && mcap.empty()) {
+    return bad("no recording given (--dataset SEQ_DIR, the folder that holds mav0, or --mcap BAG.mcap)");
+  }
+  if (!dataset.empty() && !mcap.empty()) return bad("give --dataset or --mcap, not both");
   if (output.empty()) return bad("no output folder given (--output OUT_DIR)");
   if (imu_noise_inflation < 0.0 || !std::isfinite(imu_noise_inflation)) {
     return bad("imu_noise_inflation must be >= 0 (0 = automatic)");
@@ -90,9 +92,9 @@ Status AgentOptions::validate() const {
 
 namespace {
 
-// What the dataset and the options decide before any thread starts.
+// What the recording and the options decide before any thread starts.
 struct RunPlan {
-  dataset::EurocSequence sequence;
+  std::unique_ptr<Recording> recording;
   bool stereo;
   double imu_noise_inflation;
   SensorSetup setup;
@@ -101,34 +103,43 @@ struct RunPlan {
   std::vector<dataset::RigFrame> frames;
 };
 
-// Opens the dataset, chooses the mode and the IMU noise, and makes tracking and mapping for its sensors. Fills
+Result<std::unique_ptr<Recording>> openRecordingOf(const AgentOptions& options) {
+  RecordingOptions recording;
+  recording.dataset = options.dataset;
+  recording.mcap = options.mcap;
+  recording.topics = options.topics;
+  recording.calibration = options.calibration;
+  recording.imu_calibration = options.imu_calibration;
+  recording.require_imu = options.use_imu;
+  return openRecording(recording);
+}
+
+// Opens the recording, chooses the mode and the IMU noise, and makes tracking and mapping for its sensors. Fills
 // what `options` takes from the sensors.
 Result<RunPlan> planRun(AgentOptions& options) {
-  auto sequence = dataset::EurocSequence::open(options.dataset);
-  if (!sequence) return sequence.error().withContext("dataset " + options.dataset.string());
-  const dataset::EurocSequence& seq = *sequence;
-  if (!seq.diagnostics().empty() && !options.quiet) {
-    std::fprintf(stderr, "[agent] the dataset has %zu finding(s); the agent goes on without the bad rows:\n",
-                 seq.diagnostics().findings().size());
-    seq.diagnostics().print(std::cerr, 10);
+  auto recording = openRecordingOf(options);
+  if (!recording) return recording.error();
+  const Recording& rec = **recording;
+  if (!rec.diagnostics().empty() && !options.quiet) {
+    std::fprintf(stderr, "[agent] the recording has %zu finding(s); the agent goes on without the bad rows:\n",
+                 rec.diagnostics().findings().size());
+    rec.diagnostics().print(std::cerr, 10);
   }
-  const bool has_cam1 = seq.cam1() != nullptr;
+  const SensorRig& rig = rec.rig();
+  const bool has_cam1 = rig.cam1.has_value();
   if (options.mode == AgentMode::kStereo && !has_cam1) {
-    return Error{ErrorCode::kInvalidArgument,
-                 "stereo mode needs mav0/cam1, which " + options.dataset.string() + " does not have: use --mode mono"};
+    return Error{ErrorCode::kInvalidArgument, "stereo mode needs a second camera (cam1), which " + rec.describe() +
+                                                  " does not have: use --mode mono"};
   }
   const bool stereo = options.mode == AgentMode::kStereo || (options.mode == AgentMode::kAuto && has_cam1);
-  if (options.use_imu && !seq.imuCalibration()) {
-    return Error{ErrorCode::kInvalidArgument, "the dataset has no imu0/sensor.yaml; run with use_imu: false"};
+  if (options.use_imu && !rig.imu) {
+    return Error{ErrorCode::kInvalidArgument, rec.describe() +
+                                                  " has no IMU calibration (imu0/sensor.yaml or --imu-calibration); "
+                                                  "run with use_imu: false"};
   }
   double inflation = options.imu_noise_inflation;
-  if (inflation == 0.0) {
-    // The simulator writes mission.yaml beside its agents' folders.
-    const bool simulated = std::filesystem::exists(options.dataset / "mission.yaml") ||
-                           std::filesystem::exists(options.dataset.parent_path() / "mission.yaml");
-    inflation = simulated ? 1.0 : 10.0;
-  }
-  auto setup = makeSensorSetup(seq, stereo, inflation);
+  if (inflation == 0.0) inflation = rec.simulated() ? 1.0 : 10.0;
+  auto setup = makeSensorSetup(rig, stereo, inflation);
   if (!setup) return setup.error();
   options.tracking.agent = options.agent;
   options.tracking.use_imu = options.use_imu;
@@ -141,12 +152,12 @@ Result<RunPlan> planRun(AgentOptions& options) {
   auto mapper = Mapper::create(options.mapping, setup->left, right, setup->T_s_c, setup->T_c0_c1);
   if (!mapper) return mapper.error();
 
-  std::vector<dataset::RigFrame> frames = framesToRun(seq, stereo);
+  std::vector<dataset::RigFrame> frames = framesToRun(rec.rigFrames(), stereo);
   if (options.max_frames > 0 && frames.size() > options.max_frames) frames.resize(options.max_frames);
-  if (frames.empty()) return Error{ErrorCode::kDataError, "the dataset has no usable camera frames"};
+  if (frames.empty()) return Error{ErrorCode::kDataError, rec.describe() + " has no usable camera frames"};
   return RunPlan{
-      std::move(sequence).value(), stereo,           inflation, std::move(setup).value(), std::move(tracker).value(),
-      std::move(mapper).value(),   std::move(frames)};
+      std::move(recording).value(), stereo,           inflation, std::move(setup).value(), std::move(tracker).value(),
+      std::move(mapper).value(),    std::move(frames)};
 }
 
 // One iceoryx memory pool per message type, sized from its channel's queue (ChannelDepths). Sizes must grow by at
@@ -221,9 +232,7 @@ struct StageLatencies {
 };
 
 // The loader thread's work: every frame's images into the ring, until the end or until tracking closes it.
-void loadFrames(const dataset::EurocSequence& seq, const std::vector<dataset::RigFrame>& frames, bool stereo,
-                FrameRing& ring) {
-  dataset::GrayPngDecoder png;  // its buffers settle at the first frame's size
+void loadFrames(Recording& recording, const std::vector<dataset::RigFrame>& frames, bool stereo, FrameRing& ring) {
   for (std::size_t i = 0; i < frames.size(); ++i) {
     FrameRing::Slot* slot = ring.waitForFreeSlot();
     if (slot == nullptr) return;  // tracking stopped
@@ -231,8 +240,8 @@ void loadFrames(const dataset::EurocSequence& seq, const std::vector<dataset::Ri
     slot->frame = i;
     slot->ok = true;
     slot->error.clear();
-    Status st = seq.loadImageInto(0, frames[i].cam0, slot->left, png);
-    if (st.ok() && stereo) st = seq.loadImageInto(1, *frames[i].cam1, slot->right, png);
+    Status st = recording.loadImageInto(0, frames[i].cam0, slot->left);
+    if (st.ok() && stereo) st = recording.loadImageInto(1, *frames[i].cam1, slot->right);
     if (!st.ok()) {
       slot->ok = false;
       slot->error = st.error().toString();
@@ -364,13 +373,13 @@ class TrackingLoop {
   [[nodiscard]] FrameInput frameInput(const FrameRing::Slot& slot) const {
     FrameInput input;
     input.t_ns = slot.t_ns;
-    input.width = s_.plan.sequence.cam0().calibration.width;
-    input.height = s_.plan.sequence.cam0().calibration.height;
+    input.width = s_.plan.recording->rig().cam0.width;
+    input.height = s_.plan.recording->rig().cam0.height;
     input.left = slot.left;
     if (s_.plan.stereo) input.right = slot.right;
     // The IMU covering [previous frame, this frame].
     if (s_.options.use_imu) {
-      input.imu = imuCovering(s_.plan.sequence.imu(), previous_t_ns_ < 0 ? slot.t_ns : previous_t_ns_, slot.t_ns);
+      input.imu = imuCovering(s_.plan.recording->imu(), previous_t_ns_ < 0 ? slot.t_ns : previous_t_ns_, slot.t_ns);
     }
     return input;
   }
@@ -623,7 +632,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   MappingStats mapping_stats;
   AgentRunSummary summary;
   TrajectoryRecorder recorder(n_frames);
-  const auto& cam0 = plan.sequence.cam0().calibration;
+  const auto& cam0 = plan.recording->rig().cam0;
   FrameRing ring(options.frame_ring_size, static_cast<std::size_t>(cam0.width) * static_cast<std::size_t>(cam0.height),
                  plan.stereo);
   std::atomic<bool> tracking_done{false};
@@ -645,15 +654,15 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
 
   std::thread loader([&] {
     schedule_this_thread("loader", threads.loader);
-    loadFrames(plan.sequence, plan.frames, plan.stereo, ring);
+    loadFrames(*plan.recording, plan.frames, plan.stereo, ring);
   });
 
   std::unique_ptr<LinkThread> link;
   if (!options.link.server.empty()) {
     LinkOptions link_options = options.link;
     link_options.local_map_keyframes = static_cast<std::uint32_t>(options.mapping.max_keyframes);
-    auto created =
-        Link::create(link_options, options.agent, linkSensors(plan.sequence, plan.setup, plan.stereo, options.use_imu));
+    auto created = Link::create(link_options, options.agent,
+                                linkSensors(plan.recording->rig(), plan.setup, plan.stereo, options.use_imu));
     if (!created) {
       ring.close();
       loader.join();

@@ -19,6 +19,7 @@
 #include "agent_rt/mapping/mapper.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
 #include "agent_rt/runtime/thread_schedule.hpp"
+#include "agent_rt/sources/recording.hpp"
 #include "agent_rt/tracking/tracker.hpp"
 #include "common/core/result.hpp"
 
@@ -39,7 +40,12 @@ const char* toString(AgentMode mode);
 const char* toString(Pace pace);
 
 struct AgentOptions {
-  std::filesystem::path dataset;  // the folder that holds mav0
+  std::filesystem::path dataset;  // the folder that holds mav0, or
+  std::filesystem::path mcap;     // a ROS 2 bag in MCAP
+  McapTopics topics;              // the bag's topics
+  // Kalibr calibration files that replace the recording's own (empty: the recording's sensor.yaml files).
+  std::filesystem::path calibration;      // camchain-imucam.yaml
+  std::filesystem::path imu_calibration;  // imu.yaml
   std::filesystem::path output;
   AgentMode mode = AgentMode::kAuto;
   AgentId agent = 0;

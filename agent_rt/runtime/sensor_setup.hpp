@@ -11,6 +11,7 @@
 
 #include "agent_rt/link/link.hpp"
 #include "agent_rt/mapping/mapper.hpp"
+#include "agent_rt/sources/recording.hpp"
 #include "agent_rt/tracking/tracker.hpp"
 #include "common/camera/camera_model.hpp"
 #include "common/core/result.hpp"
@@ -28,8 +29,9 @@ struct SensorSetup {
   imu::ImuNoise noise;                       // sensor.yaml's densities x the inflation
 };
 
-// Fails, naming the problem, when stereo is asked of a sequence without cam1 or a calibration is invalid.
-// Without imu0/sensor.yaml the noise is the default model.
+// Fails, naming the problem, when stereo is asked of a rig without cam1 or a calibration is invalid.
+// Without an IMU calibration the noise is the default model.
+Result<SensorSetup> makeSensorSetup(const SensorRig& rig, bool stereo, double noise_inflation);
 Result<SensorSetup> makeSensorSetup(const dataset::EurocSequence& sequence, bool stereo, double noise_inflation);
 
 // Fills what the options take from the sensors: IMU noise, intrinsics, the ORB pyramid shared by tracking and
@@ -38,9 +40,11 @@ void applySensorSetup(const SensorSetup& setup, TrackerOptions& tracking, Mapper
 
 // What the link's Hello tells the server about the sensors: calibrations, extrinsics and the IMU noise as the
 // agent uses it.
+LinkSensors linkSensors(const SensorRig& rig, const SensorSetup& setup, bool stereo, bool uses_imu);
 LinkSensors linkSensors(const dataset::EurocSequence& sequence, const SensorSetup& setup, bool stereo, bool uses_imu);
 
 // The frames to run, in time order: stereo pairs, or every cam0 frame.
+std::vector<dataset::RigFrame> framesToRun(std::span<const dataset::RigFrame> frames, bool stereo);
 std::vector<dataset::RigFrame> framesToRun(const dataset::EurocSequence& sequence, bool stereo);
 
 // The samples covering [t0_ns, t1_ns]: from the last one at or before t0 to the first one at or after t1

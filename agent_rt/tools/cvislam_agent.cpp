@@ -1,6 +1,8 @@
 // cvislam_agent: the onboard visual-inertial odometry of one agent, on a EuRoC-format sequence.
 //
-//   cvislam_agent --dataset SEQ_DIR --output OUT_DIR [--config FILE] [--mode mono|stereo|auto]
+//   cvislam_agent (--dataset SEQ_DIR | --mcap BAG.mcap) --output OUT_DIR [--config FILE] [--mode mono|stereo|auto]
+//                 [--calibration KALIBR_CAMCHAIN --imu-calibration KALIBR_IMU]
+//                 [--cam0-topic T --cam1-topic T --imu-topic T]
 //                 [--pace realtime|fast|sync] [--rate R] [--roudi embedded|external] [--agent-id N]
 //                 [--server HOST:PORT --mission NAME]
 //
@@ -45,7 +47,28 @@ int main(int argc, char** argv) {
   bool trace_mapping = false;
   bool no_priorities = false;
   std::size_t max_frames = 0;
-  app.add_option("--dataset", dataset, "Sequence folder that holds mav0 (EuRoC/ASL layout)")->required();
+  auto* dataset_option = app.add_option("--dataset", dataset, "Sequence folder that holds mav0 (EuRoC/ASL layout)");
+  std::string mcap;
+  cvislam::agent::McapTopics topics;
+  auto* mcap_option =
+      app.add_option("--mcap", mcap,
+                     "ROS 2 bag in MCAP (sensor_msgs/msg/Image mono8, rgb8 or bgr8, and sensor_msgs/msg/Imu, CDR); "
+                     "needs --calibration and --imu-calibration")
+          ->check(CLI::ExistingFile);
+  dataset_option->excludes(mcap_option);
+  app.add_option("--cam0-topic", topics.cam0, "With --mcap: cam0's image topic [/cam0/image_raw]");
+  app.add_option("--cam1-topic", topics.cam1, "With --mcap: cam1's image topic; empty: none [/cam1/image_raw]");
+  app.add_option("--imu-topic", topics.imu, "With --mcap: the IMU topic [/imu0]");
+  std::string calibration;
+  std::string imu_calibration;
+  app.add_option("--calibration", calibration,
+                 "Kalibr camera chain (camchain-imucam.yaml: cam0, cam1 with intrinsics, distortion, T_cam_imu, "
+                 "timeshift_cam_imu) used instead of the recording's cam0/cam1 sensor.yaml")
+      ->check(CLI::ExistingFile);
+  app.add_option("--imu-calibration", imu_calibration,
+                 "Kalibr IMU file (imu.yaml: noise densities, random walks, update_rate) used instead of the "
+                 "recording's imu0/sensor.yaml")
+      ->check(CLI::ExistingFile);
   app.add_option("--output", output, "Folder for trajectories, latency profile and summary (created)")->required();
   app.add_option("--config", config, "YAML config (see deploy/agent_config.yaml); command-line options win");
   app.add_option("--mode", mode, "mono, stereo, or auto = stereo when mav0/cam1 exists [auto]");
@@ -84,7 +107,15 @@ int main(int argc, char** argv) {
       return 2;
     }
   }
+  if (dataset.empty() == mcap.empty()) {
+    std::cerr << "cvislam_agent: give the recording: --dataset DIR (EuRoC/ASL folder) or --mcap FILE (ROS 2 bag)\n";
+    return 2;
+  }
   options.dataset = dataset;
+  options.mcap = mcap;
+  options.topics = topics;
+  options.calibration = calibration;
+  options.imu_calibration = imu_calibration;
   options.output = output;
   // --mode, --pace, --roudi: parsed by the agent's own parsers, which name the accepted values.
   const auto parse = [](const std::string& text, const char* flag, auto parser, auto& target) {

@@ -20,8 +20,8 @@ RUN cmake --preset release \
 
 FROM debian:12.8-slim
 ARG RUNTIME_PACKAGES="libabsl20220623 libatlas3-base libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
-libgrpc29 libiceoryx-hoofs2 libiceoryx-posh-roudi2 libiceoryx-posh2 libopencv-calib3d406 libopencv-core406 \
-libprotobuf32 libyaml-cpp0.7"
+libgrpc29 libiceoryx-hoofs2 libiceoryx-posh-roudi2 libiceoryx-posh2 liblz4-1 libopencv-calib3d406 libopencv-core406 \
+libprotobuf32 libyaml-cpp0.7 libzstd1 zlib1g"
 RUN apt-get update \
  && apt-get install -y --no-install-recommends ${RUNTIME_PACKAGES} \
  && rm -rf /var/lib/apt/lists/* \
