@@ -117,6 +117,45 @@ TEST(Recordings, AFolderAndTheSameRecordingAsABagAgreeSampleForSampleAndPixelFor
   }
 }
 
+// Kalibr's timeshift_cam_imu (t_imu = t_cam + shift) moves every frame of a folder and of a bag onto the IMU's
+// clock; the IMU samples stay where they are.
+TEST(Recordings, KalibrsTimeShiftMovesTheFramesOntoTheImuClock) {
+  CVISLAM_REQUIRE_DATA(excerpt, "euroc-v101-excerpt");
+  const test::TempDir dir;
+  const fs::path mav0 = excerpt / "mav0";
+  auto cam0 = dataset::readCameraCalibration(mav0 / "cam0" / "sensor.yaml", "cam0");
+  auto cam1 = dataset::readCameraCalibration(mav0 / "cam1" / "sensor.yaml", "cam1");
+  auto imu = dataset::readImuCalibration(mav0 / "imu0" / "sensor.yaml");
+  ASSERT_TRUE(cam0.ok() && cam1.ok() && imu.ok());
+  const fs::path shifted = dir.path() / "shifted.yaml";
+  const fs::path imu_yaml = dir.path() / "imu.yaml";
+  test::writeTextFile(shifted, test::kalibrCamchainYaml(*cam0, *cam1, -0.0125));
+  test::writeTextFile(imu_yaml, test::kalibrImuYaml(*imu));
+  const fs::path bag = dir.path() / "v101.mcap";
+  ASSERT_TRUE(test::writeEurocAsMcap(excerpt, bag).ok());
+
+  RecordingOptions plain;
+  plain.dataset = excerpt;
+  auto reference = openRecording(plain);
+  ASSERT_TRUE(reference.ok()) << reference.error().toString();
+  RecordingOptions folder = plain;
+  folder.calibration = shifted;
+  RecordingOptions mcap;
+  mcap.mcap = bag;
+  mcap.calibration = shifted;
+  mcap.imu_calibration = imu_yaml;
+  for (const RecordingOptions* options : {&folder, &mcap}) {
+    auto moved = openRecording(*options);
+    ASSERT_TRUE(moved.ok()) << moved.error().toString();
+    ASSERT_EQ((*moved)->rigFrames().size(), (*reference)->rigFrames().size());
+    for (std::size_t i = 0; i < (*reference)->rigFrames().size(); ++i) {
+      EXPECT_EQ((*moved)->rigFrames()[i].t_ns, (*reference)->rigFrames()[i].t_ns - 12'500'000) << (*moved)->describe();
+    }
+    ASSERT_EQ((*moved)->imu().size(), (*reference)->imu().size());
+    EXPECT_EQ((*moved)->imu().front().t_ns, (*reference)->imu().front().t_ns);
+  }
+}
+
 TEST(Recordings, ABagIsRefusedWithWhatToFix) {
   CVISLAM_REQUIRE_DATA(excerpt, "euroc-v101-excerpt");
   const test::TempDir dir;
