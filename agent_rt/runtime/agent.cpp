@@ -132,6 +132,13 @@ Result<RunPlan> planRun(AgentOptions& options) {
                                                   " does not have: use --mode mono"};
   }
   const bool stereo = options.mode == AgentMode::kStereo || (options.mode == AgentMode::kAuto && has_cam1);
+  // The frame ring holds both images of a pair at one size; a cam1 of another size would fail every frame.
+  if (stereo && (rig.cam1->width != rig.cam0.width || rig.cam1->height != rig.cam0.height)) {
+    return Error{ErrorCode::kInvalidArgument,
+                 rec.describe() + ": cam1 is " + std::to_string(rig.cam1->width) + "x" +
+                     std::to_string(rig.cam1->height) + " but cam0 is " + std::to_string(rig.cam0.width) + "x" +
+                     std::to_string(rig.cam0.height) + "; stereo needs both at one resolution (or use --mode mono)"};
+  }
   if (options.use_imu && !rig.imu) {
     return Error{ErrorCode::kInvalidArgument, rec.describe() +
                                                   " has no IMU calibration (imu0/sensor.yaml or --imu-calibration); "

@@ -245,6 +245,23 @@ TEST_F(AgentTest, RefusesWhatCannotWork) {
   ASSERT_FALSE(missing.ok());
   EXPECT_NE(missing.error().message().find("no-such-sequence"), std::string::npos) << missing.error().message();
 
+  // A cam1 calibrated at another resolution than cam0: refused at start, not frame by frame.
+  const fs::path other_size = dir_->path() / "cam1_other_size" / "agent0";
+  test::linkedCopy(sequence(), other_size);
+  const fs::path cam1_yaml = other_size / "mav0" / "cam1" / "sensor.yaml";
+  auto cam1 = dataset::readCameraCalibration(cam1_yaml, "cam1");
+  ASSERT_TRUE(cam1.ok());
+  cam1->width = 640;
+  cam1->cx = 320.0;
+  fs::remove(cam1_yaml);  // a hard link: write a new file instead of through it
+  ASSERT_TRUE(dataset::writeCameraCalibration(cam1_yaml, *cam1).ok());
+  AgentOptions stereo = options(other_size, "refused_cam1");
+  stereo.mode = AgentMode::kStereo;
+  auto mismatched = runAgent(stereo, stop);
+  ASSERT_FALSE(mismatched.ok());
+  EXPECT_NE(mismatched.error().message().find("cam1 is 640x480 but cam0 is 752x480"), std::string::npos)
+      << mismatched.error().message();
+
   AgentOptions bad = options(sequence(), "refused");
   bad.tracking.orb.max_features = 100000;
   auto refused = runAgent(bad, stop);
