@@ -16,11 +16,13 @@
 
 #include "agent_rt/ipc/embedded_roudi.hpp"
 #include "agent_rt/messages/conversions.hpp"
-#include "agent_rt/runtime/frame_ring.hpp"
 #include "agent_rt/runtime/iceoryx_channels.hpp"
+#include "agent_rt/runtime/live_feed.hpp"
 #include "agent_rt/runtime/mapping_thread.hpp"
+#include "agent_rt/runtime/recording_feed.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
+#include "agent_rt/sources/kalibr_rig.hpp"
 #include "common/dataset/euroc.hpp"
 #include "common/dataset/trajectory_io.hpp"
 #include "iceoryx_posh/popo/user_trigger.hpp"
@@ -73,10 +75,29 @@ const char* toString(Pace pace) {
 
 Status AgentOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, what}; };
-  if (dataset.empty() && mcap.empty()) {
-    return bad("no recording given (--dataset SEQ_DIR, the folder that holds mav0, or --mcap BAG.mcap)");
+  const int sources = (dataset.empty() ? 0 : 1) + (mcap.empty() ? 0 : 1) + (live.empty() ? 0 : 1);
+  if (sources == 0) {
+    return bad(
+        "no sensor input given (--dataset SEQ_DIR, the folder that holds mav0; --mcap BAG.mcap; or --live NAME, a "
+        "driver's topics)");
   }
-  if (!dataset.empty() && !mcap.empty()) return bad("give --dataset or --mcap, not both");
+  if (sources > 1) return bad("give one of --dataset, --mcap and --live");
+  if (!live.empty()) {
+    if (roudi != RouDiMode::kExternal) {
+      return bad(
+          "--live needs --roudi external: the driver and the agent meet at one iox-roudi (iox-roudi -c "
+          "deploy/roudi_config.toml)");
+    }
+    if (pace != Pace::kRealtime) return bad("--live runs at the driver's pace: --pace applies to recordings only");
+    if (calibration.empty()) return bad("--live needs the rig's calibration: --calibration camchain-imucam.yaml");
+    if (use_imu && imu_calibration.empty()) {
+      return bad("--live needs the IMU's calibration: --imu-calibration imu.yaml (or run without the IMU)");
+    }
+    if (!(live_imu_wait_s >= 0.0 && live_imu_wait_s <= 1.0)) return bad("live_imu_wait_s must be in [0, 1] s");
+    if (live_record_frames < 1 || live_record_frames > 10'000'000) {
+      return bad("live_record_frames must be in [1, 10000000]");
+    }
+  }
   if (output.empty()) return bad("no output folder given (--output OUT_DIR)");
   if (imu_noise_inflation < 0.0 || !std::isfinite(imu_noise_inflation)) {
     return bad("imu_noise_inflation must be >= 0 (0 = automatic)");
@@ -92,9 +113,11 @@ Status AgentOptions::validate() const {
 
 namespace {
 
-// What the recording and the options decide before any thread starts.
+// What the sensor input and the options decide before any thread starts.
 struct RunPlan {
-  std::unique_ptr<Recording> recording;
+  std::unique_ptr<Recording> recording;  // none for a live stream
+  SensorRig rig;
+  std::string source;  // for messages: "EuRoC folder /data/V1_01", "live stream 'cam'"
   bool stereo;
   double imu_noise_inflation;
   SensorSetup setup;
@@ -103,7 +126,20 @@ struct RunPlan {
   std::vector<dataset::RigFrame> frames;
 };
 
-Result<std::unique_ptr<Recording>> openRecordingOf(const AgentOptions& options) {
+// The recording and its rig; a live stream has only its rig (from the calibration files).
+struct OpenedSource {
+  std::unique_ptr<Recording> recording;
+  SensorRig rig;
+  std::string source;
+  bool simulated = false;
+};
+
+Result<OpenedSource> openSource(const AgentOptions& options) {
+  if (!options.live.empty()) {
+    auto rig = rigFromKalibrFiles(options.calibration, options.imu_calibration);
+    if (!rig) return rig.error();
+    return OpenedSource{nullptr, std::move(rig).value(), "live stream '" + options.live + "'", false};
+  }
   RecordingOptions recording;
   recording.dataset = options.dataset;
   recording.mcap = options.mcap;
@@ -111,41 +147,47 @@ Result<std::unique_ptr<Recording>> openRecordingOf(const AgentOptions& options) 
   recording.calibration = options.calibration;
   recording.imu_calibration = options.imu_calibration;
   recording.require_imu = options.use_imu;
-  return openRecording(recording);
-}
-
-// Opens the recording, chooses the mode and the IMU noise, and makes tracking and mapping for its sensors. Fills
-// what `options` takes from the sensors.
-Result<RunPlan> planRun(AgentOptions& options) {
-  auto recording = openRecordingOf(options);
-  if (!recording) return recording.error();
-  const Recording& rec = **recording;
+  auto opened = openRecording(recording);
+  if (!opened) return opened.error();
+  Recording& rec = **opened;
   if (!rec.diagnostics().empty() && !options.quiet) {
     std::fprintf(stderr, "[agent] the recording has %zu finding(s); the agent goes on without the bad rows:\n",
                  rec.diagnostics().findings().size());
     rec.diagnostics().print(std::cerr, 10);
   }
-  const SensorRig& rig = rec.rig();
+  SensorRig rig = rec.rig();
+  std::string source = rec.describe();
+  const bool simulated = rec.simulated();
+  return OpenedSource{std::move(opened).value(), std::move(rig), std::move(source), simulated};
+}
+
+// Opens the sensor input, chooses the mode and the IMU noise, and makes tracking and mapping for its sensors. Fills
+// what `options` takes from the sensors.
+Result<RunPlan> planRun(AgentOptions& options) {
+  auto opened = openSource(options);
+  if (!opened) return opened.error();
+  const SensorRig& rig = opened->rig;
+  const std::string& describe = opened->source;
   const bool has_cam1 = rig.cam1.has_value();
   if (options.mode == AgentMode::kStereo && !has_cam1) {
-    return Error{ErrorCode::kInvalidArgument, "stereo mode needs a second camera (cam1), which " + rec.describe() +
-                                                  " does not have: use --mode mono"};
+    return Error{ErrorCode::kInvalidArgument,
+                 "stereo mode needs a second camera (cam1), which " + describe + " does not have: use --mode mono"};
   }
   const bool stereo = options.mode == AgentMode::kStereo || (options.mode == AgentMode::kAuto && has_cam1);
   // The frame ring holds both images of a pair at one size; a cam1 of another size would fail every frame.
   if (stereo && (rig.cam1->width != rig.cam0.width || rig.cam1->height != rig.cam0.height)) {
     return Error{ErrorCode::kInvalidArgument,
-                 rec.describe() + ": cam1 is " + std::to_string(rig.cam1->width) + "x" +
-                     std::to_string(rig.cam1->height) + " but cam0 is " + std::to_string(rig.cam0.width) + "x" +
-                     std::to_string(rig.cam0.height) + "; stereo needs both at one resolution (or use --mode mono)"};
+                 describe + ": cam1 is " + std::to_string(rig.cam1->width) + "x" + std::to_string(rig.cam1->height) +
+                     " but cam0 is " + std::to_string(rig.cam0.width) + "x" + std::to_string(rig.cam0.height) +
+                     "; stereo needs both at one resolution (or use --mode mono)"};
   }
   if (options.use_imu && !rig.imu) {
-    return Error{ErrorCode::kInvalidArgument, rec.describe() +
+    return Error{ErrorCode::kInvalidArgument, describe +
                                                   " has no IMU calibration (imu0/sensor.yaml or --imu-calibration); "
                                                   "run with use_imu: false"};
   }
   double inflation = options.imu_noise_inflation;
-  if (inflation == 0.0) inflation = rec.simulated() ? 1.0 : 10.0;
+  if (inflation == 0.0) inflation = opened->simulated ? 1.0 : 10.0;
   auto setup = makeSensorSetup(rig, stereo, inflation);
   if (!setup) return setup.error();
   options.tracking.agent = options.agent;
@@ -159,12 +201,41 @@ Result<RunPlan> planRun(AgentOptions& options) {
   auto mapper = Mapper::create(options.mapping, setup->left, right, setup->T_s_c, setup->T_c0_c1);
   if (!mapper) return mapper.error();
 
-  std::vector<dataset::RigFrame> frames = framesToRun(rec.rigFrames(), stereo);
-  if (options.max_frames > 0 && frames.size() > options.max_frames) frames.resize(options.max_frames);
-  if (frames.empty()) return Error{ErrorCode::kDataError, rec.describe() + " has no usable camera frames"};
+  std::vector<dataset::RigFrame> frames;
+  if (opened->recording) {
+    frames = framesToRun(opened->recording->rigFrames(), stereo);
+    if (options.max_frames > 0 && frames.size() > options.max_frames) frames.resize(options.max_frames);
+    if (frames.empty()) return Error{ErrorCode::kDataError, describe + " has no usable camera frames"};
+  }
   return RunPlan{
-      std::move(recording).value(), stereo,           inflation, std::move(setup).value(), std::move(tracker).value(),
-      std::move(mapper).value(),    std::move(frames)};
+      std::move(opened->recording), std::move(opened->rig),     std::move(opened->source), stereo,           inflation,
+      std::move(setup).value(),     std::move(tracker).value(), std::move(mapper).value(), std::move(frames)};
+}
+
+// The frames for tracking: the recording's, read ahead by a loader thread, or the driver's live topics.
+Result<std::unique_ptr<FrameFeed>> openFeed(const AgentOptions& options, RunPlan& plan, const std::atomic<bool>& stop,
+                                            const std::function<void()>& on_loader_start) {
+  if (plan.recording) {
+    RecordingFeedOptions feed;
+    feed.stereo = plan.stereo;
+    feed.use_imu = options.use_imu;
+    feed.realtime = options.pace == Pace::kRealtime;
+    feed.rate = options.rate;
+    feed.ring_size = options.frame_ring_size;
+    return std::unique_ptr<FrameFeed>(
+        std::make_unique<RecordingFeed>(*plan.recording, plan.frames, feed, on_loader_start));
+  }
+  LiveFeedOptions feed;
+  feed.stream = options.live;
+  feed.width = plan.rig.cam0.width;
+  feed.height = plan.rig.cam0.height;
+  feed.stereo = plan.stereo;
+  feed.use_imu = options.use_imu;
+  feed.timeshift_cam_imu_ns = plan.rig.timeshift_cam_imu_ns;
+  feed.imu_wait_s = options.live_imu_wait_s;
+  feed.quiet = options.quiet;
+  feed.stop = &stop;
+  return openLiveFeed(feed);
 }
 
 // One iceoryx memory pool per message type, sized from its channel's queue (ChannelDepths). Sizes must grow by at
@@ -214,6 +285,7 @@ struct StageLatencies {
         motion("motion_ba", frames),
         keyframe("keyframe_write", frames),
         tracking("tracking_total", frames),
+        frame_to_state("frame_to_state", frames),
         receive("keyframe_publish_to_receive", frames),
         local_ba("local_ba", frames),
         mapping("mapping_total", frames) {}
@@ -229,34 +301,16 @@ struct StageLatencies {
   [[nodiscard]] std::vector<StageSummary> summarise() const {
     std::vector<StageSummary> out;
     for (const LatencyRecorder* r :
-         {&orb, &matching, &pose, &motion, &keyframe, &tracking, &receive, &local_ba, &mapping})
+         {&orb, &matching, &pose, &motion, &keyframe, &tracking, &frame_to_state, &receive, &local_ba, &mapping})
       out.push_back(cvislam::agent::summarise(*r));
     return out;
   }
 
-  LatencyRecorder orb, matching, pose, motion, keyframe, tracking;  // tracking's thread
-  LatencyRecorder receive, local_ba, mapping;                       // mapping's thread
+  // tracking's thread; frame_to_state runs from the frame's capture (FeedFrame::captured_steady_ns) to its tracked
+  // state
+  LatencyRecorder orb, matching, pose, motion, keyframe, tracking, frame_to_state;
+  LatencyRecorder receive, local_ba, mapping;  // mapping's thread
 };
-
-// The loader thread's work: every frame's images into the ring, until the end or until tracking closes it.
-void loadFrames(Recording& recording, const std::vector<dataset::RigFrame>& frames, bool stereo, FrameRing& ring) {
-  for (std::size_t i = 0; i < frames.size(); ++i) {
-    FrameRing::Slot* slot = ring.waitForFreeSlot();
-    if (slot == nullptr) return;  // tracking stopped
-    slot->t_ns = frames[i].t_ns;
-    slot->frame = i;
-    slot->ok = true;
-    slot->error.clear();
-    Status st = recording.loadImageInto(0, frames[i].cam0, slot->left);
-    if (st.ok() && stereo) st = recording.loadImageInto(1, *frames[i].cam1, slot->right);
-    if (!st.ok()) {
-      slot->ok = false;
-      slot->error = st.error().toString();
-    }
-    ring.produced();
-  }
-  ring.finish();
-}
 
 // Set once by one thread, waited for with a deadline by another.
 class Completion {
@@ -286,7 +340,7 @@ class TrackingLoop {
   struct Shared {
     const AgentOptions& options;
     const RunPlan& plan;
-    FrameRing& ring;
+    FrameFeed& feed;
     StageLatencies& latencies;
     TrajectoryRecorder& recorder;
     YieldRequests& yield_requests;
@@ -324,24 +378,30 @@ class TrackingLoop {
         summary.interrupted = true;
         break;
       }
-      FrameRing::Slot* slot = s_.ring.waitForFrame();
-      if (slot == nullptr) break;
-      if (s_.options.pace == Pace::kRealtime) std::this_thread::sleep_until(sensorTimeDue(slot->t_ns));
+      const FeedFrame* frame = s_.feed.next();
+      if (frame == nullptr) {
+        summary.interrupted = s_.stop.load();
+        break;
+      }
+      if (first_t_ns_ < 0) first_t_ns_ = frame->t_ns;
       drainSnapshots();
       ++summary.frames;
-      if (!slot->ok) {
+      if (!frame->ok) {
         ++summary.unreadable_frames;
-        if (!s_.options.quiet)
-          std::fprintf(stderr, "[tracking] frame %zu skipped: %s\n", slot->frame, slot->error.c_str());
-        s_.ring.consumed();
+        if (!s_.options.quiet) {
+          std::fprintf(stderr, "[tracking] frame %llu skipped: %s\n", static_cast<unsigned long long>(frame->index),
+                       frame->error);
+        }
+        s_.feed.release();
         continue;
       }
-      const FrameInput input = frameInput(*slot);
+      const FrameInput input = frameInput(*frame);
+      const std::int64_t captured_ns = frame->captured_steady_ns;
       const FrameResult r = tracker_.track(input, sink_);
-      previous_t_ns_ = slot->t_ns;
-      s_.ring.consumed();
+      s_.feed.release();
+      s_.latencies.frame_to_state.add(steadyNs() - captured_ns);
       s_.latencies.addFrame(r);
-      s_.recorder.addFrame(input.t_ns, r);
+      if (!s_.recorder.addFrame(input.t_ns, r)) ++summary.frames_not_recorded;
       count(input.t_ns, r, summary);
       waitForMappingIfPaced(r);
       reportProgress(input.t_ns, r, summary);
@@ -371,23 +431,14 @@ class TrackingLoop {
     return options;
   }
 
-  [[nodiscard]] Clock::time_point sensorTimeDue(std::int64_t t_ns) const {
-    const std::int64_t since_first = t_ns - s_.plan.frames.front().t_ns;
-    return wall_start_ +
-           std::chrono::nanoseconds(static_cast<std::int64_t>(static_cast<double>(since_first) / s_.options.rate));
-  }
-
-  [[nodiscard]] FrameInput frameInput(const FrameRing::Slot& slot) const {
+  [[nodiscard]] FrameInput frameInput(const FeedFrame& frame) const {
     FrameInput input;
-    input.t_ns = slot.t_ns;
-    input.width = s_.plan.recording->rig().cam0.width;
-    input.height = s_.plan.recording->rig().cam0.height;
-    input.left = slot.left;
-    if (s_.plan.stereo) input.right = slot.right;
-    // The IMU covering [previous frame, this frame].
-    if (s_.options.use_imu) {
-      input.imu = imuCovering(s_.plan.recording->imu(), previous_t_ns_ < 0 ? slot.t_ns : previous_t_ns_, slot.t_ns);
-    }
+    input.t_ns = frame.t_ns;
+    input.width = s_.plan.rig.cam0.width;
+    input.height = s_.plan.rig.cam0.height;
+    input.left = frame.left;
+    input.right = frame.right;
+    input.imu = frame.imu;
     return input;
   }
 
@@ -450,14 +501,33 @@ class TrackingLoop {
     if (s_.options.quiet || since_s < s_.options.progress_interval_s) return;
     const double fps = static_cast<double>(summary.frames - frames_at_progress_) / since_s;
     const MapSnapshotMessage* map = held_ ? held_->get() : nullptr;
-    std::fprintf(stderr,
-                 "[agent] frame %zu/%zu  t=%.1f s  %.1f fps  %-15s  inliers %3d  map %2u KF %5u pts  IMU %s%s%s\n",
-                 summary.frames, s_.plan.frames.size(), static_cast<double>(t_ns - s_.plan.frames.front().t_ns) * 1e-9,
-                 fps, toString(r.status), r.inliers, map ? map->keyframe_count : 0U, map ? map->point_count : 0U,
-                 tracker_.imuInitialised() ? "initialised" : "not yet", s_.link ? "  " : "",
+    char frames[48];
+    if (s_.feed.knownFrames() > 0) {
+      std::snprintf(frames, sizeof(frames), "%zu/%zu", summary.frames, s_.feed.knownFrames());
+    } else {
+      std::snprintf(frames, sizeof(frames), "%zu", summary.frames);
+    }
+    std::fprintf(stderr, "[agent] frame %s  t=%.1f s  %.1f fps  %-15s  inliers %3d  map %2u KF %5u pts  IMU %s%s%s%s\n",
+                 frames, static_cast<double>(t_ns - first_t_ns_) * 1e-9, fps, toString(r.status), r.inliers,
+                 map ? map->keyframe_count : 0U, map ? map->point_count : 0U,
+                 tracker_.imuInitialised() ? "initialised" : "not yet", liveFaultText(), s_.link ? "  " : "",
                  s_.link ? s_.link->progressText().c_str() : "");
     last_progress_ = now;
     frames_at_progress_ = summary.frames;
+  }
+
+  // What went wrong with a live stream so far, for the progress line ("" when nothing did). Only printed every
+  // progress interval, so its string does not weigh on the per-frame path.
+  const char* liveFaultText() {
+    const FeedFaults f = s_.feed.faults();
+    fault_text_[0] = '\0';
+    if (!f.any()) return fault_text_;
+    std::snprintf(
+        fault_text_, sizeof(fault_text_), "  live: lost %llu, late %llu, bad %llu, IMU lost %llu late %llu waits %llu",
+        static_cast<unsigned long long>(f.frames_lost), static_cast<unsigned long long>(f.frames_out_of_order),
+        static_cast<unsigned long long>(f.messages_malformed), static_cast<unsigned long long>(f.imu_lost),
+        static_cast<unsigned long long>(f.imu_out_of_order), static_cast<unsigned long long>(f.imu_wait_timeouts));
+    return fault_text_;
   }
 
   Shared s_;
@@ -470,7 +540,14 @@ class TrackingLoop {
   Clock::time_point wall_start_;
   Clock::time_point last_progress_;
   std::size_t frames_at_progress_ = 0;
-  std::int64_t previous_t_ns_ = -1;
+  char fault_text_[160] = {};
+
+ public:
+  // The sensor time of the first frame; -1 before one came.
+  [[nodiscard]] std::int64_t firstFrameTns() const { return first_t_ns_; }
+
+ private:
+  std::int64_t first_t_ns_ = -1;
   std::size_t tracked_points_sum_ = 0;
   TrackingStatus previous_status_ = TrackingStatus::kWaitingForMap;
 };
@@ -546,8 +623,9 @@ void addMappingFigures(const MappingStats& stats, const YieldRequests& yield_req
   summary.local_ba_yielded_to_tracking = stats.ba_yielded_to_tracking;
   summary.mapping_yield_requests = yield_requests.requests();
   summary.lost_keyframe_messages = stats.lost_messages;
-  summary.imu_initialised_at_s =
-      stats.imu_initialised_at_s < 0 ? -1.0 : stats.imu_initialised_at_s - static_cast<double>(first_frame_t_ns) * 1e-9;
+  summary.imu_initialised_at_s = stats.imu_initialised_at_s < 0 || first_frame_t_ns < 0
+                                     ? -1.0
+                                     : stats.imu_initialised_at_s - static_cast<double>(first_frame_t_ns) * 1e-9;
 }
 
 // summary.json.
@@ -574,6 +652,20 @@ nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& o
                       {"imu_noise_inflation", plan.imu_noise_inflation},
                       {"interrupted", summary.interrupted},
                       {"wall_s", summary.wall_s}};
+  if (summary.live) {
+    const FeedFaults& f = summary.live_faults;
+    j["live"] = {{"stream", options.live},
+                 {"frames_lost", f.frames_lost},
+                 {"frames_out_of_order", f.frames_out_of_order},
+                 {"messages_malformed", f.messages_malformed},
+                 {"imu_lost", f.imu_lost},
+                 {"imu_out_of_order", f.imu_out_of_order},
+                 {"imu_overflow", f.imu_overflow},
+                 {"imu_wait_timeouts", f.imu_wait_timeouts},
+                 {"stalls", f.stalls},
+                 {"driver_restarts", f.driver_restarts},
+                 {"frames_not_recorded", summary.frames_not_recorded}};
+  }
   if (summary.link_enabled) {
     j["link"] = {
         {"server", options.link.server},
@@ -634,14 +726,12 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   auto roudi = startIceoryx(options, depths);
   if (!roudi) return roudi.error();
 
-  const std::size_t n_frames = plan.frames.size();
+  // Room for every frame of a recording; a live run keeps the first live_record_frames.
+  const std::size_t n_frames = plan.recording ? plan.frames.size() : options.live_record_frames;
   StageLatencies latencies(n_frames);
   MappingStats mapping_stats;
   AgentRunSummary summary;
   TrajectoryRecorder recorder(n_frames);
-  const auto& cam0 = plan.recording->rig().cam0;
-  FrameRing ring(options.frame_ring_size, static_cast<std::size_t>(cam0.width) * static_cast<std::size_t>(cam0.height),
-                 plan.stereo);
   std::atomic<bool> tracking_done{false};
   std::atomic<bool> mapping_ready{false};
   YieldRequests yield_requests;  // tracking -> mapping: cut the local BA short (FrameResult::keyframe_overdue)
@@ -659,22 +749,21 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     if (!outcome.applied) std::fprintf(stderr, "[agent] threads.%s: %s\n", name, outcome.note.c_str());
   };
 
-  std::thread loader([&] {
-    schedule_this_thread("loader", threads.loader);
-    loadFrames(*plan.recording, plan.frames, plan.stereo, ring);
-  });
+  auto feed = openFeed(options, plan, stop, [&] { schedule_this_thread("loader", threads.loader); });
+  if (!feed) return feed.error();
+  if (!options.live.empty() && !options.quiet) {
+    std::fprintf(stderr, "[agent] live stream '%s': %s %dx%d%s\n", options.live.c_str(),
+                 plan.stereo ? "stereo" : "mono", plan.rig.cam0.width, plan.rig.cam0.height,
+                 options.use_imu ? " with IMU" : "");
+  }
 
   std::unique_ptr<LinkThread> link;
   if (!options.link.server.empty()) {
     LinkOptions link_options = options.link;
     link_options.local_map_keyframes = static_cast<std::uint32_t>(options.mapping.max_keyframes);
-    auto created = Link::create(link_options, options.agent,
-                                linkSensors(plan.recording->rig(), plan.setup, plan.stereo, options.use_imu));
-    if (!created) {
-      ring.close();
-      loader.join();
-      return created.error();
-    }
+    auto created =
+        Link::create(link_options, options.agent, linkSensors(plan.rig, plan.setup, plan.stereo, options.use_imu));
+    if (!created) return created.error();
     if (!options.quiet) {
       std::fprintf(stderr, "[link] server %s, mission '%s', agent %u\n", options.link.server.c_str(),
                    options.link.mission.c_str(), static_cast<unsigned>(options.agent));
@@ -695,23 +784,27 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.
   const ThreadScheduleRestorer restore_caller;
   schedule_this_thread("tracking", threads.tracking);
+  std::int64_t first_frame_t_ns = -1;
   {
     TrackingLoop tracking(
-        {options, plan, ring, latencies, recorder, yield_requests, stop, link ? &link->link() : nullptr}, depths);
+        {options, plan, **feed, latencies, recorder, yield_requests, stop, link ? &link->link() : nullptr}, depths);
     tracking.awaitMapping(mapping_ready);
     tracking.run(summary);
-    ring.close();
+    (*feed)->close();
+    summary.live = !options.live.empty();
+    summary.live_faults = (*feed)->faults();
     tracking_done.store(true);
     tracking_done_trigger.trigger();
     mapping.join();
-    loader.join();
+    feed->reset();              // the loader's end, or the live topics' subscriptions
     tracking.drainSnapshots();  // the last refinements
+    first_frame_t_ns = tracking.firstFrameTns();
   }
   if (link) {
     summary.link_enabled = true;
     summary.link = link->finish();
   }
-  addMappingFigures(mapping_stats, yield_requests, plan.frames.front().t_ns, summary);
+  addMappingFigures(mapping_stats, yield_requests, first_frame_t_ns, summary);
   summary.stages = latencies.summarise();
 
   // Outputs, on every path that got here (end of data, SIGINT/SIGTERM).

@@ -1,9 +1,9 @@
-// The agent process: reads a EuRoC-format sequence, runs tracking (the calling thread) and mapping (its own
-// thread) joined by iceoryx, and writes the trajectory, the keyframe trajectory and the latency profile. With a
-// server, a link thread streams the map to it.
+// The agent process: takes frames from a recording (EuRoC folder, ROS 2 bag) or a driver's live topics, runs
+// tracking (the calling thread) and mapping (its own thread) joined by iceoryx, and writes the trajectory, the
+// keyframe trajectory and the latency profile. With a server, a link thread streams the map to it.
 //
 //   loader thread --(bounded ring of preallocated frames)--> tracking --KeyframeMessage (iceoryx)--> mapping
-//                                                            tracking <--MapSnapshotMessage (iceoryx)-- mapping
+//   or a driver --(live topics, iceoryx, read in place)-->   tracking <--MapSnapshotMessage (iceoryx)-- mapping
 //                                    server <--gRPC-- link <--MapDeltaMessage (iceoryx)-- mapping
 //
 // iceoryx headers stay in agent.cpp.
@@ -17,6 +17,7 @@
 
 #include "agent_rt/link/link.hpp"
 #include "agent_rt/mapping/mapper.hpp"
+#include "agent_rt/runtime/frame_feed.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
 #include "agent_rt/runtime/thread_schedule.hpp"
 #include "agent_rt/sources/recording.hpp"
@@ -41,7 +42,8 @@ const char* toString(Pace pace);
 
 struct AgentOptions {
   std::filesystem::path dataset;  // the folder that holds mav0, or
-  std::filesystem::path mcap;     // a ROS 2 bag in MCAP
+  std::filesystem::path mcap;     // a ROS 2 bag in MCAP, or
+  std::string live;               // the NAME of a driver's live topics (agent_rt/live/sensor_topics.hpp)
   McapTopics topics;              // the bag's topics
   // Kalibr calibration files that replace the recording's own (empty: the recording's sensor.yaml files).
   std::filesystem::path calibration;      // camchain-imucam.yaml
@@ -64,8 +66,13 @@ struct AgentOptions {
   double rate = 1.0;  // realtime pace: 2 plays the sequence twice as fast
   double progress_interval_s = 2.0;
   bool quiet = false;
-  bool trace_mapping = false;     // one line per keyframe on stderr: links, new points, stereo matches, local BA
-  std::size_t max_frames = 0;     // 0 = all
+  bool trace_mapping = false;  // one line per keyframe on stderr: links, new points, stereo matches, local BA
+  std::size_t max_frames = 0;  // 0 = all
+  // Live: how long a frame waits for the IMU sample that closes its interval, and how many frames are kept for the
+  // trajectory files and the latency profile (their memory is reserved at start; later frames are tracked and
+  // published but not written). 72000 is an hour at 20 Hz.
+  double live_imu_wait_s = 0.02;
+  std::size_t live_record_frames = 72000;
   int frame_ring_size = 4;        // frames the loader reads ahead
   ThreadScheduleOptions threads;  // nice values, real-time priority and CPUs per thread (thread_schedule.hpp)
 
@@ -99,6 +106,9 @@ struct AgentRunSummary {
   double mean_tracked_points = 0.0;
   double wall_s = 0.0;
   bool interrupted = false;
+  bool live = false;
+  FeedFaults live_faults;
+  std::size_t frames_not_recorded = 0;  // live frames past live_record_frames
   std::vector<StageSummary> stages;
   std::filesystem::path trajectory;
   std::filesystem::path keyframe_trajectory;

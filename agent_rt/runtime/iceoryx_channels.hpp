@@ -13,6 +13,7 @@
 #include "agent_rt/messages/messages.hpp"
 #include "agent_rt/runtime/channel_depths.hpp"
 #include "agent_rt/tracking/tracker.hpp"
+#include "common/core/steady_clock.hpp"
 #include "iceoryx_posh/popo/publisher.hpp"
 #include "iceoryx_posh/popo/subscriber.hpp"
 
@@ -44,8 +45,7 @@ struct ChunkReleaseOnExit {
 
 // Steady clock now [ns]: the messages' publish times and the latencies measured from them.
 inline std::int64_t steadyNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now().time_since_epoch())
-      .count();
+  return steadyNowNs();
 }
 
 // The topic `event` of agent `agent`.

@@ -13,10 +13,11 @@ TrajectoryRecorder::TrajectoryRecorder(std::size_t frames) {
   keyframes_.resize(frames + 1);
 }
 
-void TrajectoryRecorder::addFrame(std::int64_t t_ns, const FrameResult& r) {
-  if (frames_.size() == frames_.capacity()) return;
+bool TrajectoryRecorder::addFrame(std::int64_t t_ns, const FrameResult& r) {
+  if (frames_.size() == frames_.capacity()) return false;
   frames_.push_back({t_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U, r.has_reference, r.tracked,
                      r.keyframe, r.map_id, r.map_epoch});
+  return true;
 }
 
 void TrajectoryRecorder::addSnapshot(const MapSnapshotMessage& s) {

@@ -18,7 +18,8 @@ class TrajectoryRecorder {
  public:
   explicit TrajectoryRecorder(std::size_t frames);
 
-  void addFrame(std::int64_t t_ns, const FrameResult& r);
+  // False when the reserved room is full: the frame is not recorded.
+  bool addFrame(std::int64_t t_ns, const FrameResult& r);
   // The keyframes' refined states; a change of world frame (map_epoch + 1) moves what was recorded before it.
   void addSnapshot(const MapSnapshotMessage& s);
   // The trajectory of tracked frames with every frame hung from its keyframe's newest pose, the trajectory

@@ -18,6 +18,15 @@ Status sameResolution(const dataset::CameraCalibration& kalibr, const dataset::C
                    std::to_string(recording.width) + "x" + std::to_string(recording.height)};
 }
 
+// One shift moves the rig's frames; a stereo pair is taken together, so its cameras must agree.
+Status sameShift(const dataset::KalibrCamera& cam0, const dataset::KalibrCamera& cam1,
+                 const std::filesystem::path& file) {
+  if (std::llabs(cam1.timeshift_cam_imu_ns - cam0.timeshift_cam_imu_ns) <= 1'000'000) return Status::Ok();
+  return Error{ErrorCode::kInvalidArgument, file.string() +
+                                                ": cam0 and cam1 have timeshift_cam_imu more than 1 ms apart; "
+                                                "a stereo pair is taken at one time"};
+}
+
 }  // namespace
 
 Result<std::int64_t> applyKalibrFiles(const RecordingOptions& options, SensorRig& rig) {
@@ -34,12 +43,7 @@ Result<std::int64_t> applyKalibrFiles(const RecordingOptions& options, SensorRig
       dataset::CameraCalibration cam1 = (*chain)[1].calibration;
       if (Status s = sameResolution(cam1, *rig.cam1, options.calibration); !s.ok()) return s.error();
       cam1.rate_hz = rig.cam1->rate_hz;
-      // One shift moves the rig's frames; a stereo pair is taken together, so its cameras must agree.
-      if (std::llabs((*chain)[1].timeshift_cam_imu_ns - shift_ns) > 1'000'000) {
-        return Error{ErrorCode::kInvalidArgument, options.calibration.string() +
-                                                      ": cam0 and cam1 have timeshift_cam_imu more than 1 ms apart; "
-                                                      "a stereo pair is taken at one time"};
-      }
+      if (Status s = sameShift((*chain)[0], (*chain)[1], options.calibration); !s.ok()) return s.error();
       rig.cam1 = cam1;
     } else {
       rig.cam1.reset();
@@ -51,7 +55,32 @@ Result<std::int64_t> applyKalibrFiles(const RecordingOptions& options, SensorRig
     if (!imu) return imu.error();
     rig.imu = imu->calibration;
   }
+  rig.timeshift_cam_imu_ns = shift_ns;
   return shift_ns;
+}
+
+Result<SensorRig> rigFromKalibrFiles(const std::filesystem::path& calibration,
+                                     const std::filesystem::path& imu_calibration) {
+  if (calibration.empty()) {
+    return Error{
+        ErrorCode::kInvalidArgument,
+        "a live stream carries no calibration: give Kalibr's camera chain (--calibration camchain-imucam.yaml)"};
+  }
+  auto chain = dataset::readKalibrCamchain(calibration);
+  if (!chain) return chain.error();
+  SensorRig rig;
+  rig.cam0 = (*chain)[0].calibration;
+  rig.timeshift_cam_imu_ns = (*chain)[0].timeshift_cam_imu_ns;
+  if (chain->size() > 1) {
+    if (Status s = sameShift((*chain)[0], (*chain)[1], calibration); !s.ok()) return s.error();
+    rig.cam1 = (*chain)[1].calibration;
+  }
+  if (!imu_calibration.empty()) {
+    auto imu = dataset::readKalibrImu(imu_calibration);
+    if (!imu) return imu.error();
+    rig.imu = imu->calibration;
+  }
+  return rig;
 }
 
 }  // namespace cvislam::agent

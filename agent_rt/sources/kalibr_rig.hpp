@@ -14,4 +14,9 @@ namespace cvislam::agent {
 // without a chain).
 Result<std::int64_t> applyKalibrFiles(const RecordingOptions& options, SensorRig& rig);
 
+// The rig of a live stream, which has nothing but the calibration files: cam0, cam1 when the chain has it, the IMU
+// when `imu_calibration` is given, and cam0's timeshift_cam_imu (cam1's must agree within 1 ms).
+Result<SensorRig> rigFromKalibrFiles(const std::filesystem::path& calibration,
+                                     const std::filesystem::path& imu_calibration);
+
 }  // namespace cvislam::agent

@@ -28,6 +28,8 @@ struct SensorRig {
   dataset::CameraCalibration cam0;
   std::optional<dataset::CameraCalibration> cam1;
   std::optional<dataset::ImuCalibration> imu;
+  // t_imu = t_cam + shift (Kalibr's timeshift_cam_imu). A recording's frames are already moved by it.
+  std::int64_t timeshift_cam_imu_ns = 0;
 };
 
 class Recording {

@@ -1,6 +1,7 @@
-// cvislam_agent: the onboard visual-inertial odometry of one agent, on a EuRoC-format sequence.
+// cvislam_agent: the onboard visual-inertial odometry of one agent, on a recording or a driver's live topics.
 //
-//   cvislam_agent (--dataset SEQ_DIR | --mcap BAG.mcap) --output OUT_DIR [--config FILE] [--mode mono|stereo|auto]
+//   cvislam_agent (--dataset SEQ_DIR | --mcap BAG.mcap | --live NAME) --output OUT_DIR [--config FILE]
+//                 [--mode mono|stereo|auto]
 //                 [--calibration KALIBR_CAMCHAIN --imu-calibration KALIBR_IMU]
 //                 [--cam0-topic T --cam1-topic T --imu-topic T]
 //                 [--pace realtime|fast|sync] [--rate R] [--roudi embedded|external] [--agent-id N]
@@ -31,7 +32,9 @@ extern "C" void onSignal(int /*signal*/) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"cvislam_agent: real-time visual-inertial odometry of one agent on a EuRoC-format sequence"};
+  CLI::App app{
+      "cvislam_agent: real-time visual-inertial odometry of one agent, on a recording (EuRoC folder, ROS 2 bag) or "
+      "on a driver's live topics"};
   std::string dataset;
   std::string output;
   std::string config;
@@ -56,6 +59,13 @@ int main(int argc, char** argv) {
                      "needs --calibration and --imu-calibration")
           ->check(CLI::ExistingFile);
   dataset_option->excludes(mcap_option);
+  std::string live;
+  auto* live_option = app.add_option(
+      "--live", live,
+      "Track a driver's live topics NAME (cvislam_sensor_publisher --name NAME plays a recording onto them); attaches "
+      "to an iox-roudi (implies --roudi external), needs --calibration and --imu-calibration, and runs until the "
+      "driver ends the stream or SIGINT");
+  live_option->excludes(dataset_option)->excludes(mcap_option);
   app.add_option("--cam0-topic", topics.cam0, "With --mcap: cam0's image topic [/cam0/image_raw]");
   app.add_option("--cam1-topic", topics.cam1, "With --mcap: cam1's image topic; empty: none [/cam1/image_raw]");
   app.add_option("--imu-topic", topics.imu, "With --mcap: the IMU topic [/imu0]");
@@ -107,12 +117,15 @@ int main(int argc, char** argv) {
       return 2;
     }
   }
-  if (dataset.empty() == mcap.empty()) {
-    std::cerr << "cvislam_agent: give the recording: --dataset DIR (EuRoC/ASL folder) or --mcap FILE (ROS 2 bag)\n";
+  if (dataset.empty() && mcap.empty() && live.empty()) {
+    std::cerr << "cvislam_agent: give the sensor input: --dataset DIR (EuRoC/ASL folder), --mcap FILE (ROS 2 bag) or "
+                 "--live NAME (a driver's topics)\n";
     return 2;
   }
   options.dataset = dataset;
   options.mcap = mcap;
+  options.live = live;
+  if (!live.empty()) options.roudi = cvislam::agent::RouDiMode::kExternal;
   options.topics = topics;
   options.calibration = calibration;
   options.imu_calibration = imu_calibration;

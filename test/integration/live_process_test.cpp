@@ -1,0 +1,182 @@
+// The agent on live topics as a robot runs it: iox-roudi, a driver process (cvislam_sensor_publisher playing the real
+// EuRoC V1_01 excerpt at sensor pace), cvislam_agent --live and a cvislam_server, all separate processes. The live
+// run must track as well as the same recording read from its folder at the same pace, reach the server, and end when
+// the driver ends the stream; an agent left without a driver stops on SIGINT with its outputs written.
+#include <signal.h>
+
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include <nlohmann/json.hpp>
+
+#include "common/core/diagnostics.hpp"
+#include "common/dataset/calibration.hpp"
+#include "common/dataset/trajectory_io.hpp"
+#include "common/eval/trajectory_eval.hpp"
+#include "test/support/child_process.hpp"
+#include "test/support/kalibr_files.hpp"
+#include "test/support/temp_dir.hpp"
+#include "test/support/test_data.hpp"
+
+namespace cvislam {
+namespace {
+
+namespace fs = std::filesystem;
+using std::chrono::milliseconds;
+using test::ChildProcess;
+
+std::string readFile(const fs::path& path) {
+  std::ifstream in(path);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+nlohmann::json readJson(const fs::path& path) {
+  std::ifstream in(path);
+  return nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
+}
+
+// ATE (SE3 alignment, RMSE) of a trajectory against the sequence's ground truth.
+double ateM(const fs::path& trajectory, const fs::path& sequence) {
+  Diagnostics diagnostics;
+  auto estimate = dataset::readTrajectory(trajectory, {}, diagnostics);
+  auto truth = dataset::readTrajectory(sequence, {}, diagnostics);
+  if (!estimate.ok() || !truth.ok()) return 1e9;
+  auto evaluation = eval::evaluate(*estimate, *truth, {});
+  if (!evaluation.ok()) return 1e9;
+  const eval::AbsoluteError* se3 = evaluation->find(eval::Alignment::kSE3);
+  return se3 != nullptr ? se3->translation_m.rmse : 1e9;
+}
+
+class LiveProcesses : public ::testing::Test {
+ protected:
+  void TearDown() override {
+    if (roudi_) {
+      roudi_->signal(SIGTERM);
+      (void)roudi_->wait(milliseconds(5000));
+    }
+  }
+
+  void startRouDi() {
+    roudi_ = std::make_unique<ChildProcess>(
+        std::vector<std::string>{"/usr/bin/iox-roudi", "-m", "off", "-c", CVISLAM_ROUDI_CONFIG}, dir_.path() / "roudi.log");
+    ASSERT_TRUE(test::waitFor([&] { return readFile(roudi_->log()).find("RouDi is ready") != std::string::npos; },
+                              milliseconds(10000)))
+        << readFile(roudi_->log());
+  }
+
+  // Kalibr files equal to the sequence's sensor.yaml files: a live stream carries no calibration.
+  void writeCalibration(const fs::path& sequence) {
+    const fs::path mav0 = sequence / "mav0";
+    auto cam0 = dataset::readCameraCalibration(mav0 / "cam0" / "sensor.yaml", "cam0");
+    auto cam1 = dataset::readCameraCalibration(mav0 / "cam1" / "sensor.yaml", "cam1");
+    auto imu = dataset::readImuCalibration(mav0 / "imu0" / "sensor.yaml");
+    ASSERT_TRUE(cam0.ok() && cam1.ok() && imu.ok());
+    test::writeTextFile(camchain_, test::kalibrCamchainYaml(*cam0, *cam1));
+    test::writeTextFile(imu_yaml_, test::kalibrImuYaml(*imu));
+  }
+
+  [[nodiscard]] std::vector<std::string> agentArgs(const std::string& name) const {
+    return {CVISLAM_AGENT_BINARY, "--output", (dir_.path() / name).string(), "--calibration", camchain_.string(),
+            "--imu-calibration", imu_yaml_.string(), "--mode", "stereo", "--quiet"};
+  }
+
+  static void expectCleanExit(ChildProcess& process, milliseconds timeout = milliseconds(120000)) {
+    const auto status = process.wait(timeout);
+    ASSERT_TRUE(status.has_value()) << "did not finish; its log:\n" << readFile(process.log());
+    EXPECT_EQ(*status, 0) << readFile(process.log());
+  }
+
+  test::TempDir dir_;
+  fs::path camchain_ = dir_.path() / "kalibr" / "camchain-imucam.yaml";
+  fs::path imu_yaml_ = dir_.path() / "kalibr" / "imu.yaml";
+  std::unique_ptr<ChildProcess> roudi_;
+};
+
+TEST_F(LiveProcesses, ADriverProcessFeedsTheAgentWhichTracksAsFromTheFolderAndReachesTheServer) {
+  CVISLAM_REQUIRE_DATA(excerpt, "euroc-v101-excerpt");
+  writeCalibration(excerpt);
+  startRouDi();
+
+  // The reference: the same recording from its folder, at the same (sensor) pace.
+  std::vector<std::string> folder_args = agentArgs("folder");
+  folder_args.insert(folder_args.end(), {"--dataset", excerpt.string(), "--roudi", "external"});
+  ChildProcess folder(folder_args, dir_.path() / "folder.log");
+  expectCleanExit(folder);
+
+  const fs::path port_file = dir_.path() / "server_port";
+  ChildProcess server({CVISLAM_SERVER_BINARY, "--listen", "127.0.0.1:0", "--output", (dir_.path() / "server").string(),
+                       "--port-file", port_file.string(), "--quiet"},
+                      dir_.path() / "server.log");
+  ASSERT_TRUE(test::waitFor([&] { return fs::exists(port_file) || !server.running(); }, milliseconds(10000)));
+  ASSERT_TRUE(server.running()) << readFile(server.log());
+
+  std::vector<std::string> live_args = agentArgs("live");
+  live_args.insert(live_args.end(), {"--live", "v101", "--server", "127.0.0.1:" + readFile(port_file), "--mission",
+                                     "live"});
+  ChildProcess agent(live_args, dir_.path() / "live.log");
+  ChildProcess driver({CVISLAM_PUBLISHER_BINARY, "--dataset", excerpt.string(), "--name", "v101", "--quiet"},
+                      dir_.path() / "driver.log");
+  expectCleanExit(driver);
+  expectCleanExit(agent);  // ended by the driver's end of stream
+  server.signal(SIGTERM);
+  ASSERT_TRUE(server.wait(milliseconds(20000)).has_value()) << readFile(server.log());
+
+  const nlohmann::json live = readJson(dir_.path() / "live" / "summary.json");
+  const nlohmann::json from_folder = readJson(dir_.path() / "folder" / "summary.json");
+  ASSERT_TRUE(live.is_object() && from_folder.is_object()) << readFile(agent.log());
+  EXPECT_EQ(live["frames"], from_folder["frames"]) << live.dump(1);
+  EXPECT_FALSE(live["interrupted"].get<bool>());
+  EXPECT_EQ(live["live"]["frames_lost"], 0) << live.dump(1);
+  EXPECT_EQ(live["live"]["imu_wait_timeouts"], 0) << live.dump(1);
+  EXPECT_GE(live["tracked_frames"].get<int>(), from_folder["tracked_frames"].get<int>() - 2);
+  EXPECT_TRUE(live["link"]["flushed"].get<bool>()) << live.dump(1);
+  EXPECT_EQ(live["link"]["keyframes_unacknowledged"], 0) << live.dump(1);
+
+  const double ate_folder_m = ateM(dir_.path() / "folder" / "trajectory.txt", excerpt);
+  const double ate_live_m = ateM(dir_.path() / "live" / "trajectory.txt", excerpt);
+  std::printf("ATE (SE3, refined trajectory, realtime): folder %.3f mm, live %.3f mm\n", ate_folder_m * 1e3,
+              ate_live_m * 1e3);
+  EXPECT_LT(ate_folder_m, 0.005);
+  EXPECT_LE(ate_live_m, 1.1 * ate_folder_m);
+}
+
+TEST_F(LiveProcesses, AnAgentWaitingForADriverStopsOnSigintWithItsOutputs) {
+  CVISLAM_REQUIRE_DATA(excerpt, "euroc-v101-excerpt");
+  writeCalibration(excerpt);
+  startRouDi();
+  std::vector<std::string> args = agentArgs("waiting");
+  args.erase(args.end() - 1);  // not quiet: the waiting is said
+  args.insert(args.end(), {"--live", "nobody"});
+  ChildProcess agent(args, dir_.path() / "waiting.log");
+  ASSERT_TRUE(test::waitFor([&] { return readFile(agent.log()).find("waiting for a driver") != std::string::npos; },
+                            milliseconds(20000)))
+      << readFile(agent.log());
+  agent.signal(SIGINT);
+  expectCleanExit(agent, milliseconds(20000));
+  const nlohmann::json summary = readJson(dir_.path() / "waiting" / "summary.json");
+  ASSERT_TRUE(summary.is_object()) << readFile(agent.log());
+  EXPECT_TRUE(summary["interrupted"].get<bool>());
+  EXPECT_EQ(summary["frames"], 0);
+}
+
+TEST_F(LiveProcesses, ALiveAgentSaysWhatItLacks) {
+  CVISLAM_REQUIRE_DATA(excerpt, "euroc-v101-excerpt");
+  writeCalibration(excerpt);
+  // No calibration.
+  ChildProcess bare({CVISLAM_AGENT_BINARY, "--live", "cam", "--output", (dir_.path() / "bare").string()},
+                    dir_.path() / "bare.log");
+  EXPECT_EQ(bare.wait(milliseconds(20000)), 1);
+  EXPECT_NE(readFile(bare.log()).find("--calibration"), std::string::npos) << readFile(bare.log());
+  // No iox-roudi to meet the driver at.
+  std::vector<std::string> args = agentArgs("no_roudi");
+  args.insert(args.end(), {"--live", "cam"});
+  ChildProcess alone(args, dir_.path() / "alone.log");
+  EXPECT_EQ(alone.wait(milliseconds(20000)), 1);
+  EXPECT_NE(readFile(alone.log()).find("iox-roudi"), std::string::npos) << readFile(alone.log());
+}
+
+}  // namespace
+}  // namespace cvislam
