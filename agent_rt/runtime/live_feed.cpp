@@ -58,8 +58,8 @@ class LiveFeed final : public FrameFeed {
       if (held_ == nullptr && !takeFrame()) {
         if (ended_) break;
         watchStream();
-        wait(std::min<std::chrono::nanoseconds>(kStopSlice, std::chrono::nanoseconds(static_cast<std::int64_t>(
-                                                                 o_.stall_after_s * 1e9))));
+        wait(std::min<std::chrono::nanoseconds>(
+            kStopSlice, std::chrono::nanoseconds(static_cast<std::int64_t>(o_.stall_after_s * 1e9))));
         continue;
       }
       if (!o_.use_imu || !current_.ok || imuCovers(current_.t_ns)) return deliver();
@@ -158,11 +158,12 @@ class LiveFeed final : public FrameFeed {
     current_.captured_steady_ns = header.captured_steady_ns;
     const std::size_t pixels = static_cast<std::size_t>(o_.width) * static_cast<std::size_t>(o_.height);
     const std::uint32_t cameras_needed = o_.stereo ? 2 : 1;
-    if (header.width != static_cast<std::uint32_t>(o_.width) || header.height != static_cast<std::uint32_t>(o_.height) ||
-        header.cameras < cameras_needed || header.cameras > 2 ||
-        bytes < live::frameChunkBytes(header.width, header.height, header.cameras)) {
-      std::snprintf(error_, sizeof(error_), "the frame is %ux%u with %u camera(s) in %u bytes; cam0 is calibrated at %dx%d%s",
-                    header.width, header.height, header.cameras, bytes, o_.width, o_.height,
+    if (header.width != static_cast<std::uint32_t>(o_.width) ||
+        header.height != static_cast<std::uint32_t>(o_.height) || header.cameras < cameras_needed ||
+        header.cameras > 2 || bytes < live::frameChunkBytes(header.width, header.height, header.cameras)) {
+      std::snprintf(error_, sizeof(error_),
+                    "the frame is %ux%u with %u camera(s) in %u bytes; cam0 is calibrated at %dx%d%s", header.width,
+                    header.height, header.cameras, bytes, o_.width, o_.height,
                     o_.stereo ? " and stereo needs 2 cameras" : "");
       current_.ok = false;
       current_.error = error_;
@@ -175,8 +176,8 @@ class LiveFeed final : public FrameFeed {
 
   const FeedFrame* deliver() {
     if (current_.ok && o_.use_imu) {
-      current_.imu = imuCovering(imu_buffer_, previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_,
-                                 current_.t_ns);
+      current_.imu =
+          imuCovering(imu_buffer_, previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_, current_.t_ns);
     }
     ++frames_delivered_;
     return &current_;

@@ -11,9 +11,10 @@ RecordingFeed::RecordingFeed(Recording& recording, const std::vector<dataset::Ri
     : recording_(recording),
       frames_(frames),
       options_(options),
-      ring_(options.ring_size,
-            static_cast<std::size_t>(recording.rig().cam0.width) * static_cast<std::size_t>(recording.rig().cam0.height),
-            options.stereo) {
+      ring_(
+          options.ring_size,
+          static_cast<std::size_t>(recording.rig().cam0.width) * static_cast<std::size_t>(recording.rig().cam0.height),
+          options.stereo) {
   loader_ = std::thread([this, on_loader_start] {
     if (on_loader_start) on_loader_start();
     load();
@@ -68,8 +69,8 @@ const FeedFrame* RecordingFeed::next() {
     current_.left = slot->left;
     if (options_.stereo) current_.right = slot->right;
     if (options_.use_imu) {
-      current_.imu = imuCovering(recording_.imu(), previous_good_t_ns_ < 0 ? slot->t_ns : previous_good_t_ns_,
-                                 slot->t_ns);
+      current_.imu =
+          imuCovering(recording_.imu(), previous_good_t_ns_ < 0 ? slot->t_ns : previous_good_t_ns_, slot->t_ns);
     }
   }
   return &current_;

@@ -72,7 +72,8 @@ PlayCounts play(Recording& recording, SensorPublisher& publisher, const PlayOpti
   while (next_imu < imu.size() && imu[next_imu].t_ns < t0_ns - 100'000'000) ++next_imu;
   const auto start = Clock::now();
   const auto due = [&](std::int64_t t_ns) {
-    return start + std::chrono::nanoseconds(static_cast<std::int64_t>(static_cast<double>(t_ns - t0_ns) / options.rate));
+    return start +
+           std::chrono::nanoseconds(static_cast<std::int64_t>(static_cast<double>(t_ns - t0_ns) / options.rate));
   };
   auto last_progress = start;
   for (std::size_t i = 0; i < frames.size() && !g_stop.load(); ++i) {
@@ -90,7 +91,8 @@ PlayCounts play(Recording& recording, SensorPublisher& publisher, const PlayOpti
     if (!st.ok()) {
       // A driver whose camera gave a bad image sends nothing for it.
       ++counts.unreadable;
-      if (!options.quiet) std::fprintf(stderr, "[publisher] frame %zu not sent: %s\n", i, st.error().toString().c_str());
+      if (!options.quiet)
+        std::fprintf(stderr, "[publisher] frame %zu not sent: %s\n", i, st.error().toString().c_str());
       continue;
     }
     std::this_thread::sleep_until(due(frame.t_ns));
@@ -116,7 +118,8 @@ bool waitForAgent(const SensorPublisher& publisher, double seconds, const std::s
   if (seconds <= 0.0) return true;
   std::fprintf(stderr, "[publisher] waiting up to %.0f s for an agent on '%s' (cvislam_agent --live %s)\n", seconds,
                name.c_str(), name.c_str());
-  const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(seconds));
+  const auto deadline =
+      Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(seconds));
   // iceoryx gives no event for a new subscriber: this start-up wait alone polls.
   while (!publisher.hasSubscribers() && Clock::now() < deadline && !g_stop.load()) {
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
@@ -138,7 +141,8 @@ int main(int argc, char** argv) {
   double wait_for_agent_s = 30.0;
   PlayOptions play_options;
   auto* dataset_option = app.add_option("--dataset", dataset, "Sequence folder that holds mav0 (EuRoC/ASL layout)");
-  auto* mcap_option = app.add_option("--mcap", mcap, "ROS 2 bag in MCAP; needs --calibration")->check(CLI::ExistingFile);
+  auto* mcap_option =
+      app.add_option("--mcap", mcap, "ROS 2 bag in MCAP; needs --calibration")->check(CLI::ExistingFile);
   dataset_option->excludes(mcap_option);
   app.add_option("--cam0-topic", recording_options.topics.cam0, "With --mcap: cam0's image topic [/cam0/image_raw]");
   app.add_option("--cam1-topic", recording_options.topics.cam1, "With --mcap: cam1's image topic [/cam1/image_raw]");

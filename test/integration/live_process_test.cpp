@@ -61,7 +61,8 @@ class LiveProcesses : public ::testing::Test {
 
   void startRouDi() {
     roudi_ = std::make_unique<ChildProcess>(
-        std::vector<std::string>{"/usr/bin/iox-roudi", "-m", "off", "-c", CVISLAM_ROUDI_CONFIG}, dir_.path() / "roudi.log");
+        std::vector<std::string>{"/usr/bin/iox-roudi", "-m", "off", "-c", CVISLAM_ROUDI_CONFIG},
+        dir_.path() / "roudi.log");
     ASSERT_TRUE(test::waitFor([&] { return readFile(roudi_->log()).find("RouDi is ready") != std::string::npos; },
                               milliseconds(10000)))
         << readFile(roudi_->log());
@@ -79,8 +80,16 @@ class LiveProcesses : public ::testing::Test {
   }
 
   [[nodiscard]] std::vector<std::string> agentArgs(const std::string& name) const {
-    return {CVISLAM_AGENT_BINARY, "--output", (dir_.path() / name).string(), "--calibration", camchain_.string(),
-            "--imu-calibration", imu_yaml_.string(), "--mode", "stereo", "--quiet"};
+    return {CVISLAM_AGENT_BINARY,
+            "--output",
+            (dir_.path() / name).string(),
+            "--calibration",
+            camchain_.string(),
+            "--imu-calibration",
+            imu_yaml_.string(),
+            "--mode",
+            "stereo",
+            "--quiet"};
   }
 
   static void expectCleanExit(ChildProcess& process, milliseconds timeout = milliseconds(120000)) {
@@ -114,8 +123,8 @@ TEST_F(LiveProcesses, ADriverProcessFeedsTheAgentWhichTracksAsFromTheFolderAndRe
   ASSERT_TRUE(server.running()) << readFile(server.log());
 
   std::vector<std::string> live_args = agentArgs("live");
-  live_args.insert(live_args.end(), {"--live", "v101", "--server", "127.0.0.1:" + readFile(port_file), "--mission",
-                                     "live"});
+  live_args.insert(live_args.end(),
+                   {"--live", "v101", "--server", "127.0.0.1:" + readFile(port_file), "--mission", "live"});
   ChildProcess agent(live_args, dir_.path() / "live.log");
   ChildProcess driver({CVISLAM_PUBLISHER_BINARY, "--dataset", excerpt.string(), "--name", "v101", "--quiet"},
                       dir_.path() / "driver.log");

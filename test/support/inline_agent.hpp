@@ -27,6 +27,8 @@ class InlineAgent {
   [[nodiscard]] std::size_t frameCount() const { return frames_.size(); }
   // Loads frame i and the IMU since the previous frame into the input (allocates: file reading).
   Status load(std::size_t i);
+  // Tracks `input` next instead (a frame from elsewhere, such as a live feed); its spans must outlive track().
+  void setInput(const agent::FrameInput& input) { input_ = input; }
   // Tracks the loaded frame; `around` runs just before and after track() (for counters and clocks).
   template <typename Before, typename After>
   agent::FrameResult track(Before&& before, After&& after) {
