@@ -1,18 +1,30 @@
-// The iceoryx service of a live sensor topic. Included only by the .cpp files that open the topics.
+// The iceoryx services of the live sensor and state topics. Included only by the .cpp files that open the topics.
 #pragma once
 
+#include <cstdint>
 #include <string>
 
 #include "agent_rt/live/sensor_topics.hpp"
+#include "agent_rt/live/state_topics.hpp"
 #include "iceoryx_posh/capro/service_description.hpp"
 
 namespace cvislam::agent::live {
 
-inline iox::capro::ServiceDescription liveService(const std::string& stream, const std::string& event) {
-  const std::string service = kServiceName;
+inline iox::capro::ServiceDescription topicService(const std::string& service, const std::string& instance,
+                                                   const std::string& event) {
   return {iox::capro::IdString_t(iox::cxx::TruncateToCapacity, service.c_str(), service.size()),
-          iox::capro::IdString_t(iox::cxx::TruncateToCapacity, stream.c_str(), stream.size()),
+          iox::capro::IdString_t(iox::cxx::TruncateToCapacity, instance.c_str(), instance.size()),
           iox::capro::IdString_t(iox::cxx::TruncateToCapacity, event.c_str(), event.size())};
+}
+
+// A sensor topic of the driver's stream NAME.
+inline iox::capro::ServiceDescription liveService(const std::string& stream, const std::string& event) {
+  return topicService(kServiceName, stream, event);
+}
+
+// A state topic of agent `agent`.
+inline iox::capro::ServiceDescription stateService(std::uint32_t agent, const std::string& event) {
+  return topicService(kStateServiceName, "agent" + std::to_string(agent), event);
 }
 
 }  // namespace cvislam::agent::live

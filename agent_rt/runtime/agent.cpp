@@ -15,10 +15,12 @@
 #include <nlohmann/json.hpp>
 
 #include "agent_rt/ipc/embedded_roudi.hpp"
+#include "agent_rt/live/live_service.hpp"
 #include "agent_rt/messages/conversions.hpp"
 #include "agent_rt/runtime/iceoryx_channels.hpp"
 #include "agent_rt/runtime/live_feed.hpp"
 #include "agent_rt/runtime/mapping_thread.hpp"
+#include "agent_rt/runtime/propagation_thread.hpp"
 #include "agent_rt/runtime/recording_feed.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
@@ -242,6 +244,7 @@ Result<std::unique_ptr<FrameFeed>> openFeed(const AgentOptions& options, RunPlan
 // least a few KiB from pool to pool: near-equal ones share one pool.
 std::vector<MemPoolSpec> mempoolsFor(const ChannelDepths& depths, bool with_link) {
   std::vector<MemPoolSpec> pools = {{128, 64},
+                                    {static_cast<std::uint32_t>(sizeof(live::AgentStateMessage)), 32},
                                     {static_cast<std::uint32_t>(sizeof(KeyframeMessage)), depths.keyframeChunks()},
                                     {static_cast<std::uint32_t>(sizeof(MapSnapshotMessage)), depths.snapshotChunks()}};
   if (with_link) {
@@ -286,6 +289,7 @@ struct StageLatencies {
         keyframe("keyframe_write", frames),
         tracking("tracking_total", frames),
         frame_to_state("frame_to_state", frames),
+        imu_to_state("imu_to_propagated_state", frames * 10),
         receive("keyframe_publish_to_receive", frames),
         local_ba("local_ba", frames),
         mapping("mapping_total", frames) {}
@@ -298,17 +302,20 @@ struct StageLatencies {
     if (r.keyframe) keyframe.add(r.times.keyframe_ns);
     tracking.add(r.times.total_ns);
   }
-  [[nodiscard]] std::vector<StageSummary> summarise() const {
+  // imu_to_state only when the IMU was carried (a live run).
+  [[nodiscard]] std::vector<StageSummary> summarise(bool with_imu_to_state) const {
     std::vector<StageSummary> out;
     for (const LatencyRecorder* r :
          {&orb, &matching, &pose, &motion, &keyframe, &tracking, &frame_to_state, &receive, &local_ba, &mapping})
       out.push_back(cvislam::agent::summarise(*r));
+    if (with_imu_to_state) out.push_back(cvislam::agent::summarise(imu_to_state));
     return out;
   }
 
-  // tracking's thread; frame_to_state runs from the frame's capture (FeedFrame::captured_steady_ns) to its tracked
-  // state
+  // tracking's thread; frame_to_state runs from the frame's capture (FeedFrame::captured_steady_ns) to the
+  // publication of its state
   LatencyRecorder orb, matching, pose, motion, keyframe, tracking, frame_to_state;
+  LatencyRecorder imu_to_state;  // the propagation thread's: from an IMU sample's capture to its state's publication
   LatencyRecorder receive, local_ba, mapping;  // mapping's thread
 };
 
@@ -344,6 +351,7 @@ class TrackingLoop {
     StageLatencies& latencies;
     TrajectoryRecorder& recorder;
     YieldRequests& yield_requests;
+    StateListener* listener;  // besides the state topic; may be null
     const std::atomic<bool>& stop;
     const Link* link;  // progress text only; nullptr without a server
   };
@@ -353,6 +361,7 @@ class TrackingLoop {
         tracker_(*shared.plan.tracker),
         keyframe_pub_(service(shared.options.agent, "keyframes"), iox::popo::PublisherOptions{}),
         snapshot_sub_(service(shared.options.agent, "map_snapshot"), snapshotOptions(depths)),
+        state_pub_(live::stateService(shared.options.agent, live::kStateFramesEvent), stateOptions()),
         sink_(keyframe_pub_) {
     snapshot_wait_.attachState(snapshot_sub_, iox::popo::SubscriberState::HAS_DATA).or_else([](auto) {
       std::fprintf(stderr, "[agent] cannot wait on mapping's snapshots: iceoryx refused the wait set\n");
@@ -399,7 +408,7 @@ class TrackingLoop {
       const std::int64_t captured_ns = frame->captured_steady_ns;
       const FrameResult r = tracker_.track(input, sink_);
       s_.feed.release();
-      s_.latencies.frame_to_state.add(steadyNs() - captured_ns);
+      publishState(frameState(r, input.t_ns, captured_ns, s_.options.agent));
       s_.latencies.addFrame(r);
       if (!s_.recorder.addFrame(input.t_ns, r)) ++summary.frames_not_recorded;
       count(input.t_ns, r, summary);
@@ -425,6 +434,26 @@ class TrackingLoop {
   }
 
  private:
+  static iox::popo::PublisherOptions stateOptions() {
+    iox::popo::PublisherOptions options;
+    options.historyCapacity = 1;  // a reader that comes late still gets the newest state
+    options.subscriberTooSlowPolicy = iox::popo::ConsumerTooSlowPolicy::DISCARD_OLDEST_DATA;
+    return options;
+  }
+
+  // On the state topic and to the listener; its latency from the frame's capture into the profile.
+  void publishState(live::AgentStateMessage state) {
+    state.sequence = state_sequence_++;
+    auto loaned = state_pub_.loan();
+    state.published_steady_ns = steadyNs();
+    if (!loaned.has_error()) {
+      *loaned.value().get() = state;
+      loaned.value().publish();
+    }
+    s_.latencies.frame_to_state.add(state.published_steady_ns - state.captured_steady_ns);
+    if (s_.listener != nullptr) s_.listener->onState(state);
+  }
+
   static iox::popo::SubscriberOptions snapshotOptions(const ChannelDepths& depths) {
     iox::popo::SubscriberOptions options;
     options.queueCapacity = depths.snapshots;
@@ -535,6 +564,8 @@ class TrackingLoop {
   iox::popo::Publisher<KeyframeMessage> keyframe_pub_;
   iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub_;
   iox::popo::WaitSet<1> snapshot_wait_;
+  iox::popo::Publisher<live::AgentStateMessage> state_pub_;
+  std::uint64_t state_sequence_ = 0;
   IceoryxKeyframeSink sink_;
   std::optional<iox::popo::Sample<const MapSnapshotMessage>> held_;
   Clock::time_point wall_start_;
@@ -709,7 +740,8 @@ Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& re
 
 }  // namespace
 
-Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atomic<bool>& stop) {
+Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atomic<bool>& stop,
+                                 StateListener* listener) {
   AgentOptions options = options_in;
   if (Status s = options.validate(); !s.ok()) return s.error();
   auto planned = planRun(options);
@@ -781,13 +813,26 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                    mapping_stats, yield_requests});
   });
 
+  // A live run's IMU-rate state, from the driver's IMU and tracking's states.
+  std::unique_ptr<PropagationThread> propagation;
+  if (!options.live.empty() && options.use_imu) {
+    PropagationOptions propagation_options;
+    propagation_options.stream = options.live;
+    propagation_options.agent = options.agent;
+    propagation_options.listener = listener;
+    propagation = std::make_unique<PropagationThread>(
+        propagation_options, latencies.imu_to_state, [&] { schedule_this_thread("propagation", threads.propagation); });
+  }
+  const bool propagation_started = propagation != nullptr;
+
   // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.
   const ThreadScheduleRestorer restore_caller;
   schedule_this_thread("tracking", threads.tracking);
   std::int64_t first_frame_t_ns = -1;
   {
     TrackingLoop tracking(
-        {options, plan, **feed, latencies, recorder, yield_requests, stop, link ? &link->link() : nullptr}, depths);
+        {options, plan, **feed, latencies, recorder, yield_requests, listener, stop, link ? &link->link() : nullptr},
+        depths);
     tracking.awaitMapping(mapping_ready);
     tracking.run(summary);
     (*feed)->close();
@@ -796,6 +841,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     tracking_done.store(true);
     tracking_done_trigger.trigger();
     mapping.join();
+    propagation.reset();
     feed->reset();              // the loader's end, or the live topics' subscriptions
     tracking.drainSnapshots();  // the last refinements
     first_frame_t_ns = tracking.firstFrameTns();
@@ -805,7 +851,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     summary.link = link->finish();
   }
   addMappingFigures(mapping_stats, yield_requests, first_frame_t_ns, summary);
-  summary.stages = latencies.summarise();
+  summary.stages = latencies.summarise(propagation_started);
 
   // Outputs, on every path that got here (end of data, SIGINT/SIGTERM).
   if (link) {

@@ -19,6 +19,7 @@
 #include "agent_rt/mapping/mapper.hpp"
 #include "agent_rt/runtime/frame_feed.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
+#include "agent_rt/runtime/live_state.hpp"
 #include "agent_rt/runtime/thread_schedule.hpp"
 #include "agent_rt/sources/recording.hpp"
 #include "agent_rt/tracking/tracker.hpp"
@@ -116,8 +117,10 @@ struct AgentRunSummary {
 };
 
 // Runs the agent to the end of the sequence or until `stop` becomes true; the outputs are written on every
-// path that gets past start-up.
-Result<AgentRunSummary> runAgent(const AgentOptions& options, const std::atomic<bool>& stop);
+// path that gets past start-up. Every state (each frame's, and with --live the IMU-rate ones) is published on the
+// agent's state topics (agent_rt/live/state_topics.hpp) and, when given, told to `listener` on the thread that made it.
+Result<AgentRunSummary> runAgent(const AgentOptions& options, const std::atomic<bool>& stop,
+                                 StateListener* listener = nullptr);
 
 std::string formatSummary(const AgentRunSummary& summary);
 

@@ -111,11 +111,13 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   YamlSection threads = section("threads");
   threads.read("priorities", o.threads.enabled);
   threads.read("lower_others_with_realtime", o.threads.lower_others_with_realtime);
-  std::string cpu_text[4];
-  ThreadSchedule* schedules[4] = {&o.threads.tracking, &o.threads.loader, &o.threads.mapping, &o.threads.link};
-  const char* names[4] = {"tracking", "loader", "mapping", "link"};
-  std::string keys[4][3];
-  for (int i = 0; i < 4; ++i) {
+  constexpr int kThreads = 5;
+  std::string cpu_text[kThreads];
+  ThreadSchedule* schedules[kThreads] = {&o.threads.tracking, &o.threads.loader, &o.threads.mapping, &o.threads.link,
+                                         &o.threads.propagation};
+  const char* names[kThreads] = {"tracking", "loader", "mapping", "link", "propagation"};
+  std::string keys[kThreads][3];
+  for (int i = 0; i < kThreads; ++i) {
     keys[i][0] = std::string(names[i]) + "_nice";
     keys[i][1] = std::string(names[i]) + "_realtime_priority";
     keys[i][2] = std::string(names[i]) + "_cpus";
@@ -124,7 +126,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
     threads.read(keys[i][2].c_str(), cpu_text[i]);
   }
   if (Status s = threads.finish(); !s.ok()) return in_file(s);
-  for (int i = 0; i < 4; ++i) {
+  for (int i = 0; i < kThreads; ++i) {
     if (cpu_text[i].empty()) continue;
     auto cpus = parseCpuList(cpu_text[i]);
     if (!cpus) return in_file(cpus.error().withContext("threads." + keys[i][2]));

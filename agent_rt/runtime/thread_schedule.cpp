@@ -31,8 +31,9 @@ Status ThreadSchedule::validate(const std::string& name) const {
 }
 
 Status ThreadScheduleOptions::validate() const {
-  for (const auto& [name, schedule] : {std::pair{"tracking", &tracking}, std::pair{"loader", &loader},
-                                       std::pair{"mapping", &mapping}, std::pair{"link", &link}}) {
+  for (const auto& [name, schedule] :
+       {std::pair{"tracking", &tracking}, std::pair{"loader", &loader}, std::pair{"mapping", &mapping},
+        std::pair{"link", &link}, std::pair{"propagation", &propagation}}) {
     if (Status s = schedule->validate(name); !s.ok()) return s;
   }
   return Status::Ok();

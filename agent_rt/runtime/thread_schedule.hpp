@@ -36,6 +36,9 @@ struct ThreadScheduleOptions {
   ThreadSchedule loader{2, 0, {}};  // decodes the dataset's images ahead of tracking (a camera driver's place)
   ThreadSchedule mapping{10, 0, {}};
   ThreadSchedule link{5, 0, {}};
+  // Carries the IMU into the state between frames (live runs): above tracking, since it needs microseconds per
+  // sample and its latency is its purpose. Its nice value is never lowered.
+  ThreadSchedule propagation{0, 11, {}};
   bool lower_others_with_realtime = false;
   bool enabled = true;  // false: every thread keeps the scheduling it was started with
 

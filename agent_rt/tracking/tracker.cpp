@@ -471,6 +471,8 @@ void finishFrame(Tracker::State& s, FrameStep& f, const SE3d& T, const Vector3d&
   result.status = s.status;
   result.T_w_s = T;
   result.v_w = v;
+  result.bias = s.bias;
+  result.imu_initialised = s.imu_initialised;
   result.map_id = s.new_map_requested ? s.requested_map_id : s.map_id;
   result.map_epoch = s.epoch;
   result.has_reference = s.has_keyframe;

@@ -107,6 +107,8 @@ struct FrameResult {
   bool tracked = false;  // the pose below comes from matches against the map
   geometry::SE3d T_w_s;
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
+  imu::ImuBias bias;             // the IMU biases the frame was predicted with
+  bool imu_initialised = false;  // the world frame is gravity-aligned and metric (before: up to scale in mono)
   std::uint32_t map_id = 0;
   std::uint32_t map_epoch = 0;
   KeyframeId reference;  // the newest keyframe when the frame was tracked

@@ -4,6 +4,7 @@
 // the driver ends the stream; an agent left without a driver stops on SIGINT with its outputs written.
 #include <signal.h>
 
+#include <cstdio>
 #include <fstream>
 #include <string>
 #include <vector>
@@ -125,11 +126,15 @@ TEST_F(LiveProcesses, ADriverProcessFeedsTheAgentWhichTracksAsFromTheFolderAndRe
   std::vector<std::string> live_args = agentArgs("live");
   live_args.insert(live_args.end(),
                    {"--live", "v101", "--server", "127.0.0.1:" + readFile(port_file), "--mission", "live"});
+  // The agent's states read by another program (a flight controller's place), through the same RouDi.
+  ChildProcess monitor({CVISLAM_MONITOR_BINARY, "--quiet"}, dir_.path() / "monitor.log");
   ChildProcess agent(live_args, dir_.path() / "live.log");
   ChildProcess driver({CVISLAM_PUBLISHER_BINARY, "--dataset", excerpt.string(), "--name", "v101", "--quiet"},
                       dir_.path() / "driver.log");
   expectCleanExit(driver);
   expectCleanExit(agent);  // ended by the driver's end of stream
+  monitor.signal(SIGINT);
+  expectCleanExit(monitor, milliseconds(10000));
   server.signal(SIGTERM);
   ASSERT_TRUE(server.wait(milliseconds(20000)).has_value()) << readFile(server.log());
 
@@ -144,6 +149,19 @@ TEST_F(LiveProcesses, ADriverProcessFeedsTheAgentWhichTracksAsFromTheFolderAndRe
   EXPECT_TRUE(live["link"]["flushed"].get<bool>()) << live.dump(1);
   EXPECT_EQ(live["link"]["keyframes_unacknowledged"], 0) << live.dump(1);
 
+  // Every frame's state reached the reader; the IMU-rate states came between them once the IMU was initialised.
+  unsigned long long frames = 0, metric = 0, gaps = 0, propagated = 0;
+  const std::string counts = readFile(monitor.log());
+  const std::size_t at = counts.find("states: frames");
+  ASSERT_NE(at, std::string::npos) << counts;
+  ASSERT_EQ(std::sscanf(counts.c_str() + at, "states: frames %llu (metric %llu, sequence gaps %llu), propagated %llu",
+                        &frames, &metric, &gaps, &propagated),
+            4)
+      << counts;
+  EXPECT_EQ(frames, live["frames"].get<unsigned long long>()) << counts;
+  EXPECT_EQ(gaps, 0U) << counts;
+  EXPECT_GT(metric, 0U) << counts;
+  EXPECT_GE(propagated, 9 * (metric - 1)) << counts;
   const double ate_folder_m = ateM(dir_.path() / "folder" / "trajectory.txt", excerpt);
   const double ate_live_m = ateM(dir_.path() / "live" / "trajectory.txt", excerpt);
   std::printf("ATE (SE3, refined trajectory, realtime): folder %.3f mm, live %.3f mm\n", ate_folder_m * 1e3,

@@ -31,7 +31,8 @@ void drive(const dataset::EurocSequence& sequence, const std::vector<dataset::Ri
   std::size_t next_imu = 0;
   for (std::size_t i = 0; i < frames.size(); ++i) {
     while (released.load() < i) released.wait(released.load());
-    for (; next_imu < imu.size() && imu[next_imu].t_ns <= frames[i].t_ns; ++next_imu) publisher.publishImu(imu[next_imu]);
+    for (; next_imu < imu.size() && imu[next_imu].t_ns <= frames[i].t_ns; ++next_imu)
+      publisher.publishImu(imu[next_imu]);
     if (next_imu < imu.size()) publisher.publishImu(imu[next_imu++]);  // the first sample after the frame closes it
     std::span<std::uint8_t> pixels = publisher.loanFrame();
     const std::size_t one = pixels.size() / 2;
@@ -52,9 +53,8 @@ TEST(LiveTrackingAllocations, TakingTrackingAndHandingBackALiveFrameAllocateNoth
   auto sequence = dataset::EurocSequence::open(*mission / "agent0");
   ASSERT_TRUE(sequence.ok()) << sequence.error().toString();
   const auto& cam0 = sequence->cam0().calibration;
-  const std::uint32_t frame_bytes =
-      static_cast<std::uint32_t>(live::frameChunkBytes(static_cast<std::uint32_t>(cam0.width),
-                                                       static_cast<std::uint32_t>(cam0.height), 2));
+  const std::uint32_t frame_bytes = static_cast<std::uint32_t>(
+      live::frameChunkBytes(static_cast<std::uint32_t>(cam0.width), static_cast<std::uint32_t>(cam0.height), 2));
   EmbeddedRouDiOptions roudi_options;
   roudi_options.runtime_name = "cvislam_live_allocation_test";
   roudi_options.mempools = {{128, 2000}, {frame_bytes, 16}};
@@ -80,7 +80,8 @@ TEST(LiveTrackingAllocations, TakingTrackingAndHandingBackALiveFrameAllocateNoth
   publisher_options.cameras = 2;
   auto publisher = live::SensorPublisher::create(publisher_options);
   ASSERT_TRUE(publisher.ok()) << publisher.error().toString();
-  for (int i = 0; i < 500 && !(*publisher)->hasSubscribers(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  for (int i = 0; i < 500 && !(*publisher)->hasSubscribers(); ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
   ASSERT_TRUE((*publisher)->hasSubscribers());
   std::this_thread::sleep_for(std::chrono::milliseconds(50));  // the IMU topic connects beside the frames
 
