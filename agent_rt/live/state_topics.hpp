@@ -44,7 +44,7 @@ struct AgentStateMessage {
   std::uint32_t flags = 0;
   std::uint32_t agent = 0;
   std::uint32_t map_id = 0;
-  std::uint32_t map_epoch = 0;  // +1 each time the world frame moves (IMU initialisation)
+  std::uint32_t map_epoch = 0;             // +1 each time the world frame moves (IMU initialisation)
   double q_w_s[4] = {0.0, 0.0, 0.0, 1.0};  // orientation x, y, z, w
   double p_w_s[3] = {0.0, 0.0, 0.0};       // position [m]
   double v_w[3] = {0.0, 0.0, 0.0};         // velocity [m/s]

@@ -77,13 +77,18 @@ const char* toString(Pace pace) {
 
 Status AgentOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, what}; };
-  const int sources = (dataset.empty() ? 0 : 1) + (mcap.empty() ? 0 : 1) + (live.empty() ? 0 : 1);
+  const int sources =
+      (dataset.empty() ? 0 : 1) + (mcap.empty() ? 0 : 1) + (live.empty() ? 0 : 1) + (embedded_input ? 1 : 0);
   if (sources == 0) {
     return bad(
         "no sensor input given (--dataset SEQ_DIR, the folder that holds mav0; --mcap BAG.mcap; or --live NAME, a "
         "driver's topics)");
   }
   if (sources > 1) return bad("give one of --dataset, --mcap and --live");
+  if (embedded_input && calibration.empty()) return bad("the embedded agent needs Kalibr's camera chain (calibration)");
+  if (embedded_input && use_imu && imu_calibration.empty()) {
+    return bad("the embedded agent needs Kalibr's IMU file (imu_calibration), or runs without the IMU");
+  }
   if (!live.empty()) {
     if (roudi != RouDiMode::kExternal) {
       return bad(
@@ -137,10 +142,11 @@ struct OpenedSource {
 };
 
 Result<OpenedSource> openSource(const AgentOptions& options) {
-  if (!options.live.empty()) {
+  if (!options.live.empty() || options.embedded_input) {
     auto rig = rigFromKalibrFiles(options.calibration, options.imu_calibration);
     if (!rig) return rig.error();
-    return OpenedSource{nullptr, std::move(rig).value(), "live stream '" + options.live + "'", false};
+    std::string source = options.embedded_input ? "the embedding program" : "live stream '" + options.live + "'";
+    return OpenedSource{nullptr, std::move(rig).value(), std::move(source), false};
   }
   RecordingOptions recording;
   recording.dataset = options.dataset;
@@ -685,7 +691,7 @@ nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& o
                       {"wall_s", summary.wall_s}};
   if (summary.live) {
     const FeedFaults& f = summary.live_faults;
-    j["live"] = {{"stream", options.live},
+    j["live"] = {{"stream", options.embedded_input ? "(embedded)" : options.live},
                  {"frames_lost", f.frames_lost},
                  {"frames_out_of_order", f.frames_out_of_order},
                  {"messages_malformed", f.messages_malformed},
@@ -741,7 +747,7 @@ Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& re
 }  // namespace
 
 Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atomic<bool>& stop,
-                                 StateListener* listener) {
+                                 const AgentHooks& hooks) {
   AgentOptions options = options_in;
   if (Status s = options.validate(); !s.ok()) return s.error();
   auto planned = planRun(options);
@@ -781,8 +787,16 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     if (!outcome.applied) std::fprintf(stderr, "[agent] threads.%s: %s\n", name, outcome.note.c_str());
   };
 
-  auto feed = openFeed(options, plan, stop, [&] { schedule_this_thread("loader", threads.loader); });
-  if (!feed) return feed.error();
+  std::unique_ptr<FrameFeed> owned_feed;
+  FrameFeed* feed = hooks.feed;
+  if (!options.embedded_input) {
+    auto opened = openFeed(options, plan, stop, [&] { schedule_this_thread("loader", threads.loader); });
+    if (!opened) return opened.error();
+    owned_feed = std::move(opened).value();
+    feed = owned_feed.get();
+  } else if (feed == nullptr) {
+    return Error{ErrorCode::kInvalidArgument, "embedded input without a feed"};
+  }
   if (!options.live.empty() && !options.quiet) {
     std::fprintf(stderr, "[agent] live stream '%s': %s %dx%d%s\n", options.live.c_str(),
                  plan.stereo ? "stereo" : "mono", plan.rig.cam0.width, plan.rig.cam0.height,
@@ -819,7 +833,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     PropagationOptions propagation_options;
     propagation_options.stream = options.live;
     propagation_options.agent = options.agent;
-    propagation_options.listener = listener;
+    propagation_options.listener = hooks.listener;
     propagation = std::make_unique<PropagationThread>(
         propagation_options, latencies.imu_to_state, [&] { schedule_this_thread("propagation", threads.propagation); });
   }
@@ -830,19 +844,20 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   schedule_this_thread("tracking", threads.tracking);
   std::int64_t first_frame_t_ns = -1;
   {
-    TrackingLoop tracking(
-        {options, plan, **feed, latencies, recorder, yield_requests, listener, stop, link ? &link->link() : nullptr},
-        depths);
+    TrackingLoop tracking({options, plan, *feed, latencies, recorder, yield_requests, hooks.listener, stop,
+                           link ? &link->link() : nullptr},
+                          depths);
     tracking.awaitMapping(mapping_ready);
+    if (hooks.on_running) hooks.on_running();
     tracking.run(summary);
-    (*feed)->close();
-    summary.live = !options.live.empty();
-    summary.live_faults = (*feed)->faults();
+    feed->close();
+    summary.live = !options.live.empty() || options.embedded_input;
+    summary.live_faults = feed->faults();
     tracking_done.store(true);
     tracking_done_trigger.trigger();
     mapping.join();
     propagation.reset();
-    feed->reset();              // the loader's end, or the live topics' subscriptions
+    owned_feed.reset();         // the loader's end, or the live topics' subscriptions
     tracking.drainSnapshots();  // the last refinements
     first_frame_t_ns = tracking.firstFrameTns();
   }

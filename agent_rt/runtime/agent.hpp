@@ -12,6 +12,7 @@
 #include <atomic>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -44,7 +45,8 @@ const char* toString(Pace pace);
 struct AgentOptions {
   std::filesystem::path dataset;  // the folder that holds mav0, or
   std::filesystem::path mcap;     // a ROS 2 bag in MCAP, or
-  std::string live;               // the NAME of a driver's live topics (agent_rt/live/sensor_topics.hpp)
+  std::string live;               // the NAME of a driver's live topics (agent_rt/live/sensor_topics.hpp), or
+  bool embedded_input = false;    // frames pushed by the program embedding the agent (AgentHooks::feed)
   McapTopics topics;              // the bag's topics
   // Kalibr calibration files that replace the recording's own (empty: the recording's sensor.yaml files).
   std::filesystem::path calibration;      // camchain-imucam.yaml
@@ -116,11 +118,19 @@ struct AgentRunSummary {
   std::filesystem::path latency_json;
 };
 
+// What a program embedding the agent (agent_rt/api) plugs in.
+struct AgentHooks {
+  // Told every state (each frame's, and with --live the IMU-rate ones) on the thread that made it, besides the
+  // agent's state topics (agent_rt/live/state_topics.hpp).
+  StateListener* listener = nullptr;
+  FrameFeed* feed = nullptr;         // the frames when AgentOptions::embedded_input (the rig from options.calibration)
+  std::function<void()> on_running;  // once every thread runs, before the first frame is asked for
+};
+
 // Runs the agent to the end of the sequence or until `stop` becomes true; the outputs are written on every
-// path that gets past start-up. Every state (each frame's, and with --live the IMU-rate ones) is published on the
-// agent's state topics (agent_rt/live/state_topics.hpp) and, when given, told to `listener` on the thread that made it.
+// path that gets past start-up.
 Result<AgentRunSummary> runAgent(const AgentOptions& options, const std::atomic<bool>& stop,
-                                 StateListener* listener = nullptr);
+                                 const AgentHooks& hooks = {});
 
 std::string formatSummary(const AgentRunSummary& summary);
 

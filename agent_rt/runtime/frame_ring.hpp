@@ -18,6 +18,7 @@ class FrameRing {
     std::vector<std::uint8_t> left;
     std::vector<std::uint8_t> right;
     std::int64_t t_ns = 0;
+    std::int64_t captured_steady_ns = 0;  // when a pushed frame came in (PushFeed)
     std::size_t frame = 0;
     bool ok = true;
     std::string error;
@@ -41,6 +42,13 @@ class FrameRing {
       events_.wait(seen, std::memory_order_acquire);
     }
   }
+  // Producer that must not wait: a free slot, or nullptr when the ring is full or closed.
+  Slot* tryFreeSlot() {
+    if (closed_.load(std::memory_order_acquire)) return nullptr;
+    const std::size_t head = head_.load(std::memory_order_relaxed);
+    if (head - tail_.load(std::memory_order_acquire) < slots_.size()) return &slots_[head % slots_.size()];
+    return nullptr;
+  }
   void produced() {
     head_.fetch_add(1, std::memory_order_release);
     signal();
@@ -55,6 +63,17 @@ class FrameRing {
       if (finished_.load(std::memory_order_acquire) || closed_.load(std::memory_order_acquire)) return nullptr;
       events_.wait(seen, std::memory_order_acquire);
     }
+  }
+  // Consumer that must not wait: the oldest loaded frame, or nullptr when there is none yet.
+  Slot* tryFrame() {
+    const std::size_t tail = tail_.load(std::memory_order_relaxed);
+    if (tail != head_.load(std::memory_order_acquire)) return &slots_[tail % slots_.size()];
+    return nullptr;
+  }
+  // The producer has finished (or the ring was closed) and every frame was taken.
+  [[nodiscard]] bool drained() const {
+    return (finished_.load(std::memory_order_acquire) || closed_.load(std::memory_order_acquire)) &&
+           tail_.load(std::memory_order_acquire) == head_.load(std::memory_order_acquire);
   }
   void consumed() {
     tail_.fetch_add(1, std::memory_order_release);

@@ -7,7 +7,7 @@
 #include <vector>
 
 #include "agent_rt/live/live_service.hpp"
-#include "agent_rt/runtime/sensor_setup.hpp"
+#include "agent_rt/runtime/imu_window.hpp"
 #include "common/core/steady_clock.hpp"
 #include "iceoryx_posh/mepoo/chunk_header.hpp"
 #include "iceoryx_posh/popo/untyped_subscriber.hpp"
@@ -38,9 +38,8 @@ class LiveFeed final : public FrameFeed {
   explicit LiveFeed(const LiveFeedOptions& options)
       : o_(options),
         frames_(live::liveService(options.stream, live::kFramesEvent), queueOf(kFrameQueue)),
-        imu_(live::liveService(options.stream, live::kImuEvent), queueOf(kImuQueue)) {
-    imu_buffer_.reserve(options.imu_buffer_samples);
-  }
+        imu_(live::liveService(options.stream, live::kImuEvent), queueOf(kImuQueue)),
+        imu_window_(options.imu_buffer_samples) {}
   ~LiveFeed() override { releaseHeld(); }
 
   Status attach() {
@@ -62,7 +61,7 @@ class LiveFeed final : public FrameFeed {
             kStopSlice, std::chrono::nanoseconds(static_cast<std::int64_t>(o_.stall_after_s * 1e9))));
         continue;
       }
-      if (!o_.use_imu || !current_.ok || imuCovers(current_.t_ns)) return deliver();
+      if (!o_.use_imu || !current_.ok || imu_window_.covers(current_.t_ns)) return deliver();
       const std::int64_t now_ns = steadyNowNs();
       if (imu_deadline_ns < 0) imu_deadline_ns = now_ns + static_cast<std::int64_t>(o_.imu_wait_s * 1e9);
       if (now_ns >= imu_deadline_ns) {
@@ -77,14 +76,18 @@ class LiveFeed final : public FrameFeed {
   void release() override {
     if (current_.ok && held_ != nullptr) {
       previous_good_t_ns_ = current_.t_ns;
-      dropImuBefore(current_.t_ns);
+      imu_window_.dropBefore(current_.t_ns);
     }
     releaseHeld();
   }
 
   void close() override { closed_.store(true); }
   [[nodiscard]] std::size_t knownFrames() const override { return 0; }
-  [[nodiscard]] FeedFaults faults() const override { return faults_; }
+  [[nodiscard]] FeedFaults faults() const override {
+    FeedFaults f = faults_;
+    f.imu_overflow = imu_window_.overflowed();
+    return f;
+  }
 
  private:
   [[nodiscard]] bool stopped() const { return closed_.load() || (o_.stop != nullptr && o_.stop->load()); }
@@ -176,8 +179,7 @@ class LiveFeed final : public FrameFeed {
 
   const FeedFrame* deliver() {
     if (current_.ok && o_.use_imu) {
-      current_.imu =
-          imuCovering(imu_buffer_, previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_, current_.t_ns);
+      current_.imu = imu_window_.covering(previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_, current_.t_ns);
     }
     ++frames_delivered_;
     return &current_;
@@ -209,34 +211,14 @@ class LiveFeed final : public FrameFeed {
   void addImu(const ImuMessage& m) {
     if (seen_imu_ && m.sequence > next_imu_sequence_) faults_.imu_lost += m.sequence - next_imu_sequence_;
     // A driver that started again counts from 0 and may start its clock anew: what it sent before is of no use.
-    if (seen_imu_ && m.sequence < next_imu_sequence_) imu_buffer_.clear();
+    if (seen_imu_ && m.sequence < next_imu_sequence_) imu_window_.clear();
     seen_imu_ = true;
     next_imu_sequence_ = m.sequence + 1;
-    if (!imu_buffer_.empty() && m.t_ns <= imu_buffer_.back().t_ns) {
-      ++faults_.imu_out_of_order;
-      return;
-    }
-    if (imu_buffer_.size() == imu_buffer_.capacity()) {
-      const std::size_t dropped = imu_buffer_.size() / 2;
-      imu_buffer_.erase(imu_buffer_.begin(), imu_buffer_.begin() + static_cast<std::ptrdiff_t>(dropped));
-      faults_.imu_overflow += dropped;
-    }
-    dataset::ImuSample& s = imu_buffer_.emplace_back();
+    dataset::ImuSample s;
     s.t_ns = m.t_ns;
     s.gyro_s = {m.gyro_s[0], m.gyro_s[1], m.gyro_s[2]};
     s.accel_s = {m.accel_s[0], m.accel_s[1], m.accel_s[2]};
-  }
-
-  [[nodiscard]] bool imuCovers(std::int64_t t_ns) const {
-    return !imu_buffer_.empty() && imu_buffer_.back().t_ns >= t_ns;
-  }
-
-  // Keeps the last sample at or before t_ns (the start of the next frame's interval) and what follows it.
-  void dropImuBefore(std::int64_t t_ns) {
-    auto first_after = std::upper_bound(imu_buffer_.begin(), imu_buffer_.end(), t_ns,
-                                        [](std::int64_t t, const dataset::ImuSample& s) { return t < s.t_ns; });
-    if (first_after == imu_buffer_.begin()) return;
-    imu_buffer_.erase(imu_buffer_.begin(), first_after - 1);
+    if (!imu_window_.add(s)) ++faults_.imu_out_of_order;
   }
 
   // Says that the feed waits for its first frame, and when frames stop for longer than stall_after_s and come back.
@@ -277,7 +259,7 @@ class LiveFeed final : public FrameFeed {
   iox::popo::UntypedSubscriber frames_;
   iox::popo::UntypedSubscriber imu_;
   iox::popo::WaitSet<2> wait_;
-  std::vector<dataset::ImuSample> imu_buffer_;
+  ImuWindow imu_window_;
   const void* held_ = nullptr;
   FeedFrame current_;
   char error_[192] = {};

@@ -45,7 +45,7 @@ class ImuPropagator {
   void step(const dataset::ImuSample& rates, std::int64_t to_ns);
   void keepSamplesFrom(std::int64_t t_ns);
 
-  std::vector<dataset::ImuSample> samples_;  // time-ordered, from the one at or before the state's time
+  std::vector<dataset::ImuSample> samples_;       // time-ordered, from the one at or before the state's time
   std::optional<live::AgentStateMessage> state_;  // carried to the newest sample
   std::int64_t frame_t_ns_ = 0;                   // the time of the frame state it was carried from
   geometry::SE3d T_w_s_;

@@ -18,7 +18,7 @@ namespace cvislam::agent {
 struct PropagationOptions {
   std::string stream;  // the driver's stream NAME
   AgentId agent = 0;
-  std::size_t imu_samples = 2048;      // kept for carrying states forward again when a frame's state arrives
+  std::size_t imu_samples = 2048;     // kept for carrying states forward again when a frame's state arrives
   StateListener* listener = nullptr;  // also told every propagated state
 };
 

@@ -62,9 +62,8 @@ Result<std::int64_t> applyKalibrFiles(const RecordingOptions& options, SensorRig
 Result<SensorRig> rigFromKalibrFiles(const std::filesystem::path& calibration,
                                      const std::filesystem::path& imu_calibration) {
   if (calibration.empty()) {
-    return Error{
-        ErrorCode::kInvalidArgument,
-        "a live stream carries no calibration: give Kalibr's camera chain (--calibration camchain-imucam.yaml)"};
+    return Error{ErrorCode::kInvalidArgument,
+                 "no calibration given: a stream without files needs Kalibr's camera chain (camchain-imucam.yaml)"};
   }
   auto chain = dataset::readKalibrCamchain(calibration);
   if (!chain) return chain.error();

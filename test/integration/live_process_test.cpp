@@ -71,13 +71,8 @@ class LiveProcesses : public ::testing::Test {
 
   // Kalibr files equal to the sequence's sensor.yaml files: a live stream carries no calibration.
   void writeCalibration(const fs::path& sequence) {
-    const fs::path mav0 = sequence / "mav0";
-    auto cam0 = dataset::readCameraCalibration(mav0 / "cam0" / "sensor.yaml", "cam0");
-    auto cam1 = dataset::readCameraCalibration(mav0 / "cam1" / "sensor.yaml", "cam1");
-    auto imu = dataset::readImuCalibration(mav0 / "imu0" / "sensor.yaml");
-    ASSERT_TRUE(cam0.ok() && cam1.ok() && imu.ok());
-    test::writeTextFile(camchain_, test::kalibrCamchainYaml(*cam0, *cam1));
-    test::writeTextFile(imu_yaml_, test::kalibrImuYaml(*imu));
+    const Status written = test::writeKalibrFilesOf(sequence, camchain_, imu_yaml_);
+    ASSERT_TRUE(written.ok()) << written.error().toString();
   }
 
   [[nodiscard]] std::vector<std::string> agentArgs(const std::string& name) const {

@@ -6,6 +6,7 @@
 #include <optional>
 #include <string>
 
+#include "common/core/result.hpp"
 #include "common/dataset/types.hpp"
 
 namespace cvislam::test {
@@ -15,5 +16,10 @@ namespace cvislam::test {
 std::string kalibrCamchainYaml(const dataset::CameraCalibration& cam0,
                                const std::optional<dataset::CameraCalibration>& cam1, double timeshift_s = 0.0);
 std::string kalibrImuYaml(const dataset::ImuCalibration& imu, bool nested_imu = true);
+
+// Kalibr files equal to a EuRoC sequence's cam0, cam1 and imu0 sensor.yaml, written to `camchain` and `imu_yaml`
+// (folders created).
+Status writeKalibrFilesOf(const std::filesystem::path& euroc_sequence, const std::filesystem::path& camchain,
+                          const std::filesystem::path& imu_yaml);
 
 }  // namespace cvislam::test
