@@ -83,11 +83,13 @@ int main(int argc, char** argv) {
     if (agent->stereo() && !frame.cam1) continue;
     for (; next_imu < imu.size() && imu[next_imu].t_ns <= frame.t_ns; ++next_imu) {
       const auto& s = imu[next_imu];
-      agent->pushImu({s.t_ns, {s.gyro_s.x(), s.gyro_s.y(), s.gyro_s.z()}, {s.accel_s.x(), s.accel_s.y(), s.accel_s.z()}});
+      agent->pushImu(
+          {s.t_ns, {s.gyro_s.x(), s.gyro_s.y(), s.gyro_s.z()}, {s.accel_s.x(), s.accel_s.y(), s.accel_s.z()}});
     }
     if (next_imu < imu.size()) {  // the sample after the frame closes its interval
       const auto& s = imu[next_imu++];
-      agent->pushImu({s.t_ns, {s.gyro_s.x(), s.gyro_s.y(), s.gyro_s.z()}, {s.accel_s.x(), s.accel_s.y(), s.accel_s.z()}});
+      agent->pushImu(
+          {s.t_ns, {s.gyro_s.x(), s.gyro_s.y(), s.gyro_s.z()}, {s.accel_s.x(), s.accel_s.y(), s.accel_s.z()}});
     }
     if (!sequence->loadImageInto(0, frame.cam0, left).ok()) continue;
     if (agent->stereo() && !sequence->loadImageInto(1, *frame.cam1, right).ok()) continue;

@@ -3,6 +3,10 @@
 //
 //   cvislam_sensor_publisher (--dataset SEQ_DIR | --mcap BAG.mcap [--calibration F --imu-calibration F])
 //                            --name NAME [--rate R] [--mode mono|stereo|auto] [--wait-for-agent S] [--max-frames N]
+//   cvislam_sensor_publisher (--dataset SEQ_DIR | ...) --write-calibration DIR
+//
+// The second form writes the recording's rig as Kalibr files (DIR/camchain-imucam.yaml, DIR/imu.yaml), which is
+// what `cvislam_agent --live` reads, and exits.
 //
 // Every image is decoded straight into a loaned shared-memory chunk, which the agent reads in place. Frames carry the
 // camera's own timestamps (a calibration's timeshift_cam_imu is taken off again, as a driver would not know it); the
@@ -13,7 +17,9 @@
 #include <chrono>
 #include <csignal>
 #include <cstdio>
+#include <fstream>
 #include <iostream>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -23,6 +29,7 @@
 #include "agent_rt/ipc/embedded_roudi.hpp"
 #include "agent_rt/live/sensor_publisher.hpp"
 #include "agent_rt/sources/recording.hpp"
+#include "common/dataset/kalibr.hpp"
 
 namespace {
 
@@ -127,6 +134,28 @@ bool waitForAgent(const SensorPublisher& publisher, double seconds, const std::s
   return publisher.hasSubscribers();
 }
 
+// The rig as Kalibr's files; 0 when written.
+int writeCalibration(const cvislam::agent::SensorRig& rig, bool stereo, const std::filesystem::path& folder) {
+  std::error_code ec;
+  std::filesystem::create_directories(folder, ec);
+  const cvislam::geometry::SE3d T_b_i = rig.imu ? rig.imu->T_b_i : cvislam::geometry::SE3d();
+  const std::optional<cvislam::dataset::CameraCalibration> cam1 = stereo ? rig.cam1 : std::nullopt;
+  std::vector<std::pair<std::filesystem::path, std::string>> files = {
+      {folder / "camchain-imucam.yaml",
+       cvislam::dataset::kalibrCamchainYaml(rig.cam0, cam1, rig.timeshift_cam_imu_ns, T_b_i)}};
+  if (rig.imu) files.emplace_back(folder / "imu.yaml", cvislam::dataset::kalibrImuYaml(*rig.imu));
+  for (const auto& [path, text] : files) {
+    std::ofstream out(path);
+    out << text;
+    if (!out) {
+      std::cerr << "cvislam_sensor_publisher: cannot write " << path.string() << "\n";
+      return 1;
+    }
+    std::fprintf(stderr, "[publisher] wrote %s\n", path.string().c_str());
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -150,17 +179,25 @@ int main(int argc, char** argv) {
   app.add_option("--calibration", calibration, "Kalibr camera chain (the frames' sizes and timeshift_cam_imu)")
       ->check(CLI::ExistingFile);
   app.add_option("--imu-calibration", imu_calibration, "Kalibr IMU file")->check(CLI::ExistingFile);
-  app.add_option("--name", name, "The stream's NAME, as cvislam_agent --live NAME takes it")->required();
+  app.add_option("--name", name, "The stream's NAME, as cvislam_agent --live NAME takes it");
   app.add_option("--rate", play_options.rate, "Playback speed: 2 plays twice as fast [1]")->check(CLI::PositiveNumber);
   app.add_option("--mode", mode, "stereo: publish pairs; mono: cam0 only; auto: pairs when there is a cam1 [auto]");
   app.add_option("--wait-for-agent", wait_for_agent_s,
                  "Seconds to wait for an agent to subscribe before playing; 0: play at once, as a driver would [30]");
   app.add_option("--max-frames", play_options.max_frames, "Stop after this many frames (0 = all)");
   app.add_flag("--quiet", play_options.quiet, "No progress output");
+  std::string write_calibration;
+  app.add_option("--write-calibration", write_calibration,
+                 "Write the recording's rig as Kalibr files (DIR/camchain-imucam.yaml, DIR/imu.yaml) for "
+                 "cvislam_agent --live --calibration --imu-calibration, and exit");
   CLI11_PARSE(app, argc, argv);
 
   if (dataset.empty() == mcap.empty()) {
     std::cerr << "cvislam_sensor_publisher: give the recording: --dataset DIR or --mcap FILE\n";
+    return 2;
+  }
+  if (name.empty() && write_calibration.empty()) {
+    std::cerr << "cvislam_sensor_publisher: --name NAME is required (the stream cvislam_agent --live NAME reads)\n";
     return 2;
   }
   if (mode != "auto" && mode != "mono" && mode != "stereo") {
@@ -183,6 +220,7 @@ int main(int argc, char** argv) {
     return 2;
   }
   play_options.stereo = mode == "stereo" || (mode == "auto" && rig.cam1.has_value());
+  if (!write_calibration.empty()) return writeCalibration(rig, play_options.stereo, write_calibration);
 
   if (auto s = cvislam::agent::attachToExternalRouDi("cvislam_publisher_" + name); !s.ok()) {
     std::cerr << "cvislam_sensor_publisher: " << s.error().toString() << "\n";

@@ -7,7 +7,9 @@
 // Time: Kalibr's timeshift_cam_imu is the shift with t_imu = t_cam + timeshift_cam_imu.
 #pragma once
 
+#include <cstdint>
 #include <filesystem>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -31,5 +33,12 @@ struct KalibrImu {
 };
 
 Result<KalibrImu> readKalibrImu(const std::filesystem::path& yaml);
+
+// Writing them, for a rig known from elsewhere (a EuRoC sequence's sensor.yaml files) that is to run where only
+// Kalibr's files are read (a live stream). `T_b_i` is the IMU in the body frame (EuRoC: the identity), so that each
+// camera's T_cam_imu is relative to the IMU as Kalibr's is. Numbers are written with all their digits.
+std::string kalibrCamchainYaml(const CameraCalibration& cam0, const std::optional<CameraCalibration>& cam1,
+                               std::int64_t timeshift_cam_imu_ns = 0, const geometry::SE3d& T_b_i = {});
+std::string kalibrImuYaml(const ImuCalibration& imu, bool nested_imu = true);
 
 }  // namespace cvislam::dataset

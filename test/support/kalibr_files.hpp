@@ -1,5 +1,5 @@
-// Kalibr calibration files made from the project's own calibrations, for tests: a camera chain (cam0, and cam1
-// when given) and an IMU file, as Kalibr writes them.
+// Kalibr calibration files made from the project's own calibrations, for tests (common/dataset/kalibr.hpp writes
+// them): a camera chain (cam0, and cam1 when given) and an IMU file, as Kalibr writes them.
 #pragma once
 
 #include <filesystem>

@@ -39,17 +39,17 @@ struct AgentState {
   bool keyframe = false;  // kFrame: the frame became a keyframe
   bool metric = false;    // the IMU is initialised: metric scale and gravity; before, a monocular pose is up to scale
   std::uint32_t map_id = 0;
-  std::int64_t t_ns = 0;                             // sensor time (the IMU's clock)
-  std::array<double, 4> q_w_b{0.0, 0.0, 0.0, 1.0};   // x, y, z, w
-  std::array<double, 3> p_w_b{0.0, 0.0, 0.0};        // [m]
-  std::array<double, 3> v_w{0.0, 0.0, 0.0};          // [m/s]
-  std::array<double, 3> gyro_bias{0.0, 0.0, 0.0};    // [rad/s]
-  std::array<double, 3> accel_bias{0.0, 0.0, 0.0};   // [m/s^2]
-  double latency_ms = 0.0;  // from the frame's or sample's push to this state
+  std::int64_t t_ns = 0;                            // sensor time (the IMU's clock)
+  std::array<double, 4> q_w_b{0.0, 0.0, 0.0, 1.0};  // x, y, z, w
+  std::array<double, 3> p_w_b{0.0, 0.0, 0.0};       // [m]
+  std::array<double, 3> v_w{0.0, 0.0, 0.0};         // [m/s]
+  std::array<double, 3> gyro_bias{0.0, 0.0, 0.0};   // [rad/s]
+  std::array<double, 3> accel_bias{0.0, 0.0, 0.0};  // [m/s^2]
+  double latency_ms = 0.0;                          // from the frame's or sample's push to this state
 };
 
 struct ImuMeasurement {
-  std::int64_t t_ns = 0;                    // the IMU's clock [ns]
+  std::int64_t t_ns = 0;                       // the IMU's clock [ns]
   std::array<double, 3> gyro{0.0, 0.0, 0.0};   // angular rate in the IMU frame [rad/s]
   std::array<double, 3> accel{0.0, 0.0, 0.0};  // specific force in the IMU frame [m/s^2]
 };

@@ -45,8 +45,8 @@ class AgentApi : public ::testing::Test {
     std::size_t next_imu = 0;
     int refused = 0;
     const auto push = [&](const dataset::ImuSample& s) {
-      EXPECT_TRUE(agent.pushImu({s.t_ns, {s.gyro_s.x(), s.gyro_s.y(), s.gyro_s.z()},
-                                 {s.accel_s.x(), s.accel_s.y(), s.accel_s.z()}}));
+      EXPECT_TRUE(agent.pushImu(
+          {s.t_ns, {s.gyro_s.x(), s.gyro_s.y(), s.gyro_s.z()}, {s.accel_s.x(), s.accel_s.y(), s.accel_s.z()}}));
     };
     for (const auto& frame : sequence.rigFrames()) {
       if (!frame.cam1) continue;
