@@ -81,6 +81,8 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   std::string roudi = o.roudi == RouDiMode::kEmbedded ? "embedded" : "external";
   runtime.read("pace", pace);
   runtime.read("rate", o.rate);
+  runtime.read("live_imu_wait_s", o.live_imu_wait_s);
+  runtime.read("live_record_frames", o.live_record_frames);
   runtime.read("roudi", roudi);
   runtime.read("progress_interval_s", o.progress_interval_s);
   if (Status s = runtime.finish(); !s.ok()) return in_file(s);

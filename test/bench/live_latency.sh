@@ -41,10 +41,10 @@ taskset -c "$agent_cpus" "$build/bin/cvislam_agent" --live "$stream" --mode "$mo
 agent=$!
 taskset -c "$other_cpus" "$build/bin/cvislam_sensor_publisher" --dataset "$sequence" --mode "$mode" --name "$stream" \
   --quiet > "$results/publisher.log" 2>&1
-wait $agent
+wait $agent || { echo "the agent failed (exit $?): see $results/agent.log" >&2; exit 1; }
 
 stage() {
-  jq -r --arg s "$1" '.[] | select(.name == $s) | "\(.p50_ms * 1000 | round / 1000) / \(.p99_ms * 1000 | round / 1000) / \(.max_ms * 1000 | round / 1000) (\(.count))"' \
+  jq -r --arg s "$1" '.[$s] | "\(.p50_ms * 1000 | round / 1000) / \(.p99_ms * 1000 | round / 1000) / \(.max_ms * 1000 | round / 1000) (\(.count))"' \
     "$results/agent/latency.json"
 }
 echo "| $(basename "$sequence") | $mode | $agent_cpus | $(stage tracking_total) | $(stage frame_to_state) | $(stage imu_to_propagated_state) | $(jq -c .live "$results/agent/summary.json") |"
