@@ -49,7 +49,11 @@ Status writeMissionYaml(const MissionPlan& plan, const MissionWriterOptions& opt
       << "\ngravity_w: [0, 0, -9.81]\n";
   out << "imu_noise: " << (options.imu_options.noise ? "true" : "false")
       << "\npixel_noise_sigma: " << text::formatDouble(options.pixel_noise_sigma)
-      << "\nexposure_amplitude: " << text::formatDouble(options.exposure_amplitude) << "\nagents:\n";
+      << "\nexposure_amplitude: " << text::formatDouble(options.exposure_amplitude) << "\n";
+  if (options.camera_time_shift_ns != 0) {
+    out << "camera_time_shift_ns: " << options.camera_time_shift_ns << "  # t_imu = t_cam + shift\n";
+  }
+  out << "agents:\n";
   for (const AgentPlan& a : plan.agents) {
     const geometry::SE3d T_w_b = a.trajectory.state(0.0).T_w_b;
     const Eigen::Quaterniond& q = T_w_b.quaternion();
@@ -83,6 +87,9 @@ Status MissionWriterOptions::validate() const {
   }
   if (exposure_amplitude < 0.0 || exposure_amplitude >= 1.0) {
     return Error{ErrorCode::kInvalidArgument, "exposure amplitude must be in [0, 1)"};
+  }
+  if (camera_time_shift_ns < -1'000'000'000 || camera_time_shift_ns > 1'000'000'000) {
+    return Error{ErrorCode::kInvalidArgument, "the camera clock shift must be within 1 s"};
   }
   const double ratio = imu.rate_hz / cam0.rate_hz;
   if (std::abs(ratio - std::round(ratio)) > 1e-9 || ratio < 1.0) {
@@ -150,7 +157,7 @@ Status writeMission(const MissionPlan& plan, const MissionWriterOptions& options
         const geometry::SE3d T_w_c = state.T_w_b * cameras[c].T_b_c;
         agent_renderers[c].render(world, T_w_c, gain, image);
         if (options.pixel_noise_sigma > 0.0) addPixelNoise(image, options.pixel_noise_sigma, pixel_rng);
-        if (Status st = writer->addImage(static_cast<int>(c), t_ns, image); !st)
+        if (Status st = writer->addImage(static_cast<int>(c), t_ns - options.camera_time_shift_ns, image); !st)
           return st.error().withContext(agent.name);
       }
       ++frame;

@@ -25,6 +25,9 @@ struct MissionWriterOptions {
   ImuSimulatorOptions imu_options;
   double pixel_noise_sigma = 0.0;   // grey levels; 0 = none
   double exposure_amplitude = 0.0;  // relative gain change, e.g. 0.2 = +-20 %, smooth over ~15 s; 0 = none
+  // The cameras' clock against the IMU's, as an unsynchronised robot has it: an image taken at IMU time t is
+  // stamped t - shift, so t_imu = t_cam + shift (Kalibr's timeshift_cam_imu). Ground truth stays on the IMU's clock.
+  std::int64_t camera_time_shift_ns = 0;
   bool overwrite = false;
   std::int64_t start_time_ns = 1'600'000'000'000'000'000;  // shared mission clock
   TextureOptions texture;

@@ -111,6 +111,12 @@ static int run(int argc, char** argv) {
   app.add_option("--exposure", exposure,
                  "Smooth exposure change, relative amplitude (e.g. 0.2 for +-20 %; default 0: none)")
       ->check(CLI::Range(0.0, 0.95));
+  double camera_clock_shift_ms = 0.0;
+  app.add_option("--camera-clock-shift", camera_clock_shift_ms,
+                 "Stamp the images on a camera clock this many ms behind the IMU's (t_imu = t_cam + shift, Kalibr's "
+                 "timeshift_cam_imu), as on a robot without hardware sync; ground truth stays on the IMU's clock "
+                 "(default 0)")
+      ->check(CLI::Range(-1000.0, 1000.0));
   app.add_option("--calibration", calibration_dir,
                  "ASL calibration folder with cam0/sensor.yaml, cam1/sensor.yaml and imu0/sensor.yaml "
                  "(default: the built-in EuRoC calibration)")
@@ -173,6 +179,7 @@ static int run(int argc, char** argv) {
   options.imu_options.noise = !no_imu_noise;
   options.pixel_noise_sigma = pixel_noise;
   options.exposure_amplitude = exposure;
+  options.camera_time_shift_ns = static_cast<std::int64_t>(std::llround(camera_clock_shift_ms * 1e6));
   options.overwrite = overwrite;
   options.threads = threads;
 
