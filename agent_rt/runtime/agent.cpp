@@ -455,6 +455,8 @@ class TrackingLoop {
     if (!loaned.has_error()) {
       *loaned.value().get() = state;
       loaned.value().publish();
+    } else {
+      ++states_not_sent_;
     }
     s_.latencies.frame_to_state.add(state.published_steady_ns - state.captured_steady_ns);
     if (s_.listener != nullptr) s_.listener->onState(state);
@@ -572,6 +574,7 @@ class TrackingLoop {
   iox::popo::WaitSet<1> snapshot_wait_;
   iox::popo::Publisher<live::AgentStateMessage> state_pub_;
   std::uint64_t state_sequence_ = 0;
+  std::uint64_t states_not_sent_ = 0;
   IceoryxKeyframeSink sink_;
   std::optional<iox::popo::Sample<const MapSnapshotMessage>> held_;
   Clock::time_point wall_start_;
@@ -582,6 +585,8 @@ class TrackingLoop {
  public:
   // The sensor time of the first frame; -1 before one came.
   [[nodiscard]] std::int64_t firstFrameTns() const { return first_t_ns_; }
+  // Frame states that found no free chunk (the listener still got them).
+  [[nodiscard]] std::uint64_t statesNotSent() const { return states_not_sent_; }
 
  private:
   std::int64_t first_t_ns_ = -1;
@@ -651,6 +656,34 @@ class LinkThread {
   std::thread thread_;
 };
 
+// The link to the server on its thread; none without a server.
+Result<std::unique_ptr<LinkThread>> startLink(const AgentOptions& options, const RunPlan& plan,
+                                              const ChannelDepths& depths, const std::function<void()>& schedule) {
+  if (options.link.server.empty()) return std::unique_ptr<LinkThread>();
+  LinkOptions link_options = options.link;
+  link_options.local_map_keyframes = static_cast<std::uint32_t>(options.mapping.max_keyframes);
+  auto created =
+      Link::create(link_options, options.agent, linkSensors(plan.rig, plan.setup, plan.stereo, options.use_imu));
+  if (!created) return created.error();
+  if (!options.quiet) {
+    std::fprintf(stderr, "[link] server %s, mission '%s', agent %u\n", options.link.server.c_str(),
+                 options.link.mission.c_str(), static_cast<unsigned>(options.agent));
+  }
+  return std::make_unique<LinkThread>(std::move(created.value()), options, depths, schedule);
+}
+
+// A live run's IMU-rate state, from the driver's IMU and tracking's states; none otherwise.
+std::unique_ptr<PropagationThread> startPropagation(const AgentOptions& options, StateListener* listener,
+                                                    LatencyRecorder& imu_to_state,
+                                                    const std::function<void()>& schedule) {
+  if (options.live.empty() || !options.use_imu) return nullptr;
+  PropagationOptions propagation;
+  propagation.stream = options.live;
+  propagation.agent = options.agent;
+  propagation.listener = listener;
+  return std::make_unique<PropagationThread>(propagation, imu_to_state, schedule);
+}
+
 // What mapping counted, into the run's summary.
 void addMappingFigures(const MappingStats& stats, const YieldRequests& yield_requests, std::int64_t first_frame_t_ns,
                        AgentRunSummary& summary) {
@@ -688,6 +721,7 @@ nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& o
                       {"mode", plan.stereo ? "stereo" : "mono"},
                       {"imu_noise_inflation", plan.imu_noise_inflation},
                       {"interrupted", summary.interrupted},
+                      {"state_messages_not_sent", summary.state_messages_not_sent},
                       {"wall_s", summary.wall_s}};
   if (summary.live) {
     const FeedFaults& f = summary.live_faults;
@@ -803,20 +837,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                  options.use_imu ? " with IMU" : "");
   }
 
-  std::unique_ptr<LinkThread> link;
-  if (!options.link.server.empty()) {
-    LinkOptions link_options = options.link;
-    link_options.local_map_keyframes = static_cast<std::uint32_t>(options.mapping.max_keyframes);
-    auto created =
-        Link::create(link_options, options.agent, linkSensors(plan.rig, plan.setup, plan.stereo, options.use_imu));
-    if (!created) return created.error();
-    if (!options.quiet) {
-      std::fprintf(stderr, "[link] server %s, mission '%s', agent %u\n", options.link.server.c_str(),
-                   options.link.mission.c_str(), static_cast<unsigned>(options.agent));
-    }
-    link = std::make_unique<LinkThread>(std::move(created.value()), options, depths,
-                                        [&] { schedule_this_thread("link", threads.link); });
-  }
+  auto link = startLink(options, plan, depths, [&] { schedule_this_thread("link", threads.link); });
+  if (!link) return link.error();
 
   // Woken when tracking is done, so mapping waits on events alone.
   iox::popo::UserTrigger tracking_done_trigger;
@@ -827,16 +849,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
                    mapping_stats, yield_requests});
   });
 
-  // A live run's IMU-rate state, from the driver's IMU and tracking's states.
-  std::unique_ptr<PropagationThread> propagation;
-  if (!options.live.empty() && options.use_imu) {
-    PropagationOptions propagation_options;
-    propagation_options.stream = options.live;
-    propagation_options.agent = options.agent;
-    propagation_options.listener = hooks.listener;
-    propagation = std::make_unique<PropagationThread>(
-        propagation_options, latencies.imu_to_state, [&] { schedule_this_thread("propagation", threads.propagation); });
-  }
+  std::unique_ptr<PropagationThread> propagation =
+      startPropagation(options, hooks.listener, latencies.imu_to_state,
+                       [&] { schedule_this_thread("propagation", threads.propagation); });
   const bool propagation_started = propagation != nullptr;
 
   // The calling thread is tracking for the run only: its own scheduling comes back when runAgent returns.
@@ -845,7 +860,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   std::int64_t first_frame_t_ns = -1;
   {
     TrackingLoop tracking({options, plan, *feed, latencies, recorder, yield_requests, hooks.listener, stop,
-                           link ? &link->link() : nullptr},
+                           *link ? &(*link)->link() : nullptr},
                           depths);
     tracking.awaitMapping(mapping_ready);
     if (hooks.on_running) hooks.on_running();
@@ -856,21 +871,26 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     tracking_done.store(true);
     tracking_done_trigger.trigger();
     mapping.join();
-    propagation.reset();
+    summary.state_messages_not_sent = tracking.statesNotSent();
+    if (propagation) {
+      propagation->stop();
+      summary.state_messages_not_sent += propagation->notSent();
+      propagation.reset();
+    }
     owned_feed.reset();         // the loader's end, or the live topics' subscriptions
     tracking.drainSnapshots();  // the last refinements
     first_frame_t_ns = tracking.firstFrameTns();
   }
-  if (link) {
+  if (*link) {
     summary.link_enabled = true;
-    summary.link = link->finish();
+    summary.link = (*link)->finish();
   }
   addMappingFigures(mapping_stats, yield_requests, first_frame_t_ns, summary);
   summary.stages = latencies.summarise(propagation_started);
 
   // Outputs, on every path that got here (end of data, SIGINT/SIGTERM).
-  if (link) {
-    if (Status s = link->writeReport(options.output); !s.ok()) return s.error();
+  if (*link) {
+    if (Status s = (*link)->writeReport(options.output); !s.ok()) return s.error();
   }
   if (Status s = writeRunOutputs(options, recorder, summaryJson(summary, options, plan, mapping_stats), summary);
       !s.ok()) {

@@ -111,7 +111,8 @@ struct AgentRunSummary {
   bool interrupted = false;
   bool live = false;
   FeedFaults live_faults;
-  std::size_t frames_not_recorded = 0;  // live frames past live_record_frames
+  std::size_t frames_not_recorded = 0;        // live frames past live_record_frames
+  std::uint64_t state_messages_not_sent = 0;  // states that found no free chunk on the state topics
   std::vector<StageSummary> stages;
   std::filesystem::path trajectory;
   std::filesystem::path keyframe_trajectory;

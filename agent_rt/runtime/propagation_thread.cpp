@@ -88,6 +88,8 @@ struct PropagationThread::Impl {
     if (!loaned.has_error()) {
       *loaned.value().get() = state;
       loaned.value().publish();
+    } else {
+      ++not_sent;
     }
     imu_to_state.add(state.published_steady_ns - state.captured_steady_ns);
     if (options.listener != nullptr) options.listener->onState(state);
@@ -103,6 +105,7 @@ struct PropagationThread::Impl {
   iox::popo::WaitSet<3> wait;
   std::atomic<bool> stopping{false};
   std::uint64_t sequence = 0;
+  std::uint64_t not_sent = 0;
 };
 
 PropagationThread::PropagationThread(const PropagationOptions& options, LatencyRecorder& imu_to_state,
@@ -115,9 +118,17 @@ PropagationThread::PropagationThread(const PropagationOptions& options, LatencyR
 }
 
 PropagationThread::~PropagationThread() {
+  stop();
+}
+
+void PropagationThread::stop() {
   impl_->stopping.store(true);
   impl_->stop.trigger();
   if (thread_.joinable()) thread_.join();
+}
+
+std::uint64_t PropagationThread::notSent() const {
+  return impl_->not_sent;
 }
 
 }  // namespace cvislam::agent

@@ -28,7 +28,11 @@ class PropagationThread {
   // state, from the sample's capture to its publication; it is written by this thread until the object is destroyed.
   PropagationThread(const PropagationOptions& options, LatencyRecorder& imu_to_state,
                     const std::function<void()>& on_start);
+  // Stops the thread first.
   ~PropagationThread();
+  // States that found no free chunk to be published in (the listener still got them). Read after stop().
+  [[nodiscard]] std::uint64_t notSent() const;
+  void stop();
   PropagationThread(const PropagationThread&) = delete;
   PropagationThread& operator=(const PropagationThread&) = delete;
 

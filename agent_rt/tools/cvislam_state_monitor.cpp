@@ -89,7 +89,9 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   iox::popo::SubscriberOptions options;
-  options.queueCapacity = iox::MAX_SUBSCRIBER_QUEUE_CAPACITY;
+  // Every queued state holds a chunk of RouDi's pool until it is read: a deep queue on a reader that stalls would
+  // take chunks the agent needs. 64 is over 3 s of frames and 0.3 s of IMU-rate states.
+  options.queueCapacity = 64;
   iox::popo::Subscriber<AgentStateMessage> frames(live::stateService(agent, live::kStateFramesEvent), options);
   iox::popo::Subscriber<AgentStateMessage> imu(live::stateService(agent, live::kStateImuEvent), options);
   iox::popo::WaitSet<2> wait;

@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <fstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -163,6 +164,44 @@ TEST_F(LiveProcesses, ADriverProcessFeedsTheAgentWhichTracksAsFromTheFolderAndRe
               ate_live_m * 1e3);
   EXPECT_LT(ate_folder_m, 0.005);
   EXPECT_LE(ate_live_m, 1.1 * ate_folder_m);
+}
+
+// A driver process killed mid-stream (SIGKILL: no end-of-stream) and started again from the beginning of its
+// recording: the agent says the camera stopped, follows the new driver, and ends with it.
+TEST_F(LiveProcesses, ADriverKilledAndStartedAgainIsFollowedToTheEnd) {
+  CVISLAM_REQUIRE_DATA(excerpt, "euroc-v101-excerpt");
+  writeCalibration(excerpt);
+  startRouDi();
+  std::vector<std::string> args = agentArgs("restarted");
+  args.erase(args.end() - 1);  // not quiet: what it says is checked
+  args.insert(args.end(), {"--live", "restart"});
+  ChildProcess agent(args, dir_.path() / "restarted.log");
+  const std::vector<std::string> driver_args{
+      CVISLAM_PUBLISHER_BINARY, "--dataset", excerpt.string(), "--name", "restart", "--quiet"};
+  {
+    ChildProcess first(driver_args, dir_.path() / "driver1.log");
+    ASSERT_TRUE(test::waitFor([&] { return readFile(agent.log()).find("frames coming in") != std::string::npos; },
+                              milliseconds(30000)))
+        << readFile(agent.log());
+    std::this_thread::sleep_for(milliseconds(1500));
+    first.signal(SIGKILL);
+    (void)first.wait(milliseconds(5000));
+  }
+  ASSERT_TRUE(test::waitFor([&] { return readFile(agent.log()).find("no frame for") != std::string::npos; },
+                            milliseconds(10000)))
+      << readFile(agent.log());
+  ChildProcess second(driver_args, dir_.path() / "driver2.log");
+  expectCleanExit(second);
+  expectCleanExit(agent);
+  const std::string log = readFile(agent.log());
+  EXPECT_NE(log.find("frames again after"), std::string::npos) << log;
+  EXPECT_NE(log.find("the driver started again"), std::string::npos) << log;
+  const nlohmann::json summary = readJson(dir_.path() / "restarted" / "summary.json");
+  ASSERT_TRUE(summary.is_object()) << log;
+  EXPECT_EQ(summary["live"]["stalls"], 1) << summary.dump(1);
+  EXPECT_EQ(summary["live"]["driver_restarts"], 1) << summary.dump(1);
+  EXPECT_GT(summary["frames"].get<int>(), 95) << summary.dump(1);  // the first driver's frames and all the second's
+  EXPECT_FALSE(summary["interrupted"].get<bool>());
 }
 
 TEST_F(LiveProcesses, AnAgentWaitingForADriverStopsOnSigintWithItsOutputs) {
