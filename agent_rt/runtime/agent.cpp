@@ -412,6 +412,14 @@ class TrackingLoop {
       }
       const FrameInput input = frameInput(*frame);
       const std::int64_t captured_ns = frame->captured_steady_ns;
+      if (frame->stream_restarted) {
+        tracker_.restartStream(frame->t_ns);
+        if (!s_.options.quiet) {
+          std::fprintf(stderr,
+                       "[tracking] the stream started again: looking for the camera around its last pose, else "
+                       "a new map\n");
+        }
+      }
       const FrameResult r = tracker_.track(input, sink_);
       s_.feed.release();
       publishState(frameState(r, input.t_ns, captured_ns, s_.options.agent));

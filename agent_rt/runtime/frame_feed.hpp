@@ -22,7 +22,8 @@ struct FeedFrame {
   // CLOCK_MONOTONIC when the frame was taken (live: by the driver; a recording at realtime pace: when it was due;
   // otherwise when it was ready): the start of the frame-to-state latency.
   std::int64_t captured_steady_ns = 0;
-  bool ok = true;  // false: the images could not be had; `error` says why
+  bool ok = true;                 // false: the images could not be had; `error` says why
+  bool stream_restarted = false;  // the first frame of a driver that started again: nothing links it to the last
   const char* error = nullptr;
 };
 

@@ -145,6 +145,7 @@ class LiveFeed final : public FrameFeed {
         // A restarted driver may start its clock anew: its frames follow its own, not the old ones'.
         last_frame_t_ns_ = -1;
         previous_good_t_ns_ = -1;
+        restarted_ = true;
         if (!o_.quiet) std::fprintf(stderr, "[live] '%s': the driver started again\n", o_.stream.c_str());
       } else {
         faults_.frames_lost += sequence - next_sequence_;
@@ -159,6 +160,8 @@ class LiveFeed final : public FrameFeed {
     current_.t_ns = last_frame_t_ns_;
     current_.index = frames_delivered_;
     current_.captured_steady_ns = header.captured_steady_ns;
+    current_.stream_restarted = restarted_;
+    restarted_ = false;
     const std::size_t pixels = static_cast<std::size_t>(o_.width) * static_cast<std::size_t>(o_.height);
     const std::uint32_t cameras_needed = o_.stereo ? 2 : 1;
     if (header.width != static_cast<std::uint32_t>(o_.width) ||
@@ -273,6 +276,7 @@ class LiveFeed final : public FrameFeed {
   bool seen_imu_ = false;
   bool ended_ = false;
   bool said_waiting_ = false;
+  bool restarted_ = false;  // the next frame is the restarted driver's first
   bool stalled_ = false;
   std::int64_t last_arrival_ns_ = -1;
   std::atomic<bool> closed_{false};

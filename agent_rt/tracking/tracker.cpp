@@ -315,6 +315,18 @@ void Tracker::adoptSnapshot(const MapSnapshotMessage* snapshot) {
 TrackingStatus Tracker::status() const {
   return s_->status;
 }
+void Tracker::restartStream(std::int64_t t_ns) {
+  State& s = *s_;
+  if (!s.started) return;
+  s.last_t_ns = t_ns;
+  s.v_w = Vector3d::Zero();
+  s.imu_ok_since_keyframe = false;
+  // Dead reckoning is over: the position is held and the search is wide (predict()), and one failure is enough.
+  s.untracked_s = std::numeric_limits<double>::infinity();
+  s.lost_frames = std::max(s.lost_frames, s.options.max_lost_frames);
+  if (s.status == TrackingStatus::kTracking) s.status = TrackingStatus::kRelocalising;
+}
+
 bool Tracker::imuInitialised() const {
   return s_->imu_initialised;
 }

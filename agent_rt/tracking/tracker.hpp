@@ -146,6 +146,12 @@ class Tracker {
 
   FrameResult track(const FrameInput& frame, KeyframeSink& keyframes);
 
+  // The sensor stream started again (a driver restarted) and its next frame, at `t_ns`, may be on a new clock: no
+  // IMU or motion links it to the frames before. That frame is searched for widely around the last pose, held; if
+  // it is not found, a new map starts at once rather than after max_lost_frames of relocalising against a
+  // prediction from the old clock.
+  void restartStream(std::int64_t t_ns);
+
   [[nodiscard]] TrackingStatus status() const;
   [[nodiscard]] bool imuInitialised() const;
   // The identity of the newest keyframe published and not yet answered by a snapshot (for a caller that

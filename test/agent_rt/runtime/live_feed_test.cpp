@@ -141,6 +141,32 @@ TEST_F(LiveFeedTest, FramesArriveInPlaceWithTheImuThatCoversThem) {
   EXPECT_FALSE((*feed)->faults().any());
 }
 
+TEST_F(LiveFeedTest, AThousandHertzImuReachesEveryFrameWhole) {
+  auto feed = openLiveFeed(feedOptions("kilohertz"));
+  ASSERT_TRUE(feed.ok());
+  auto driver = publisher("kilohertz");
+  awaitConnection(*driver);
+  constexpr std::int64_t kPeriodNs = 1'000'000;
+  std::int64_t next_imu_ns = 0;
+  for (int i = 1; i <= 20; ++i) {
+    const std::int64_t t_ns = i * kFramePeriodNs;
+    for (; next_imu_ns <= t_ns; next_imu_ns += kPeriodNs) driver->publishImu(imuAt(next_imu_ns));
+    std::span<std::uint8_t> pixels = driver->loanFrame();
+    ASSERT_FALSE(pixels.empty());
+    driver->publishFrame(t_ns);
+    const FeedFrame* frame = (*feed)->next();
+    ASSERT_NE(frame, nullptr);
+    // From the sample at the previous frame to the one at this frame: 51 samples, none missing.
+    if (i > 1) {
+      ASSERT_EQ(frame->imu.size(), 51U) << "frame " << i;
+      EXPECT_EQ(frame->imu.front().t_ns, t_ns - kFramePeriodNs);
+    }
+    EXPECT_EQ(frame->imu.back().t_ns, t_ns);
+    (*feed)->release();
+  }
+  EXPECT_FALSE((*feed)->faults().any());
+}
+
 TEST_F(LiveFeedTest, AStereoPairCarriesBothImagesAndTheCalibrationsShiftMovesItsTime) {
   LiveFeedOptions options = feedOptions("stereo", /*stereo=*/true);
   options.timeshift_cam_imu_ns = 3'000'000;  // t_imu = t_cam + 3 ms
@@ -298,7 +324,9 @@ TEST_F(LiveFeedTest, ADriverThatStartsAgainIsNoticedAndFollowed) {
     awaitConnection(*driver);
     for (int i = 1; i <= 2; ++i) {
       publishFrame(*driver, (i - 1) * kFramePeriodNs, i * kFramePeriodNs, 0);
-      ASSERT_NE((*feed)->next(), nullptr);
+      const FeedFrame* first = (*feed)->next();
+      ASSERT_NE(first, nullptr);
+      EXPECT_FALSE(first->stream_restarted);
       (*feed)->release();
     }
   }
@@ -310,6 +338,7 @@ TEST_F(LiveFeedTest, ADriverThatStartsAgainIsNoticedAndFollowed) {
   ASSERT_NE(frame, nullptr);
   EXPECT_EQ(frame->t_ns, kFramePeriodNs / 2);
   EXPECT_EQ(frame->left[0], 5);
+  EXPECT_TRUE(frame->stream_restarted);
   // Its IMU is taken as new too, not as samples from the past.
   ASSERT_FALSE(frame->imu.empty());
   EXPECT_EQ(frame->imu.back().t_ns, kFramePeriodNs / 2);
