@@ -29,12 +29,9 @@ std::atomic<bool> g_stop{false};
 extern "C" void onSignal(int /*signal*/) {
   g_stop.store(true);
 }
-}  // namespace
 
-int main(int argc, char** argv) {
-  CLI::App app{
-      "cvislam_agent: real-time visual-inertial odometry of one agent, on a recording (EuRoC folder, ROS 2 bag) or "
-      "on a driver's live topics"};
+// The command line: its options, and what they change in the agent's options (after the config file).
+struct CommandLine {
   std::string dataset;
   std::string output;
   std::string config;
@@ -50,16 +47,27 @@ int main(int argc, char** argv) {
   bool trace_mapping = false;
   bool no_priorities = false;
   std::size_t max_frames = 0;
-  auto* dataset_option = app.add_option("--dataset", dataset, "Sequence folder that holds mav0 (EuRoC/ASL layout)");
   std::string mcap;
   cvislam::agent::McapTopics topics;
+  std::string live;
+  std::string calibration;
+  std::string imu_calibration;
+  std::string token;
+  std::string tls_ca;
+
+  void define(CLI::App& app);
+  // False, with the reason on stderr, when a value is wrong.
+  bool applyTo(cvislam::agent::AgentOptions& options);
+};
+
+void CommandLine::define(CLI::App& app) {
+  auto* dataset_option = app.add_option("--dataset", dataset, "Sequence folder that holds mav0 (EuRoC/ASL layout)");
   auto* mcap_option =
       app.add_option("--mcap", mcap,
                      "ROS 2 bag in MCAP (sensor_msgs/msg/Image mono8, rgb8 or bgr8, and sensor_msgs/msg/Imu, CDR); "
                      "needs --calibration and --imu-calibration")
           ->check(CLI::ExistingFile);
   dataset_option->excludes(mcap_option);
-  std::string live;
   auto* live_option = app.add_option(
       "--live", live,
       "Track a driver's live topics NAME (cvislam_sensor_publisher --name NAME plays a recording onto them); attaches "
@@ -69,8 +77,6 @@ int main(int argc, char** argv) {
   app.add_option("--cam0-topic", topics.cam0, "With --mcap: cam0's image topic [/cam0/image_raw]");
   app.add_option("--cam1-topic", topics.cam1, "With --mcap: cam1's image topic; empty: none [/cam1/image_raw]");
   app.add_option("--imu-topic", topics.imu, "With --mcap: the IMU topic [/imu0]");
-  std::string calibration;
-  std::string imu_calibration;
   app.add_option("--calibration", calibration,
                  "Kalibr camera chain (camchain-imucam.yaml: cam0, cam1 with intrinsics, distortion, T_cam_imu, "
                  "timeshift_cam_imu) used instead of the recording's cam0/cam1 sensor.yaml")
@@ -92,8 +98,6 @@ int main(int argc, char** argv) {
                  "Stream the map to the cvislam_server at HOST:PORT; without it the agent runs alone. The agent never "
                  "waits for the server: it reconnects by itself and resends what was not acknowledged");
   app.add_option("--mission", mission, "Mission name on the server (letters, digits, . _ -) [default]");
-  std::string token;
-  std::string tls_ca;
   app.add_option("--token", token,
                  "The mission's token, when the server has a tokens file [$CVISLAM_TOKEN; none]. The environment "
                  "variable keeps it out of the process list");
@@ -108,19 +112,13 @@ int main(int argc, char** argv) {
   app.add_flag("--trace-mapping", trace_mapping,
                "One line per keyframe on stderr: matches linked, points fused/made/culled, stereo matches, local BA "
                "size, cam1 factors and rejected stereo mismatches, cost");
-  CLI11_PARSE(app, argc, argv);
+}
 
-  cvislam::agent::AgentOptions options;
-  if (!config.empty()) {
-    if (auto s = cvislam::agent::loadAgentConfig(config, options); !s.ok()) {
-      std::cerr << "cvislam_agent: " << s.error().toString() << "\n";
-      return 2;
-    }
-  }
+bool CommandLine::applyTo(cvislam::agent::AgentOptions& options) {
   if (dataset.empty() && mcap.empty() && live.empty()) {
     std::cerr << "cvislam_agent: give the sensor input: --dataset DIR (EuRoC/ASL folder), --mcap FILE (ROS 2 bag) or "
                  "--live NAME (a driver's topics)\n";
-    return 2;
+    return false;
   }
   options.dataset = dataset;
   options.mcap = mcap;
@@ -144,13 +142,13 @@ int main(int argc, char** argv) {
   if (!parse(mode, "mode", cvislam::agent::parseAgentMode, options.mode) ||
       !parse(pace, "pace", cvislam::agent::parsePace, options.pace) ||
       !parse(roudi, "roudi", cvislam::agent::parseRouDiMode, options.roudi)) {
-    return 2;
+    return false;
   }
   if (rate > 0.0) options.rate = rate;
   if (agent_id >= 0) {
     if (agent_id > 65535) {
       std::cerr << "cvislam_agent: --agent-id must be in [0, 65535]\n";
-      return 2;
+      return false;
     }
     options.agent = static_cast<cvislam::AgentId>(agent_id);
   }
@@ -165,7 +163,7 @@ int main(int argc, char** argv) {
     auto pem = cvislam::text::readPemFile(tls_ca, "CA file (--tls-ca)");
     if (!pem) {
       std::cerr << "cvislam_agent: " << pem.error().message() << "\n";
-      return 2;
+      return false;
     }
     options.link.tls_ca_pem = std::move(pem).value();
   }
@@ -173,7 +171,11 @@ int main(int argc, char** argv) {
   if (no_priorities) options.threads.enabled = false;
   options.trace_mapping = trace_mapping;
   options.max_frames = max_frames;
+  return true;
+}
 
+// Runs the agent and prints its summary; the exit status.
+int run(const cvislam::agent::AgentOptions& options) {
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   auto summary = cvislam::agent::runAgent(options, g_stop);
@@ -187,4 +189,25 @@ int main(int argc, char** argv) {
             << "\nlatency: " << summary->latency_json.string() << "\n";
   if (summary->interrupted) std::cout << "interrupted: the outputs hold what was tracked until then\n";
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "cvislam_agent: real-time visual-inertial odometry of one agent, on a recording (EuRoC folder, ROS 2 bag) or "
+      "on a driver's live topics"};
+  CommandLine command_line;
+  command_line.define(app);
+  CLI11_PARSE(app, argc, argv);
+
+  cvislam::agent::AgentOptions options;
+  if (!command_line.config.empty()) {
+    if (auto s = cvislam::agent::loadAgentConfig(command_line.config, options); !s.ok()) {
+      std::cerr << "cvislam_agent: " << s.error().toString() << "\n";
+      return 2;
+    }
+  }
+  if (!command_line.applyTo(options)) return 2;
+  return run(options);
 }
