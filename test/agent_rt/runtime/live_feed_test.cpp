@@ -167,6 +167,30 @@ TEST_F(LiveFeedTest, AThousandHertzImuReachesEveryFrameWhole) {
   EXPECT_FALSE((*feed)->faults().any());
 }
 
+TEST_F(LiveFeedTest, AnImuBurstLongerThanItsQueueLosesTheOldestSamplesAndCountsThem) {
+  auto feed = openLiveFeed(feedOptions("burst"));
+  ASSERT_TRUE(feed.ok());
+  auto driver = publisher("burst");
+  awaitConnection(*driver);
+  publishFrame(*driver, 0, 10 * kImuPeriodNs, 0);
+  ASSERT_NE((*feed)->next(), nullptr);
+  (*feed)->release();
+  // 300 samples at once (a driver that was held up), while the feed is not reading: its queue keeps the newest 256.
+  for (std::int64_t k = 11; k <= 310; ++k) driver->publishImu(imuAt(k * kImuPeriodNs));
+  std::span<std::uint8_t> pixels = driver->loanFrame();
+  ASSERT_FALSE(pixels.empty());
+  driver->publishFrame(310 * kImuPeriodNs);
+  const FeedFrame* frame = (*feed)->next();
+  ASSERT_NE(frame, nullptr);
+  EXPECT_EQ(frame->imu.back().t_ns, 310 * kImuPeriodNs);
+  // Its interval starts at the previous frame, but the samples lost leave a hole that tracking sees as a gap.
+  EXPECT_EQ(frame->imu.front().t_ns, 10 * kImuPeriodNs);
+  EXPECT_EQ(frame->imu[1].t_ns, 55 * kImuPeriodNs);
+  (*feed)->release();
+  EXPECT_EQ((*feed)->faults().imu_lost, 300U - 256U);
+  EXPECT_EQ((*feed)->faults().imu_out_of_order, 0U);
+}
+
 TEST_F(LiveFeedTest, AStereoPairCarriesBothImagesAndTheCalibrationsShiftMovesItsTime) {
   LiveFeedOptions options = feedOptions("stereo", /*stereo=*/true);
   options.timeshift_cam_imu_ns = 3'000'000;  // t_imu = t_cam + 3 ms
