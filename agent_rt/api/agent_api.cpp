@@ -5,7 +5,9 @@
 
 #include "agent_rt/runtime/agent.hpp"
 #include "agent_rt/runtime/push_feed.hpp"
+#include "agent_rt/runtime/pushed_propagation.hpp"
 #include "agent_rt/sources/kalibr_rig.hpp"
+#include "common/core/steady_clock.hpp"
 #include "cvislam/agent.hpp"
 
 namespace cvislam {
@@ -67,8 +69,19 @@ Result<agent::AgentOptions> optionsOf(const AgentConfig& config, bool stereo) {
 
 }  // namespace
 
-struct Agent::Impl final : agent::StateListener {
+// The program's callback, for the states made between frames.
+struct UserCallback final : agent::StateListener {
+  explicit UserCallback(const AgentConfig& c) : config(c) {}
   void onState(const agent::live::AgentStateMessage& state) override {
+    if (config.on_state) config.on_state(toApi(state));
+  }
+  const AgentConfig& config;
+};
+
+struct Agent::Impl final : agent::StateListener {
+  // Every frame's state, on tracking's thread: to the IMU-rate propagation and to the program.
+  void onState(const agent::live::AgentStateMessage& state) override {
+    if (propagation) propagation->onFrameState(state);
     if (config.on_state) config.on_state(toApi(state));
   }
 
@@ -77,6 +90,7 @@ struct Agent::Impl final : agent::StateListener {
       finished = true;
       feed->finish();
       if (runner.joinable()) runner.join();
+      propagation.reset();
     }
     AgentSummary out;
     if (!result.ok()) {
@@ -101,6 +115,8 @@ struct Agent::Impl final : agent::StateListener {
   agent::SensorRig rig;
   bool stereo = false;
   std::unique_ptr<agent::PushFeed> feed;
+  std::unique_ptr<UserCallback> between_frames;
+  std::unique_ptr<agent::PushedPropagation> propagation;  // with the IMU: its states between frames
   std::atomic<bool> stop{false};
   Result<agent::AgentRunSummary> result = Error{ErrorCode::kInternal, "the agent has not run"};
   std::thread runner;
@@ -130,6 +146,10 @@ std::unique_ptr<Agent> Agent::create(const AgentConfig& config, std::string* err
   feed.imu_wait_s = impl->options.live_imu_wait_s;
   feed.wait_when_full = config.replay;
   impl->feed = std::make_unique<agent::PushFeed>(feed);
+  if (impl->options.use_imu) {
+    impl->between_frames = std::make_unique<UserCallback>(impl->config);
+    impl->propagation = std::make_unique<agent::PushedPropagation>(*impl->between_frames);
+  }
 
   // The runner says true once the agent runs, false when it could not start (its result says why).
   std::promise<bool> running;
@@ -170,6 +190,7 @@ bool Agent::pushImu(const ImuMeasurement& m) {
   s.t_ns = m.t_ns;
   s.gyro_s = {m.gyro[0], m.gyro[1], m.gyro[2]};
   s.accel_s = {m.accel[0], m.accel[1], m.accel[2]};
+  if (impl_->propagation) impl_->propagation->pushImu(s, steadyNowNs());
   return impl_->feed->pushImu(s);
 }
 

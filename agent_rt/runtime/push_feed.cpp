@@ -16,13 +16,10 @@ PushFeed::PushFeed(const PushFeedOptions& options)
       imu_window_(options.imu_queue) {}
 
 bool PushFeed::pushImu(const dataset::ImuSample& sample) {
-  const std::size_t head = imu_head_.load(std::memory_order_relaxed);
-  if (head - imu_tail_.load(std::memory_order_acquire) >= imu_queue_.size()) {
+  if (!imu_queue_.push(sample)) {
     imu_dropped_.fetch_add(1, std::memory_order_relaxed);
     return false;
   }
-  imu_queue_[head % imu_queue_.size()] = sample;
-  imu_head_.store(head + 1, std::memory_order_release);
   doorbell_.ring();
   return true;
 }
@@ -55,12 +52,10 @@ void PushFeed::close() {
 }
 
 void PushFeed::drainImu() {
-  std::size_t tail = imu_tail_.load(std::memory_order_relaxed);
-  const std::size_t head = imu_head_.load(std::memory_order_acquire);
-  for (; tail != head; ++tail) {
-    if (!imu_window_.add(imu_queue_[tail % imu_queue_.size()])) ++faults_.imu_out_of_order;
+  dataset::ImuSample sample;
+  while (imu_queue_.pop(sample)) {
+    if (!imu_window_.add(sample)) ++faults_.imu_out_of_order;
   }
-  imu_tail_.store(tail, std::memory_order_release);
 }
 
 const FeedFrame* PushFeed::next() {

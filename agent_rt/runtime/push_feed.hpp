@@ -14,6 +14,7 @@
 #include "agent_rt/runtime/frame_feed.hpp"
 #include "agent_rt/runtime/frame_ring.hpp"
 #include "agent_rt/runtime/imu_window.hpp"
+#include "agent_rt/runtime/spsc_queue.hpp"
 
 namespace cvislam::agent {
 
@@ -55,10 +56,7 @@ class PushFeed final : public FrameFeed {
   PushFeedOptions o_;
   FrameRing ring_;
   Doorbell doorbell_;
-  // The IMU queue: single producer, single consumer.
-  std::vector<dataset::ImuSample> imu_queue_;
-  std::atomic<std::size_t> imu_head_{0};
-  std::atomic<std::size_t> imu_tail_{0};
+  SpscQueue<dataset::ImuSample> imu_queue_;
   std::atomic<std::uint64_t> frames_dropped_{0};
   std::atomic<std::uint64_t> imu_dropped_{0};
   std::atomic<std::uint64_t> pushed_{0};

@@ -16,8 +16,9 @@
 // Threads: the agent runs its own (tracking, mapping, and with a server the link); pushImu and pushFrame may be
 // called from one thread or each from its own, and neither allocates nor waits (unless wait_when_full): a full
 // queue drops what is pushed and says so in the return value and the summary. on_state is called on the agent's
-// tracking thread for every frame, and on its propagation thread for every IMU sample once the IMU is initialised:
-// return quickly from it. The process runs iceoryx's RouDi inside unless external_roudi is set (one RouDi per
+// tracking thread for every frame, and with the IMU on its propagation thread for every IMU sample once the IMU is
+// initialised (the newest frame's state carried forward by the samples since): return quickly from it. Call
+// finish() after the last push. The process runs iceoryx's RouDi inside unless external_roudi is set (one RouDi per
 // machine: with several agents on one machine, start iox-roudi and set it).
 #pragma once
 

@@ -74,8 +74,14 @@ TEST_F(AgentApi, AReplayThroughTheApiGivesTheFolderRunsTrajectoryByteForByte) {
   c.replay = true;
   std::atomic<int> frame_states{0};
   std::atomic<int> tracked_states{0};
+  std::atomic<int> propagated_states{0};
+  std::atomic<int> propagated_before_metric{0};
   c.on_state = [&](const AgentState& s) {
-    if (s.kind != AgentState::Kind::kFrame) return;
+    if (s.kind == AgentState::Kind::kImuPropagated) {
+      ++propagated_states;
+      if (!s.metric) ++propagated_before_metric;
+      return;
+    }
     ++frame_states;
     if (s.tracked) ++tracked_states;
   };
@@ -91,6 +97,9 @@ TEST_F(AgentApi, AReplayThroughTheApiGivesTheFolderRunsTrajectoryByteForByte) {
   EXPECT_EQ(frame_states.load(), 95);
   EXPECT_EQ(static_cast<std::uint64_t>(tracked_states.load()), summary.tracked_frames);
   EXPECT_GT(summary.imu_initialised_at_s, 0.0);
+  // Between frames, once the IMU is initialised (at 1.8 s of 4.7 s, 200 Hz): the IMU-rate states.
+  EXPECT_GT(propagated_states.load(), 300);
+  EXPECT_EQ(propagated_before_metric.load(), 0);
 
   // The same recording read from its folder by the agent at --pace sync.
   agent::AgentOptions folder;

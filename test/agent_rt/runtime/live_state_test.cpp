@@ -2,7 +2,13 @@
 // forward between frames, checked against motions whose answer is known in closed form.
 #include "agent_rt/runtime/live_state.hpp"
 
+#include "agent_rt/runtime/pushed_propagation.hpp"
+#include "agent_rt/runtime/spsc_queue.hpp"
+
+#include <atomic>
+#include <chrono>
 #include <cmath>
+#include <thread>
 
 #include <gtest/gtest.h>
 
@@ -133,6 +139,63 @@ TEST(ImuPropagator, NothingIsCarriedBeforeTheStateIsMetric) {
   propagator.onFrameState(metricStateAt(0, Eigen::Vector3d::Zero(), Eigen::Vector3d::Zero()));
   EXPECT_FALSE(propagator.onImu(sampleAt(kImuPeriodNs, Eigen::Vector3d::Zero(), kLevelAtRest), 0).has_value());
   EXPECT_TRUE(propagator.onImu(sampleAt(2 * kImuPeriodNs, Eigen::Vector3d::Zero(), kLevelAtRest), 0).has_value());
+}
+
+TEST(SpscQueue, KeepsOrderRefusesWhenFullAndCarriesAcrossThreads) {
+  SpscQueue<int> queue(4);
+  for (int i = 0; i < 4; ++i) EXPECT_TRUE(queue.push(i));
+  EXPECT_FALSE(queue.push(4));
+  int v = -1;
+  for (int i = 0; i < 4; ++i) {
+    ASSERT_TRUE(queue.pop(v));
+    EXPECT_EQ(v, i);
+  }
+  EXPECT_FALSE(queue.pop(v));
+  // One producer and one consumer thread: every value arrives once, in order.
+  constexpr int kValues = 20000;
+  std::thread producer([&] {
+    for (int i = 0; i < kValues; ++i) {
+      while (!queue.push(i)) std::this_thread::yield();
+    }
+  });
+  int expected = 0;
+  while (expected < kValues) {
+    if (queue.pop(v)) {
+      ASSERT_EQ(v, expected);
+      ++expected;
+    } else {
+      std::this_thread::yield();
+    }
+  }
+  producer.join();
+}
+
+// The embedding API's IMU-rate states: frame states from one thread, samples from another, states out on its own.
+TEST(PushedPropagation, CarriesTheNewestFrameStateThroughPushedSamples) {
+  struct Collect final : StateListener {
+    void onState(const live::AgentStateMessage& state) override {
+      last_p_x.store(state.p_w_s[0]);
+      last_t_ns.store(state.t_ns);
+      count.fetch_add(1);
+    }
+    std::atomic<int> count{0};
+    std::atomic<double> last_p_x{0.0};
+    std::atomic<std::int64_t> last_t_ns{0};
+  } collect;
+  PushedPropagation propagation(collect);
+  propagation.onFrameState(metricStateAt(0, {2.0, 0.0, 0.0}, {1.0, 0.0, 0.0}));
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));  // the frame state first, as tracking would have it
+  for (std::int64_t t = kImuPeriodNs; t <= 100'000'000; t += kImuPeriodNs) {
+    propagation.pushImu(sampleAt(t, Eigen::Vector3d::Zero(), kLevelAtRest), t);
+  }
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (collect.count.load() < 20 && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  EXPECT_EQ(collect.count.load(), 20);
+  EXPECT_EQ(collect.last_t_ns.load(), 100'000'000);
+  EXPECT_NEAR(collect.last_p_x.load(), 2.0 + 0.1, 1e-9);  // 1 m/s for 0.1 s
+  EXPECT_EQ(propagation.dropped(), 0U);
 }
 
 }  // namespace
