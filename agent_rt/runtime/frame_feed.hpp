@@ -1,5 +1,6 @@
 // Where tracking's frames come from while the agent runs: a recording replayed by a loader thread
-// (recording_feed.hpp) or a driver's live topics (live_feed.hpp). Each frame arrives with its images and the IMU
+// (recording_feed.hpp), a driver's live topics (live_feed.hpp), or frames a program pushes through the embedding API
+// (push_feed.hpp). Each frame arrives with its images and the IMU
 // samples that cover the time since the previous one, so tracking never looks further than the frame in hand.
 // One consumer, the tracking thread; next() and release() alternate.
 #pragma once
