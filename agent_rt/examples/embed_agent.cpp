@@ -6,6 +6,7 @@
 //   cvislam_embed_example SEQ_DIR CAMCHAIN.yaml IMU.yaml OUT_DIR [--replay]
 //
 // SEQ_DIR holds mav0 (EuRoC/ASL); the two YAML files are Kalibr's, describing that rig.
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -42,6 +43,30 @@ class NewestState {
   long count_ = 0;
 };
 
+// Latencies the callback saw, one log per kind of state: each kind comes from one agent thread, and the log is read
+// once the agent has finished. The room is reserved up front, so the callback never allocates.
+class LatencyLog {
+ public:
+  explicit LatencyLog(std::size_t capacity) : ms_(capacity) {}
+  void add(double ms) {
+    if (count_ < ms_.size()) ms_[count_++] = ms;
+  }
+  // p50 and p99 (nearest rank), after the agent finished.
+  std::pair<double, double> percentiles() {
+    if (count_ == 0) return {0.0, 0.0};
+    std::sort(ms_.begin(), ms_.begin() + static_cast<std::ptrdiff_t>(count_));
+    const auto at = [&](double q) {
+      return ms_[std::min(count_ - 1, static_cast<std::size_t>(q * static_cast<double>(count_)))];
+    };
+    return {at(0.50), at(0.99)};
+  }
+  [[nodiscard]] std::size_t count() const { return count_; }
+
+ private:
+  std::vector<double> ms_;
+  std::size_t count_ = 0;
+};
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -57,12 +82,17 @@ int main(int argc, char** argv) {
   }
 
   NewestState newest;
+  LatencyLog frame_latency(1 << 16);
+  LatencyLog imu_latency(1 << 20);
   cvislam::AgentConfig config;
   config.calibration = argv[2];
   config.imu_calibration = argv[3];
   config.output = argv[4];
   config.replay = replay;
-  config.on_state = [&newest](const cvislam::AgentState& state) { newest.set(state); };
+  config.on_state = [&](const cvislam::AgentState& state) {
+    newest.set(state);
+    (state.kind == cvislam::AgentState::Kind::kFrame ? frame_latency : imu_latency).add(state.latency_ms);
+  };
   std::string error;
   auto agent = cvislam::Agent::create(config, &error);
   if (!agent) {
@@ -112,6 +142,10 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "the agent failed: %s\n", summary.error.c_str());
     return 1;
   }
+  const auto [frame_p50, frame_p99] = frame_latency.percentiles();
+  const auto [imu_p50, imu_p99] = imu_latency.percentiles();
+  std::printf("push to state, p50 / p99: frames %.3f / %.3f ms (%zu), IMU samples %.3f / %.3f ms (%zu)\n", frame_p50,
+              frame_p99, frame_latency.count(), imu_p50, imu_p99, imu_latency.count());
   std::printf("frames %llu, tracked %llu, keyframes %llu, dropped %llu; trajectory %s\n",
               static_cast<unsigned long long>(summary.frames), static_cast<unsigned long long>(summary.tracked_frames),
               static_cast<unsigned long long>(summary.keyframes),
