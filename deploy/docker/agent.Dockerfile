@@ -1,5 +1,6 @@
 # The cvislam agent image (x86-64; boards take the cross-built binary, see docs/deploy.md, "Building for a board"):
-# cvislam_agent with its configs, run as a non-root user. The agent embeds RouDi, so the container needs a
+# cvislam_agent (with cvislam_sensor_publisher and cvislam_state_monitor for live topics) and its configs, run as a
+# non-root user. The agent embeds RouDi, so the container needs a
 # /dev/shm of at least 256 MiB (docker run --shm-size=256m; on Kubernetes a memory emptyDir, see
 # deploy/k8s/base/agent-pod.yaml).
 #
@@ -15,7 +16,7 @@ COPY deploy/install_deps.sh deploy/install_deps.sh
 RUN deploy/install_deps.sh && rm -rf /var/lib/apt/lists/*
 COPY . .
 RUN cmake --preset release \
- && cmake --build --preset release --target cvislam_agent \
+ && cmake --build --preset release --target cvislam_agent cvislam_sensor_publisher cvislam_state_monitor \
  && cmake --install build/release --component agent --prefix /opt/cvislam
 
 FROM debian:12.8-slim
