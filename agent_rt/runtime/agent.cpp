@@ -5,7 +5,6 @@
 #include <cmath>
 #include <condition_variable>
 #include <cstdio>
-#include <fstream>
 #include <functional>
 #include <memory>
 #include <mutex>
@@ -22,11 +21,11 @@
 #include "agent_rt/runtime/mapping_thread.hpp"
 #include "agent_rt/runtime/propagation_thread.hpp"
 #include "agent_rt/runtime/recording_feed.hpp"
+#include "agent_rt/runtime/run_outputs.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
 #include "agent_rt/sources/kalibr_rig.hpp"
 #include "common/dataset/euroc.hpp"
-#include "common/dataset/trajectory_io.hpp"
 #include "iceoryx_posh/popo/user_trigger.hpp"
 #include "iceoryx_posh/popo/wait_set.hpp"
 
@@ -706,86 +705,6 @@ void addMappingFigures(const MappingStats& stats, const YieldRequests& yield_req
                                      : stats.imu_initialised_at_s - static_cast<double>(first_frame_t_ns) * 1e-9;
 }
 
-// summary.json.
-nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& options, const RunPlan& plan,
-                           const MappingStats& mapping_stats) {
-  nlohmann::json j = {{"frames", summary.frames},
-                      {"tracked_frames", summary.tracked_frames},
-                      {"keyframes", summary.keyframes},
-                      {"new_maps", summary.new_maps},
-                      {"lost_frames", summary.lost_frames},
-                      {"unreadable_frames", summary.unreadable_frames},
-                      {"imu_gaps", summary.imu_gaps},
-                      {"dropped_keyframes", summary.dropped_keyframes},
-                      {"deferred_keyframes", summary.deferred_keyframes},
-                      {"frames_needing_mapping", summary.frames_needing_mapping},
-                      {"most_pending_keyframes", summary.most_pending_keyframes},
-                      {"mapping_yield_requests", summary.mapping_yield_requests},
-                      {"local_ba_skipped", summary.local_ba_skipped},
-                      {"local_ba_stopped_early", summary.local_ba_stopped_early},
-                      {"local_ba_yielded_to_tracking", summary.local_ba_yielded_to_tracking},
-                      {"imu_initialised_at_s", summary.imu_initialised_at_s},
-                      {"mean_tracked_points", summary.mean_tracked_points},
-                      {"mode", plan.stereo ? "stereo" : "mono"},
-                      {"imu_noise_inflation", plan.imu_noise_inflation},
-                      {"interrupted", summary.interrupted},
-                      {"state_messages_not_sent", summary.state_messages_not_sent},
-                      {"wall_s", summary.wall_s}};
-  if (summary.live) {
-    const FeedFaults& f = summary.live_faults;
-    j["live"] = {{"stream", options.embedded_input ? "(embedded)" : options.live},
-                 {"frames_lost", f.frames_lost},
-                 {"frames_out_of_order", f.frames_out_of_order},
-                 {"messages_malformed", f.messages_malformed},
-                 {"imu_lost", f.imu_lost},
-                 {"imu_out_of_order", f.imu_out_of_order},
-                 {"imu_overflow", f.imu_overflow},
-                 {"imu_wait_timeouts", f.imu_wait_timeouts},
-                 {"stalls", f.stalls},
-                 {"driver_restarts", f.driver_restarts},
-                 {"frames_not_recorded", summary.frames_not_recorded}};
-  }
-  if (summary.link_enabled) {
-    j["link"] = {
-        {"server", options.link.server},
-        {"mission", options.link.mission},
-        {"flushed", summary.link.flushed},
-        {"connections", summary.link.connections},
-        {"acked_sequence", summary.link.acked_sequence},
-        {"keyframes_unacknowledged", summary.link.backlog.keyframes_unsent + summary.link.backlog.keyframes_unacked},
-        {"keyframes_dropped", summary.link.store.keyframes_dropped},
-        {"deltas_lost", summary.link.store.deltas_lost},
-        {"up_bytes", summary.link.up_bytes},
-        {"down_bytes", summary.link.down_bytes}};
-    j["downlink"] = mapping_stats.downlinkJson();
-  }
-  return j;
-}
-
-// The trajectories, latency.json and summary.json (the link's report is written by the link).
-Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& recorder,
-                       const nlohmann::json& summary_json, AgentRunSummary& summary) {
-  dataset::Trajectory refined;
-  dataset::Trajectory online;
-  dataset::Trajectory keyframes;
-  recorder.build(refined, online, keyframes);
-  summary.trajectory = options.output / "trajectory.txt";
-  summary.keyframe_trajectory = options.output / "keyframes.txt";
-  summary.latency_json = options.output / "latency.json";
-  for (const auto& [path, trajectory] :
-       {std::pair{summary.trajectory, &refined}, std::pair{options.output / "trajectory_online.txt", &online},
-        std::pair{summary.keyframe_trajectory, &keyframes}}) {
-    if (Status s = dataset::writeTrajectory(path, *trajectory, dataset::TrajectoryFormat::kTum); !s.ok()) return s;
-  }
-  std::ofstream latency(summary.latency_json);
-  latency << latencyJson(summary.stages);
-  if (!latency) return Error{ErrorCode::kIoError, "cannot write " + summary.latency_json.string()};
-  std::ofstream json(options.output / "summary.json");
-  json << summary_json.dump(2) << "\n";
-  if (!json) return Error{ErrorCode::kIoError, "cannot write " + (options.output / "summary.json").string()};
-  return Status::Ok();
-}
-
 }  // namespace
 
 Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atomic<bool>& stop,
@@ -900,28 +819,11 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   if (*link) {
     if (Status s = (*link)->writeReport(options.output); !s.ok()) return s.error();
   }
-  if (Status s = writeRunOutputs(options, recorder, summaryJson(summary, options, plan, mapping_stats), summary);
+  if (Status s = writeRunOutputs(options, recorder, mapping_stats, {plan.stereo, plan.imu_noise_inflation}, summary);
       !s.ok()) {
     return s.error();
   }
   return summary;
-}
-
-std::string formatSummary(const AgentRunSummary& s) {
-  char text[1024];
-  std::snprintf(
-      text, sizeof(text),
-      "frames %zu, tracked %zu (%.1f %%), keyframes %zu, maps %zu, mean tracked points %.0f\n"
-      "IMU initialised at %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, keyframes dropped %zu\n"
-      "mapping busy: keyframes deferred %zu, frames that needed mapping's answer %zu, most keyframes pending %d\n"
-      "mapping asked to yield on %zu frames; local BAs skipped %zu, cut short %zu (for tracking's request %zu)\n",
-      s.frames, s.tracked_frames, s.frames > 0 ? 100.0 * s.tracked_frames / s.frames : 0.0, s.keyframes, s.new_maps,
-      s.mean_tracked_points,
-      s.imu_initialised_at_s < 0 ? "never" : (std::to_string(s.imu_initialised_at_s) + " s").c_str(),
-      s.unreadable_frames, s.imu_gaps, s.lost_frames, s.dropped_keyframes, s.deferred_keyframes,
-      s.frames_needing_mapping, s.most_pending_keyframes, s.mapping_yield_requests, s.local_ba_skipped,
-      s.local_ba_stopped_early, s.local_ba_yielded_to_tracking);
-  return std::string(text) + formatLatencyTable(s.stages);
 }
 
 }  // namespace cvislam::agent
