@@ -123,7 +123,6 @@ namespace {
 struct RunPlan {
   std::unique_ptr<Recording> recording;  // none for a live stream
   SensorRig rig;
-  std::string source;  // for messages: "EuRoC folder /data/V1_01", "live stream 'cam'"
   bool stereo;
   double imu_noise_inflation;
   SensorSetup setup;
@@ -215,8 +214,8 @@ Result<RunPlan> planRun(AgentOptions& options) {
     if (frames.empty()) return Error{ErrorCode::kDataError, describe + " has no usable camera frames"};
   }
   return RunPlan{
-      std::move(opened->recording), std::move(opened->rig),     std::move(opened->source), stereo,           inflation,
-      std::move(setup).value(),     std::move(tracker).value(), std::move(mapper).value(), std::move(frames)};
+      std::move(opened->recording), std::move(opened->rig),    stereo,           inflation, std::move(setup).value(),
+      std::move(tracker).value(),   std::move(mapper).value(), std::move(frames)};
 }
 
 // The frames for tracking: the recording's, read ahead by a loader thread, or the driver's live topics.

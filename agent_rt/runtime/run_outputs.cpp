@@ -92,7 +92,6 @@ Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& re
   return Status::Ok();
 }
 
-
 std::string formatSummary(const AgentRunSummary& s) {
   char text[1024];
   std::snprintf(
