@@ -1,5 +1,6 @@
 #include "common/imu/visual_inertial_alignment.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <string>
 
@@ -27,31 +28,67 @@ Status VisualInertialAlignmentOptions::validate() const {
   if (!(known_scale >= 0.0) || !std::isfinite(known_scale)) {
     return Error{ErrorCode::kInvalidArgument, "IMU initialisation: known_scale must be >= 0 (0 = estimate it)"};
   }
+  if (!(time_offset_prior_sigma_s > 0.0) || !(max_time_offset_s > 0.0)) {
+    return Error{ErrorCode::kInvalidArgument, "time_offset_prior_sigma_s and max_time_offset_s must be > 0"};
+  }
   return Status::Ok();
 }
 
 namespace {
 
-// Step 1: the gyroscope bias that makes the preintegrated rotations agree with the visual ones.
-Vector3d estimateGyroBias(const std::vector<SO3d>& R_v_s, const std::vector<Preintegration>& pre, int iterations) {
-  Vector3d bias = pre.front().biasLin().gyro;
-  for (int it = 0; it < iterations; ++it) {
-    Matrix3d H = Matrix3d::Zero();
-    Vector3d g = Vector3d::Zero();
+// Step 1's unknowns.
+struct GyroAndTime {
+  Vector3d gyro_bias = Vector3d::Zero();
+  double time_correction_s = 0.0;
+};
+
+// Step 1: the gyroscope bias (and the time offset's correction td) that make the preintegrated rotations agree with
+// the visual ones. With d_k = td - c_k, the state rotations are R_vis_k Exp(-w_k d_k), so pair k compares
+//   E = dR(b)^T Exp(w_i d_i) A Exp(-w_j d_j),   A = R_vis_i^T R_vis_j,   r = Log(E);
+// dr/dtd = Jr^-1(r) ((A Exp(-w_j d_j))^T w_i - w_j), since moving Exp(w_i e) past A Exp(-w_j d_j) turns it by that
+// rotation's transpose; the bias Jacobian is the usual one with this E.
+GyroAndTime estimateGyroBiasAndTime(const std::vector<SO3d>& R_v_s, const std::vector<VisualKeyframe>& keyframes,
+                                    const std::vector<Preintegration>& pre,
+                                    const VisualInertialAlignmentOptions& options) {
+  GyroAndTime x{pre.front().biasLin().gyro, keyframes.back().time_correction_s};
+  const double td_prior = x.time_correction_s;
+  const bool with_time = options.estimate_time_offset;
+  const Eigen::Index unknowns = with_time ? 4 : 3;
+  // Rotation residuals are radians; a time prior of sigma s weighs like one residual of 1e-3 rad per s.
+  const double prior_weight = std::pow(1e-3 / options.time_offset_prior_sigma_s, 2);
+  for (int it = 0; it < options.gyro_bias_iterations + (with_time ? 2 : 0); ++it) {
+    Eigen::Matrix4d H = Eigen::Matrix4d::Zero();
+    Eigen::Vector4d g = Eigen::Vector4d::Zero();
     for (std::size_t k = 0; k < pre.size(); ++k) {
       ImuBias b = pre[k].biasLin();
-      b.gyro = bias;
-      const Vector3d correction = pre[k].dR_dbg() * (bias - pre[k].biasLin().gyro);
-      const SO3d E = pre[k].correctedDeltaR(b).inverse() * R_v_s[k].inverse() * R_v_s[k + 1];
+      b.gyro = x.gyro_bias;
+      const Vector3d w_i = keyframes[k].omega_s - x.gyro_bias;
+      const Vector3d w_j = keyframes[k + 1].omega_s - x.gyro_bias;
+      const double d_i = with_time ? x.time_correction_s - keyframes[k].time_correction_s : 0.0;
+      const double d_j = with_time ? x.time_correction_s - keyframes[k + 1].time_correction_s : 0.0;
+      const SO3d A_N = R_v_s[k].inverse() * R_v_s[k + 1] * SO3d::exp(-w_j * d_j);
+      const Vector3d correction = pre[k].dR_dbg() * (x.gyro_bias - pre[k].biasLin().gyro);
+      const SO3d E = pre[k].correctedDeltaR(b).inverse() * SO3d::exp(w_i * d_i) * A_N;
       const Vector3d r = E.log();
-      const Matrix3d J =
+      Eigen::Matrix<double, 3, 4> J = Eigen::Matrix<double, 3, 4>::Zero();
+      J.leftCols<3>() =
           -SO3d::rightJacobianInverse(r) * E.inverse().matrix() * SO3d::rightJacobian(correction) * pre[k].dR_dbg();
+      if (with_time) J.col(3) = SO3d::rightJacobianInverse(r) * (A_N.inverse() * w_i - w_j);
       H += J.transpose() * J;
       g += J.transpose() * r;
     }
-    bias -= H.ldlt().solve(g);
+    if (with_time) {
+      H(3, 3) += prior_weight;
+      g(3) += prior_weight * (x.time_correction_s - td_prior);
+    }
+    const Eigen::VectorXd step = H.topLeftCorner(unknowns, unknowns).ldlt().solve(g.head(unknowns));
+    x.gyro_bias -= step.head<3>();
+    if (with_time) {
+      x.time_correction_s =
+          std::clamp(x.time_correction_s - step(3), -options.max_time_offset_s, options.max_time_offset_s);
+    }
   }
-  return bias;
+  return x;
 }
 
 struct LinearSystem {
@@ -60,10 +97,11 @@ struct LinearSystem {
 };
 
 // Step 2 and 3's equations: for each keyframe pair, 3 position rows and 3 velocity rows in the unknowns
-// [v_0 .. v_{N-1}, gravity columns, s]. `gravity_basis` (3 x m) maps the m gravity unknowns to g_v, and
-// `gravity_offset` is the part of g_v that is known.
+// [v_0 .. v_{N-1}, gravity columns, s]. The visual positions are where the body was shift_s[k] after its state time
+// (the time offset not yet in the keyframe's time): p_k = p_vis_k - v_k shift_s[k], linear in the velocities.
+// `gravity_basis` (3 x m) maps the m gravity unknowns to g_v, and `gravity_offset` is the part of g_v that is known.
 LinearSystem buildSystem(const std::vector<SO3d>& R_v_s, const std::vector<Vector3d>& c_v,
-                         const std::vector<Matrix3d>& R_v_c, const Vector3d& t_c_s,
+                         const std::vector<Matrix3d>& R_v_c, const Vector3d& t_c_s, const std::vector<double>& shift_s,
                          const std::vector<Preintegration>& pre, const ImuBias& bias,
                          const Eigen::Matrix<double, 3, Eigen::Dynamic>& gravity_basis,
                          const Vector3d& gravity_offset) {
@@ -77,7 +115,8 @@ LinearSystem buildSystem(const std::vector<SO3d>& R_v_s, const std::vector<Vecto
     const Matrix3d Rt = R_v_s[k].matrix().transpose();
     const Eigen::Index row = 6 * i;
     // Position: R_i^T (s (c_j - c_i) + (R_cj - R_ci) t_cs - v_i dt - g dt^2 / 2) = dp
-    sys.A.block<3, 3>(row, 3 * i) = -Rt * dt;
+    sys.A.block<3, 3>(row, 3 * i) = -Rt * (dt - shift_s[k]);
+    sys.A.block<3, 3>(row, 3 * (i + 1)) = -Rt * shift_s[k + 1];
     sys.A.block(row, 3 * n, 3, m) = -0.5 * Rt * gravity_basis * dt * dt;
     sys.A.block<3, 1>(row, cols - 1) = Rt * (c_v[k + 1] - c_v[k]);
     sys.b.segment<3>(row) =
@@ -119,12 +158,22 @@ Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyf
   const auto n = static_cast<Eigen::Index>(keyframes.size());
 
   VisualInertialAlignment out;
-  out.gyro_bias = estimateGyroBias(R_v_s, preintegrations, options.gyro_bias_iterations);
+  const GyroAndTime step1 = estimateGyroBiasAndTime(R_v_s, keyframes, preintegrations, options);
+  out.gyro_bias = step1.gyro_bias;
+  out.time_correction_s = step1.time_correction_s;
+  // Steps 2 and 3 on the rotations at the state times, and the positions' shift in the system.
+  std::vector<double> shift_s(keyframes.size(), 0.0);
+  if (options.estimate_time_offset) {
+    for (std::size_t k = 0; k < R_v_s.size(); ++k) {
+      shift_s[k] = out.time_correction_s - keyframes[k].time_correction_s;
+      R_v_s[k] = R_v_s[k] * SO3d::exp(-(keyframes[k].omega_s - out.gyro_bias) * shift_s[k]);
+    }
+  }
   ImuBias bias = preintegrations.front().biasLin();
   bias.gyro = out.gyro_bias;
 
   // Step 2: gravity free (3 unknowns).
-  const LinearSystem free = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), preintegrations, bias,
+  const LinearSystem free = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), shift_s, preintegrations, bias,
                                         Matrix3d::Identity(), Vector3d::Zero());
   // With a known scale (a stereo map is metric) the scale column moves to the right-hand side.
   const bool fixed_scale = options.known_scale > 0.0;
@@ -163,7 +212,7 @@ Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyf
   for (int it = 0; it < options.gravity_refinement_iterations; ++it) {
     const Vector3d g_dir = g_v.normalized();
     const Eigen::Matrix<double, 3, 2> B = geometry::bearingTangentBasis(g_dir);
-    const LinearSystem refined = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), preintegrations, bias, B,
+    const LinearSystem refined = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), shift_s, preintegrations, bias, B,
                                              options.gravity_magnitude * g_dir);
     x = solve(refined, false).value();
     g_v = (options.gravity_magnitude * g_dir + B * x.segment<2>(3 * n)).normalized() * options.gravity_magnitude;

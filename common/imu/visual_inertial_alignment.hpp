@@ -1,7 +1,10 @@
 // Visual-inertial alignment: the linear IMU initialisation of CVI-SLAM (section IV-C, after VI ORB-SLAM and
 // VINS-Mono). Given keyframe poses from vision alone (correct up to scale, in an arbitrary visual frame v)
 // and the IMU preintegrated between consecutive keyframes, it estimates
-//   1. the gyroscope bias, by linear least squares on the rotation deltas;
+//   1. the gyroscope bias, by linear least squares on the rotation deltas, and, when asked, the camera-IMU time
+//      offset with it: vision gives each keyframe's rotation at the time its image was really taken, t_k + d_k, the
+//      IMU between the state times t_k, so R(t_k) = R_vis_k Exp(-w_k d_k) with w_k the body's rate (a gyro bias
+//      alone would otherwise absorb the offset, and local BA's bias random walk is slow to give it back);
 //   2. the scale, every keyframe's velocity and gravity in v, by linear least squares on the velocity and
 //      position deltas (accelerometer bias taken as zero at this stage);
 //   3. gravity again, with its magnitude fixed to |g| (two degrees of freedom, a few iterations);
@@ -33,18 +36,27 @@ struct VisualInertialAlignmentOptions {
   // > 0: the visual poses are metric up to this known scale (a stereo map: 1), which is then not estimated;
   // gravity, velocities and the gyro bias are, which short or gentle motion observes far better than scale.
   double known_scale = 0.0;
+  // Step 1 estimates the correction to the calibrated camera-IMU time offset too (VisualKeyframe::omega_s and
+  // time_correction_s then matter). A prior of this sigma about the newest keyframe's correction keeps it put
+  // where the rotation rate hardly changes (the offset is then not observed); bounded to +-max_time_offset_s.
+  bool estimate_time_offset = false;
+  double time_offset_prior_sigma_s = 0.05;
+  double max_time_offset_s = 0.1;
 
   [[nodiscard]] Status validate() const;
 };
 
 struct VisualKeyframe {
-  geometry::SE3d T_v_c;  // camera pose from vision, up to scale, in the visual frame v
+  geometry::SE3d T_v_c;                               // camera pose from vision, up to scale, in the visual frame v
+  Eigen::Vector3d omega_s = Eigen::Vector3d::Zero();  // raw gyro at the keyframe's time [rad/s]
+  double time_correction_s = 0.0;  // the time offset's correction the keyframe's time carries already
 };
 
 struct VisualInertialAlignment {
   double scale = 1.0;    // metric = scale * visual
   geometry::SO3d R_w_v;  // rotates v into the gravity-aligned world
   Eigen::Vector3d gyro_bias = Eigen::Vector3d::Zero();
+  double time_correction_s = 0.0;                 // estimated (estimate_time_offset), else the newest keyframe's
   Eigen::Vector3d g_v = Eigen::Vector3d::Zero();  // gravity in v after refinement
   std::vector<Eigen::Vector3d> v_w;               // keyframe velocities in the world frame
   std::vector<geometry::SE3d> T_w_s;              // keyframe IMU poses, metric and gravity-aligned
