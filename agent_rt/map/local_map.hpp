@@ -34,7 +34,12 @@ inline constexpr std::uint16_t kNoKeypoint = 0xFFFF;
 struct KeyframeData {
   KeyframeId id;
   std::uint64_t sequence = 0;  // insertion order of the agent's own keyframes, set by insertKeyframe(); 0 for anchors
-  std::int64_t t_ns = 0;
+  std::int64_t t_ns = 0;  // on the IMU's clock: the camera's stamp plus the calibrated offset plus time_correction_ns
+  // The estimated camera-IMU time offset's correction the frame's time carried when tracking made the keyframe, and
+  // the body's angular rate (the raw gyro) at t_ns: local BA shifts the pose by the rest of the offset
+  // (time_offset_point_factor.hpp).
+  std::int64_t time_correction_ns = 0;
+  Eigen::Vector3d gyro_s = Eigen::Vector3d::Zero();
   geometry::SE3d T_w_s;
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
   imu::ImuBias bias;
@@ -123,6 +128,10 @@ class LocalMap {
   [[nodiscard]] const MapPointPool& mapPoints() const { return *map_points_; }
   [[nodiscard]] MapPointPool& mapPoints() { return *map_points_; }
   [[nodiscard]] const geometry::SE3d& extrinsics() const { return T_s_c_; }  // T_s_c
+  // The camera-IMU time offset, as the correction [s] to the calibrated one that local BA estimates: a property
+  // of the rig, so it outlives the maps the agent starts.
+  [[nodiscard]] double timeCorrectionS() const { return time_correction_s_; }
+  void setTimeCorrectionS(double correction_s) { time_correction_s_ = correction_s; }
 
  private:
   // Unlinks one observation and counts it off its map point.
@@ -132,6 +141,7 @@ class LocalMap {
   }
 
   geometry::SE3d T_s_c_;
+  double time_correction_s_ = 0.0;
   std::unique_ptr<KeyframePool> keyframes_;  // megabytes: on the heap, allocated once here
   std::unique_ptr<MapPointPool> map_points_;
   std::uint64_t next_sequence_ = 0;

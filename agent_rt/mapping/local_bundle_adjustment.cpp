@@ -14,7 +14,9 @@
 #include "common/factors/imu_factor.hpp"
 #include "common/factors/inverse_depth_point_factor.hpp"
 #include "common/factors/manifolds.hpp"
+#include "common/factors/prior_factor.hpp"
 #include "common/factors/state_layout.hpp"
+#include "common/factors/time_offset_point_factor.hpp"
 
 namespace cvislam::agent {
 
@@ -36,6 +38,9 @@ Status LocalBundleAdjustmentOptions::validate() const {
   if (use_second_camera && !(max_second_camera_error_sigma > 0.0)) {
     return bad("max_second_camera_error_sigma must be > 0");
   }
+  if (!(time_offset_prior_sigma_s > 0.0) || !(max_time_offset_s > 0.0)) {
+    return bad("time_offset_prior_sigma_s and max_time_offset_s must be > 0");
+  }
   return noise.validate();
 }
 
@@ -51,6 +56,7 @@ struct KeyframeState {
   Vector3d velocity;
   Eigen::Matrix<double, 6, 1> bias;
   bool in_window = false;
+  factors::KeyframeMotion motion;  // over its time shift; zero for an anchor (the server's: not on our clock)
 };
 
 // A point as one Ceres block, (a, b, rho) in its reference camera (inverse_depth_point_factor.hpp), so that
@@ -98,6 +104,9 @@ class BaStates {
       s.velocity = kf.v_w;
       s.bias << kf.bias.gyro, kf.bias.accel;
       s.in_window = in_window;
+      if (!kf.anchor) {
+        s.motion = {kf.v_w, kf.gyro_s - kf.bias.gyro, static_cast<double>(kf.time_correction_ns) * 1e-9};
+      }
       keyframes.push_back(s);
     }
     return it->second;
@@ -203,34 +212,70 @@ void addParameterBlocks(BaStates& states, factors::PoseBlock& extrinsics, ceres:
   }
 }
 
+// The blocks every observation may share: the extrinsics (held), and the time offset when estimated (the solve's
+// start and the centre of its prior).
+struct SharedBlocks {
+  factors::PoseBlock extrinsics;
+  bool estimate_time_offset = false;
+  double time_correction_s = 0.0;
+};
+
+void addTimeOffsetBlock(const LocalBundleAdjustmentOptions& options, SharedBlocks& shared, ceres::Problem& problem) {
+  if (!shared.estimate_time_offset) return;
+  double& td = shared.time_correction_s;
+  td = std::clamp(td, -options.max_time_offset_s, options.max_time_offset_s);
+  problem.AddParameterBlock(&td, 1);
+  problem.SetParameterLowerBound(&td, 0, -options.max_time_offset_s);
+  problem.SetParameterUpperBound(&td, 0, options.max_time_offset_s);
+  using Scalar = Eigen::Matrix<double, 1, 1>;
+  problem.AddResidualBlock(
+      new factors::VectorPriorFactor<1>(Scalar(td), Scalar(1.0 / options.time_offset_prior_sigma_s)), nullptr, &td);
+}
+
+// An observation from keyframe s of a point whose reference keyframe r is another one, with the time offset when
+// it is estimated. Returns whether the offset took part.
+bool addPointObservation(std::unique_ptr<factors::InverseDepthPointFactor> cost, KeyframeState& s, KeyframeState& r,
+                         PointState& p, SharedBlocks& shared, double cauchy_scale, ceres::Problem& problem) {
+  auto* loss = new ceres::CauchyLoss(cauchy_scale);
+  if (!shared.estimate_time_offset) {
+    problem.AddResidualBlock(cost.release(), loss, s.pose.data(), r.pose.data(), shared.extrinsics.data(),
+                             p.point.data());
+    return false;
+  }
+  problem.AddResidualBlock(new factors::TimeOffsetPointFactor(std::move(cost), s.motion, r.motion), loss, s.pose.data(),
+                           r.pose.data(), shared.extrinsics.data(), p.point.data(), &shared.time_correction_s);
+  return true;
+}
+
 // cam1's observation of keypoint k, kept only when it agrees with the current estimate: a wrong stereo
 // match would otherwise pull the point's depth. Returns whether it was added.
 bool addSecondCameraFactor(const KeyframeData& kf, std::uint16_t k, KeyframeState& s, KeyframeState& r, PointState& p,
-                           factors::PoseBlock& extrinsics, const LocalBundleAdjustmentOptions& options,
-                           ceres::Problem& problem) {
+                           SharedBlocks& shared, const LocalBundleAdjustmentOptions& options, ceres::Problem& problem,
+                           LocalBundleAdjustmentSummary& summary) {
   const double sigma1 = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.right_octave[k]);
-  std::unique_ptr<ceres::CostFunction> cost;
-  std::vector<double*> blocks;
-  if (&r == &s) {
-    cost = std::make_unique<factors::InverseDepthPointSecondCameraHostFactor>(
-        kf.right_undistorted_px[k], options.second_intrinsics, sigma1, options.T_c1_c0);
-    blocks = {p.point.data()};
-  } else {
-    cost = std::make_unique<factors::InverseDepthPointFactor>(kf.right_undistorted_px[k], options.second_intrinsics,
-                                                              sigma1, options.T_c1_c0);
-    blocks = {s.pose.data(), r.pose.data(), extrinsics.data(), p.point.data()};
-  }
   Eigen::Vector2d residual;
-  const bool evaluable = cost->Evaluate(blocks.data(), residual.data(), nullptr);
+  if (&r == &s) {
+    auto host = std::make_unique<factors::InverseDepthPointSecondCameraHostFactor>(
+        kf.right_undistorted_px[k], options.second_intrinsics, sigma1, options.T_c1_c0);
+    double* block = p.point.data();
+    const bool evaluable = host->Evaluate(&block, residual.data(), nullptr);
+    if (!evaluable || residual.norm() > options.max_second_camera_error_sigma) return false;
+    problem.AddResidualBlock(host.release(), new ceres::CauchyLoss(options.cauchy_scale), block);
+    return true;
+  }
+  auto cost = std::make_unique<factors::InverseDepthPointFactor>(kf.right_undistorted_px[k], options.second_intrinsics,
+                                                                 sigma1, options.T_c1_c0);
+  const double* blocks[] = {s.pose.data(), r.pose.data(), shared.extrinsics.data(), p.point.data()};
+  const bool evaluable = cost->Evaluate(blocks, residual.data(), nullptr);
   if (!evaluable || residual.norm() > options.max_second_camera_error_sigma) return false;
-  problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), blocks);
+  summary.time_offset_factors +=
+      addPointObservation(std::move(cost), s, r, p, shared, options.cauchy_scale, problem) ? 1 : 0;
   return true;
 }
 
 // Reprojection factors: every observation of a window point from a keyframe in the problem.
 void addReprojectionFactors(const LocalMap& map, const LocalBundleAdjustmentOptions& options, BaStates& states,
-                            factors::PoseBlock& extrinsics, ceres::Problem& problem,
-                            LocalBundleAdjustmentSummary& summary) {
+                            SharedBlocks& shared, ceres::Problem& problem, LocalBundleAdjustmentSummary& summary) {
   for (KeyframeState& s : states.keyframes) {
     const KeyframeData& kf = *map.keyframes().get(s.handle);
     for (std::uint16_t k = 0; k < kf.keypoint_count; ++k) {
@@ -240,19 +285,19 @@ void addReprojectionFactors(const LocalMap& map, const LocalBundleAdjustmentOpti
       const PoolHandle ref = map.mapPoints().get(p->handle)->reference;
       KeyframeState& r = ref == s.handle ? s : states.keyframe(ref);
       const double sigma = options.sigma_px * std::pow(options.pyramid_scale_factor, kf.keypoints[k].octave);
-      auto* loss = new ceres::CauchyLoss(options.cauchy_scale);
       if (&r == &s) {
         problem.AddResidualBlock(
-            new factors::InverseDepthPointHostFactor(kf.undistorted_px[k], options.intrinsics, sigma), loss,
-            p->point.data());
+            new factors::InverseDepthPointHostFactor(kf.undistorted_px[k], options.intrinsics, sigma),
+            new ceres::CauchyLoss(options.cauchy_scale), p->point.data());
       } else {
-        problem.AddResidualBlock(new factors::InverseDepthPointFactor(kf.undistorted_px[k], options.intrinsics, sigma),
-                                 loss, s.pose.data(), r.pose.data(), extrinsics.data(), p->point.data());
+        auto cost = std::make_unique<factors::InverseDepthPointFactor>(kf.undistorted_px[k], options.intrinsics, sigma);
+        summary.time_offset_factors +=
+            addPointObservation(std::move(cost), s, r, *p, shared, options.cauchy_scale, problem) ? 1 : 0;
       }
       ++summary.reprojection_factors;
       summary.anchor_factors += kf.anchor ? 1 : 0;
       if (options.use_second_camera && kf.has_right[k]) {
-        if (addSecondCameraFactor(kf, k, s, r, *p, extrinsics, options, problem)) {
+        if (addSecondCameraFactor(kf, k, s, r, *p, shared, options, problem, summary)) {
           ++summary.reprojection_factors;
           ++summary.second_camera_factors;
         } else {
@@ -334,9 +379,13 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   summary.map_points = static_cast<int>(states.points.size());
 
   ceres::Problem problem;
-  factors::PoseBlock extrinsics = factors::poseToBlock(map.extrinsics());
-  addParameterBlocks(states, extrinsics, problem);
-  addReprojectionFactors(map, options, states, extrinsics, problem, summary);
+  SharedBlocks shared;
+  shared.extrinsics = factors::poseToBlock(map.extrinsics());
+  shared.estimate_time_offset = options.estimate_time_offset && options.use_imu;
+  shared.time_correction_s = map.timeCorrectionS();
+  addParameterBlocks(states, shared.extrinsics, problem);
+  addTimeOffsetBlock(options, shared, problem);
+  addReprojectionFactors(map, options, states, shared, problem, summary);
   if (options.use_imu) summary.imu_factors = addImuFactors(map, options, window, states, problem);
   if (summary.fixed_keyframes == 0) {  // the gauge
     problem.SetParameterBlockConstant(states.keyframes.front().pose.data());
@@ -367,6 +416,8 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   summary.initial_cost = ceres_summary.initial_cost;
   summary.final_cost = ceres_summary.final_cost;
   writeBack(states, map);
+  // A window whose observations all come from their points' reference keyframes says nothing of the offset.
+  if (summary.time_offset_factors > 0) map.setTimeCorrectionS(shared.time_correction_s);
   return summary;
 }
 

@@ -14,6 +14,12 @@
 // remains is over the keyframes only. A point with no inverse-depth point (corrupt: its bearing nearly in the
 // reference image plane) is left out, unchanged.
 //
+// The camera-IMU time offset (the correction to the calibrated one, LocalMap::timeCorrectionS) can be one more
+// state: every observation from another keyframe than the point's reference then shifts both keyframes' poses by
+// the part of the offset their frame times do not carry yet (common/factors/time_offset_point_factor.hpp), and the
+// map's offset becomes the solve's. A prior holds it near the last estimate, so that a window with little motion
+// (where it is barely observable) does not throw it about; it is bounded to +-max_time_offset_s.
+//
 // Runs in the mapping thread and allocates (Ceres does); tracking never waits for it. A caller that has newer
 // work waiting (the next keyframe) can stop it after any iteration: what the finished iterations gave is kept.
 #pragma once
@@ -42,6 +48,10 @@ struct LocalBundleAdjustmentOptions {
   factors::PinholeIntrinsics second_intrinsics;  // cam1's pinhole, for KeyframeData::right_undistorted_px
   geometry::SE3d T_c1_c0;
   double max_second_camera_error_sigma = 4.0;
+  // The camera-IMU time offset as a state (only with use_imu: without metric velocities it is not observable).
+  bool estimate_time_offset = false;
+  double time_offset_prior_sigma_s = 0.005;  // how far one solve may move it from the last estimate, one sigma
+  double max_time_offset_s = 0.1;            // bound on the correction, either way
 
   [[nodiscard]] Status validate() const;
 };
@@ -57,6 +67,7 @@ struct LocalBundleAdjustmentSummary {
   int second_camera_factors = 0;   // included in reprojection_factors
   int second_camera_rejected = 0;  // stereo mismatches left out
   int imu_factors = 0;
+  int time_offset_factors = 0;  // included in reprojection_factors: those that carried the time offset
   int iterations = 0;
   bool stopped_early = false;  // `stop` ended the solve before its last iteration
   double initial_cost = 0.0;

@@ -337,6 +337,7 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
   out.epoch_scale = s.epoch_scale;
   out.epoch_transform = toMsg(s.epoch_transform);
   out.imu_initialised = s.imu_initialised ? 1 : 0;
+  out.time_correction_ns = std::llround(s.map.timeCorrectionS() * 1e9);
   out.newest_keyframe = newest;
   out.keyframes_taken = s.seen_message ? s.expected_sequence : 0;
   out.keyframe_count = 0;
@@ -419,11 +420,13 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
   std::vector<imu::Preintegration> preintegrations;
   for (std::size_t i = 0; i < chain.size(); ++i) {
     const KeyframeData& kf = *s.map.keyframes().get(chain[i]);
-    visual.push_back({s.cameraPose(kf)});
+    visual.push_back({s.cameraPose(kf), kf.gyro_s, static_cast<double>(kf.time_correction_ns) * 1e-9});
     if (i > 0) preintegrations.push_back(kf.preintegration);
   }
   imu::VisualInertialAlignmentOptions alignment = s.options.alignment;
   if (s.right) alignment.known_scale = 1.0;  // the stereo map is metric already
+  alignment.estimate_time_offset = s.options.ba.estimate_time_offset;
+  alignment.max_time_offset_s = s.options.ba.max_time_offset_s;
   auto aligned = imu::alignVisualInertial(visual, preintegrations, s.T_s_c, alignment);
   if (!aligned) return aligned.error();
   const double scale = aligned->scale;  // 1 for stereo (known)
@@ -434,10 +437,14 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
     kf.bias.gyro = aligned->gyro_bias;
   }
   s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) { kf.bias.gyro = aligned->gyro_bias; });
+  if (alignment.estimate_time_offset) s.map.setTimeCorrectionS(aligned->time_correction_s);
   s.imu_initialised = true;
   report.imu_initialised_now = true;
   report.note = "IMU initialised over " + std::to_string(chain.size()) + " keyframes: scale " +
                 std::to_string(aligned->scale) + ", gyro bias " + std::to_string(aligned->gyro_bias.norm()) + " rad/s";
+  if (alignment.estimate_time_offset) {
+    report.note += ", time offset correction " + std::to_string(aligned->time_correction_s * 1e3) + " ms";
+  }
   return Status::Ok();
 }
 
@@ -526,10 +533,27 @@ void startNewMap(Mapper::State& s, const KeyframeMessage& msg, MapperReport& rep
 
 // The keyframe as the map holds it, in s.scratch: its state in the map's current frame, its undistorted
 // keypoints, and its preintegration from the newest keyframe (`newest`, when there is one).
+// The gyro at t_ns, interpolated between the message's samples around it (its last one is at or after the
+// keyframe); zero without samples.
+Eigen::Vector3d gyroAt(const KeyframeMessage& msg, std::int64_t t_ns) {
+  if (msg.imu_count == 0) return Eigen::Vector3d::Zero();
+  const std::uint32_t last = std::min<std::uint32_t>(msg.imu_count, kMaxImuSamplesPerKeyframe) - 1;
+  std::uint32_t after = 0;
+  while (after < last && msg.imu[after].t_ns < t_ns) ++after;
+  const Eigen::Vector3d g1 = toVector3(msg.imu[after].gyro);
+  if (after == 0 || msg.imu[after].t_ns <= t_ns) return g1;
+  const Eigen::Vector3d g0 = toVector3(msg.imu[after - 1].gyro);
+  const double span = static_cast<double>(msg.imu[after].t_ns - msg.imu[after - 1].t_ns);
+  const double a = static_cast<double>(t_ns - msg.imu[after - 1].t_ns) / span;
+  return g0 + a * (g1 - g0);
+}
+
 KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, const PoolHandle* newest) {
   KeyframeData& kf = s.scratch;
   kf.id = msg.state.id;
   kf.t_ns = msg.state.t_ns;
+  kf.time_correction_ns = msg.time_correction_ns;
+  kf.gyro_s = gyroAt(msg, msg.state.t_ns);
   kf.T_w_s = fromMsg(msg.state.T_w_s);
   kf.v_w = toVector3(msg.state.v_w);
   kf.bias = biasFromMsg(msg.state.bias);
@@ -720,6 +744,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
   }
   if (map_ready && s.options.use_imu && !s.imu_initialised) tryImuInitialisation(s, stereo, report);
   writeSnapshot(s, msg.state.id, snapshot);
+  report.time_correction_ns = snapshot.time_correction_ns;
   return report;
 }
 

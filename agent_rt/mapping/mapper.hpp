@@ -103,6 +103,7 @@ struct MapperReport {
   std::int64_t ba_ns = 0;
   std::uint64_t lost_messages = 0;      // keyframe messages missing before this one
   std::uint32_t delta_events_lost = 0;  // structural changes beyond the delta's capacity
+  std::int64_t time_correction_ns = 0;  // the estimated correction to the calibrated camera-IMU time offset, after
   std::string note;                     // why an initialisation did not succeed, for the log
 };
 

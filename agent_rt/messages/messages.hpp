@@ -74,6 +74,9 @@ struct KeyframeMessage {
   // the state's velocity and biases hold, and the IMU needs no new initialisation.
   std::uint8_t continues_frame = 0;
   KeyframeStateMsg state;
+  // The correction to the calibrated camera-IMU time offset that state.t_ns already carries (the estimate tracking
+  // had from the last snapshot): local BA shifts the pose by the rest of the estimated offset.
+  std::int64_t time_correction_ns = 0;
   std::uint16_t keypoint_count = 0;
   std::array<KeypointMsg, kMaxKeypointsPerKeyframe> keypoints{};
   std::array<std::array<std::uint8_t, 32>, kMaxKeypointsPerKeyframe> descriptors{};
@@ -120,6 +123,9 @@ struct MapSnapshotMessage {
   double epoch_scale = 1.0;
   PoseMsg epoch_transform;  // R, t of the change into this epoch
   std::uint8_t imu_initialised = 0;
+  // The estimated correction to the calibrated camera-IMU time offset (0 while not estimated): tracking adds it to
+  // the frames' times from the next frame on.
+  std::int64_t time_correction_ns = 0;
   KeyframeId newest_keyframe;  // the newest keyframe mapping has processed
   // Keyframe messages mapping has taken, as the sequence of the last one + 1: tracking's count of keyframes
   // published and not yet answered (its back-off while mapping is busy) is its own sequence minus this.

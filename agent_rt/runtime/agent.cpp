@@ -391,6 +391,7 @@ class TrackingLoop {
         summary.interrupted = true;
         break;
       }
+      s_.feed.setTimeCorrection(tracker_.timeCorrectionForNextFrameNs());
       const FeedFrame* frame = s_.feed.next();
       if (frame == nullptr) {
         summary.interrupted = s_.stop.load();
@@ -477,6 +478,7 @@ class TrackingLoop {
   [[nodiscard]] FrameInput frameInput(const FeedFrame& frame) const {
     FrameInput input;
     input.t_ns = frame.t_ns;
+    input.time_correction_ns = frame.time_correction_ns;
     input.width = s_.plan.rig.cam0.width;
     input.height = s_.plan.rig.cam0.height;
     input.left = frame.left;
@@ -699,6 +701,9 @@ void addMappingFigures(const MappingStats& stats, const YieldRequests& yield_req
   summary.local_ba_yielded_to_tracking = stats.ba_yielded_to_tracking;
   summary.mapping_yield_requests = yield_requests.requests();
   summary.lost_keyframe_messages = stats.lost_messages;
+  if (!stats.time_corrections.empty()) {
+    summary.time_offset_ms += static_cast<double>(stats.time_corrections.back().second) * 1e-6;
+  }
   summary.imu_initialised_at_s = stats.imu_initialised_at_s < 0 || first_frame_t_ns < 0
                                      ? -1.0
                                      : stats.imu_initialised_at_s - static_cast<double>(first_frame_t_ns) * 1e-9;
@@ -811,6 +816,8 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     summary.link_enabled = true;
     summary.link = (*link)->finish();
   }
+  summary.time_offset_calibrated_ms = static_cast<double>(plan.rig.timeshift_cam_imu_ns) * 1e-6;
+  summary.time_offset_ms = summary.time_offset_calibrated_ms;
   addMappingFigures(mapping_stats, yield_requests, first_frame_t_ns, summary);
   summary.stages = latencies.summarise(propagation_started);
 

@@ -14,8 +14,9 @@
 namespace cvislam::agent {
 
 struct FeedFrame {
-  std::int64_t t_ns = 0;    // on the IMU's clock
-  std::uint64_t index = 0;  // position in the stream, from 0
+  std::int64_t t_ns = 0;  // on the IMU's clock: the camera's stamp + the calibrated offset + time_correction_ns
+  std::int64_t time_correction_ns = 0;  // the estimated correction to the calibrated offset (setTimeCorrection)
+  std::uint64_t index = 0;              // position in the stream, from 0
   std::span<const std::uint8_t> left;
   std::span<const std::uint8_t> right;  // empty in mono
   // From the last sample at or before the previous good frame to the first at or after this one; empty without IMU.
@@ -63,6 +64,13 @@ class FrameFeed {
   // The frames the stream holds when known in advance (a recording); 0 for a live stream.
   [[nodiscard]] virtual std::size_t knownFrames() const = 0;
   [[nodiscard]] virtual FeedFaults faults() const { return {}; }
+
+  // A correction to the calibrated camera-IMU time offset, added to the times of the frames next() hands over from
+  // now on, and to the end of the IMU interval they get (tracking's estimate; see Tracker).
+  void setTimeCorrection(std::int64_t correction_ns) { time_correction_ns_ = correction_ns; }
+
+ protected:
+  std::int64_t time_correction_ns_ = 0;
 };
 
 }  // namespace cvislam::agent

@@ -157,7 +157,8 @@ class LiveFeed final : public FrameFeed {
 
   void fill(const FrameHeader& header, std::uint32_t bytes) {
     current_ = FeedFrame{};
-    current_.t_ns = last_frame_t_ns_;
+    current_.t_ns = last_frame_t_ns_ + time_correction_ns_;
+    current_.time_correction_ns = time_correction_ns_;
     current_.index = frames_delivered_;
     current_.captured_steady_ns = header.captured_steady_ns;
     current_.stream_restarted = restarted_;

@@ -238,6 +238,7 @@ class MappingLoop {
       return;
     }
     count(*report, t_s);
+    shared_.stats.time_corrections.emplace_back(msg.state.t_ns, report->time_correction_ns);
     if (options_.trace_mapping) traceKeyframe(t_s, msg, *report, yielded_to_tracking_);
     if (!options_.quiet) note(msg, *report, t_s);
     if (out != fallback_.get()) {

@@ -8,6 +8,8 @@
 #include <cstddef>
 #include <cstdint>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -51,6 +53,8 @@ struct MappingStats {
   std::size_t ba_skipped = 0;
   std::size_t ba_stopped_early = 0;
   std::size_t ba_yielded_to_tracking = 0;  // of those skipped or cut short: tracking had asked (YieldRequests)
+  // The estimated camera-IMU time offset's correction after each keyframe: (keyframe t_ns, correction ns).
+  std::vector<std::pair<std::int64_t, std::int64_t>> time_corrections;
 
   void add(const DownlinkReport& r) {
     ++downlink_messages;

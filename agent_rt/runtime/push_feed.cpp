@@ -75,7 +75,7 @@ const FeedFrame* PushFeed::next() {
       if (slot_ == nullptr && ring_.drained()) return nullptr;
     }
     if (slot_ != nullptr) {
-      if (!o_.use_imu || imu_window_.covers(slot_->t_ns)) break;
+      if (!o_.use_imu || imu_window_.covers(slot_->t_ns + time_correction_ns_)) break;
       const std::int64_t now_ns = steadyNowNs();
       if (imu_deadline_ns < 0) imu_deadline_ns = now_ns + static_cast<std::int64_t>(o_.imu_wait_s * 1e9);
       if (now_ns >= imu_deadline_ns) {
@@ -89,7 +89,8 @@ const FeedFrame* PushFeed::next() {
   }
   last_frame_t_ns_ = slot_->t_ns;
   current_ = FeedFrame{};
-  current_.t_ns = slot_->t_ns;
+  current_.t_ns = slot_->t_ns + time_correction_ns_;
+  current_.time_correction_ns = time_correction_ns_;
   current_.index = delivered_++;
   current_.captured_steady_ns = slot_->captured_steady_ns;
   current_.left = slot_->left;

@@ -60,7 +60,8 @@ const FeedFrame* RecordingFeed::next() {
     now_ns = due_ns;
   }
   current_ = FeedFrame{};
-  current_.t_ns = slot->t_ns;
+  current_.t_ns = slot->t_ns + time_correction_ns_;
+  current_.time_correction_ns = time_correction_ns_;
   current_.index = slot->frame;
   current_.captured_steady_ns = now_ns;
   current_.ok = slot->ok;
@@ -70,7 +71,7 @@ const FeedFrame* RecordingFeed::next() {
     if (options_.stereo) current_.right = slot->right;
     if (options_.use_imu) {
       current_.imu =
-          imuCovering(recording_.imu(), previous_good_t_ns_ < 0 ? slot->t_ns : previous_good_t_ns_, slot->t_ns);
+          imuCovering(recording_.imu(), previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_, current_.t_ns);
     }
   }
   return &current_;

@@ -32,6 +32,10 @@ nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& o
                       {"mean_tracked_points", summary.mean_tracked_points},
                       {"mode", setup.stereo ? "stereo" : "mono"},
                       {"imu_noise_inflation", setup.imu_noise_inflation},
+                      {"time_offset",
+                       {{"estimated", options.mapping.ba.estimate_time_offset && options.use_imu},
+                        {"calibrated_ms", summary.time_offset_calibrated_ms},
+                        {"final_ms", summary.time_offset_ms}}},
                       {"interrupted", summary.interrupted},
                       {"state_messages_not_sent", summary.state_messages_not_sent},
                       {"wall_s", summary.wall_s}};
@@ -66,7 +70,20 @@ nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& o
   return j;
 }
 
-// The trajectories, latency.json and summary.json (the link's report is written by the link).
+// time_offset.csv: the estimated camera-IMU time offset after each keyframe, at the keyframe's time (as in the
+// trajectory files).
+Status writeTimeOffsets(const std::filesystem::path& path, const MappingStats& stats, const AgentRunSummary& summary) {
+  std::ofstream out(path);
+  out << "# t_s offset_ms   (keyframe time on the IMU's clock; t_imu = t_cam + offset)\n";
+  char line[64];
+  for (const auto& [t_ns, correction_ns] : stats.time_corrections) {
+    std::snprintf(line, sizeof(line), "%.6f %.3f\n", static_cast<double>(t_ns) * 1e-9,
+                  summary.time_offset_calibrated_ms + static_cast<double>(correction_ns) * 1e-6);
+    out << line;
+  }
+  if (!out) return Error{ErrorCode::kIoError, "cannot write " + path.string()};
+  return Status::Ok();
+}
 }  // namespace
 
 Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& recorder,
@@ -86,6 +103,9 @@ Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& re
   std::ofstream latency(summary.latency_json);
   latency << latencyJson(summary.stages);
   if (!latency) return Error{ErrorCode::kIoError, "cannot write " + summary.latency_json.string()};
+  if (options.mapping.ba.estimate_time_offset && options.use_imu) {
+    if (Status s = writeTimeOffsets(options.output / "time_offset.csv", mapping_stats, summary); !s.ok()) return s;
+  }
   std::ofstream json(options.output / "summary.json");
   json << summaryJson(summary, options, setup, mapping_stats).dump(2) << "\n";
   if (!json) return Error{ErrorCode::kIoError, "cannot write " + (options.output / "summary.json").string()};
@@ -99,13 +119,14 @@ std::string formatSummary(const AgentRunSummary& s) {
       "frames %zu, tracked %zu (%.1f %%), keyframes %zu, maps %zu, mean tracked points %.0f\n"
       "IMU initialised at %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, keyframes dropped %zu\n"
       "mapping busy: keyframes deferred %zu, frames that needed mapping's answer %zu, most keyframes pending %d\n"
-      "mapping asked to yield on %zu frames; local BAs skipped %zu, cut short %zu (for tracking's request %zu)\n",
+      "mapping asked to yield on %zu frames; local BAs skipped %zu, cut short %zu (for tracking's request %zu)\n"
+      "camera-IMU time offset %.2f ms (calibrated %.2f ms)\n",
       s.frames, s.tracked_frames, s.frames > 0 ? 100.0 * s.tracked_frames / s.frames : 0.0, s.keyframes, s.new_maps,
       s.mean_tracked_points,
       s.imu_initialised_at_s < 0 ? "never" : (std::to_string(s.imu_initialised_at_s) + " s").c_str(),
       s.unreadable_frames, s.imu_gaps, s.lost_frames, s.dropped_keyframes, s.deferred_keyframes,
       s.frames_needing_mapping, s.most_pending_keyframes, s.mapping_yield_requests, s.local_ba_skipped,
-      s.local_ba_stopped_early, s.local_ba_yielded_to_tracking);
+      s.local_ba_stopped_early, s.local_ba_yielded_to_tracking, s.time_offset_ms, s.time_offset_calibrated_ms);
   return std::string(text) + formatLatencyTable(s.stages);
 }
 

@@ -43,6 +43,7 @@ struct CommandLine {
   std::string server;
   std::string mission;
   bool no_imu = false;
+  std::string time_offset;
   bool quiet = false;
   bool trace_mapping = false;
   bool no_priorities = false;
@@ -104,6 +105,10 @@ void CommandLine::define(CLI::App& app) {
   app.add_option("--tls-ca", tls_ca, "Speak TLS, trusting the server certificate's CA in this PEM file [plaintext]");
   app.add_option("--max-frames", max_frames, "Stop after this many frames (0 = all)");
   app.add_flag("--no-imu", no_imu, "Vision only");
+  app.add_option("--time-offset", time_offset,
+                 "The camera-IMU time offset: estimate (a state of local BA, from the calibration's "
+                 "timeshift_cam_imu on; for cameras not synchronised with the IMU) or fixed (the calibration's) "
+                 "[config imu.estimate_time_offset; fixed]");
   app.add_flag("--quiet", quiet, "No progress output");
   app.add_flag("--no-priorities", no_priorities,
                "Leave every thread at the process's scheduling (default at --pace realtime: tracking SCHED_FIFO 10 "
@@ -153,6 +158,13 @@ bool CommandLine::applyTo(cvislam::agent::AgentOptions& options) {
     options.agent = static_cast<cvislam::AgentId>(agent_id);
   }
   if (no_imu) options.use_imu = false;
+  if (!time_offset.empty()) {
+    if (time_offset != "estimate" && time_offset != "fixed") {
+      std::cerr << "cvislam_agent: --time-offset is estimate or fixed, not '" << time_offset << "'\n";
+      return false;
+    }
+    options.mapping.ba.estimate_time_offset = time_offset == "estimate";
+  }
   if (!server.empty()) options.link.server = server;
   if (!mission.empty()) options.link.mission = mission;
   if (token.empty()) {

@@ -136,6 +136,8 @@ struct Tracker::State {
   bool new_map_requested = false;
   std::uint32_t epoch = 0;
   bool imu_initialised = false;
+  std::int64_t time_correction_target_ns = 0;  // mapping's estimate
+  std::int64_t time_correction_ns = 0;         // what the frames carry now
 
   // Frame state.
   bool started = false;
@@ -261,6 +263,7 @@ struct Tracker::State {
       epoch = s->map_epoch;
     }
     imu_initialised = s->imu_initialised != 0;
+    time_correction_target_ns = s->time_correction_ns;
     snapshot = s;
 
     const KeyframeStateMsg* newest = nullptr;
@@ -325,6 +328,13 @@ void Tracker::restartStream(std::int64_t t_ns) {
   s.untracked_s = std::numeric_limits<double>::infinity();
   s.lost_frames = std::max(s.lost_frames, s.options.max_lost_frames);
   if (s.status == TrackingStatus::kTracking) s.status = TrackingStatus::kRelocalising;
+}
+
+std::int64_t Tracker::timeCorrectionForNextFrameNs() {
+  State& s = *s_;
+  s.time_correction_ns += std::clamp(s.time_correction_target_ns - s.time_correction_ns, -kMaxTimeCorrectionStepNs,
+                                     kMaxTimeCorrectionStepNs);
+  return s.time_correction_ns;
 }
 
 bool Tracker::imuInitialised() const {
@@ -501,6 +511,7 @@ void fillKeyframe(const Tracker::State& s, const FrameStep& f, KeyframeKind kind
   m.kind = kind;
   m.continues_frame = kind == KeyframeKind::kNewMap && s.imu_initialised && s.options.use_imu;
   m.state.t_ns = f.frame.t_ns;
+  m.time_correction_ns = f.frame.time_correction_ns;
   m.state.T_w_s = toMsg(T);
   m.state.v_w = toArray(v);
   m.state.bias = toMsg(s.bias);

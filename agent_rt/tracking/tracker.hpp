@@ -88,6 +88,8 @@ struct FrameInput {
   // IMU samples covering [previous frame's t_ns, t_ns]: one at or before the previous frame, one at or after
   // this one. Empty when there is no IMU.
   std::span<const dataset::ImuSample> imu;
+  // The correction to the calibrated camera-IMU time offset that t_ns carries (timeCorrectionForNextFrameNs()).
+  std::int64_t time_correction_ns = 0;
 };
 
 struct StageTimes {
@@ -151,6 +153,12 @@ class Tracker {
   // it is not found, a new map starts at once rather than after max_lost_frames of relocalising against a
   // prediction from the old clock.
   void restartStream(std::int64_t t_ns);
+
+  // The correction to the calibrated camera-IMU time offset that the next frame's time should carry: mapping's
+  // estimate from the snapshot, reached in steps of at most kMaxTimeCorrectionStepNs per frame, so that frame
+  // times stay in order and the motion prediction sees no jump.
+  std::int64_t timeCorrectionForNextFrameNs();
+  static constexpr std::int64_t kMaxTimeCorrectionStepNs = 5'000'000;
 
   [[nodiscard]] TrackingStatus status() const;
   [[nodiscard]] bool imuInitialised() const;
