@@ -7,6 +7,7 @@
 #include "agent_rt/live/sensor_topics.hpp"
 #include "agent_rt/live/state_topics.hpp"
 #include "iceoryx_posh/capro/service_description.hpp"
+#include "iceoryx_posh/popo/subscriber_options.hpp"
 
 namespace cvislam::agent::live {
 
@@ -25,6 +26,16 @@ inline iox::capro::ServiceDescription liveService(const std::string& stream, con
 // A state topic of agent `agent`.
 inline iox::capro::ServiceDescription stateService(std::uint32_t agent, const std::string& event) {
   return topicService(kStateServiceName, "agent" + std::to_string(agent), event);
+}
+
+// A reader's queue of `depth` messages on a live or state topic; when the reader falls behind the oldest go, for no
+// publisher there waits for a reader.
+inline iox::popo::SubscriberOptions dropOldestQueue(std::uint64_t depth) {
+  iox::popo::SubscriberOptions options;
+  options.queueCapacity = depth;
+  options.historyRequest = 0;
+  options.queueFullPolicy = iox::popo::QueueFullPolicy::DISCARD_OLDEST_DATA;
+  return options;
 }
 
 }  // namespace cvislam::agent::live

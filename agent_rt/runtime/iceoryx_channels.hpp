@@ -43,11 +43,6 @@ struct ChunkReleaseOnExit {
   ~ChunkReleaseOnExit() { tsanRelease(chunk); }
 };
 
-// Steady clock now [ns]: the messages' publish times and the latencies measured from them.
-inline std::int64_t steadyNs() {
-  return steadyNowNs();
-}
-
 // The topic `event` of agent `agent`.
 inline iox::capro::ServiceDescription service(AgentId agent, const char* event) {
   const std::string instance = "agent" + std::to_string(agent);

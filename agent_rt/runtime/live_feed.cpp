@@ -19,14 +19,6 @@ namespace {
 using live::FrameHeader;
 using live::ImuMessage;
 
-iox::popo::SubscriberOptions queueOf(std::uint64_t depth) {
-  iox::popo::SubscriberOptions options;
-  options.queueCapacity = depth;
-  options.historyRequest = 0;
-  options.queueFullPolicy = iox::popo::QueueFullPolicy::DISCARD_OLDEST_DATA;
-  return options;
-}
-
 // How deep the frame queue is: the frame being tracked's successor and one more. A deeper queue would only make
 // tracking later, never more complete.
 constexpr std::uint64_t kFrameQueue = 2;
@@ -37,8 +29,8 @@ class LiveFeed final : public FrameFeed {
  public:
   explicit LiveFeed(const LiveFeedOptions& options)
       : o_(options),
-        frames_(live::liveService(options.stream, live::kFramesEvent), queueOf(kFrameQueue)),
-        imu_(live::liveService(options.stream, live::kImuEvent), queueOf(kImuQueue)),
+        frames_(live::liveService(options.stream, live::kFramesEvent), live::dropOldestQueue(kFrameQueue)),
+        imu_(live::liveService(options.stream, live::kImuEvent), live::dropOldestQueue(kImuQueue)),
         imu_window_(options.imu_buffer_samples) {}
   ~LiveFeed() override { releaseHeld(); }
 

@@ -204,7 +204,7 @@ class MappingLoop {
     yielded_to_tracking_ = false;
     tsanAcquire(&msg);
     const ChunkReleaseOnExit release_keyframe{&msg};
-    const std::int64_t t0 = steadyNs();
+    const std::int64_t t0 = steadyNowNs();
     shared_.receive.add(t0 - msg.publish_steady_ns);
     IceoryxLoan<MapSnapshotMessage> snapshot(snapshots_);
     MapSnapshotMessage* out = snapshot.loan();
@@ -227,10 +227,10 @@ class MappingLoop {
     if (delta != nullptr) {
       // Published whatever happened to the keyframe: the link counts deltas by sequence.
       delta->sequence = delta_sequence_++;
-      delta->publish_steady_ns = steadyNs();
+      delta->publish_steady_ns = steadyNowNs();
       delta_loan->publish();
     }
-    shared_.mapping_total.add(steadyNs() - t0);
+    shared_.mapping_total.add(steadyNowNs() - t0);
     const double t_s = static_cast<double>(msg.state.t_ns) * 1e-9;
     if (!report) {
       std::fprintf(stderr, "[mapping] keyframe %s refused: %s\n", msg.state.id.toString().c_str(),
@@ -243,7 +243,7 @@ class MappingLoop {
     if (!options_.quiet) note(msg, *report, t_s);
     if (out != fallback_.get()) {
       out->sequence = snapshot_sequence_++;
-      out->publish_steady_ns = steadyNs();
+      out->publish_steady_ns = steadyNowNs();
       snapshot.publish();
     }
   }

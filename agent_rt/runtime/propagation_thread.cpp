@@ -4,41 +4,23 @@
 
 #include "agent_rt/live/live_service.hpp"
 #include "agent_rt/live/sensor_topics.hpp"
+#include "agent_rt/runtime/state_publisher.hpp"
 #include "common/core/steady_clock.hpp"
 #include "iceoryx_posh/mepoo/chunk_header.hpp"
-#include "iceoryx_posh/popo/publisher.hpp"
 #include "iceoryx_posh/popo/subscriber.hpp"
 #include "iceoryx_posh/popo/untyped_subscriber.hpp"
 #include "iceoryx_posh/popo/user_trigger.hpp"
 #include "iceoryx_posh/popo/wait_set.hpp"
 
 namespace cvislam::agent {
-namespace {
-
-iox::popo::SubscriberOptions queueOf(std::uint64_t depth) {
-  iox::popo::SubscriberOptions options;
-  options.queueCapacity = depth;
-  options.queueFullPolicy = iox::popo::QueueFullPolicy::DISCARD_OLDEST_DATA;
-  return options;
-}
-
-iox::popo::PublisherOptions newestKept() {
-  iox::popo::PublisherOptions options;
-  options.historyCapacity = 1;  // a reader that comes late still gets the newest state
-  options.subscriberTooSlowPolicy = iox::popo::ConsumerTooSlowPolicy::DISCARD_OLDEST_DATA;
-  return options;
-}
-
-}  // namespace
-
 struct PropagationThread::Impl {
   Impl(const PropagationOptions& o, LatencyRecorder& latencies)
       : options(o),
         imu_to_state(latencies),
         propagator(o.imu_samples),
-        imu(live::liveService(o.stream, live::kImuEvent), queueOf(iox::MAX_SUBSCRIBER_QUEUE_CAPACITY)),
-        frame_states(live::stateService(o.agent, live::kStateFramesEvent), queueOf(8)),
-        publisher(live::stateService(o.agent, live::kStateImuEvent), newestKept()) {}
+        imu(live::liveService(o.stream, live::kImuEvent), live::dropOldestQueue(iox::MAX_SUBSCRIBER_QUEUE_CAPACITY)),
+        frame_states(live::stateService(o.agent, live::kStateFramesEvent), live::dropOldestQueue(8)),
+        publisher(o.agent, live::kStateImuEvent) {}
 
   void run() {
     if (wait.attachState(imu, iox::popo::SubscriberState::HAS_DATA).has_error() ||
@@ -82,15 +64,7 @@ struct PropagationThread::Impl {
   }
 
   void publish(live::AgentStateMessage& state) {
-    state.sequence = sequence++;
-    auto loaned = publisher.loan();
-    state.published_steady_ns = steadyNowNs();
-    if (!loaned.has_error()) {
-      *loaned.value().get() = state;
-      loaned.value().publish();
-    } else {
-      ++not_sent;
-    }
+    publisher.publish(state);
     imu_to_state.add(state.published_steady_ns - state.captured_steady_ns);
     if (options.listener != nullptr) options.listener->onState(state);
   }
@@ -100,12 +74,10 @@ struct PropagationThread::Impl {
   ImuPropagator propagator;
   iox::popo::UntypedSubscriber imu;
   iox::popo::Subscriber<live::AgentStateMessage> frame_states;
-  iox::popo::Publisher<live::AgentStateMessage> publisher;
+  StatePublisher publisher;
   iox::popo::UserTrigger stop;
   iox::popo::WaitSet<3> wait;
   std::atomic<bool> stopping{false};
-  std::uint64_t sequence = 0;
-  std::uint64_t not_sent = 0;
 };
 
 PropagationThread::PropagationThread(const PropagationOptions& options, LatencyRecorder& imu_to_state,
@@ -128,7 +100,7 @@ void PropagationThread::stop() {
 }
 
 std::uint64_t PropagationThread::notSent() const {
-  return impl_->not_sent;
+  return impl_->publisher.notSent();
 }
 
 }  // namespace cvislam::agent
