@@ -1,9 +1,7 @@
 #include "agent_rt/tracking/tracker.hpp"
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
-#include <cstring>
 #include <limits>
 #include <optional>
 #include <string>
@@ -11,6 +9,8 @@
 #include "agent_rt/messages/conversions.hpp"
 #include "agent_rt/tracking/inertial_pose_optimizer.hpp"
 #include "agent_rt/tracking/motion_window.hpp"
+#include "agent_rt/tracking/tracker_state.hpp"
+#include "common/core/steady_clock.hpp"
 
 namespace cvislam::agent {
 
@@ -18,17 +18,6 @@ using Eigen::Vector2d;
 using Eigen::Vector3d;
 using geometry::SE3d;
 using geometry::SO3d;
-
-namespace {
-
-std::int64_t nowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now().time_since_epoch())
-      .count();
-}
-
-constexpr std::size_t kPublishedRing = 64;  // keyframes published and perhaps not yet refined by mapping
-
-}  // namespace
 
 Status TrackerOptions::validate() const {
   if (Status s = orb.validate(); !s.ok()) return s;
@@ -86,215 +75,6 @@ const char* toString(FrameIssue issue) {
   return "?";
 }
 
-struct Tracker::State {
-  State(const TrackerOptions& o, features::OrbExtractor&& extractor, const camera::CameraModel& l,
-        const camera::CameraModel* r, const SE3d& extrinsics)
-      : options(o), orb(std::move(extractor)), left(l), T_s_c(extrinsics), keyframe_ids(o.agent) {
-    if (r != nullptr) right.emplace(*r);
-    const auto& c = l.calibration();
-    intrinsics = {c.fx, c.fy, c.cx, c.cy};
-    pre_frame = imu::Preintegration(imu::ImuBias{}, o.noise);
-    pre_keyframe = imu::Preintegration(imu::ImuBias{}, o.noise);
-    level_scale[0] = 1.0;
-    for (std::size_t i = 1; i < level_scale.size(); ++i)
-      level_scale[i] = level_scale[i - 1] * static_cast<double>(o.orb.scale_factor);
-  }
-
-  TrackerOptions options;
-  features::OrbExtractor orb;
-  camera::CameraModel left;
-  std::optional<camera::CameraModel> right;
-  SE3d T_s_c;
-  factors::PinholeIntrinsics intrinsics;
-  std::array<double, 32> level_scale{};
-
-  // Frame buffers.
-  int keypoint_count = 0;
-  std::array<features::Keypoint, kMaxKeypointsPerKeyframe> keypoints{};
-  std::array<features::Descriptor, kMaxKeypointsPerKeyframe> descriptors{};
-  std::array<Vector2d, kMaxKeypointsPerKeyframe> undistorted{};
-  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> keypoint_taken{};
-  std::array<MapPointId, kMaxKeypointsPerKeyframe> keypoint_point{};
-  KeypointGrid grid;
-  ProjectionMatcher matcher;
-  std::array<ProjectedMapPoint, kMaxMapPoints> projected{};
-  std::array<std::uint32_t, kMaxMapPoints> projected_source{};
-  std::array<int, kMaxMapPoints> match_of_point{};
-  std::array<std::uint8_t, kMaxMapPoints> point_matched{};
-  std::array<PoseObservation, kMaxKeypointsPerKeyframe> observations{};
-  std::array<std::uint32_t, kMaxKeypointsPerKeyframe> observation_point{};
-  std::array<std::uint16_t, kMaxKeypointsPerKeyframe> observation_keypoint{};
-  std::array<std::uint8_t, kMaxKeypointsPerKeyframe> outlier{};
-  std::array<Eigen::Vector2f, kMaxKeypointsPerKeyframe> coverage_px{};
-  int observation_count = 0;
-
-  // The map.
-  const MapSnapshotMessage* snapshot = nullptr;
-  TrackingStatus status = TrackingStatus::kWaitingForMap;
-  std::uint32_t map_id = 0;            // the map tracked against
-  std::uint32_t requested_map_id = 0;  // the new map asked for, while waiting
-  bool new_map_requested = false;
-  std::uint32_t epoch = 0;
-  bool imu_initialised = false;
-  std::int64_t time_correction_target_ns = 0;  // mapping's estimate
-  std::int64_t time_correction_ns = 0;         // what the frames carry now
-
-  // Frame state.
-  bool started = false;
-  std::int64_t last_t_ns = 0;
-  SE3d T_w_s;
-  Vector3d v_w = Vector3d::Zero();
-  imu::ImuBias bias;
-  int lost_frames = 0;
-  int waiting_frames = 0;  // frames since the new map was asked for
-  // Sequence time the frames since the last tracked one spanned, when none of them was tracked (lost, or waiting
-  // for a new map); 0 after a tracked frame. A gap in the images between two tracked frames does not count.
-  double untracked_s = 0.0;
-  imu::Preintegration pre_frame;
-
-  // The newest keyframe published.
-  IdCounter<KeyframeId> keyframe_ids;
-  bool has_keyframe = false;
-  NewestPublishedKeyframe keyframe;
-  int frames_since_keyframe = 0;
-  double keyframe_coverage = 0.0;
-  imu::Preintegration pre_keyframe;
-  bool imu_ok_since_keyframe = true;
-  std::uint32_t keyframe_imu_count = 0;
-  std::array<ImuSampleMsg, kMaxImuSamplesPerKeyframe> keyframe_imu{};
-  std::int64_t last_imu_t_ns = std::numeric_limits<std::int64_t>::min();
-  bool awaiting = false;
-  KeyframeId awaiting_id;
-  MappingBacklog backlog{options.lag};
-
-  struct Published {
-    KeyframeId id;
-    SE3d T_w_s;
-    bool valid = false;
-  };
-  std::array<Published, kPublishedRing> published{};
-  std::size_t published_next = 0;
-
-  // The IMU between the keyframes tracking published, for motion-only BA over the newest n keyframes.
-  MotionWindowBuilder motion_window;
-
-  void appendImu(std::span<const dataset::ImuSample> samples) {
-    for (const dataset::ImuSample& s : samples) {
-      if (s.t_ns <= last_imu_t_ns) continue;
-      last_imu_t_ns = s.t_ns;
-      if (keyframe_imu_count >= keyframe_imu.size()) {
-        imu_ok_since_keyframe = false;  // more IMU than a keyframe message carries: the link is dropped
-        continue;
-      }
-      keyframe_imu[keyframe_imu_count++] = toMsg(s);
-    }
-  }
-
-  // Keeps the samples the next keyframe interval needs: the last at or before t, and those after.
-  void restartKeyframeImu(std::int64_t t_ns) {
-    std::uint32_t first = 0;
-    for (std::uint32_t i = 0; i < keyframe_imu_count; ++i) {
-      if (keyframe_imu[i].t_ns <= t_ns) first = i;
-    }
-    const std::uint32_t kept = keyframe_imu_count - first;
-    std::memmove(keyframe_imu.data(), keyframe_imu.data() + first, kept * sizeof(ImuSampleMsg));
-    keyframe_imu_count = kept;
-  }
-
-  void applyToTrackedStates(const SE3d& delta_left) {
-    T_w_s = delta_left * T_w_s;
-    v_w = delta_left.so3() * v_w;
-  }
-
-  // Moves every stored state from the previous epoch into the snapshot's: p' = s R p + t, v' = s R v.
-  void changeEpoch(const MapSnapshotMessage& s) {
-    const double scale = s.epoch_scale;
-    const SE3d T = fromMsg(s.epoch_transform);
-    auto apply = [&](SE3d& pose) {
-      pose = SE3d(T.so3() * pose.so3(), scale * (T.so3() * pose.translation()) + T.translation());
-    };
-    apply(T_w_s);
-    v_w = scale * (T.so3() * v_w);
-    apply(keyframe.T_w_s);
-    keyframe.v_w = scale * (T.so3() * keyframe.v_w);
-    for (Published& p : published) {
-      if (p.valid) apply(p.T_w_s);
-    }
-  }
-
-  Published* findPublished(const KeyframeId& id) {
-    for (Published& p : published) {
-      if (p.valid && p.id == id) return &p;
-    }
-    return nullptr;
-  }
-
-  void adopt(const MapSnapshotMessage* s) {
-    if (s == nullptr) return;
-    backlog.taken(s->keyframes_taken);
-    if (s->map_id != map_id || new_map_requested) {
-      if (s->map_id < map_id || (new_map_requested && s->map_id < requested_map_id)) return;  // an old map's
-      if (s->point_count == 0) {
-        // Mapping has started this map (on request, or itself after a failed monocular IMU initialisation)
-        // but not built it yet: keep feeding it keyframes.
-        if (!new_map_requested || s->map_id > requested_map_id) {
-          status = TrackingStatus::kWaitingForMap;
-          new_map_requested = true;
-          requested_map_id = s->map_id;
-          imu_initialised = false;
-        }
-        map_id = s->map_id;
-        snapshot = s;
-        if (awaiting && awaiting_id == s->newest_keyframe) awaiting = false;
-        return;
-      }
-      map_id = s->map_id;
-      epoch = s->map_epoch;
-      new_map_requested = false;
-      status = TrackingStatus::kTracking;
-      lost_frames = 0;
-      waiting_frames = 0;
-    } else if (s->map_epoch != epoch) {
-      if (s->map_epoch == epoch + 1) {
-        changeEpoch(*s);
-      } else {
-        status = TrackingStatus::kRelocalising;  // missed a change of frame: find the map again
-      }
-      epoch = s->map_epoch;
-    }
-    imu_initialised = s->imu_initialised != 0;
-    time_correction_target_ns = s->time_correction_ns;
-    snapshot = s;
-
-    const KeyframeStateMsg* newest = nullptr;
-    for (std::uint16_t i = 0; i < s->keyframe_count; ++i) {
-      if (s->keyframes[i].id == s->newest_keyframe) newest = &s->keyframes[i];
-    }
-    if (newest == nullptr) return;
-    const SE3d T_new = fromMsg(newest->T_w_s);
-    const imu::ImuBias bias_new = biasFromMsg(newest->bias);
-    Published* entry = findPublished(newest->id);
-    if (entry != nullptr) {
-      const SE3d delta = T_new * entry->T_w_s.inverse();
-      applyToTrackedStates(delta);
-      for (Published& p : published) {
-        if (p.valid && p.id.counter > newest->id.counter) p.T_w_s = delta * p.T_w_s;
-      }
-      entry->T_w_s = T_new;
-      if (has_keyframe && keyframe.id == newest->id) {
-        keyframe.T_w_s = T_new;
-        keyframe.v_w = toVector3(newest->v_w);
-        keyframe.bias = bias_new;
-      } else if (has_keyframe) {
-        keyframe.T_w_s = delta * keyframe.T_w_s;
-        keyframe.v_w = delta.so3() * keyframe.v_w;
-      }
-    }
-    bias = bias_new;
-    if (awaiting && awaiting_id == newest->id) awaiting = false;
-  }
-};
-
 Tracker::Tracker(std::unique_ptr<State> state) : s_(std::move(state)) {}
 Tracker::~Tracker() = default;
 
@@ -312,9 +92,6 @@ Result<std::unique_ptr<Tracker>> Tracker::create(const TrackerOptions& options, 
       new Tracker(std::make_unique<State>(options, std::move(orb.value()), left, right, T_s_c)));
 }
 
-void Tracker::adoptSnapshot(const MapSnapshotMessage* snapshot) {
-  s_->adopt(snapshot);
-}
 TrackingStatus Tracker::status() const {
   return s_->status;
 }
@@ -330,13 +107,6 @@ void Tracker::restartStream(std::int64_t t_ns) {
   if (s.status == TrackingStatus::kTracking) s.status = TrackingStatus::kRelocalising;
 }
 
-std::int64_t Tracker::timeCorrectionForNextFrameNs() {
-  State& s = *s_;
-  s.time_correction_ns += std::clamp(s.time_correction_target_ns - s.time_correction_ns, -kMaxTimeCorrectionStepNs,
-                                     kMaxTimeCorrectionStepNs);
-  return s.time_correction_ns;
-}
-
 bool Tracker::imuInitialised() const {
   return s_->imu_initialised;
 }
@@ -345,7 +115,7 @@ bool Tracker::awaitingKeyframe(KeyframeId* id) const {
   return s_->awaiting;
 }
 int Tracker::pendingKeyframes() const {
-  return s_->backlog.pending(nowNs());
+  return s_->backlog.pending(steadyNowNs());
 }
 
 namespace {
@@ -469,7 +239,7 @@ void predict(const Tracker::State& s, FrameStep& f) {
 // 2. ORB features, and their undistorted positions.
 void extractFeatures(Tracker::State& s, FrameStep& f) {
   const TrackerOptions& o = s.options;
-  const std::int64_t t_orb = nowNs();
+  const std::int64_t t_orb = steadyNowNs();
   s.keypoint_count = s.orb.extract(f.frame.left, f.frame.width, f.frame.height,
                                    std::span(s.keypoints.data(), static_cast<std::size_t>(o.orb.max_features)),
                                    std::span(s.descriptors.data(), static_cast<std::size_t>(o.orb.max_features)));
@@ -478,7 +248,7 @@ void extractFeatures(Tracker::State& s, FrameStep& f) {
     s.undistorted[k] = s.left.undistortPixel(s.keypoints[k].px.cast<double>());
   }
   f.result.keypoints = s.keypoint_count;
-  f.result.times.orb_ns = nowNs() - t_orb;
+  f.result.times.orb_ns = steadyNowNs() - t_orb;
 }
 
 // The frame's end, on every path: the state moves to the frame's pose and the result says where tracking stands.
@@ -500,7 +270,7 @@ void finishFrame(Tracker::State& s, FrameStep& f, const SE3d& T, const Vector3d&
   result.has_reference = s.has_keyframe;
   result.reference = s.keyframe.id;
   result.T_ref_s = s.keyframe.T_w_s.inverse() * T;
-  result.times.total_ns = nowNs() - f.t_start;
+  result.times.total_ns = steadyNowNs() - f.t_start;
 }
 
 // The keyframe message, written into a loaned chunk: keypoints, descriptors, the tracked matches, the IMU since
@@ -545,7 +315,7 @@ void fillKeyframe(const Tracker::State& s, const FrameStep& f, KeyframeKind kind
 
 // Publishes this frame as a keyframe and makes it tracking's reference; false when no chunk could be loaned.
 bool publishKeyframe(Tracker::State& s, FrameStep& f, KeyframeKind kind, const SE3d& T, const Vector3d& v) {
-  const std::int64_t t0 = nowNs();
+  const std::int64_t t0 = steadyNowNs();
   KeyframeMessage* m = f.keyframes.loan();
   if (m == nullptr) {
     f.result.issue = FrameIssue::kKeyframeDropped;
@@ -555,7 +325,7 @@ bool publishKeyframe(Tracker::State& s, FrameStep& f, KeyframeKind kind, const S
   m->sequence = s.backlog.publish(t0);
   m->state.id = s.keyframe_ids.next();
   fillKeyframe(s, f, kind, T, v, imu_link, *m);
-  m->publish_steady_ns = nowNs();
+  m->publish_steady_ns = steadyNowNs();
   const KeyframeId id = m->state.id;
   f.keyframes.publish();
 
@@ -574,7 +344,7 @@ bool publishKeyframe(Tracker::State& s, FrameStep& f, KeyframeKind kind, const S
   s.awaiting = true;
   s.awaiting_id = id;
   f.result.keyframe = true;
-  f.result.times.keyframe_ns = nowNs() - t0;
+  f.result.times.keyframe_ns = steadyNowNs() - t0;
   return true;
 }
 
@@ -661,7 +431,7 @@ std::span<std::uint8_t> outliersOf(Tracker::State& s) {
 std::optional<PoseOptimizerResult> searchAndOptimisePose(Tracker::State& s, FrameStep& f) {
   const TrackerOptions& o = s.options;
   const std::size_t n = f.keypoints;
-  const std::int64_t t_matching = nowNs();
+  const std::int64_t t_matching = steadyNowNs();
   const bool relocalising = s.status == TrackingStatus::kRelocalising || f.dead_reckoning_too_long;
   s.observation_count = 0;
   std::fill_n(s.keypoint_taken.begin(), n, std::uint8_t{0});
@@ -673,15 +443,15 @@ std::optional<PoseOptimizerResult> searchAndOptimisePose(Tracker::State& s, Fram
                    std::span(s.descriptors.data(), n), o.search,
                    std::span(s.match_of_point.data(), static_cast<std::size_t>(projected)));
   collectMatches(s, projected);
-  f.result.times.matching_ns = nowNs() - t_matching;
+  f.result.times.matching_ns = steadyNowNs() - t_matching;
 
-  std::int64_t t_pose = nowNs();
+  std::int64_t t_pose = steadyNowNs();
   auto first = optimizePose(observationsOf(s), f.T_pred, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
-  f.pose_ns = nowNs() - t_pose;
+  f.pose_ns = steadyNowNs() - t_pose;
   if (!first) return std::nullopt;
 
   // Second search: points not matched yet, around their projection with the refined pose.
-  const std::int64_t t_second = nowNs();
+  const std::int64_t t_second = steadyNowNs();
   for (int i = 0; i < s.observation_count; ++i) {  // outliers give their keypoints and points back
     if (s.outlier[static_cast<std::size_t>(i)] == 0) continue;
     s.keypoint_taken[s.observation_keypoint[static_cast<std::size_t>(i)]] = 0;
@@ -702,11 +472,11 @@ std::optional<PoseOptimizerResult> searchAndOptimisePose(Tracker::State& s, Fram
   }
   s.observation_count = kept;
   collectMatches(s, projected);
-  f.result.times.matching_ns += nowNs() - t_second;
+  f.result.times.matching_ns += steadyNowNs() - t_second;
 
-  t_pose = nowNs();
+  t_pose = steadyNowNs();
   auto second = optimizePose(observationsOf(s), first->T_w_s, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
-  f.pose_ns += nowNs() - t_pose;
+  f.pose_ns += steadyNowNs() - t_pose;
   f.result.times.pose_ns = f.pose_ns;
   if (!second) return std::nullopt;
   return *second;
@@ -718,7 +488,7 @@ void refineWithImu(Tracker::State& s, FrameStep& f, SE3d& T, Vector3d& v) {
   const TrackerOptions& o = s.options;
   if (!(s.imu_initialised && o.use_imu && s.has_keyframe && s.imu_ok_since_keyframe && s.pre_keyframe.dt() > 0.0))
     return;
-  const std::int64_t t_ba = nowNs();
+  const std::int64_t t_ba = steadyNowNs();
   const std::span<MotionWindowKeyframe> window =
       s.motion_window.build(s.snapshot, o.motion_ba_keyframes, s.keyframe, s.pre_keyframe);
   Result<InertialPoseResult> inertial = Error{ErrorCode::kNotFound, "no window"};
@@ -746,7 +516,7 @@ void refineWithImu(Tracker::State& s, FrameStep& f, SE3d& T, Vector3d& v) {
     // Keep the visual pose; the outlier flags are recomputed for the keyframe's matches.
     (void)optimizePose(observationsOf(s), T, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
   }
-  f.result.times.motion_ba_ns = nowNs() - t_ba;
+  f.result.times.motion_ba_ns = steadyNowNs() - t_ba;
 }
 
 // 6. The keyframe decision on the tracked frame, and the keyframe when mapping's backlog lets it through.
@@ -785,7 +555,7 @@ FrameResult Tracker::track(const FrameInput& frame, KeyframeSink& keyframes) {
   State& s = *s_;
   FrameResult result;
   FrameStep f{frame, keyframes, result};
-  f.t_start = nowNs();
+  f.t_start = steadyNowNs();
   integrateImu(s, f);
   predict(s, f);
   // Mapping's lag: while keyframes are pending, keyframes only when tracking would otherwise be lost, none beyond
