@@ -672,6 +672,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
     summary.link_enabled = true;
     summary.link = (*link)->finish();
   }
+  summary.time_offset_estimated = options.mapping.ba.estimate_time_offset && options.use_imu;
   summary.time_offset_calibrated_ms = static_cast<double>(plan.rig.timeshift_cam_imu_ns) * 1e-6;
   summary.time_offset_ms = summary.time_offset_calibrated_ms;
   addMappingFigures(mapping_stats, yield_requests, first_frame_t_ns, summary);

@@ -108,6 +108,7 @@ struct AgentRunSummary {
   double imu_initialised_at_s = -1.0;  // sequence time of the IMU initialisation; -1 never
   // The camera-IMU time offset (t_imu = t_cam + offset): the calibration's, and the estimate at the end (the same
   // unless imu.estimate_time_offset).
+  bool time_offset_estimated = false;
   double time_offset_calibrated_ms = 0.0;
   double time_offset_ms = 0.0;
   double mean_tracked_points = 0.0;

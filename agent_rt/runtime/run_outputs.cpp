@@ -33,7 +33,7 @@ nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& o
                       {"mode", setup.stereo ? "stereo" : "mono"},
                       {"imu_noise_inflation", setup.imu_noise_inflation},
                       {"time_offset",
-                       {{"estimated", options.mapping.ba.estimate_time_offset && options.use_imu},
+                       {{"estimated", summary.time_offset_estimated},
                         {"calibrated_ms", summary.time_offset_calibrated_ms},
                         {"final_ms", summary.time_offset_ms}}},
                       {"interrupted", summary.interrupted},
@@ -103,7 +103,7 @@ Status writeRunOutputs(const AgentOptions& options, const TrajectoryRecorder& re
   std::ofstream latency(summary.latency_json);
   latency << latencyJson(summary.stages);
   if (!latency) return Error{ErrorCode::kIoError, "cannot write " + summary.latency_json.string()};
-  if (options.mapping.ba.estimate_time_offset && options.use_imu) {
+  if (summary.time_offset_estimated) {
     if (Status s = writeTimeOffsets(options.output / "time_offset.csv", mapping_stats, summary); !s.ok()) return s;
   }
   std::ofstream json(options.output / "summary.json");
