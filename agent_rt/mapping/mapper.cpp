@@ -8,6 +8,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "agent_rt/mapping/imu_initialisation.hpp"
 #include "agent_rt/mapping/mapper_state.hpp"
 #include "agent_rt/mapping/two_view_initialiser.hpp"
 #include "agent_rt/messages/conversions.hpp"
@@ -388,66 +389,6 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
   }
 }
 
-// Applies a similarity to the whole map: camera positions and orientations, velocities and point depths.
-void transformMap(Mapper::State& s, double scale, const SO3d& R_w_v) {
-  s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) {
-    const SE3d T_w_c = kf.T_w_s * s.T_s_c;
-    const SE3d T_w_c_new(R_w_v * T_w_c.so3(), scale * (R_w_v * T_w_c.translation()));
-    kf.T_w_s = T_w_c_new * s.T_s_c.inverse();
-    kf.v_w = scale * (R_w_v * kf.v_w);
-  });
-  s.map.mapPoints().forEach([&](PoolHandle, MapPointData& p) { p.inverse_depth /= scale; });
-  s.epoch_scale = scale;
-  s.epoch_transform = SE3d(R_w_v, Vector3d::Zero());
-  ++s.epoch;
-}
-
-// The paper's IMU initialisation over the trailing run of IMU-linked keyframes.
-Status initialiseImu(Mapper::State& s, MapperReport& report) {
-  const std::vector<PoolHandle> order = s.keyframesBySequence();
-  std::vector<PoolHandle> chain;
-  for (auto it = order.rbegin(); it != order.rend(); ++it) {
-    chain.insert(chain.begin(), *it);
-    const KeyframeData& kf = *s.map.keyframes().get(*it);
-    if (std::next(it) == order.rend()) break;
-    const KeyframeData& previous = *s.map.keyframes().get(*std::next(it));
-    if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) break;
-  }
-  if (static_cast<int>(chain.size()) < s.options.imu_init_keyframes) {
-    return Error{ErrorCode::kNotFound, std::to_string(chain.size()) + " IMU-linked keyframes"};
-  }
-  std::vector<imu::VisualKeyframe> visual;
-  std::vector<imu::Preintegration> preintegrations;
-  for (std::size_t i = 0; i < chain.size(); ++i) {
-    const KeyframeData& kf = *s.map.keyframes().get(chain[i]);
-    visual.push_back({s.cameraPose(kf), kf.gyro_s, static_cast<double>(kf.time_correction_ns) * 1e-9});
-    if (i > 0) preintegrations.push_back(kf.preintegration);
-  }
-  imu::VisualInertialAlignmentOptions alignment = s.options.alignment;
-  if (s.right) alignment.known_scale = 1.0;  // the stereo map is metric already
-  alignment.estimate_time_offset = s.options.ba.estimate_time_offset;
-  alignment.max_time_offset_s = s.options.ba.max_time_offset_s;
-  auto aligned = imu::alignVisualInertial(visual, preintegrations, s.T_s_c, alignment);
-  if (!aligned) return aligned.error();
-  const double scale = aligned->scale;  // 1 for stereo (known)
-  transformMap(s, scale, aligned->R_w_v);
-  for (std::size_t i = 0; i < chain.size(); ++i) {
-    KeyframeData& kf = *s.map.keyframes().get(chain[i]);
-    kf.v_w = aligned->v_w[i];
-    kf.bias.gyro = aligned->gyro_bias;
-  }
-  s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) { kf.bias.gyro = aligned->gyro_bias; });
-  if (alignment.estimate_time_offset) s.map.setTimeCorrectionS(aligned->time_correction_s);
-  s.imu_initialised = true;
-  report.imu_initialised_now = true;
-  report.note = "IMU initialised over " + std::to_string(chain.size()) + " keyframes: scale " +
-                std::to_string(aligned->scale) + ", gyro bias " + std::to_string(aligned->gyro_bias.norm()) + " rad/s";
-  if (alignment.estimate_time_offset) {
-    report.note += ", time offset correction " + std::to_string(aligned->time_correction_s * 1e3) + " ms";
-  }
-  return Status::Ok();
-}
-
 // Monocular: the first map from the reference keyframe and this one, when they see enough of the same
 // scene with enough parallax.
 Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& report) {
@@ -576,8 +517,10 @@ KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, 
     const KeyframeData& previous = *s.map.keyframes().get(*newest);
     s.imu_samples.clear();
     for (std::uint32_t i = 0; i < msg.imu_count; ++i) s.imu_samples.push_back(fromMsg(msg.imu[i]));
+    // The previous keyframe may have been re-timed to before this message's first sample (a negative offset).
+    const auto& samples = s.imu_history.empty() ? s.imu_samples : s.imu_history;
     kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
-    if (kf.preintegration.integrateInterval(s.imu_samples, previous.t_ns, kf.t_ns).ok()) {
+    if (kf.preintegration.integrateInterval(samples, previous.t_ns, kf.t_ns).ok()) {
       kf.has_preintegration = true;
       kf.preintegration_from = previous.id;
     }
@@ -714,6 +657,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
   }
   if (msg.kind == KeyframeKind::kNewMap) startNewMap(s, msg, report);
 
+  keepImuHistory(s, msg);
   std::vector<PoolHandle> order = s.keyframesBySequence();
   const KeyframeData& kf = keyframeFromMessage(s, msg, order.empty() ? nullptr : &order.back());
   makeRoomForKeyframe(s, report);

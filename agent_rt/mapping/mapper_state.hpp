@@ -73,6 +73,7 @@ struct Mapper::State {
   // Scratch (mapping may allocate, but reuses).
   KeyframeData scratch;
   std::vector<dataset::ImuSample> imu_samples;
+  std::vector<dataset::ImuSample> imu_history;  // keepImuHistory's, oldest first
   std::unordered_map<MapPointId, PoolHandle> point_index;
   std::vector<features::Keypoint> right_keypoints;
   std::vector<features::Descriptor> right_descriptors;

@@ -1,0 +1,206 @@
+#include "agent_rt/mapping/imu_initialisation.hpp"
+
+#include <algorithm>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "agent_rt/messages/conversions.hpp"
+
+namespace cvislam::agent {
+
+using Eigen::Vector3d;
+using geometry::SE3d;
+using geometry::SO3d;
+
+namespace {
+
+// 80 s of IMU at 200 Hz, 16 s at 1 kHz: far longer than an initialisation's chain of keyframes takes, and far
+// more than one keyframe interval.
+constexpr std::size_t kImuHistorySamples = 16384;
+
+// Applies a similarity to the whole map: camera positions and orientations, velocities and point depths.
+void transformMap(Mapper::State& s, double scale, const SO3d& R_w_v) {
+  s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) {
+    const SE3d T_w_c = kf.T_w_s * s.T_s_c;
+    const SE3d T_w_c_new(R_w_v * T_w_c.so3(), scale * (R_w_v * T_w_c.translation()));
+    kf.T_w_s = T_w_c_new * s.T_s_c.inverse();
+    kf.v_w = scale * (R_w_v * kf.v_w);
+  });
+  s.map.mapPoints().forEach([&](PoolHandle, MapPointData& p) { p.inverse_depth /= scale; });
+  s.epoch_scale = scale;
+  s.epoch_transform = SE3d(R_w_v, Vector3d::Zero());
+  ++s.epoch;
+}
+
+// The trailing run of own keyframes, each IMU-linked to the one before it, oldest first.
+std::vector<PoolHandle> imuLinkedChain(const Mapper::State& s) {
+  const std::vector<PoolHandle> order = s.keyframesBySequence();
+  std::vector<PoolHandle> chain;
+  for (auto it = order.rbegin(); it != order.rend(); ++it) {
+    chain.insert(chain.begin(), *it);
+    const KeyframeData& kf = *s.map.keyframes().get(*it);
+    if (std::next(it) == order.rend()) break;
+    const KeyframeData& previous = *s.map.keyframes().get(*std::next(it));
+    if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) break;
+  }
+  return chain;
+}
+
+Result<imu::VisualInertialAlignment> alignChain(const Mapper::State& s, const std::vector<PoolHandle>& chain,
+                                                const imu::VisualInertialAlignmentOptions& options) {
+  std::vector<imu::VisualKeyframe> visual;
+  std::vector<imu::Preintegration> preintegrations;
+  for (std::size_t i = 0; i < chain.size(); ++i) {
+    const KeyframeData& kf = *s.map.keyframes().get(chain[i]);
+    visual.push_back({s.cameraPose(kf), kf.gyro_s, static_cast<double>(kf.time_correction_ns) * 1e-9});
+    if (i > 0) preintegrations.push_back(kf.preintegration);
+  }
+  return imu::alignVisualInertial(visual, preintegrations, s.T_s_c, options);
+}
+
+// The gyro at t_ns, interpolated between the samples around it; `samples` covers t_ns.
+Vector3d gyroAt(const std::vector<dataset::ImuSample>& samples, std::int64_t t_ns) {
+  auto after = std::lower_bound(samples.begin(), samples.end(), t_ns,
+                                [](const dataset::ImuSample& a, std::int64_t t) { return a.t_ns < t; });
+  if (after == samples.end()) return samples.back().gyro_s;
+  if (after == samples.begin() || after->t_ns == t_ns) return after->gyro_s;
+  const auto before = std::prev(after);
+  const double a = static_cast<double>(t_ns - before->t_ns) / static_cast<double>(after->t_ns - before->t_ns);
+  return before->gyro_s + a * (after->gyro_s - before->gyro_s);
+}
+
+// What re-timing changes in a keyframe, to be put back when it cannot be done or the alignment then refuses.
+struct KeyframeTiming {
+  std::int64_t t_ns = 0;
+  std::int64_t time_correction_ns = 0;
+  Vector3d gyro_s;
+  imu::Preintegration preintegration;
+  bool has_preintegration = false;
+};
+
+std::vector<KeyframeTiming> timingsOf(const Mapper::State& s, const std::vector<PoolHandle>& keyframes) {
+  std::vector<KeyframeTiming> out;
+  for (PoolHandle h : keyframes) {
+    const KeyframeData& kf = *s.map.keyframes().get(h);
+    out.push_back({kf.t_ns, kf.time_correction_ns, kf.gyro_s, kf.preintegration, kf.has_preintegration});
+  }
+  return out;
+}
+
+void restoreTimings(Mapper::State& s, const std::vector<PoolHandle>& keyframes,
+                    const std::vector<KeyframeTiming>& saved) {
+  for (std::size_t i = 0; i < keyframes.size(); ++i) {
+    KeyframeData& kf = *s.map.keyframes().get(keyframes[i]);
+    kf.t_ns = saved[i].t_ns;
+    kf.time_correction_ns = saved[i].time_correction_ns;
+    kf.gyro_s = saved[i].gyro_s;
+    kf.preintegration = saved[i].preintegration;
+    kf.has_preintegration = saved[i].has_preintegration;
+  }
+}
+
+// Moves the own keyframes to the times their images were taken by the estimate `correction_ns` and integrates
+// the IMU between them again. The newest keyframe's new time may lie up to the offset past the newest sample:
+// the IMU is held at that sample over the gap (a few tens of ms of the keyframe's preintegration), since the
+// samples have not come yet. A keyframe older than the kept IMU keeps its time. False, with nothing changed,
+// when a link of the initialisation's chain cannot be integrated again.
+bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std::int64_t correction_ns) {
+  const std::vector<PoolHandle> order = s.keyframesBySequence();
+  const std::vector<KeyframeTiming> saved = timingsOf(s, order);
+  std::vector<dataset::ImuSample> imu = s.imu_history;
+  if (imu.empty()) return false;
+  for (PoolHandle h : order) {
+    KeyframeData& kf = *s.map.keyframes().get(h);
+    const std::int64_t t_ns = kf.t_ns + correction_ns - kf.time_correction_ns;
+    if (t_ns < imu.front().t_ns) continue;
+    kf.t_ns = t_ns;
+    kf.time_correction_ns = correction_ns;
+    if (t_ns > imu.back().t_ns) {
+      dataset::ImuSample held = imu.back();
+      held.t_ns = t_ns;
+      imu.push_back(held);
+    }
+    kf.gyro_s = gyroAt(imu, t_ns);
+  }
+  bool chain_ok = true;
+  for (std::size_t i = 1; i < order.size(); ++i) {
+    KeyframeData& kf = *s.map.keyframes().get(order[i]);
+    const KeyframeData& previous = *s.map.keyframes().get(order[i - 1]);
+    if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) continue;
+    kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
+    if (kf.preintegration.integrateInterval(imu, previous.t_ns, kf.t_ns).ok()) continue;
+    kf.has_preintegration = false;
+    if (std::find(chain.begin(), chain.end(), order[i]) != chain.end()) chain_ok = false;
+  }
+  if (!chain_ok) restoreTimings(s, order, saved);
+  return chain_ok;
+}
+
+}  // namespace
+
+void keepImuHistory(Mapper::State& s, const KeyframeMessage& msg) {
+  if (!s.options.use_imu || !s.options.ba.estimate_time_offset) return;
+  std::vector<dataset::ImuSample>& kept = s.imu_history;
+  if (kept.capacity() < kImuHistorySamples) kept.reserve(kImuHistorySamples);
+  const std::uint32_t count = std::min<std::uint32_t>(msg.imu_count, kMaxImuSamplesPerKeyframe);
+  for (std::uint32_t i = 0; i < count; ++i) {
+    const dataset::ImuSample sample = fromMsg(msg.imu[i]);
+    // Consecutive keyframes' samples overlap (each message holds the first sample after its keyframe).
+    if (!kept.empty() && sample.t_ns <= kept.back().t_ns) continue;
+    if (kept.size() == kImuHistorySamples) {
+      kept.erase(kept.begin(), kept.begin() + static_cast<std::ptrdiff_t>(kImuHistorySamples / 4));
+    }
+    kept.push_back(sample);
+  }
+}
+
+Status initialiseImu(Mapper::State& s, MapperReport& report) {
+  const std::vector<PoolHandle> chain = imuLinkedChain(s);
+  if (static_cast<int>(chain.size()) < s.options.imu_init_keyframes) {
+    return Error{ErrorCode::kNotFound, std::to_string(chain.size()) + " IMU-linked keyframes"};
+  }
+  imu::VisualInertialAlignmentOptions alignment = s.options.alignment;
+  if (s.right) alignment.known_scale = 1.0;  // the stereo map is metric already
+  alignment.estimate_time_offset = s.options.ba.estimate_time_offset;
+  alignment.max_time_offset_s = s.options.ba.max_time_offset_s;
+  auto aligned = alignChain(s, chain, alignment);
+  if (!aligned) return aligned.error();
+  int retimings = 0;
+  if (alignment.estimate_time_offset) {
+    // Aligned again over the re-timed keyframes: the velocities, the scale and the offset then come from IMU
+    // intervals between the images' true times instead of from a first-order shift of each keyframe. Twice at
+    // most: the second estimate is within a fraction of a millisecond of the third.
+    const std::vector<PoolHandle> order = s.keyframesBySequence();
+    for (int round = 0; round < 2; ++round) {
+      const std::vector<KeyframeTiming> saved = timingsOf(s, order);
+      if (!retimeKeyframes(s, chain, std::llround(aligned->time_correction_s * 1e9))) break;
+      auto again = alignChain(s, chain, alignment);
+      if (!again) {
+        restoreTimings(s, order, saved);
+        break;
+      }
+      aligned = std::move(again);
+      ++retimings;
+    }
+  }
+  const double scale = aligned->scale;  // 1 for stereo (known)
+  transformMap(s, scale, aligned->R_w_v);
+  for (std::size_t i = 0; i < chain.size(); ++i) {
+    KeyframeData& kf = *s.map.keyframes().get(chain[i]);
+    kf.v_w = aligned->v_w[i];
+  }
+  s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) { kf.bias.gyro = aligned->gyro_bias; });
+  if (alignment.estimate_time_offset) s.map.setTimeCorrectionS(aligned->time_correction_s);
+  s.imu_initialised = true;
+  report.imu_initialised_now = true;
+  report.note = "IMU initialised over " + std::to_string(chain.size()) + " keyframes: scale " +
+                std::to_string(aligned->scale) + ", gyro bias " + std::to_string(aligned->gyro_bias.norm()) + " rad/s";
+  if (alignment.estimate_time_offset) {
+    report.note += ", time offset correction " + std::to_string(aligned->time_correction_s * 1e3) + " ms" +
+                   (retimings > 0 ? " (the keyframes re-timed to it)" : "");
+  }
+  return Status::Ok();
+}
+
+}  // namespace cvislam::agent
