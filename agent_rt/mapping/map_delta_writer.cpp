@@ -10,6 +10,7 @@ KeyframeStateMsg toStateMsg(const KeyframeData& kf) {
   KeyframeStateMsg m;
   m.id = kf.id;
   m.t_ns = kf.t_ns;
+  m.time_correction_ns = kf.time_correction_ns;
   m.T_w_s = toMsg(kf.T_w_s);
   m.v_w = toArray(kf.v_w);
   m.bias = toMsg(kf.bias);

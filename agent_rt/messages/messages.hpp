@@ -41,6 +41,7 @@ struct PoseMsg {
 struct KeyframeStateMsg {
   KeyframeId id;
   std::int64_t t_ns = 0;
+  std::int64_t time_correction_ns = 0;  // the correction to the calibrated camera-IMU time offset t_ns carries
   PoseMsg T_w_s;
   std::array<double, 3> v_w{};
   std::array<double, 6> bias{};  // b_g, b_a

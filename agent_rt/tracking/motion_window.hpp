@@ -21,6 +21,7 @@ namespace cvislam::agent {
 // The keyframe tracking published last, as tracking holds it.
 struct NewestPublishedKeyframe {
   KeyframeId id;
+  std::int64_t t_ns = 0;  // its state's time; mapping moves it when it re-times keyframes to the time offset
   geometry::SE3d T_w_s;
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
   imu::ImuBias bias;

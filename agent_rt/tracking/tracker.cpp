@@ -196,9 +196,14 @@ void integrateImu(Tracker::State& s, FrameStep& f) {
     if (!frame.imu.empty() && frame.t_ns > s.last_t_ns) {
       if (s.pre_frame.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok()) {
         f.imu_frame_ok = true;
-        if (s.imu_ok_since_keyframe && s.has_keyframe) {
-          if (!s.pre_keyframe.integrateInterval(frame.imu, s.last_t_ns, frame.t_ns).ok())
+        // From the keyframe's time when mapping has re-timed it past the last frame.
+        const std::int64_t from_ns = std::max(s.last_t_ns, s.pre_keyframe_end_ns);
+        if (s.imu_ok_since_keyframe && s.has_keyframe && frame.t_ns > from_ns) {
+          if (s.pre_keyframe.integrateInterval(frame.imu, from_ns, frame.t_ns).ok()) {
+            s.pre_keyframe_end_ns = frame.t_ns;
+          } else {
             s.imu_ok_since_keyframe = false;
+          }
         }
       } else {
         f.result.issue = FrameIssue::kImuGap;
@@ -257,7 +262,11 @@ void finishFrame(Tracker::State& s, FrameStep& f, const SE3d& T, const Vector3d&
   s.T_w_s = T;
   s.v_w = v;
   s.untracked_s = result.tracked || !s.started ? 0.0 : s.untracked_s + f.dt_s;
+  if (s.started) {
+    s.camera_interval_ns = (f.frame.t_ns - f.frame.time_correction_ns) - (s.last_t_ns - s.last_time_correction_ns);
+  }
   s.last_t_ns = f.frame.t_ns;
+  s.last_time_correction_ns = f.frame.time_correction_ns;
   s.started = true;
   ++s.frames_since_keyframe;
   result.status = s.status;
@@ -300,8 +309,8 @@ void fillKeyframe(const Tracker::State& s, const FrameStep& f, KeyframeKind kind
       m.has_match[k] = 1;
     }
   }
-  m.imu_count = imu_link || kind == KeyframeKind::kNewMap ? s.keyframe_imu_count : 0;
-  std::memcpy(m.imu.data(), s.keyframe_imu.data(), m.imu_count * sizeof(ImuSampleMsg));
+  m.imu_count = imu_link || kind == KeyframeKind::kNewMap ? s.keyframe_imu_count - s.keyframe_imu_first : 0;
+  std::memcpy(m.imu.data(), s.keyframe_imu.data() + s.keyframe_imu_first, m.imu_count * sizeof(ImuSampleMsg));
   const FrameInput& frame = f.frame;
   if (!frame.right.empty() && frame.right.size() <= m.right_pixels.size()) {
     m.right_width = static_cast<std::uint16_t>(frame.width);
@@ -334,11 +343,13 @@ bool publishKeyframe(Tracker::State& s, FrameStep& f, KeyframeKind kind, const S
   s.published_next = (s.published_next + 1) % s.published.size();
   s.has_keyframe = true;
   s.keyframe.id = id;
+  s.keyframe.t_ns = f.frame.t_ns;
   s.keyframe.T_w_s = T;
   s.keyframe.v_w = v;
   s.keyframe.bias = s.bias;
   s.frames_since_keyframe = -1;  // finishFrame() counts this frame
   s.pre_keyframe.reset(s.bias);
+  s.pre_keyframe_end_ns = f.frame.t_ns;
   s.imu_ok_since_keyframe = true;
   s.restartKeyframeImu(f.frame.t_ns);
   s.awaiting = true;

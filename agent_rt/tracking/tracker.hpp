@@ -155,10 +155,11 @@ class Tracker {
   void restartStream(std::int64_t t_ns);
 
   // The correction to the calibrated camera-IMU time offset that the next frame's time should carry: mapping's
-  // estimate from the snapshot, reached in steps of at most kMaxTimeCorrectionStepNs per frame, so that frame
-  // times stay in order and the motion prediction sees no jump.
+  // estimate from the snapshot, taken at once, since a frame whose time lags its image's is placed by the IMU
+  // where the image was not. Only a step back is bounded, to half the last frame interval (before any frame:
+  // kMaxTimeCorrectionStepBackNs), so that frame times stay in order.
   std::int64_t timeCorrectionForNextFrameNs();
-  static constexpr std::int64_t kMaxTimeCorrectionStepNs = 5'000'000;
+  static constexpr std::int64_t kMaxTimeCorrectionStepBackNs = 5'000'000;
 
   [[nodiscard]] TrackingStatus status() const;
   [[nodiscard]] bool imuInitialised() const;

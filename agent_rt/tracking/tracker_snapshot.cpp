@@ -26,6 +26,21 @@ void Tracker::State::changeEpoch(const MapSnapshotMessage& s) {
   }
 }
 
+void Tracker::State::retimeNewestKeyframe(std::int64_t t_ns) {
+  keyframe.t_ns = t_ns;
+  keyframe_imu_first = std::min(keyframe_imu_first, lastImuAtOrBefore(t_ns));
+  pre_keyframe.reset(bias);
+  pre_keyframe_end_ns = t_ns;
+  if (!imu_ok_since_keyframe || last_t_ns <= t_ns) return;  // the next frame integrates from t_ns
+  for (std::uint32_t i = 0; i < keyframe_imu_count; ++i) imu_scratch[i] = fromMsg(keyframe_imu[i]);
+  const std::span<const dataset::ImuSample> samples(imu_scratch.data(), keyframe_imu_count);
+  if (pre_keyframe.integrateInterval(samples, t_ns, last_t_ns).ok()) {
+    pre_keyframe_end_ns = last_t_ns;
+  } else {
+    imu_ok_since_keyframe = false;  // no IMU kept from that far back: the frames go without it to the next keyframe
+  }
+}
+
 Tracker::State::Published* Tracker::State::findPublished(const KeyframeId& id) {
   for (Published& p : published) {
     if (p.valid && p.id == id) return &p;
@@ -89,6 +104,10 @@ void Tracker::State::adopt(const MapSnapshotMessage* s) {
       keyframe.T_w_s = T_new;
       keyframe.v_w = toVector3(newest->v_w);
       keyframe.bias = bias_new;
+      if (newest->t_ns != keyframe.t_ns) {
+        bias = bias_new;
+        retimeNewestKeyframe(newest->t_ns);
+      }
     } else if (has_keyframe) {
       keyframe.T_w_s = delta * keyframe.T_w_s;
       keyframe.v_w = delta.so3() * keyframe.v_w;
@@ -104,8 +123,8 @@ void Tracker::adoptSnapshot(const MapSnapshotMessage* snapshot) {
 
 std::int64_t Tracker::timeCorrectionForNextFrameNs() {
   State& s = *s_;
-  s.time_correction_ns += std::clamp(s.time_correction_target_ns - s.time_correction_ns, -kMaxTimeCorrectionStepNs,
-                                     kMaxTimeCorrectionStepNs);
+  const std::int64_t max_back_ns = s.camera_interval_ns > 0 ? s.camera_interval_ns / 2 : kMaxTimeCorrectionStepBackNs;
+  s.time_correction_ns += std::max(s.time_correction_target_ns - s.time_correction_ns, -max_back_ns);
   return s.time_correction_ns;
 }
 

@@ -69,10 +69,12 @@ struct Tracker::State {
   bool imu_initialised = false;
   std::int64_t time_correction_target_ns = 0;  // mapping's estimate
   std::int64_t time_correction_ns = 0;         // what the frames carry now
+  std::int64_t camera_interval_ns = 0;         // between the last two frames, on the camera's clock
 
   // Frame state.
   bool started = false;
   std::int64_t last_t_ns = 0;
+  std::int64_t last_time_correction_ns = 0;  // the one last_t_ns carries
   geometry::SE3d T_w_s;
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
   imu::ImuBias bias;
@@ -89,10 +91,16 @@ struct Tracker::State {
   NewestPublishedKeyframe keyframe;
   int frames_since_keyframe = 0;
   double keyframe_coverage = 0.0;
-  imu::Preintegration pre_keyframe;
+  imu::Preintegration pre_keyframe;  // from keyframe.t_ns to pre_keyframe_end_ns
+  std::int64_t pre_keyframe_end_ns = 0;
   bool imu_ok_since_keyframe = true;
+  // The IMU since shortly before the newest keyframe: the next keyframe message carries it from
+  // keyframe_imu_first (the last sample at or before the keyframe); the samples before that are kept for a
+  // keyframe that mapping moves earlier when it re-times keyframes to the camera-IMU time offset.
   std::uint32_t keyframe_imu_count = 0;
+  std::uint32_t keyframe_imu_first = 0;
   std::array<ImuSampleMsg, kMaxImuSamplesPerKeyframe> keyframe_imu{};
+  std::array<dataset::ImuSample, kMaxImuSamplesPerKeyframe> imu_scratch{};
   std::int64_t last_imu_t_ns = std::numeric_limits<std::int64_t>::min();
   bool awaiting = false;
   KeyframeId awaiting_id;
@@ -121,16 +129,30 @@ struct Tracker::State {
     }
   }
 
-  // Keeps the samples the next keyframe interval needs: the last at or before t, and those after.
-  void restartKeyframeImu(std::int64_t t_ns) {
-    std::uint32_t first = 0;
+  // The index of the last sample at or before t (0 when there is none).
+  [[nodiscard]] std::uint32_t lastImuAtOrBefore(std::int64_t t_ns) const {
+    std::uint32_t last = 0;
     for (std::uint32_t i = 0; i < keyframe_imu_count; ++i) {
-      if (keyframe_imu[i].t_ns <= t_ns) first = i;
+      if (keyframe_imu[i].t_ns <= t_ns) last = i;
     }
+    return last;
+  }
+
+  // Keeps the samples the next keyframe interval needs, the last at or before t and those after, and those of
+  // the largest time offset before it.
+  void restartKeyframeImu(std::int64_t t_ns) {
+    const std::uint32_t first = lastImuAtOrBefore(t_ns - kImuKeptBeforeKeyframeNs);
     const std::uint32_t kept = keyframe_imu_count - first;
     std::memmove(keyframe_imu.data(), keyframe_imu.data() + first, kept * sizeof(ImuSampleMsg));
     keyframe_imu_count = kept;
+    keyframe_imu_first = lastImuAtOrBefore(t_ns);
   }
+
+  // Mapping moved the newest keyframe's state to `t_ns`: the IMU since it is integrated again from there, up to
+  // the last frame.
+  void retimeNewestKeyframe(std::int64_t t_ns);
+
+  static constexpr std::int64_t kImuKeptBeforeKeyframeNs = 100'000'000;  // imu.max_time_offset_s's default
 
   void applyToTrackedStates(const geometry::SE3d& delta_left);
   // Moves every stored state from the previous epoch into the snapshot's: p' = s R p + t, v' = s R v.
