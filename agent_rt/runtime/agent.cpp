@@ -296,7 +296,7 @@ class TrackingLoop {
       s_.feed.release();
       publishState(frameState(r, input.t_ns, captured_ns, s_.options.agent));
       s_.latencies.addFrame(r);
-      if (!s_.recorder.addFrame(input.t_ns, r)) ++summary.frames_not_recorded;
+      if (!s_.recorder.addFrame(input.t_ns, input.time_correction_ns, r)) ++summary.frames_not_recorded;
       count(input.t_ns, r, summary);
       waitForMappingIfPaced(r);
       reportProgress(input.t_ns, r, summary);

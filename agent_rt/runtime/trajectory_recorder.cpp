@@ -13,10 +13,10 @@ TrajectoryRecorder::TrajectoryRecorder(std::size_t frames) {
   keyframes_.resize(frames + 1);
 }
 
-bool TrajectoryRecorder::addFrame(std::int64_t t_ns, const FrameResult& r) {
+bool TrajectoryRecorder::addFrame(std::int64_t t_ns, std::int64_t time_correction_ns, const FrameResult& r) {
   if (frames_.size() == frames_.capacity()) return false;
-  frames_.push_back({t_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U, r.has_reference, r.tracked,
-                     r.keyframe, r.map_id, r.map_epoch});
+  frames_.push_back({t_ns, time_correction_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U,
+                     r.has_reference, r.tracked, r.keyframe, r.map_id, r.map_epoch});
   return true;
 }
 
@@ -46,7 +46,7 @@ void TrajectoryRecorder::addSnapshot(const MapSnapshotMessage& s) {
     if (s.keyframe_is_anchor[i] != 0) continue;  // the server's: not one of this agent's keyframes to record
     if (m.id.counter >= keyframes_.size()) continue;
     Keyframe& kf = keyframes_[m.id.counter];
-    kf = {true, m.t_ns, fromMsg(m.T_w_s), s.map_id, s.map_epoch};
+    kf = {true, m.t_ns, m.time_correction_ns, fromMsg(m.T_w_s), s.map_id, s.map_epoch};
   }
 }
 
@@ -59,8 +59,18 @@ void TrajectoryRecorder::build(dataset::Trajectory& refined, dataset::Trajectory
     // start drops the keyframes between its two views: those are left out).
     if (!f.tracked && !(f.keyframe && refinable)) continue;
     online.push_back({f.t_ns, f.T_w_s});
-    refined.push_back({f.t_ns, refinable ? keyframes_[f.reference].T_w_s * f.T_ref_s : f.T_w_s});
+    if (!refinable) {
+      refined.push_back({f.t_ns, f.T_w_s});
+      continue;
+    }
+    // Tracking placed the frame against its keyframe image to image, so hung from the keyframe's state the
+    // frame's pose is the one at the time its image carries on the keyframe's clock: the camera's stamp plus
+    // the keyframe's time correction. The two differ for frames tracked before the time offset was estimated
+    // (or while the frames' correction was still catching up) whose keyframe mapping has re-timed since.
+    const Keyframe& kf = keyframes_[f.reference];
+    refined.push_back({f.t_ns - f.time_correction_ns + kf.time_correction_ns, kf.T_w_s * f.T_ref_s});
   }
+  std::sort(refined.begin(), refined.end(), [](const auto& a, const auto& b) { return a.t_ns < b.t_ns; });
   for (const Keyframe& kf : keyframes_) {
     if (kf.valid) keyframes.push_back({kf.t_ns, kf.T_w_s});
   }

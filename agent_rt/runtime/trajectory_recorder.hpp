@@ -19,7 +19,8 @@ class TrajectoryRecorder {
   explicit TrajectoryRecorder(std::size_t frames);
 
   // False when the reserved room is full: the frame is not recorded.
-  bool addFrame(std::int64_t t_ns, const FrameResult& r);
+  // `time_correction_ns`: the time-offset correction the frame's time carries.
+  bool addFrame(std::int64_t t_ns, std::int64_t time_correction_ns, const FrameResult& r);
   // The keyframes' refined states; a change of world frame (map_epoch + 1) moves what was recorded before it.
   void addSnapshot(const MapSnapshotMessage& s);
   // The trajectory of tracked frames with every frame hung from its keyframe's newest pose, the trajectory
@@ -29,6 +30,7 @@ class TrajectoryRecorder {
  private:
   struct Frame {
     std::int64_t t_ns;
+    std::int64_t time_correction_ns;
     geometry::SE3d T_w_s;
     geometry::SE3d T_ref_s;
     std::uint32_t reference;
@@ -41,6 +43,7 @@ class TrajectoryRecorder {
   struct Keyframe {
     bool valid = false;
     std::int64_t t_ns = 0;
+    std::int64_t time_correction_ns = 0;
     geometry::SE3d T_w_s;
     std::uint32_t map_id = 0;
     std::uint32_t epoch = 0;
