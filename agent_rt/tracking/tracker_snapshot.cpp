@@ -121,11 +121,14 @@ void Tracker::adoptSnapshot(const MapSnapshotMessage* snapshot) {
   s_->adopt(snapshot);
 }
 
+std::int64_t Tracker::State::nextTimeCorrectionNs() {
+  const std::int64_t max_back_ns = camera_interval_ns > 0 ? camera_interval_ns / 2 : kMaxTimeCorrectionStepBackNs;
+  time_correction_ns += std::max(time_correction_target_ns - time_correction_ns, -max_back_ns);
+  return time_correction_ns;
+}
+
 std::int64_t Tracker::timeCorrectionForNextFrameNs() {
-  State& s = *s_;
-  const std::int64_t max_back_ns = s.camera_interval_ns > 0 ? s.camera_interval_ns / 2 : kMaxTimeCorrectionStepBackNs;
-  s.time_correction_ns += std::max(s.time_correction_target_ns - s.time_correction_ns, -max_back_ns);
-  return s.time_correction_ns;
+  return s_->nextTimeCorrectionNs();
 }
 
 }  // namespace cvislam::agent

@@ -148,6 +148,9 @@ struct Tracker::State {
     keyframe_imu_first = lastImuAtOrBefore(t_ns);
   }
 
+  // Tracker::timeCorrectionForNextFrameNs().
+  std::int64_t nextTimeCorrectionNs();
+
   // Mapping moved the newest keyframe's state to `t_ns`: the IMU since it is integrated again from there, up to
   // the last frame.
   void retimeNewestKeyframe(std::int64_t t_ns);
