@@ -170,7 +170,7 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
   if (alignment.estimate_time_offset) {
     // Aligned again over the re-timed keyframes: the velocities, the scale and the offset then come from IMU
     // intervals between the images' true times instead of from a first-order shift of each keyframe. Twice at
-    // most: the second estimate is within a fraction of a millisecond of the third.
+    // most: the second round starts from an offset whose first-order error the first round has removed.
     const std::vector<PoolHandle> order = s.keyframesBySequence();
     for (int round = 0; round < 2; ++round) {
       const std::vector<KeyframeTiming> saved = timingsOf(s, order);

@@ -29,6 +29,11 @@ void TrajectoryRecorder::addSnapshot(const MapSnapshotMessage& s) {
       if (kf.valid && kf.map_id == s.map_id && kf.epoch == epoch_) {
         kf.T_w_s = SE3d(T.so3() * kf.T_w_s.so3(), scale * (T.so3() * kf.T_w_s.translation()) + T.translation());
         kf.epoch = s.map_epoch;
+        // Re-timed to the time offset estimated at this change, as mapping re-times the keyframes it holds: a pose
+        // from before the IMU is the camera's when the image was taken. (Those mapping holds are overwritten
+        // below with what it made of them.)
+        kf.t_ns += s.time_correction_ns - kf.time_correction_ns;
+        kf.time_correction_ns = s.time_correction_ns;
       }
     }
     for (Frame& f : frames_) {
