@@ -15,6 +15,10 @@ using geometry::SO3d;
 
 namespace {
 
+// How far before the first kept IMU sample a keyframe may be moved, with the IMU held at that sample: a recording
+// whose IMU starts just as early as the first image was taken.
+constexpr std::int64_t kMaxImuHeldBeforeNs = 5'000'000;
+
 // 80 s of IMU at 200 Hz, 16 s at 1 kHz: far longer than an initialisation's chain of keyframes takes, and far
 // more than one keyframe interval.
 constexpr std::size_t kImuHistorySamples = 16384;
@@ -103,8 +107,8 @@ void restoreTimings(Mapper::State& s, const std::vector<PoolHandle>& keyframes,
 // Moves the own keyframes to the times their images were taken by the estimate `correction_ns` and integrates
 // the IMU between them again. The newest keyframe's new time may lie up to the offset past the newest sample:
 // the IMU is held at that sample over the gap (a few tens of ms of the keyframe's preintegration), since the
-// samples have not come yet. A keyframe older than the kept IMU keeps its time. False, with nothing changed,
-// when a link of the initialisation's chain cannot be integrated again.
+// samples have not come yet. A keyframe more than kMaxImuHeldBeforeNs older than the kept IMU keeps its time. False,
+// with nothing changed, when a link of the initialisation's chain cannot be integrated again.
 bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std::int64_t correction_ns) {
   const std::vector<PoolHandle> order = s.keyframesBySequence();
   const std::vector<KeyframeTiming> saved = timingsOf(s, order);
@@ -113,7 +117,12 @@ bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std
   for (PoolHandle h : order) {
     KeyframeData& kf = *s.map.keyframes().get(h);
     const std::int64_t t_ns = kf.t_ns + correction_ns - kf.time_correction_ns;
-    if (t_ns < imu.front().t_ns) continue;
+    if (t_ns < imu.front().t_ns - kMaxImuHeldBeforeNs) continue;
+    if (t_ns < imu.front().t_ns) {
+      dataset::ImuSample held = imu.front();
+      held.t_ns = t_ns;
+      imu.insert(imu.begin(), held);
+    }
     kf.t_ns = t_ns;
     kf.time_correction_ns = correction_ns;
     if (t_ns > imu.back().t_ns) {

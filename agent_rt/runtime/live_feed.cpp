@@ -175,7 +175,8 @@ class LiveFeed final : public FrameFeed {
 
   const FeedFrame* deliver() {
     if (current_.ok && o_.use_imu) {
-      current_.imu = imu_window_.covering(previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_, current_.t_ns);
+      current_.imu = imu_window_.covering(
+          previous_good_t_ns_ < 0 ? current_.t_ns - kImuBeforeFirstFrameNs : previous_good_t_ns_, current_.t_ns);
     }
     ++frames_delivered_;
     return &current_;

@@ -96,7 +96,8 @@ const FeedFrame* PushFeed::next() {
   current_.left = slot_->left;
   if (o_.stereo) current_.right = slot_->right;
   if (o_.use_imu) {
-    current_.imu = imu_window_.covering(previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_, current_.t_ns);
+    current_.imu = imu_window_.covering(
+        previous_good_t_ns_ < 0 ? current_.t_ns - kImuBeforeFirstFrameNs : previous_good_t_ns_, current_.t_ns);
   }
   return &current_;
 }

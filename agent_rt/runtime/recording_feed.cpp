@@ -70,8 +70,9 @@ const FeedFrame* RecordingFeed::next() {
     current_.left = slot->left;
     if (options_.stereo) current_.right = slot->right;
     if (options_.use_imu) {
-      current_.imu =
-          imuCovering(recording_.imu(), previous_good_t_ns_ < 0 ? current_.t_ns : previous_good_t_ns_, current_.t_ns);
+      current_.imu = imuCovering(recording_.imu(),
+                                 previous_good_t_ns_ < 0 ? current_.t_ns - kImuBeforeFirstFrameNs : previous_good_t_ns_,
+                                 current_.t_ns);
     }
   }
   return &current_;
