@@ -515,9 +515,12 @@ KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, 
   kf.has_preintegration = false;
   if (newest != nullptr && msg.imu_count > 1 && msg.kind == KeyframeKind::kTracked) {
     const KeyframeData& previous = *s.map.keyframes().get(*newest);
-    s.imu_samples.clear();
-    for (std::uint32_t i = 0; i < msg.imu_count; ++i) s.imu_samples.push_back(fromMsg(msg.imu[i]));
-    // The previous keyframe may have been re-timed to before this message's first sample (a negative offset).
+    // With the time offset estimated, from the kept history: the previous keyframe may have been re-timed to
+    // before this message's first sample (a negative offset).
+    if (s.imu_history.empty()) {
+      s.imu_samples.clear();
+      for (std::uint32_t i = 0; i < msg.imu_count; ++i) s.imu_samples.push_back(fromMsg(msg.imu[i]));
+    }
     const auto& samples = s.imu_history.empty() ? s.imu_samples : s.imu_history;
     kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
     if (kf.preintegration.integrateInterval(samples, previous.t_ns, kf.t_ns).ok()) {

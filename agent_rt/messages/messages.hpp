@@ -32,6 +32,10 @@ namespace cvislam::agent {
 
 // IMU samples one keyframe message carries: the samples since the previous keyframe (1024 = 5 s at 200 Hz).
 inline constexpr std::size_t kMaxImuSamplesPerKeyframe = 1024;
+// The IMU kept from before a stream's first frame (the feeds) and before each keyframe (tracking): when mapping
+// estimates the camera-IMU time offset it moves keyframes to their images' times, which a negative offset puts up
+// to this long before their stamps (imu.max_time_offset_s's default; larger offsets keep the camera's time).
+inline constexpr std::int64_t kImuKeptBeforeStampNs = 100'000'000;
 
 struct PoseMsg {
   std::array<double, 3> p{};            // translation

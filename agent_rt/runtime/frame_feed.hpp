@@ -13,10 +13,6 @@
 
 namespace cvislam::agent {
 
-// The first frame of a stream carries the IMU of this long before it: when mapping estimates the camera-IMU time
-// offset it moves the first keyframes to their images' times, which a negative offset puts before the frame's stamp.
-inline constexpr std::int64_t kImuBeforeFirstFrameNs = 100'000'000;
-
 struct FeedFrame {
   std::int64_t t_ns = 0;  // on the IMU's clock: the camera's stamp + the calibrated offset + time_correction_ns
   std::int64_t time_correction_ns = 0;  // the estimated correction to the calibrated offset (setTimeCorrection)

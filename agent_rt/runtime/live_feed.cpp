@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "agent_rt/live/live_service.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "agent_rt/runtime/imu_window.hpp"
 #include "common/core/steady_clock.hpp"
 #include "iceoryx_posh/mepoo/chunk_header.hpp"
@@ -176,7 +177,7 @@ class LiveFeed final : public FrameFeed {
   const FeedFrame* deliver() {
     if (current_.ok && o_.use_imu) {
       current_.imu = imu_window_.covering(
-          previous_good_t_ns_ < 0 ? current_.t_ns - kImuBeforeFirstFrameNs : previous_good_t_ns_, current_.t_ns);
+          previous_good_t_ns_ < 0 ? current_.t_ns - kImuKeptBeforeStampNs : previous_good_t_ns_, current_.t_ns);
     }
     ++frames_delivered_;
     return &current_;

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cstring>
 
+#include "agent_rt/messages/messages.hpp"
 #include "common/core/steady_clock.hpp"
 
 namespace cvislam::agent {
@@ -97,7 +98,7 @@ const FeedFrame* PushFeed::next() {
   if (o_.stereo) current_.right = slot_->right;
   if (o_.use_imu) {
     current_.imu = imu_window_.covering(
-        previous_good_t_ns_ < 0 ? current_.t_ns - kImuBeforeFirstFrameNs : previous_good_t_ns_, current_.t_ns);
+        previous_good_t_ns_ < 0 ? current_.t_ns - kImuKeptBeforeStampNs : previous_good_t_ns_, current_.t_ns);
   }
   return &current_;
 }

@@ -2,6 +2,7 @@
 
 #include <chrono>
 
+#include "agent_rt/messages/messages.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "common/core/steady_clock.hpp"
 
@@ -71,7 +72,7 @@ const FeedFrame* RecordingFeed::next() {
     if (options_.stereo) current_.right = slot->right;
     if (options_.use_imu) {
       current_.imu = imuCovering(recording_.imu(),
-                                 previous_good_t_ns_ < 0 ? current_.t_ns - kImuBeforeFirstFrameNs : previous_good_t_ns_,
+                                 previous_good_t_ns_ < 0 ? current_.t_ns - kImuKeptBeforeStampNs : previous_good_t_ns_,
                                  current_.t_ns);
     }
   }

@@ -141,7 +141,7 @@ struct Tracker::State {
   // Keeps the samples the next keyframe interval needs, the last at or before t and those after, and those of
   // the largest time offset before it.
   void restartKeyframeImu(std::int64_t t_ns) {
-    const std::uint32_t first = lastImuAtOrBefore(t_ns - kImuKeptBeforeKeyframeNs);
+    const std::uint32_t first = lastImuAtOrBefore(t_ns - kImuKeptBeforeStampNs);
     const std::uint32_t kept = keyframe_imu_count - first;
     std::memmove(keyframe_imu.data(), keyframe_imu.data() + first, kept * sizeof(ImuSampleMsg));
     keyframe_imu_count = kept;
@@ -154,8 +154,6 @@ struct Tracker::State {
   // Mapping moved the newest keyframe's state to `t_ns`: the IMU since it is integrated again from there, up to
   // the last frame.
   void retimeNewestKeyframe(std::int64_t t_ns);
-
-  static constexpr std::int64_t kImuKeptBeforeKeyframeNs = 100'000'000;  // imu.max_time_offset_s's default
 
   void applyToTrackedStates(const geometry::SE3d& delta_left);
   // Moves every stored state from the previous epoch into the snapshot's: p' = s R p + t, v' = s R v.
