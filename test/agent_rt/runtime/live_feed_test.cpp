@@ -16,6 +16,7 @@
 #include "agent_rt/ipc/embedded_roudi.hpp"
 #include "agent_rt/live/live_service.hpp"
 #include "agent_rt/live/sensor_publisher.hpp"
+#include "agent_rt/messages/messages.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "iceoryx_posh/popo/untyped_publisher.hpp"
 
@@ -123,9 +124,9 @@ TEST_F(LiveFeedTest, FramesArriveInPlaceWithTheImuThatCoversThem) {
     ASSERT_EQ(frame->left.size(), static_cast<std::size_t>(kWidth * kHeight));
     EXPECT_EQ(frame->left[0], static_cast<std::uint8_t>(i));
     EXPECT_TRUE(frame->right.empty());
-    // The same samples as a recording's frame would have: from the one at or before the previous frame to the
-    // one at or after this one.
-    const auto expected = imuCovering(imu_log, i == 0 ? t_ns : previous_ns, t_ns);
+    // The same samples as a recording's frame would have: from the one at or before the previous frame (for the
+    // first frame, kImuKeptBeforeStampNs before it) to the one at or after this one.
+    const auto expected = imuCovering(imu_log, i == 0 ? t_ns - kImuKeptBeforeStampNs : previous_ns, t_ns);
     ASSERT_EQ(frame->imu.size(), expected.size()) << "frame " << i;
     for (std::size_t k = 0; k < expected.size(); ++k) {
       EXPECT_EQ(frame->imu[k].t_ns, expected[k].t_ns);
