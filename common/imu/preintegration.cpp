@@ -159,4 +159,37 @@ NavState Preintegration::predict(const NavState& state_i, const ImuBias& bias, c
   return state_j;
 }
 
+dataset::ImuSample extrapolateImu(std::span<const dataset::ImuSample> samples, std::int64_t t_ns,
+                                  std::size_t fit_samples) {
+  dataset::ImuSample out = samples.back();
+  out.t_ns = t_ns;
+  if (fit_samples < 2 || samples.size() < fit_samples) return out;
+  const std::span<const dataset::ImuSample> fit = samples.last(fit_samples);
+  // Times relative to the newest sample, in seconds, so that the sums keep their precision.
+  const auto since_newest_s = [&](std::int64_t t) { return static_cast<double>(t - samples.back().t_ns) * 1e-9; };
+  const auto n = static_cast<double>(fit_samples);
+  double mean_t = 0.0;
+  Vector3d mean_gyro = Vector3d::Zero();
+  Vector3d mean_accel = Vector3d::Zero();
+  for (const dataset::ImuSample& s : fit) {
+    mean_t += since_newest_s(s.t_ns) / n;
+    mean_gyro += s.gyro_s / n;
+    mean_accel += s.accel_s / n;
+  }
+  double spread_t = 0.0;
+  Vector3d slope_gyro = Vector3d::Zero();
+  Vector3d slope_accel = Vector3d::Zero();
+  for (const dataset::ImuSample& s : fit) {
+    const double dt = since_newest_s(s.t_ns) - mean_t;
+    spread_t += dt * dt;
+    slope_gyro += dt * (s.gyro_s - mean_gyro);
+    slope_accel += dt * (s.accel_s - mean_accel);
+  }
+  if (!(spread_t > 0.0)) return out;  // all at one time
+  const double x = (since_newest_s(t_ns) - mean_t) / spread_t;
+  out.gyro_s = mean_gyro + x * slope_gyro;
+  out.accel_s = mean_accel + x * slope_accel;
+  return out;
+}
+
 }  // namespace cvislam::imu

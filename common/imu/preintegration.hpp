@@ -20,6 +20,7 @@
 // Everything is fixed-size: integrate() does not allocate, so the agent's tracking loop can call it.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
 #include <span>
 
@@ -121,5 +122,13 @@ class Preintegration {
   Eigen::Matrix3d dp_dbg_ = Eigen::Matrix3d::Zero();
   Eigen::Matrix3d dp_dba_ = Eigen::Matrix3d::Zero();
 };
+
+// The IMU at t_ns, past the newest of `samples` (oldest first), by the straight line that best fits the newest
+// `fit_samples` of them (least squares, each axis on its own): for a short span of IMU that has not come yet, such as
+// the few tens of ms by which a camera-IMU time offset moves a keyframe past it. The fit's span (35 ms at 200 Hz by
+// default) averages the readings' noise down, as a line through the last two would not. With fewer samples than
+// that, the newest is held. `samples` must not be empty.
+dataset::ImuSample extrapolateImu(std::span<const dataset::ImuSample> samples, std::int64_t t_ns,
+                                  std::size_t fit_samples = 8);
 
 }  // namespace cvislam::imu
