@@ -81,13 +81,15 @@ struct KeyframeTiming {
   Vector3d gyro_s;
   imu::Preintegration preintegration;
   bool has_preintegration = false;
+  bool preintegration_incomplete = false;
 };
 
 std::vector<KeyframeTiming> timingsOf(const Mapper::State& s, const std::vector<PoolHandle>& keyframes) {
   std::vector<KeyframeTiming> out;
   for (PoolHandle h : keyframes) {
     const KeyframeData& kf = *s.map.keyframes().get(h);
-    out.push_back({kf.t_ns, kf.time_correction_ns, kf.gyro_s, kf.preintegration, kf.has_preintegration});
+    out.push_back({kf.t_ns, kf.time_correction_ns, kf.gyro_s, kf.preintegration, kf.has_preintegration,
+                   kf.preintegration_incomplete});
   }
   return out;
 }
@@ -101,14 +103,17 @@ void restoreTimings(Mapper::State& s, const std::vector<PoolHandle>& keyframes,
     kf.gyro_s = saved[i].gyro_s;
     kf.preintegration = saved[i].preintegration;
     kf.has_preintegration = saved[i].has_preintegration;
+    kf.preintegration_incomplete = saved[i].preintegration_incomplete;
   }
 }
 
 // Moves the own keyframes to the times their images were taken by the estimate `correction_ns` and integrates
-// the IMU between them again. The newest keyframe's new time may lie up to the offset past the newest sample:
-// the IMU is held at that sample over the gap (a few tens of ms of the keyframe's preintegration), since the
-// samples have not come yet. A keyframe more than kMaxImuHeldBeforeNs older than the kept IMU keeps its time. False,
-// with nothing changed, when a link of the initialisation's chain cannot be integrated again.
+// the IMU between them again, making the links that the IMU did not cover before (a first keyframe stamped before
+// the first sample). The newest keyframe's new time may lie up to the offset past the newest sample: the IMU is
+// extrapolated over the gap (a few tens of ms of the keyframe's preintegration), and the link is marked incomplete,
+// to be integrated again when the next keyframe brings the samples (completeImuLinks). A keyframe more than
+// kMaxImuHeldBeforeNs older than the kept IMU keeps its time. False, with nothing changed, when a link of the
+// initialisation's chain cannot be integrated again.
 bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std::int64_t correction_ns) {
   const std::vector<PoolHandle> order = s.keyframesBySequence();
   const std::vector<KeyframeTiming> saved = timingsOf(s, order);
@@ -126,9 +131,9 @@ bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std
     kf.t_ns = t_ns;
     kf.time_correction_ns = correction_ns;
     if (t_ns > imu.back().t_ns) {
-      dataset::ImuSample held = imu.back();
-      held.t_ns = t_ns;
-      imu.push_back(held);
+      // Holding the newest sample over the gap instead left the keyframe's velocity 4 cm/s off in a 4 m/s^2 turn on
+      // the simulated loop, and tracking leans on that velocity until the next keyframe, up to a second later.
+      imu.push_back(imu::extrapolateImu(imu, t_ns));
     }
     kf.gyro_s = gyroAt(imu, t_ns);
   }
@@ -136,17 +141,57 @@ bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std
   for (std::size_t i = 1; i < order.size(); ++i) {
     KeyframeData& kf = *s.map.keyframes().get(order[i]);
     const KeyframeData& previous = *s.map.keyframes().get(order[i - 1]);
-    if (!kf.has_preintegration || !(kf.preintegration_from == previous.id)) continue;
+    if (!(kf.preintegration_from == previous.id) || !(kf.has_preintegration || kf.preintegration_incomplete)) {
+      continue;
+    }
+    const bool had_link = kf.has_preintegration;
     kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
-    if (kf.preintegration.integrateInterval(imu, previous.t_ns, kf.t_ns).ok()) continue;
-    kf.has_preintegration = false;
-    if (std::find(chain.begin(), chain.end(), order[i]) != chain.end()) chain_ok = false;
+    kf.has_preintegration = kf.preintegration.integrateInterval(imu, previous.t_ns, kf.t_ns).ok();
+    kf.preintegration_incomplete = !kf.has_preintegration || kf.t_ns > s.imu_history.back().t_ns;
+    if (had_link && !kf.has_preintegration && std::find(chain.begin(), chain.end(), order[i]) != chain.end()) {
+      chain_ok = false;
+    }
   }
   if (!chain_ok) restoreTimings(s, order, saved);
   return chain_ok;
 }
 
 }  // namespace
+
+bool linkFromBeforeFirstSample(const Mapper::State& s, const KeyframeData& previous, KeyframeData& kf) {
+  const std::vector<dataset::ImuSample>& kept = s.imu_history;
+  const auto bound_ns = static_cast<std::int64_t>(s.options.ba.max_time_offset_s * 1e9);
+  if (kept.empty() || previous.t_ns >= kept.front().t_ns || kept.front().t_ns - previous.t_ns > bound_ns) return false;
+  std::vector<dataset::ImuSample> imu;
+  imu.reserve(kept.size() + 1);
+  imu.push_back(kept.front());
+  imu.front().t_ns = previous.t_ns;
+  imu.insert(imu.end(), kept.begin(), kept.end());
+  kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
+  if (!kf.preintegration.integrateInterval(imu, previous.t_ns, kf.t_ns).ok()) return false;
+  kf.preintegration_incomplete = true;
+  return true;
+}
+
+void completeImuLinks(Mapper::State& s, const std::vector<PoolHandle>& order) {
+  if (s.imu_history.empty()) return;
+  for (std::size_t i = 1; i < order.size(); ++i) {
+    KeyframeData& kf = *s.map.keyframes().get(order[i]);
+    if (!kf.preintegration_incomplete || s.imu_history.back().t_ns < kf.t_ns) continue;
+    const KeyframeData& previous = *s.map.keyframes().get(order[i - 1]);
+    if (!(kf.preintegration_from == previous.id)) {
+      kf.preintegration_incomplete = false;  // the keyframe it would link to is gone
+      continue;
+    }
+    imu::Preintegration again(previous.bias, s.options.ba.noise);
+    // Left as it is while the history does not reach back to the previous keyframe (a gap, or it has gone).
+    if (!again.integrateInterval(s.imu_history, previous.t_ns, kf.t_ns).ok()) continue;
+    kf.preintegration = again;
+    kf.has_preintegration = true;
+    kf.preintegration_incomplete = false;
+    kf.gyro_s = gyroAt(s.imu_history, kf.t_ns);
+  }
+}
 
 void keepImuHistory(Mapper::State& s, const KeyframeMessage& msg) {
   if (!s.options.use_imu || !s.options.ba.estimate_time_offset) return;

@@ -4,6 +4,8 @@
 // times the images were really taken, and it is their times and the IMU between them that must move, not the poses.
 #pragma once
 
+#include <vector>
+
 #include "agent_rt/mapping/mapper.hpp"
 #include "agent_rt/mapping/mapper_state.hpp"
 
@@ -13,6 +15,18 @@ namespace cvislam::agent {
 // and after the keyframes, and a keyframe's preintegration from a re-timed one may start before its message's
 // first sample. Bounded: the oldest samples go first.
 void keepImuHistory(Mapper::State& s, const KeyframeMessage& msg);
+
+// Integrates again the links that the IMU did not cover when they were built (KeyframeData::
+// preintegration_incomplete), where the kept samples now do: a positive offset moves the newest keyframe's time
+// past the IMU delivered with it, and a keyframe re-timed into the IMU's span can link to the one before it.
+void completeImuLinks(Mapper::State& s, const std::vector<PoolHandle>& order);
+
+// With the time offset estimated, a keyframe whose previous one was stamped before the first IMU sample (the camera
+// ran ahead of the IMU by up to the offset's bound): the link with the first sample held back to the previous
+// keyframe, marked incomplete, so that the IMU initialisation's chain can start at the map's first keyframe. The
+// re-timing at that initialisation integrates it again over the samples the images' true times lie between. False
+// when the gap is longer than the bound or there is no history.
+bool linkFromBeforeFirstSample(const Mapper::State& s, const KeyframeData& previous, KeyframeData& kf);
 
 // kNotFound while there are too few IMU-linked keyframes; other errors when the alignment refuses the motion.
 Status initialiseImu(Mapper::State& s, MapperReport& report);

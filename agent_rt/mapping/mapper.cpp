@@ -513,6 +513,7 @@ KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, 
     kf.v_w = s.epoch_scale * (T.so3() * kf.v_w);
   }
   kf.has_preintegration = false;
+  kf.preintegration_incomplete = false;
   if (newest != nullptr && msg.imu_count > 1 && msg.kind == KeyframeKind::kTracked) {
     const KeyframeData& previous = *s.map.keyframes().get(*newest);
     // With the time offset estimated, from the kept history: the previous keyframe may have been re-timed to
@@ -523,10 +524,10 @@ KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, 
     }
     const auto& samples = s.imu_history.empty() ? s.imu_samples : s.imu_history;
     kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
-    if (kf.preintegration.integrateInterval(samples, previous.t_ns, kf.t_ns).ok()) {
-      kf.has_preintegration = true;
-      kf.preintegration_from = previous.id;
-    }
+    kf.preintegration_from = previous.id;
+    kf.has_preintegration = kf.preintegration.integrateInterval(samples, previous.t_ns, kf.t_ns).ok();
+    if (!kf.has_preintegration) kf.has_preintegration = linkFromBeforeFirstSample(s, previous, kf);
+    kf.preintegration_incomplete = !kf.has_preintegration || kf.preintegration_incomplete;
   }
   return kf;
 }
@@ -662,6 +663,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
 
   keepImuHistory(s, msg);
   std::vector<PoolHandle> order = s.keyframesBySequence();
+  completeImuLinks(s, order);
   const KeyframeData& kf = keyframeFromMessage(s, msg, order.empty() ? nullptr : &order.back());
   makeRoomForKeyframe(s, report);
   auto inserted = s.map.insertKeyframe(kf);

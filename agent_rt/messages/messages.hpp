@@ -87,7 +87,9 @@ struct KeyframeMessage {
   std::array<std::array<std::uint8_t, 32>, kMaxKeypointsPerKeyframe> descriptors{};
   std::array<MapPointId, kMaxKeypointsPerKeyframe> matched{};  // valid where has_match
   std::array<std::uint8_t, kMaxKeypointsPerKeyframe> has_match{};
-  // IMU from the previous keyframe's time to this one's (inclusive of one sample either side).
+  // IMU from the previous keyframe's time to this one's (inclusive of one sample either side), whatever tracking made
+  // of it: mapping integrates the link itself and finds a gap or a missing start on its own, and, with the time
+  // offset estimated, keeps the samples so that a link can be made once the keyframes are re-timed into them.
   std::uint32_t imu_count = 0;
   std::array<ImuSampleMsg, kMaxImuSamplesPerKeyframe> imu{};
   // The second camera's image at the same time, when stereo.

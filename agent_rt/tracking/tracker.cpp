@@ -285,7 +285,7 @@ void finishFrame(Tracker::State& s, FrameStep& f, const SE3d& T, const Vector3d&
 // The keyframe message, written into a loaned chunk: keypoints, descriptors, the tracked matches, the IMU since
 // the last keyframe and (stereo) the right image.
 void fillKeyframe(const Tracker::State& s, const FrameStep& f, KeyframeKind kind, const SE3d& T, const Vector3d& v,
-                  bool imu_link, KeyframeMessage& m) {
+                  KeyframeMessage& m) {
   m.map_epoch = s.epoch;
   m.kind = kind;
   m.continues_frame = kind == KeyframeKind::kNewMap && s.imu_initialised && s.options.use_imu;
@@ -309,7 +309,7 @@ void fillKeyframe(const Tracker::State& s, const FrameStep& f, KeyframeKind kind
       m.has_match[k] = 1;
     }
   }
-  m.imu_count = imu_link || kind == KeyframeKind::kNewMap ? s.keyframe_imu_count - s.keyframe_imu_first : 0;
+  m.imu_count = s.keyframe_imu_count - s.keyframe_imu_first;
   std::memcpy(m.imu.data(), s.keyframe_imu.data() + s.keyframe_imu_first, m.imu_count * sizeof(ImuSampleMsg));
   const FrameInput& frame = f.frame;
   if (!frame.right.empty() && frame.right.size() <= m.right_pixels.size()) {
@@ -333,7 +333,7 @@ bool publishKeyframe(Tracker::State& s, FrameStep& f, KeyframeKind kind, const S
   const bool imu_link = s.imu_ok_since_keyframe && s.has_keyframe && kind == KeyframeKind::kTracked;
   m->sequence = s.backlog.publish(t0);
   m->state.id = s.keyframe_ids.next();
-  fillKeyframe(s, f, kind, T, v, imu_link, *m);
+  fillKeyframe(s, f, kind, T, v, *m);
   m->publish_steady_ns = steadyNowNs();
   const KeyframeId id = m->state.id;
   f.keyframes.publish();
