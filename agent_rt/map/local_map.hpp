@@ -50,10 +50,9 @@ struct KeyframeData {
   bool has_preintegration = false;
   KeyframeId preintegration_from;
   imu::Preintegration preintegration;
-  // Tracking chained the IMU from `preintegration_from` to this keyframe, but the samples did not cover the
-  // interval when the link was built: it is missing (the previous keyframe's time lay before the first sample), or
-  // it ends past the newest sample with the IMU held at that sample (a keyframe re-timed forward by the time
-  // offset). Integrated again once the kept IMU covers it.
+  // The link from `preintegration_from` was wanted but the samples did not cover its interval when it was built: it
+  // is missing, or stands on IMU that was not measured (held back before the first sample, or extrapolated past the
+  // newest for a keyframe re-timed forward by the time offset). Integrated again once the kept IMU covers it.
   bool preintegration_incomplete = false;
   std::uint16_t keypoint_count = 0;
   std::array<features::Keypoint, kMaxKeypointsPerKeyframe> keypoints{};

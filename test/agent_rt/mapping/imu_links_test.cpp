@@ -24,7 +24,8 @@ std::vector<dataset::ImuSample> ramp(std::int64_t t0_ns, std::int64_t t1_ns) {
   std::vector<dataset::ImuSample> out;
   for (std::int64_t t = t0_ns; t <= t1_ns; t += 5 * kMs) {
     const double s = static_cast<double>(t) * 1e-9;
-    out.push_back({t, Eigen::Vector3d(0.3, -0.2 + s, 0.5), Eigen::Vector3d(1.0 + 8.0 * s + 60.0 * s * s, 0.1 - 3.0 * s, 9.81)});
+    out.push_back(
+        {t, Eigen::Vector3d(0.3, -0.2 + s, 0.5), Eigen::Vector3d(1.0 + 8.0 * s + 60.0 * s * s, 0.1 - 3.0 * s, 9.81)});
   }
   return out;
 }
