@@ -74,6 +74,14 @@ Vector3d gyroAt(const std::vector<dataset::ImuSample>& samples, std::int64_t t_n
   return before->gyro_s + a * (after->gyro_s - before->gyro_s);
 }
 
+// The first sample held back to t_ns, when t_ns lies before it.
+void holdFirstSampleBackTo(std::vector<dataset::ImuSample>& imu, std::int64_t t_ns) {
+  if (t_ns >= imu.front().t_ns) return;
+  dataset::ImuSample held = imu.front();
+  held.t_ns = t_ns;
+  imu.insert(imu.begin(), held);
+}
+
 // What re-timing changes in a keyframe, to be put back when it cannot be done or the alignment then refuses.
 struct KeyframeTiming {
   std::int64_t t_ns = 0;
@@ -123,11 +131,7 @@ bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std
     KeyframeData& kf = *s.map.keyframes().get(h);
     const std::int64_t t_ns = kf.t_ns + correction_ns - kf.time_correction_ns;
     if (t_ns < imu.front().t_ns - kMaxImuHeldBeforeNs) continue;
-    if (t_ns < imu.front().t_ns) {
-      dataset::ImuSample held = imu.front();
-      held.t_ns = t_ns;
-      imu.insert(imu.begin(), held);
-    }
+    holdFirstSampleBackTo(imu, t_ns);
     kf.t_ns = t_ns;
     kf.time_correction_ns = correction_ns;
     if (t_ns > imu.back().t_ns) {
@@ -145,8 +149,7 @@ bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std
       continue;
     }
     const bool had_link = kf.has_preintegration;
-    kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
-    kf.has_preintegration = kf.preintegration.integrateInterval(imu, previous.t_ns, kf.t_ns).ok();
+    kf.has_preintegration = integrateImuLink(s, previous, imu, kf);
     kf.preintegration_incomplete = !kf.has_preintegration || kf.t_ns > s.imu_history.back().t_ns;
     if (had_link && !kf.has_preintegration && std::find(chain.begin(), chain.end(), order[i]) != chain.end()) {
       chain_ok = false;
@@ -158,19 +161,21 @@ bool retimeKeyframes(Mapper::State& s, const std::vector<PoolHandle>& chain, std
 
 }  // namespace
 
+bool integrateImuLink(const Mapper::State& s, const KeyframeData& previous, std::span<const dataset::ImuSample> samples,
+                      KeyframeData& kf) {
+  imu::Preintegration link(previous.bias, s.options.ba.noise);
+  if (!link.integrateInterval(samples, previous.t_ns, kf.t_ns).ok()) return false;
+  kf.preintegration = link;
+  return true;
+}
+
 bool linkFromBeforeFirstSample(const Mapper::State& s, const KeyframeData& previous, KeyframeData& kf) {
   const std::vector<dataset::ImuSample>& kept = s.imu_history;
   const auto bound_ns = static_cast<std::int64_t>(s.options.ba.max_time_offset_s * 1e9);
   if (kept.empty() || previous.t_ns >= kept.front().t_ns || kept.front().t_ns - previous.t_ns > bound_ns) return false;
-  std::vector<dataset::ImuSample> imu;
-  imu.reserve(kept.size() + 1);
-  imu.push_back(kept.front());
-  imu.front().t_ns = previous.t_ns;
-  imu.insert(imu.end(), kept.begin(), kept.end());
-  kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
-  if (!kf.preintegration.integrateInterval(imu, previous.t_ns, kf.t_ns).ok()) return false;
-  kf.preintegration_incomplete = true;
-  return true;
+  std::vector<dataset::ImuSample> imu = kept;
+  holdFirstSampleBackTo(imu, previous.t_ns);
+  return integrateImuLink(s, previous, imu, kf);
 }
 
 void completeImuLinks(Mapper::State& s, const std::vector<PoolHandle>& order) {
@@ -183,10 +188,8 @@ void completeImuLinks(Mapper::State& s, const std::vector<PoolHandle>& order) {
       kf.preintegration_incomplete = false;  // the keyframe it would link to is gone
       continue;
     }
-    imu::Preintegration again(previous.bias, s.options.ba.noise);
     // Left as it is while the history does not reach back to the previous keyframe (a gap, or it has gone).
-    if (!again.integrateInterval(s.imu_history, previous.t_ns, kf.t_ns).ok()) continue;
-    kf.preintegration = again;
+    if (!integrateImuLink(s, previous, s.imu_history, kf)) continue;
     kf.has_preintegration = true;
     kf.preintegration_incomplete = false;
     kf.gyro_s = gyroAt(s.imu_history, kf.t_ns);

@@ -4,6 +4,7 @@
 // times the images were really taken, and it is their times and the IMU between them that must move, not the poses.
 #pragma once
 
+#include <span>
 #include <vector>
 
 #include "agent_rt/mapping/mapper.hpp"
@@ -21,11 +22,16 @@ void keepImuHistory(Mapper::State& s, const KeyframeMessage& msg);
 // past the IMU delivered with it, and a keyframe re-timed into the IMU's span can link to the one before it.
 void completeImuLinks(Mapper::State& s, const std::vector<PoolHandle>& order);
 
+// kf's preintegration from `previous` over `samples`, linearised at the previous keyframe's bias. False, with kf
+// unchanged, when the samples do not cover the interval or leave a gap.
+bool integrateImuLink(const Mapper::State& s, const KeyframeData& previous, std::span<const dataset::ImuSample> samples,
+                      KeyframeData& kf);
+
 // With the time offset estimated, a keyframe whose previous one was stamped before the first IMU sample (the camera
 // ran ahead of the IMU by up to the offset's bound): the link with the first sample held back to the previous
-// keyframe, marked incomplete, so that the IMU initialisation's chain can start at the map's first keyframe. The
-// re-timing at that initialisation integrates it again over the samples the images' true times lie between. False
-// when the gap is longer than the bound or there is no history.
+// keyframe, so that the IMU initialisation's chain can start at the map's first keyframe. It stands on unmeasured
+// IMU (the caller marks it incomplete): the re-timing at that initialisation integrates it again over the samples
+// the images' true times lie between. False when the gap is longer than the bound or there is no history.
 bool linkFromBeforeFirstSample(const Mapper::State& s, const KeyframeData& previous, KeyframeData& kf);
 
 // kNotFound while there are too few IMU-linked keyframes; other errors when the alignment refuses the motion.

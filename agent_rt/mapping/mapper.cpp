@@ -523,11 +523,10 @@ KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, 
       for (std::uint32_t i = 0; i < msg.imu_count; ++i) s.imu_samples.push_back(fromMsg(msg.imu[i]));
     }
     const auto& samples = s.imu_history.empty() ? s.imu_samples : s.imu_history;
-    kf.preintegration = imu::Preintegration(previous.bias, s.options.ba.noise);
     kf.preintegration_from = previous.id;
-    kf.has_preintegration = kf.preintegration.integrateInterval(samples, previous.t_ns, kf.t_ns).ok();
-    if (!kf.has_preintegration) kf.has_preintegration = linkFromBeforeFirstSample(s, previous, kf);
-    kf.preintegration_incomplete = !kf.has_preintegration || kf.preintegration_incomplete;
+    const bool covered = integrateImuLink(s, previous, samples, kf);
+    kf.has_preintegration = covered || linkFromBeforeFirstSample(s, previous, kf);
+    kf.preintegration_incomplete = !covered;
   }
   return kf;
 }
