@@ -85,6 +85,17 @@ def report_downlink_use(out, mission, summary):
         print(f"  downlink messages mapping refused: {refused} (see the agents' logs)")
 
 
+def spread(values):
+    """'n, p50, p99, max' of seconds (nearest rank), or 'none'."""
+    if not values:
+        return "none"
+    v = sorted(values)
+
+    def rank(p):
+        return v[min(len(v), max(1, math.ceil(p * len(v)))) - 1]
+    return f"{len(v)}: p50 {rank(0.5):.2f} s, p99 {rank(0.99):.2f} s, max {v[-1]:.2f} s"
+
+
 def report_backend(out, mission, server_agents, summary):
     """The server's back-end (backend.json) and how long the server took to store each batch meanwhile."""
     name = mission["mission"]
@@ -113,6 +124,14 @@ def report_backend(out, mission, server_agents, summary):
               f"by a newer change; redundant KFs removed {section['redundant_keyframes_removed']} of "
               f"{section['redundancy_checked']} checked ({section['redundant_removed_by_final_pass']} by the final pass; "
               f"{section['redundant_kept_for_imu_gap']} redundant kept for the 2 s IMU gap)")
+        changes = backend.get("merges", []) + backend.get("loops", [])
+        corrected = [c["match_to_corrected_s"] for c in changes if c.get("match_to_corrected_s", -1) >= 0]
+        refined = [c["match_to_optimised_s"] for c in changes if c.get("match_to_optimised_s", -1) >= 0]
+        section["match_to_corrected_s"] = corrected
+        section["match_to_refined_s"] = refined
+        print(f"match or loop -> map corrected (the merge's BA around the match and pose graph, or the loop's pose "
+              f"graph): {spread(corrected)}")
+        print(f"match or loop -> map refined by the GBA after it: {spread(refined)}")
         print(f"new keyframes fused with their covisible and nearby keyframes: {section['new_keyframes_fused']} "
               f"({section['new_keyframe_links']} keypoints linked, {section['new_keyframe_point_merges']} points "
               f"merged; {section['new_keyframe_fuse_ms_mean']:.1f} ms mean, "

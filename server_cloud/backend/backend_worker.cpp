@@ -68,6 +68,10 @@ Status BackendOptions::validate() const {
     return Error{ErrorCode::kInvalidArgument,
                  "backend.gba_every_keyframes must be >= 0 (0: only after merges and loops)"};
   }
+  if (merge_correction_keyframes < 0) {
+    return Error{ErrorCode::kInvalidArgument, "backend.merge_correction_keyframes must be >= 0 (0: none)"};
+  }
+  if (Status s = merge_correction_ba.validate(); !s.ok()) return s;
   if (redundancy_every_keyframes < 1) {
     return Error{ErrorCode::kInvalidArgument, "backend.redundancy_every_keyframes must be >= 1"};
   }
@@ -84,6 +88,10 @@ std::string BackendOptions::describe() const {
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
       << gba.full_iterations << " iterations, " << gba.threads << " threads; a loop cuts it short above "
       << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
+  if (merge_correction_keyframes > 0) {
+    out << ", a merge corrected at once (BA of " << merge_correction_keyframes
+        << " keyframes each side of the match, pose graph of the rest)";
+  }
   out << ", an agent's frame follows its " << frame_follows_keyframes << " newest corrected keyframes";
   if (gba_every_keyframes > 0) out << " and per " << gba_every_keyframes << " new keyframes of a map";
   out << ", new keyframes fused " << (fuse_new_keyframes ? "on" : "off") << " (" << fusion.neighbours << " covisible + "
@@ -341,6 +349,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   const CameraTable cameras(sensors);
 
   MergeRecord record;
+  std::unordered_set<KeyframeId> query_keyframes;  // the query map's, before it went
   {
     StackLocks locks(mission, {from, into});
     const auto start = Clock::now();
@@ -348,6 +357,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     MapContent& c = locks.map(into->id());
     const ServerKeyframe* query = q.keyframe(match.query);
     if (query == nullptr || c.keyframe(match.candidate) == nullptr) return stale();
+    for (const auto& [id, kf] : q.keyframes()) query_keyframes.insert(id);
     // The match's transform takes the candidate map into the query's; the query's map moves, in 4 DoF.
     const SE3d T_into_from = fourDofTransform(match.T_qmap_cmap.inverse(), query->T_w_s.translation());
     c.absorb(q, T_into_from);
@@ -386,6 +396,9 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
         recognition::KeyframeEvent::Kind::kMerged, mission.name(), into->id(), {}, from->id()});
   }
   record.match_to_merged_s = secondsSince(arrived);
+  if (options_.merge_correction_keyframes > 0 && correctMerge(mission, state, into, match, query_keyframes, record)) {
+    record.match_to_corrected_s = secondsSince(arrived);
+  }
   std::size_t index = 0;
   {
     const std::lock_guard lock(mutex_);
@@ -399,6 +412,94 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     state.merged_into[from->id()] = into->id();
   }
   if (options_.gba_after_change) requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived);
+}
+
+namespace {
+
+// The keyframes around a match: the query's and the candidate's `n` most covisible ones each, with themselves.
+std::unordered_set<KeyframeId> aroundMatch(const MapContent& map, const recognition::VerifiedMatch& match, int n) {
+  std::unordered_set<KeyframeId> out{match.query, match.candidate};
+  for (const KeyframeId& centre : {match.query, match.candidate}) {
+    std::vector<std::pair<int, KeyframeId>> ranked;
+    for (const auto& [other, shared] : map.covisible(centre)) ranked.emplace_back(shared, other);
+    const auto count = std::min<std::size_t>(ranked.size(), static_cast<std::size_t>(n));
+    std::partial_sort(
+        ranked.begin(), ranked.begin() + static_cast<std::ptrdiff_t>(count), ranked.end(),
+        [](const auto& a, const auto& b) { return a.first > b.first || (a.first == b.first && a.second < b.second); });
+    for (std::size_t i = 0; i < count; ++i) out.insert(ranked[i].second);
+  }
+  return out;
+}
+
+}  // namespace
+
+bool BackendWorker::correctMerge(Mission& mission, MissionState& state, const std::shared_ptr<ServerMap>& into,
+                                 const recognition::VerifiedMatch& match,
+                                 const std::unordered_set<KeyframeId>& query_keyframes, MergeRecord& record) {
+  const AgentSensorsMap sensors = sensorsOf(mission);
+  // What both solves need, copied under the read lock: the window's BA problem, where the candidate map's
+  // keyframes around it are held and the query map's others left out (they follow in the pose graph), and the
+  // pose graph of the whole map as it is.
+  GbaWindow window;
+  Result<GbaSnapshot> snapshot = Error{ErrorCode::kInternal, "no snapshot"};
+  PoseGraph graph;
+  {
+    const auto content = into->read();
+    if (content->keyframe(match.query) == nullptr || content->keyframe(match.candidate) == nullptr) return false;
+    window.free = aroundMatch(*content, match, options_.merge_correction_keyframes);
+    for (const KeyframeId& id : query_keyframes) {
+      if (window.free.count(id) == 0) window.left_out.insert(id);
+    }
+    snapshot = makeGbaSnapshot(*content, sensors, &window);
+    std::vector<LoopEdge> loops;
+    {
+      const std::lock_guard lock(mutex_);
+      loops = state.loops[into->id()];
+    }
+    graph = buildPoseGraph(*content, loops, options_.pose_graph);
+  }
+  if (!snapshot) return false;
+  if (options_.on_merge_correction_solve_start) options_.on_merge_correction_solve_start(into->id());
+  const auto start = Clock::now();
+  Result<GlobalBaSummary> ba = runGlobalBa(*snapshot, options_.merge_correction_ba);
+  if (!ba || ba->cancelled) return false;
+  record.correction_ba = *ba;
+  std::vector<KeyframeCorrection> corrections = keyframeCorrections(*snapshot);
+  // The pose graph holds the window where the BA put it and the candidate map's other keyframes where they are.
+  // Edges between the two maps' keyframes came with the fusion, and their relative poses carry the match's error:
+  // the query map's keyframes follow its own edges only.
+  std::erase_if(graph.edges, [&](const PoseGraph::Edge& e) {
+    return query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.a)].id) !=
+           query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.b)].id);
+  });
+  std::unordered_map<KeyframeId, SE3d> placed;
+  for (const KeyframeCorrection& c : corrections) placed.emplace(c.id, c.T_w_s_after);
+  std::unordered_set<KeyframeId> unchanged;
+  for (PoseGraph::Node& node : graph.nodes) {
+    if (const auto it = placed.find(node.id); it != placed.end()) {
+      node.held_at = it->second;
+    } else if (query_keyframes.count(node.id) == 0) {
+      node.held_at = node.T_w_s;
+      unchanged.insert(node.id);
+    }
+  }
+  Result<std::vector<KeyframeCorrection>> carried = solvePoseGraph(graph, options_.pose_graph);
+  if (!carried) return false;
+  record.correction_graph = graph.summary;
+  record.correction_solve_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+  corrections.insert(corrections.end(), carried->begin(), carried->end());
+  for (const KeyframeCorrection& c : corrections) {
+    if (c.id != match.query) continue;
+    const SE3d delta = c.T_w_s_before.inverse() * c.T_w_s_after;
+    record.correction_m = delta.translation().norm();
+    record.correction_deg = delta.so3().log().norm() * 180.0 / M_PI;
+  }
+  StackLocks locks(mission, {into});
+  // Like a loop's pose graph, the correction does not mark keyframes refined: the GBA that follows does.
+  (void)applyToMission(mission, locks, into->id(), corrections, pointCorrections(*snapshot),
+                       ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes, &unchanged},
+                       "merge correction");
+  return true;
 }
 
 void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
@@ -471,6 +572,7 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
                          ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes}, "loop closure");
     record.fusion = fuseMatch(locks.map(map->id()), match, cameras.lookup(), options_.fusion);
   }
+  record.match_to_corrected_s = secondsSince(arrived);
   std::size_t index = 0;
   {
     const std::lock_guard lock(mutex_);

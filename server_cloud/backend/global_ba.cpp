@@ -47,12 +47,49 @@ Status GlobalBaOptions::validate() const {
     return bad("iterations: structure_iterations >= 0 and full_iterations >= 1");
   }
   if (threads < 1) return bad("threads must be >= 1");
+  if (!(function_tolerance > 0.0 && function_tolerance < 1.0)) return bad("function_tolerance must be in (0, 1)");
   if (!(max_solver_time_s > 0.0)) return bad("max_solver_time_s must be positive");
   if (!(gauge_sigma_m > 0.0) || !(gauge_sigma_rad > 0.0)) return bad("gauge sigmas must be positive");
   return Status::Ok();
 }
 
-Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors) {
+namespace {
+
+// The keyframes a windowed solve needs: the window's, and those that see its points or are IMU-linked to it
+// (held), with the points the window sees.
+std::vector<const ServerKeyframe*> windowKeyframes(const MapContent& map, const GbaWindow& window,
+                                                   std::unordered_set<MapPointId>& window_points) {
+  std::vector<const ServerKeyframe*> out;
+  std::unordered_set<KeyframeId> border;
+  const auto consider = [&](const KeyframeId& id) {
+    if (window.free.count(id) == 0 && window.left_out.count(id) == 0) border.insert(id);
+  };
+  for (const KeyframeId& id : window.free) {
+    const ServerKeyframe* kf = map.keyframe(id);
+    if (kf == nullptr) continue;
+    out.push_back(kf);
+    for (std::size_t k = 0; k < kf->keypoints.size(); ++k) {
+      if (kf->has_point[k] != 0) window_points.insert(kf->point[k]);
+    }
+    if (kf->imu_from) consider(*kf->imu_from);
+  }
+  for (const MapPointId& id : window_points) {
+    if (const ServerMapPoint* p = map.point(id)) {
+      for (const ServerMapPoint::Observation& o : p->observations) consider(o.keyframe);
+    }
+  }
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (kf.imu_from && window.free.count(*kf.imu_from) != 0) consider(id);
+  }
+  for (const KeyframeId& id : border) {
+    if (const ServerKeyframe* kf = map.keyframe(id)) out.push_back(kf);
+  }
+  return out;
+}
+
+}  // namespace
+
+Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors, const GbaWindow* window) {
   GbaSnapshot snapshot;
   snapshot.map = map.id();
   std::map<AgentId, const AgentSensors*> used;
@@ -78,8 +115,13 @@ Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap
 
   // Keyframes in a stable order; points indexed on first sight.
   std::vector<const ServerKeyframe*> keyframes;
-  keyframes.reserve(map.keyframes().size());
-  for (const auto& [id, kf] : map.keyframes()) keyframes.push_back(&kf);
+  std::unordered_set<MapPointId> window_points;
+  if (window != nullptr) {
+    keyframes = windowKeyframes(map, *window, window_points);
+  } else {
+    keyframes.reserve(map.keyframes().size());
+    for (const auto& [id, kf] : map.keyframes()) keyframes.push_back(&kf);
+  }
   std::sort(keyframes.begin(), keyframes.end(),
             [](const ServerKeyframe* a, const ServerKeyframe* b) { return a->id < b->id; });
   std::unordered_map<KeyframeId, int> keyframe_index;
@@ -100,6 +142,7 @@ Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap
     out.T_w_s_before = kf.T_w_s;
     out.v_w = kf.v_w;
     out.bias = kf.bias;
+    out.held = window != nullptr && window->free.count(kf.id) == 0;
     if (kf.imu_from && kf.preintegration && s.uses_imu) {
       const auto it = keyframe_index.find(*kf.imu_from);
       if (it != keyframe_index.end()) {
@@ -111,6 +154,7 @@ Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap
     for (std::size_t r = 0; r < kf.right.size(); ++r) right_of[kf.right[r].keypoint] = static_cast<int>(r);
     for (std::size_t k = 0; k < kf.keypoints.size(); ++k) {
       if (kf.has_point[k] == 0) continue;
+      if (out.held && window_points.count(kf.point[k]) == 0) continue;  // a point the window does not see
       const auto [it, added] = point_index.emplace(kf.point[k], static_cast<std::uint32_t>(point_index.size()));
       if (added) {
         point_keyframes.push_back(0);
@@ -232,11 +276,16 @@ int addImuFactors(const GbaSnapshot& snapshot, GbaStates& states, ceres::Problem
     const GbaKeyframe& kf = snapshot.keyframes[j];
     if (kf.imu_from < 0 || !kf.preintegration) continue;
     const auto i = static_cast<std::size_t>(kf.imu_from);
+    if (kf.held && snapshot.keyframes[i].held) continue;  // constrains nothing the solve moves
     for (const std::size_t k : {i, j}) {
       if (states.has_imu_state[k] != 0) continue;
       states.has_imu_state[k] = 1;
       problem.AddParameterBlock(states.velocities[k].data(), 3);
       problem.AddParameterBlock(states.biases[k].data(), 6);
+      if (snapshot.keyframes[k].held) {
+        problem.SetParameterBlockConstant(states.velocities[k].data());
+        problem.SetParameterBlockConstant(states.biases[k].data());
+      }
     }
     problem.AddResidualBlock(new factors::ImuFactor(*kf.preintegration), nullptr, states.poses[i].data(),
                              states.velocities[i].data(), states.biases[i].data(), states.poses[j].data(),
@@ -301,6 +350,13 @@ Status solveStage(ceres::Problem& problem, ceres::Solver::Options& solver, GbaSt
   }
   if (!s.IsSolutionUsable()) return Error{ErrorCode::kDegenerate, "global BA failed: " + s.message};
   done = static_cast<int>(s.iterations.size()) - 1;
+  GlobalBaProfile& profile = summary.profile;
+  profile.preprocess_s += s.preprocessor_time_in_seconds;
+  profile.residuals_s += s.residual_evaluation_time_in_seconds;
+  profile.jacobians_s += s.jacobian_evaluation_time_in_seconds;
+  profile.linear_solver_s += s.linear_solver_time_in_seconds;
+  profile.other_s += s.total_time_in_seconds - s.preprocessor_time_in_seconds - s.residual_evaluation_time_in_seconds -
+                     s.jacobian_evaluation_time_in_seconds - s.linear_solver_time_in_seconds;
   if (summary.initial_cost == 0.0) summary.initial_cost = s.initial_cost;
   summary.final_cost = s.final_cost;
   return Status::Ok();
@@ -316,6 +372,7 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
   summary.points = static_cast<int>(snapshot.points.size());
   if (snapshot.keyframes.size() < 2) return summary;
 
+  const auto build_start = std::chrono::steady_clock::now();
   GbaStates states(snapshot);
   ceres::Problem::Options problem_options;
   problem_options.manifold_ownership = ceres::TAKE_OWNERSHIP;
@@ -326,12 +383,17 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
   for (Eigen::Vector3d& p : states.points) problem.AddParameterBlock(p.data(), factors::kPointSize);
   summary.reprojection_factors = addReprojectionFactors(snapshot, options, states, problem);
   summary.imu_factors = addImuFactors(snapshot, states, problem);
-  addGauge(snapshot, options, states, problem);
+  // Held keyframes fix the gauge of a windowed solve.
+  const bool windowed =
+      std::any_of(snapshot.keyframes.begin(), snapshot.keyframes.end(), [](const GbaKeyframe& kf) { return kf.held; });
+  if (!windowed) addGauge(snapshot, options, states, problem);
+  summary.profile.build_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
 
   CancelCallback callback(cancel);
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::SPARSE_SCHUR;
   solver.num_threads = options.threads;
+  solver.function_tolerance = options.function_tolerance;
   solver.max_solver_time_in_seconds = options.max_solver_time_s;
   solver.callbacks.push_back(&callback);
   solver.update_state_every_iteration = false;
@@ -345,7 +407,9 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
   }
   if (summary.cancelled) return summary;
   // Step 2: everything.
-  for (factors::PoseBlock& pose : states.poses) problem.SetParameterBlockVariable(pose.data());
+  for (std::size_t i = 0; i < states.poses.size(); ++i) {
+    if (!snapshot.keyframes[i].held) problem.SetParameterBlockVariable(states.poses[i].data());
+  }
   if (Status s = solveStage(problem, solver, states, options.full_iterations, summary.full_iterations, summary.full_s,
                             summary);
       !s.ok()) {
@@ -369,9 +433,18 @@ std::vector<KeyframeCorrection> keyframeCorrections(const GbaSnapshot& snapshot)
   out.reserve(snapshot.keyframes.size());
   for (std::size_t i = 0; i < snapshot.keyframes.size(); ++i) {
     const GbaKeyframe& kf = snapshot.keyframes[i];
+    if (kf.held) continue;
     KeyframeCorrection c{kf.id, kf.T_w_s_before, kf.T_w_s, std::nullopt};
     if (has_imu[i]) c.velocity_bias_after = std::make_pair(kf.v_w, kf.bias);
     out.push_back(std::move(c));
+  }
+  return out;
+}
+
+std::unordered_set<KeyframeId> heldKeyframes(const GbaSnapshot& snapshot) {
+  std::unordered_set<KeyframeId> out;
+  for (const GbaKeyframe& kf : snapshot.keyframes) {
+    if (kf.held) out.insert(kf.id);
   }
   return out;
 }
@@ -438,7 +511,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
   // Keyframes that arrived meanwhile: newer than every corrected keyframe of their agent map, the frame's change
   // (they were made in that frame); else their nearest corrected keyframe in time (earlier first).
   for (const auto& [id, kf_const] : map.keyframes()) {
-    if (change.count(id) != 0) continue;
+    if (change.count(id) != 0 || (options.held != nullptr && options.held->count(id) != 0)) continue;
     const auto series = by_time.find({id.agent, kf_const.agent_map});
     if (series == by_time.end() || series->second.empty()) continue;
     auto it = series->second.upper_bound(kf_const.t_ns);

@@ -20,6 +20,7 @@
 #include <map>
 #include <optional>
 #include <string>
+#include <unordered_set>
 #include <utility>
 #include <vector>
 
@@ -37,8 +38,14 @@ struct GlobalBaOptions {
   double sigma_px = 1.0;              // keypoint noise at pyramid level 0
   double pyramid_scale_factor = 1.2;  // noise grows by this per octave
   double cauchy_scale = 1.0;          // on whitened residuals
-  int structure_iterations = 5;       // step 1: poses held
-  int full_iterations = 15;           // step 2: everything
+  // Step 1 (poses held) settles the points; its first iteration does nearly all of that, and each one costs
+  // as much as a third of a full iteration (the evaluation of every reprojection factor).
+  int structure_iterations = 1;
+  int full_iterations = 15;  // step 2: everything, at most
+  // Either step stops once an iteration lowers the cost by less than this fraction. The cost is then within
+  // 0.01 % of where more iterations end, which move the keyframes along the solution's flat directions (a slow
+  // bend of a long lap) by cm without a gain in cost (bench_global_ba).
+  double function_tolerance = 1e-4;
   int threads = 2;
   double max_solver_time_s = 120.0;  // per step
   double gauge_sigma_m = 1e-4;       // the prior on the oldest keyframe's pose
@@ -75,6 +82,9 @@ struct GbaKeyframe {
   Eigen::Vector3d v_w = Eigen::Vector3d::Zero();
   imu::ImuBias bias;
   geometry::SE3d T_w_s_before;
+  // In the problem as a constant: a windowed solve's border (keyframes outside the window that see its points,
+  // or are IMU-linked to it). Held keyframes get no correction.
+  bool held = false;
   int imu_from = -1;  // index of the IMU-linked previous keyframe, or -1
   std::optional<imu::Preintegration> preintegration;
   std::vector<GbaObservation> observations;
@@ -96,8 +106,28 @@ struct GbaSnapshot {
 // The camera and IMU calibration of every agent of a mission (from their Hello).
 using AgentSensorsMap = std::map<AgentId, AgentSensors>;
 
-// Copies what the solve needs. kFailedPrecondition names an agent whose sensors are unknown.
-Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors);
+// Part of a map to optimise, with the rest held: the keyframes in `free` and every point they see are
+// optimised; the other keyframes that see one of those points or are IMU-linked to a free one are held, except
+// those in `left_out`, which stay out of the problem (with their observations).
+struct GbaWindow {
+  std::unordered_set<KeyframeId> free;
+  std::unordered_set<KeyframeId> left_out;
+};
+
+// Copies what the solve needs: the whole map, or `window` of it. kFailedPrecondition names an agent whose sensors
+// are unknown.
+Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors,
+                                    const GbaWindow* window = nullptr);
+
+// Where a solve's time went: building the problem, and Ceres' own accounting summed over both steps.
+struct GlobalBaProfile {
+  double build_s = 0.0;          // the states, the factors and the gauge
+  double preprocess_s = 0.0;     // Ceres: the program, the ordering, the Schur complement's structure
+  double residuals_s = 0.0;      // cost evaluations (the trust region's trial steps included)
+  double jacobians_s = 0.0;      // residuals and Jacobians at the accepted points
+  double linear_solver_s = 0.0;  // Schur elimination and the reduced system's factorisation
+  double other_s = 0.0;          // the rest of the minimiser and the post-processing
+};
 
 struct GlobalBaSummary {
   int keyframes = 0;
@@ -110,6 +140,7 @@ struct GlobalBaSummary {
   double final_cost = 0.0;
   double structure_s = 0.0;
   double full_s = 0.0;
+  GlobalBaProfile profile;
   bool cancelled = false;  // `cancel` was raised: the snapshot holds a partial result, not to be applied
 };
 
@@ -158,13 +189,17 @@ struct ApplyOptions {
   // points' evidence and clears the flag, so that its crude states wait for the GBA that follows it.
   bool marks_refined = true;
   int frame_window = 1;  // how many of an agent map's newest corrected keyframes its frame follows (windowChange)
+  // Keyframes a windowed solve held: they stay as they are, where any other keyframe without a correction is
+  // taken to have arrived meanwhile and is carried along.
+  const std::unordered_set<KeyframeId>* held = nullptr;
 };
 // Applies corrections computed on a snapshot to the map as it is now (see the header comment).
 AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeCorrection>& keyframes,
                                     const std::vector<PointCorrection>& points, const ApplyOptions& options = {});
 
-// The corrections a solved snapshot implies.
+// The corrections a solved snapshot implies (none of its held keyframes), and the keyframes it held.
 std::vector<KeyframeCorrection> keyframeCorrections(const GbaSnapshot& snapshot);
+std::unordered_set<KeyframeId> heldKeyframes(const GbaSnapshot& snapshot);
 std::vector<PointCorrection> pointCorrections(const GbaSnapshot& snapshot);
 
 }  // namespace cvislam::server::backend

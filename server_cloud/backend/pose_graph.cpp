@@ -79,7 +79,7 @@ Status PoseGraphOptions::validate() const {
 PoseGraph buildPoseGraph(const MapContent& map, const std::vector<LoopEdge>& loops, const PoseGraphOptions& options) {
   PoseGraph graph;
   std::unordered_map<KeyframeId, int> index;
-  for (const auto& [id, kf] : map.keyframes()) graph.nodes.push_back({id, kf.t_ns, kf.T_w_s});
+  for (const auto& [id, kf] : map.keyframes()) graph.nodes.push_back({id, kf.t_ns, kf.T_w_s, std::nullopt});
   std::sort(graph.nodes.begin(), graph.nodes.end(),
             [](const PoseGraph::Node& a, const PoseGraph::Node& b) { return a.id < b.id; });
   for (std::size_t i = 0; i < graph.nodes.size(); ++i) index.emplace(graph.nodes[i].id, static_cast<int>(i));
@@ -138,10 +138,11 @@ Result<std::vector<KeyframeCorrection>> solvePoseGraph(PoseGraph& graph, const P
   std::vector<Eigen::Vector3d> p(n);
   std::vector<RollPitch> rp(n);
   for (std::size_t i = 0; i < n; ++i) {
-    const Eigen::Matrix3d R = graph.nodes[i].T_w_s.rotationMatrix();
+    const SE3d& start = graph.nodes[i].held_at ? *graph.nodes[i].held_at : graph.nodes[i].T_w_s;
+    const Eigen::Matrix3d R = start.rotationMatrix();
     yaw[i] = yawOf(R);
     rp[i] = rollPitchOf(R);
-    p[i] = graph.nodes[i].T_w_s.translation();
+    p[i] = start.translation();
   }
   ceres::Problem problem;
   for (const PoseGraph::Edge& e : graph.edges) {
@@ -149,20 +150,26 @@ Result<std::vector<KeyframeCorrection>> solvePoseGraph(PoseGraph& graph, const P
     const auto b = static_cast<std::size_t>(e.b);
     const Eigen::Matrix3d R_a = graph.nodes[a].T_w_s.rotationMatrix();
     const Eigen::Matrix3d R_b_measured = R_a * e.T_a_b.rotationMatrix();
-    FourDofEdge edge{e.T_a_b.translation(), wrapAngle(yawOf(R_b_measured) - yaw[a]), rp[a], e.weight,
+    FourDofEdge edge{e.T_a_b.translation(), wrapAngle(yawOf(R_b_measured) - yawOf(R_a)), rp[a], e.weight,
                      options.yaw_weight};
     problem.AddResidualBlock(new ceres::AutoDiffCostFunction<FourDofEdge, 4, 1, 3, 1, 3>(new FourDofEdge(edge)),
                              nullptr, &yaw[a], p[a].data(), &yaw[b], p[b].data());
   }
   std::vector<KeyframeCorrection> out;
   if (graph.edges.empty()) return out;
-  std::size_t oldest = 0;
-  for (std::size_t i = 1; i < n; ++i) {
-    if (graph.nodes[i].t_ns < graph.nodes[oldest].t_ns) oldest = i;
+  std::vector<std::uint8_t> held(n, 0);
+  for (std::size_t i = 0; i < n; ++i) held[i] = graph.nodes[i].held_at ? 1 : 0;
+  if (std::find(held.begin(), held.end(), 1) == held.end()) {
+    std::size_t oldest = 0;
+    for (std::size_t i = 1; i < n; ++i) {
+      if (graph.nodes[i].t_ns < graph.nodes[oldest].t_ns) oldest = i;
+    }
+    held[oldest] = 1;
   }
-  if (problem.HasParameterBlock(&yaw[oldest])) {
-    problem.SetParameterBlockConstant(&yaw[oldest]);
-    problem.SetParameterBlockConstant(p[oldest].data());
+  for (std::size_t i = 0; i < n; ++i) {
+    if (held[i] == 0 || !problem.HasParameterBlock(&yaw[i])) continue;
+    problem.SetParameterBlockConstant(&yaw[i]);
+    problem.SetParameterBlockConstant(p[i].data());
   }
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
@@ -176,6 +183,7 @@ Result<std::vector<KeyframeCorrection>> solvePoseGraph(PoseGraph& graph, const P
   graph.summary.final_cost = summary.final_cost;
   out.reserve(n);
   for (std::size_t i = 0; i < n; ++i) {
+    if (held[i] != 0) continue;
     const SE3d T_after(geometry::SO3d(Eigen::Matrix3d(rotationYpr(yaw[i], rp[i].pitch, rp[i].roll))), p[i]);
     out.push_back({graph.nodes[i].id, graph.nodes[i].T_w_s, T_after, std::nullopt});
   }

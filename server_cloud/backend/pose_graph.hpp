@@ -9,6 +9,7 @@
 // keyframes (applyCorrections), and global BA follows.
 #pragma once
 
+#include <optional>
 #include <vector>
 
 #include "common/core/ids.hpp"
@@ -53,7 +54,10 @@ struct PoseGraph {
   struct Node {
     KeyframeId id;
     std::int64_t t_ns = 0;
-    geometry::SE3d T_w_s;
+    geometry::SE3d T_w_s;  // the edges' relative poses are taken from these
+    // Held at this pose in the solve (keyframes that a windowed BA has just placed, or the part of a merged map
+    // that stays where it is).
+    std::optional<geometry::SE3d> held_at;
   };
   struct Edge {
     int a = 0;
@@ -69,7 +73,8 @@ struct PoseGraph {
 // Loop edges whose keyframes are gone are left out.
 PoseGraph buildPoseGraph(const MapContent& map, const std::vector<LoopEdge>& loops, const PoseGraphOptions& options);
 
-// Optimises and returns every node's correction (no velocity or bias: applyCorrections rotates velocities).
+// Optimises and returns the correction of every node that moved (no velocity or bias: applyCorrections rotates
+// velocities). Held nodes fix the gauge; with none, the oldest node is held.
 Result<std::vector<KeyframeCorrection>> solvePoseGraph(PoseGraph& graph, const PoseGraphOptions& options);
 
 }  // namespace cvislam::server::backend

@@ -479,6 +479,15 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                       {"fusion", toJson(m.fusion)},
                       {"apply_ms", m.apply_ms},
                       {"match_to_merged_s", m.match_to_merged_s},
+                      {"correction",
+                       {{"ba_keyframes", m.correction_ba.keyframes},
+                        {"ba_points", m.correction_ba.points},
+                        {"ba_iterations", m.correction_ba.structure_iterations + m.correction_ba.full_iterations},
+                        {"graph_keyframes", m.correction_graph.keyframes},
+                        {"query_moved_m", m.correction_m},
+                        {"query_moved_deg", m.correction_deg},
+                        {"solve_ms", m.correction_solve_ms}}},
+                      {"match_to_corrected_s", m.match_to_corrected_s},
                       {"match_to_optimised_s", m.match_to_optimised_s}});
   }
   nlohmann::json loops = nlohmann::json::array();
@@ -494,6 +503,7 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                      {"loop_edges", l.graph.loop_edges},
                      {"solve_ms", l.solve_ms},
                      {"fusion", toJson(l.fusion)},
+                     {"match_to_corrected_s", l.match_to_corrected_s},
                      {"match_to_optimised_s", l.match_to_optimised_s}});
   }
   nlohmann::json gba = nlohmann::json::array();
@@ -509,6 +519,13 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                    {"initial_cost", g.summary.initial_cost},
                    {"final_cost", g.summary.final_cost},
                    {"solve_s", g.summary.structure_s + g.summary.full_s},
+                   {"profile_s",
+                    {{"build", g.summary.profile.build_s},
+                     {"preprocess", g.summary.profile.preprocess_s},
+                     {"residuals", g.summary.profile.residuals_s},
+                     {"jacobians", g.summary.profile.jacobians_s},
+                     {"linear_solver", g.summary.profile.linear_solver_s},
+                     {"other", g.summary.profile.other_s}}},
                    {"snapshot_ms", g.snapshot_ms},
                    {"apply_ms", g.apply_ms},
                    {"keyframes_propagated", g.keyframes_propagated}});

@@ -229,6 +229,13 @@ int main(int argc, char** argv) {
   app.add_option("--json", json_path, "Write the results here as JSON");
   app.add_option("--perturbation", perturbation, "Scale of the start's perturbation; 0 starts at the truth [1]")
       ->check(CLI::NonNegativeNumber);
+  backend::GlobalBaOptions options;
+  app.add_option("--structure-iterations", options.structure_iterations, "Step 1 (poses held) iterations [server's]")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--full-iterations", options.full_iterations, "Step 2 iterations at most [server's]")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--function-tolerance", options.function_tolerance,
+                 "A step stops when an iteration lowers the cost by less than this fraction [server's]");
   CLI11_PARSE(app, argc, argv);
   std::vector<int> sizes;
   try {
@@ -238,7 +245,6 @@ int main(int argc, char** argv) {
     return 2;
   }
 
-  backend::GlobalBaOptions options;
   options.threads = threads;
   nlohmann::json results = nlohmann::json::array();
   std::printf("SYNTHETIC mono-inertial scenes (one lap, 1 m/s, a keyframe per 0.5 s, <= 300 observations each)\n");
@@ -277,7 +283,13 @@ int main(int argc, char** argv) {
       last = *summary;
       after_m.push_back(rmsPositionError(snapshot, scene.truth));
       to_optimum_m.push_back(rmsPositionError(snapshot, optimum));
-      std::fprintf(stderr, "  %d keyframes, run %d/%d: %.2f s\n", n, r + 1, repetitions, seconds.back());
+      const backend::GlobalBaProfile& pr = summary->profile;
+      std::fprintf(stderr,
+                   "  %d keyframes, run %d/%d: %.2f s (build %.2f, preprocess %.2f, residuals %.2f, jacobians %.2f, "
+                   "linear solver %.2f, other %.2f; iterations %d + %d; cost %.6g -> %.6g)\n",
+                   n, r + 1, repetitions, seconds.back(), pr.build_s, pr.preprocess_s, pr.residuals_s, pr.jacobians_s,
+                   pr.linear_solver_s, pr.other_s, summary->structure_iterations, summary->full_iterations,
+                   summary->initial_cost, summary->final_cost);
     }
     const auto pct = [](const std::vector<double>& v, double p) { return cvislam::bench::percentile(v, p); };
     std::printf("%9d %7d %9d %6d %9.2fs %9.2fs %8.1fms %8.2f %8.2f %10.3f %10.2f\n", n, last.points,

@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include "server_cloud/backend/backend_worker.hpp"
+#include "server_cloud/backend/map_fusion.hpp"
 #include "test/server_cloud/backend/backend_test_maps.hpp"
 
 namespace cvislam::server::backend {
@@ -35,15 +36,7 @@ TEST_F(BackendWorkerTest, GbaWhileKeyframesStreamInLosesNoneAndCarriesTheNewOnes
   options.redundancy.enabled = false;
   BackendWorker worker(options, registry_, nullptr);
   std::thread gba([&] { worker.drain(true); });
-  MapContent late(99);
-  buildAgentMap(late, s, AgentPlan{.agent = 1, .first = 30, .last = 39}, nullptr);
-  for (std::uint32_t k = 30; k < 40; ++k) {
-    auto content = map->write();
-    ServerKeyframe kf = *late.keyframe(KeyframeId{1, k});
-    kf.point.assign(kf.keypoints.size(), MapPointId{});
-    kf.has_point.assign(kf.keypoints.size(), 0);
-    ASSERT_TRUE(content->addKeyframe(std::move(kf)).ok());
-  }
+  ASSERT_TRUE(addArrivingKeyframes(*map, s, AgentPlan{.agent = 1, .first = 30, .last = 39}));
   gba.join();
   const BackendStats stats = worker.stats("m");
   ASSERT_FALSE(stats.gba.empty());
@@ -56,6 +49,58 @@ TEST_F(BackendWorkerTest, GbaWhileKeyframesStreamInLosesNoneAndCarriesTheNewOnes
   // optimised one (the same change applied).
   EXPECT_LT(maxPositionError(*content, s, 1), 0.05 + (optimised < 40 ? 0.1 : 0.0));
   EXPECT_TRUE(content->checkConsistency().ok());
+}
+
+// While a merge's correction solves (held by the test after its copy): the merged agent's next keyframes arrive
+// in the map, and another map's match is queued. The new keyframes are kept and carried along by the
+// correction; the second merge follows with its own correction; nothing is lost.
+TEST_F(BackendWorkerTest, KeyframesAndAMergeArrivingDuringAMergesCorrectionAreKeptAndCarriedAlong) {
+  const test::ViScenario s = scenario(32, 0.5, 0.3);
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, 0.7)), Vector3d(3.0, -2.0, 0.5));
+  const SE3d T_3_truth(SO3d::exp(Vector3d(0.0, 0.0, -1.1)), Vector3d(-1.0, 4.0, 0.0));
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 15});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 8, .last = 27, .E = [&](int) { return T_2_truth; }});
+  const auto map3 = addAgent(s, AgentPlan{.agent = 3, .first = 16, .last = 31, .E = [&](int) { return T_3_truth; }});
+
+  GbaGate gate(map1->id());
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.fuse_new_keyframes = false;
+  options.gba_after_change = false;  // the corrections alone
+  options.on_merge_correction_solve_start = gate.hook();
+  BackendWorker worker(options, registry_, nullptr);
+  // Both matches' transforms are a few cm off.
+  const SE3d error(SO3d::exp(Vector3d(0.0, 0.0, 0.01)), Vector3d(0.04, -0.03, 0.03));
+  recognition::MatchRecord first =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 10}, map2->id(), KeyframeId{1, 10}, map1->id());
+  first.match.T_qmap_cmap = error * T_2_truth;
+  recognition::MatchRecord second =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{3, 18}, map3->id(), KeyframeId{2, 18}, map1->id());
+  second.match.T_qmap_cmap = error.inverse() * T_3_truth;
+  ASSERT_TRUE(worker.onMatch("m", first));
+  gate.waitUntilHeld();
+
+  // Agent 2's keyframes 28-31 arrive as ingest stores them: in the merged map, where the match's transform puts them.
+  const SE3d T_into_from =
+      fourDofTransform(first.match.T_qmap_cmap.inverse(), (T_2_truth * s.keyframe_states[10].T_w_s).translation());
+  ASSERT_TRUE(addArrivingKeyframes(
+      *map1, s, AgentPlan{.agent = 2, .first = 28, .last = 31, .E = [&](int) { return T_into_from * T_2_truth; }}));
+  ASSERT_GT(maxPositionError(*map1->read(), s, 2), 0.05);
+  ASSERT_TRUE(worker.onMatch("m", second));
+  gate.release();
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.merges.size(), 2U);
+  for (const MergeRecord& merge : stats.merges) EXPECT_GE(merge.match_to_corrected_s, merge.match_to_merged_s);
+  EXPECT_EQ(mission_->stack().find(map2->id()), nullptr);
+  EXPECT_EQ(mission_->stack().find(map3->id()), nullptr);
+  const auto content = map1->read();
+  EXPECT_TRUE(content->checkConsistency().ok());
+  EXPECT_EQ(content->keyframes().size(), 16U + 24U + 16U);
+  EXPECT_LT(maxPositionError(*content, s, 1), 0.005);
+  EXPECT_LT(maxPositionError(*content, s, 2), 0.01) << "keyframes 28-31 carried along too";
+  EXPECT_LT(maxPositionError(*content, s, 3), 0.01);
 }
 
 // A loop closed while the map's GBA runs: the drift of `drift_m` (position, with a yaw of `drift_rad`) is injected

@@ -139,6 +139,18 @@ recognition::MatchRecord matchRecord(recognition::QueryKind kind, const Keyframe
   return record;
 }
 
+bool addArrivingKeyframes(ServerMap& map, const test::ViScenario& s, const AgentPlan& plan) {
+  MapContent late(0);
+  buildAgentMap(late, s, plan, nullptr);
+  for (int k = plan.first; k <= plan.last; ++k) {
+    ServerKeyframe kf = *late.keyframe(KeyframeId{plan.agent, static_cast<std::uint32_t>(k)});
+    kf.point.assign(kf.keypoints.size(), MapPointId{});
+    kf.has_point.assign(kf.keypoints.size(), 0);
+    if (!map.write()->addKeyframe(std::move(kf)).ok()) return false;
+  }
+  return true;
+}
+
 bool eventually(const std::function<bool()>& done) {
   for (int i = 0; i < 6000; ++i) {
     if (done()) return true;

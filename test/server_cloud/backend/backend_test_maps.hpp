@@ -36,6 +36,10 @@ AgentSensors sensorsOf(const test::ViScenario& s);
 // Adds the plan's keyframes and points to `map`, and what the server would keep in `record`.
 void buildAgentMap(MapContent& map, const test::ViScenario& s, const AgentPlan& plan, AgentRecord* record);
 
+// Adds the plan's keyframes to `map` one at a time under its write lock, without points, as ingest stores
+// keyframes that arrive while the back-end solves. True when every one was added.
+bool addArrivingKeyframes(ServerMap& map, const test::ViScenario& s, const AgentPlan& plan);
+
 // The largest position error of the agent's keyframes against the truth, after mapping the map frame by T.
 double maxPositionError(const MapContent& map, const test::ViScenario& s, AgentId agent, const SE3d& T_truth_map = {});
 
