@@ -18,6 +18,18 @@ double secondsSince(Clock::time_point t) {
   return std::chrono::duration<double>(Clock::now() - t).count();
 }
 
+// A match's projection search, copied under the locks, run without any; its links and merges applied under the
+// map's write lock, checked against the map as it is then. Returns the milliseconds the lock was held.
+double fuseWithoutLock(ServerMap& map, const ProjectionSearchInput& search, const FusionOptions& options,
+                       FusionReport& report) {
+  const std::vector<ProjectionMatch> matches = searchByProjection(search, options);
+  if (matches.empty()) return 0.0;
+  const auto start = Clock::now();
+  auto content = map.write();
+  applyProjectionMatches(*content, matches, report);
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
 AgentSensorsMap sensorsOf(const Mission& mission) {
   AgentSensorsMap out;
   for (const SharedAgentRecord& shared : mission.agents()) {
@@ -350,6 +362,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
 
   MergeRecord record;
   std::unordered_set<KeyframeId> query_keyframes;  // the query map's, before it went
+  ProjectionSearchInput search;                    // the fusion's projection search, run after the locks
   {
     StackLocks locks(mission, {from, into});
     const auto start = Clock::now();
@@ -374,7 +387,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
         if (map == from->id()) map = into->id();
       }
     }
-    record.fusion = fuseMatch(c, match, cameras.lookup(), options_.fusion);
+    search = fuseMatchPairs(c, match, cameras.lookup(), options_.fusion, record.fusion);
     record.from = from->id();
     record.into = into->id();
     record.query = match.query;
@@ -382,6 +395,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     record.T_into_from = T_into_from;
     record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   }
+  record.apply_ms += fuseWithoutLock(*into, search, options_.fusion, record.fusion);
   mission.stack().remove(from->id());
   {
     MissionEvent merged;
@@ -566,12 +580,14 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     record.cancelled_gba = cancelGba(mission.name(), map->id());
   }
   const CameraTable cameras(sensors);
+  ProjectionSearchInput search;
   {
     StackLocks locks(mission, {map});
     (void)applyToMission(mission, locks, map->id(), *corrections, {},
                          ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes}, "loop closure");
-    record.fusion = fuseMatch(locks.map(map->id()), match, cameras.lookup(), options_.fusion);
+    search = fuseMatchPairs(locks.map(map->id()), match, cameras.lookup(), options_.fusion, record.fusion);
   }
+  (void)fuseWithoutLock(*map, search, options_.fusion, record.fusion);
   record.match_to_corrected_s = secondsSince(arrived);
   std::size_t index = 0;
   {

@@ -273,6 +273,14 @@ std::vector<ProjectionMatch> searchNewKeyframe(const MapContent& map, const Keyf
 FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,
                        const recognition::CameraLookup& cameras, const FusionOptions& options) {
   FusionReport report;
+  const ProjectionSearchInput input = fuseMatchPairs(map, match, cameras, options, report);
+  applyProjectionMatches(map, searchByProjection(input, options), report);
+  return report;
+}
+
+ProjectionSearchInput fuseMatchPairs(MapContent& map, const recognition::VerifiedMatch& match,
+                                     const recognition::CameraLookup& cameras, const FusionOptions& options,
+                                     FusionReport& report) {
   for (const auto& [query_point, candidate_point] : match.point_pairs) {
     const MapPointId q = map.resolvePoint(query_point);
     const MapPointId c = map.resolvePoint(candidate_point);
@@ -288,8 +296,7 @@ FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,
   report.pairs_fused += fused;
   const std::vector<KeyframeId> query_side = neighbourhood(map, match.query, options.neighbours);
   const std::vector<KeyframeId> candidate_side = neighbourhood(map, match.candidate, options.neighbours);
-  fuseByProjection(map, query_side, pointsOf(map, candidate_side), cameras, options, report);
-  return report;
+  return gatherProjectionSearch(map, query_side, pointsOf(map, candidate_side), cameras);
 }
 
 }  // namespace cvislam::server::backend

@@ -119,6 +119,12 @@ void fuseByProjection(MapContent& map, const std::vector<KeyframeId>& keyframes,
 // then the projection search between the two neighbourhoods.
 FusionReport fuseMatch(MapContent& map, const recognition::VerifiedMatch& match,
                        const recognition::CameraLookup& cameras, const FusionOptions& options);
+// The same in steps, so that the search holds no lock: this fuses the pairs and inliers and copies what the
+// projection search needs (the map write-locked); searchByProjection(input) then runs without a lock, and
+// applyProjectionMatches under the write lock again.
+ProjectionSearchInput fuseMatchPairs(MapContent& map, const recognition::VerifiedMatch& match,
+                                     const recognition::CameraLookup& cameras, const FusionOptions& options,
+                                     FusionReport& report);
 
 // A new keyframe's fusion with its partners, both ways: its partners' points projected into it, and its points
 // projected into its partners.
