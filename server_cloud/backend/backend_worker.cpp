@@ -206,6 +206,16 @@ BackendStats BackendWorker::stats(const std::string& mission) const {
   return it == states_.end() ? BackendStats{} : it->second->stats;
 }
 
+BackendWorker::GbaWork BackendWorker::gbaWork(const std::string& mission) const {
+  const std::lock_guard lock(mutex_);
+  GbaWork out;
+  out.running = gba_running_ && gba_running_->mission == mission;
+  for (const GbaRequest& r : gba_queue_) {
+    if (r.mission == mission) out.queued.push_back(r.map);
+  }
+  return out;
+}
+
 std::vector<std::string> BackendWorker::missions() const {
   const std::lock_guard lock(mutex_);
   std::vector<std::string> out;
@@ -355,6 +365,28 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     ++state.stats.stale_matches;
   };
   if (!from || !into || from == into) return stale();
+  // Until the merge's correction is applied, no GBA of `into` starts: the two results are changes of state and
+  // compose when applied, so a GBA from a snapshot before the correction would apply the correction a second time,
+  // and one applied during the correction's solve would be undone by it.
+  struct HoldGba {
+    BackendWorker& worker;
+    HoldGba(BackendWorker& w, const std::string& mission, MapId map) : worker(w) {
+      const std::lock_guard lock(worker.mutex_);
+      worker.correcting_ = std::make_pair(mission, map);
+    }
+    ~HoldGba() {
+      {
+        const std::lock_guard lock(worker.mutex_);
+        worker.correcting_.reset();
+      }
+      worker.gba_wake_.notify_one();
+    }
+    HoldGba(const HoldGba&) = delete;
+    HoldGba& operator=(const HoldGba&) = delete;
+  };
+  const std::optional<HoldGba> hold = options_.merge_correction_keyframes > 0
+                                          ? std::make_optional<HoldGba>(*this, mission.name(), into->id())
+                                          : std::nullopt;
   cancelGba(mission.name(), from->id());
   cancelGba(mission.name(), into->id());
   const AgentSensorsMap sensors = sensorsOf(mission);
@@ -396,6 +428,15 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   }
   record.apply_ms += fuseWithoutLock(*into, search, options_.fusion, record.fusion);
+  {
+    // Before the map leaves the stack: a GBA of it that runs from now on hands its waiters on (see gba()).
+    const std::lock_guard lock(mutex_);
+    auto& loops = state.loops[into->id()];
+    auto& moved = state.loops[from->id()];
+    loops.insert(loops.end(), moved.begin(), moved.end());
+    state.loops.erase(from->id());
+    state.merged_into[from->id()] = into->id();
+  }
   mission.stack().remove(from->id());
   {
     MissionEvent merged;
@@ -416,14 +457,8 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   std::size_t index = 0;
   {
     const std::lock_guard lock(mutex_);
-    auto& loops = state.loops[into->id()];
-    auto& moved = state.loops[from->id()];
-    loops.insert(loops.end(), moved.begin(), moved.end());
-    state.loops.erase(from->id());
     state.stats.merges.push_back(record);
     index = state.stats.merges.size() - 1;
-    // A GBA of the map that went, queued or about to start, hands its waiters on to this one (see gba()).
-    state.merged_into[from->id()] = into->id();
   }
   if (options_.gba_after_change) requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived);
 }
@@ -671,11 +706,18 @@ bool BackendWorker::cancelGba(const std::string& mission, MapId map) {
 
 void BackendWorker::runGba() {
   std::unique_lock lock(mutex_);
+  // The oldest request whose map no merge is correcting.
+  const auto runnable = [this] {
+    return std::find_if(gba_queue_.begin(), gba_queue_.end(), [this](const GbaRequest& r) {
+      return !correcting_ || r.mission != correcting_->first || r.map != correcting_->second;
+    });
+  };
   while (true) {
-    gba_wake_.wait(lock, [this] { return stop_ || !gba_queue_.empty(); });
+    gba_wake_.wait(lock, [&] { return stop_ || runnable() != gba_queue_.end(); });
     if (stop_) break;
-    gba_running_ = std::move(gba_queue_.front());
-    gba_queue_.pop_front();
+    const auto next = runnable();
+    gba_running_ = std::move(*next);
+    gba_queue_.erase(next);
     gba_cancel_ = false;
     const GbaRequest request = *gba_running_;
     lock.unlock();

@@ -78,7 +78,7 @@ struct BackendOptions {
   // along. The match's transform alone is off by a few cm (the recognition's estimate from one keyframe);
   // this takes that out in a fraction of a second. 0: the transform alone until the GBA.
   int merge_correction_keyframes = 10;
-  GlobalBaOptions merge_correction_ba{.structure_iterations = 1, .full_iterations = 10, .function_tolerance = 1e-4};
+  GlobalBaOptions merge_correction_ba{.structure_iterations = 0, .full_iterations = 6, .function_tolerance = 1e-4};
   int redundancy_every_keyframes = 10;  // per map
   // At the end of a mission (drain(true)), before the last GBA: every eligible keyframe of every map is checked
   // once more. During the mission a keyframe is checked at random and often before later flights covered it.
@@ -180,6 +180,12 @@ class BackendWorker {
   void drain(bool final_gba);
 
   [[nodiscard]] BackendStats stats(const std::string& mission) const;
+  // What the GBA thread has to do for a mission: whether one of its GBAs runs, and the maps whose GBA waits.
+  struct GbaWork {
+    bool running = false;
+    std::vector<MapId> queued;
+  };
+  [[nodiscard]] GbaWork gbaWork(const std::string& mission) const;
   [[nodiscard]] std::vector<std::string> missions() const;
 
  private:
@@ -238,6 +244,7 @@ class BackendWorker {
   bool control_busy_ = false;
   std::deque<GbaRequest> gba_queue_;
   std::optional<GbaRequest> gba_running_;
+  std::optional<std::pair<std::string, MapId>> correcting_;  // a merge's correction is solving: its map's GBA waits
   std::atomic<bool> gba_cancel_{false};
   bool stop_ = false;
   std::map<std::string, std::unique_ptr<MissionState>> states_;

@@ -392,6 +392,10 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
   CancelCallback callback(cancel);
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::SPARSE_SCHUR;
+  if (options.iterative_schur) {
+    solver.linear_solver_type = ceres::ITERATIVE_SCHUR;
+    solver.preconditioner_type = ceres::SCHUR_JACOBI;
+  }
   solver.num_threads = options.threads;
   solver.function_tolerance = options.function_tolerance;
   solver.max_solver_time_in_seconds = options.max_solver_time_s;

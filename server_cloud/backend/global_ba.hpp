@@ -47,6 +47,9 @@ struct GlobalBaOptions {
   // bend of a long lap) by cm without a gain in cost (bench_global_ba).
   double function_tolerance = 1e-4;
   int threads = 2;
+  // The reduced (keyframe) system of each step: factorised (SPARSE_SCHUR), or solved by preconditioned conjugate
+  // gradients without forming it (ITERATIVE_SCHUR, SCHUR_JACOBI).
+  bool iterative_schur = false;
   double max_solver_time_s = 120.0;  // per step
   double gauge_sigma_m = 1e-4;       // the prior on the oldest keyframe's pose
   double gauge_sigma_rad = 1e-5;

@@ -265,6 +265,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("pose_graph_strong_covisibility", b.pose_graph.strong_covisibility);
   backend.read("merge_correction_keyframes", b.merge_correction_keyframes);
   backend.read("gba_function_tolerance", b.gba.function_tolerance);
+  backend.read("gba_iterative_schur", b.gba.iterative_schur);
   backend.read("fusion_search_radius_px", b.fusion.search_radius_px);
   backend.read("fusion_max_descriptor_distance", b.fusion.max_descriptor_distance);
   backend.read("fuse_new_keyframes", b.fuse_new_keyframes);

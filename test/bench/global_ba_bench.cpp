@@ -26,6 +26,7 @@
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
+#include "server_cloud/backend/backend_worker.hpp"
 #include "server_cloud/backend/global_ba.hpp"
 #include "server_cloud/backend/pose_graph.hpp"
 #include "test/bench/percentiles.hpp"
@@ -238,9 +239,7 @@ std::pair<double, double> timeCorrection(const backend::GbaSnapshot& perturbed, 
     keyframe_index[i] = static_cast<int>(part.keyframes.size());
     part.keyframes.push_back(std::move(kf));
   }
-  backend::GlobalBaOptions options;
-  options.structure_iterations = 1;
-  options.full_iterations = 10;
+  const backend::GlobalBaOptions options = backend::BackendOptions{}.merge_correction_ba;
   const auto ba_start = std::chrono::steady_clock::now();
   if (!backend::runGlobalBa(part, options)) std::abort();
   const double ba_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - ba_start).count();
@@ -297,6 +296,7 @@ int main(int argc, char** argv) {
       ->check(CLI::NonNegativeNumber);
   app.add_option("--full-iterations", options.full_iterations, "Step 2 iterations at most [server's]")
       ->check(CLI::PositiveNumber);
+  app.add_flag("--iterative-schur", options.iterative_schur, "ITERATIVE_SCHUR (SCHUR_JACOBI) in place of SPARSE_SCHUR");
   app.add_option("--function-tolerance", options.function_tolerance,
                  "A step stops when an iteration lowers the cost by less than this fraction [server's]");
   CLI11_PARSE(app, argc, argv);

@@ -240,8 +240,11 @@ TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
 }
 
 // A loop in map 2 waits for map 2's GBA, and map 2 is merged into map 1 before that GBA can run: the loop's time to
-// optimised must come from map 1's GBA. `hold` says whose GBA is held while the loop and the merge arrive.
-void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the_merged_away_map) {
+// optimised must come from map 1's GBA. `hold` says whose GBA is held while the loop and the merge arrive. With
+// `hold_the_correction`, the merge's correction is held too, and the held GBA let go meanwhile: map 2's GBA then
+// runs while the merge is still being corrected.
+void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the_merged_away_map,
+                                        bool hold_the_correction = false) {
   const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
   const auto addAgent = [&](const test::ViScenario& s, const AgentPlan& plan) {
     std::shared_ptr<ServerMap> map = mission->stack().createMap();
@@ -265,9 +268,11 @@ void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the
                                           .E = [&](int k) { return T_2_truth * drift_at(k); },
                                           .generation = [](int k) { return k >= 12 ? 1 : 0; }});
   GbaGate gate(hold_the_merged_away_map ? map2->id() : map1->id());
+  GbaGate correction_gate(map1->id());
   BackendOptions options;
   options.redundancy.enabled = false;
   options.on_gba_solve_start = gate.hook();
+  if (hold_the_correction) options.on_merge_correction_solve_start = correction_gate.hook();
   BackendWorker worker(options, registry, nullptr);
   std::thread mission_end([&] { worker.drain(true); });
   gate.waitUntilHeld();
@@ -281,8 +286,20 @@ void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the
       matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 5}, map2->id(), KeyframeId{1, 5}, map1->id());
   merge.match.T_qmap_cmap = T_2_truth;
   EXPECT_TRUE(worker.onMatch("m", merge));
-  EXPECT_TRUE(eventually([&] { return !worker.stats("m").merges.empty(); }));
-  gate.release();
+  if (hold_the_correction) {
+    correction_gate.waitUntilHeld();
+    gate.release();
+    // The GBA thread has done all it may while map 1 is being corrected: map 2's GBA went to map 1, which waits.
+    EXPECT_TRUE(eventually([&] {
+      const BackendWorker::GbaWork work = worker.gbaWork("m");
+      return !work.running && work.queued == std::vector<MapId>{map1->id()};
+    }));
+    EXPECT_TRUE(worker.stats("m").merges.empty()) << "recorded once corrected";
+    correction_gate.release();
+  } else {
+    EXPECT_TRUE(eventually([&] { return !worker.stats("m").merges.empty(); }));
+    gate.release();
+  }
   mission_end.join();
   worker.drain(false);
 
@@ -295,6 +312,11 @@ void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the
   const auto merged = map1->read();
   EXPECT_TRUE(merged->checkConsistency().ok());
   EXPECT_LT(maxPositionError(*merged, s, 2), 0.03);
+}
+
+TEST(BackendMergeDuringGba, ALoopWhoseMapsGbaRunsWhileTheMergeIsCorrectedIsOptimisedWithTheMergedMap) {
+  MissionRegistry registry;
+  loopWaitingForAMapThatIsMergedAway(registry, false, true);
 }
 
 TEST(BackendMergeDuringGba, ALoopWaitingBehindAnotherMapsGbaIsOptimisedWithTheMapItsMapWentInto) {
