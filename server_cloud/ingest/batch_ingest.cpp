@@ -519,6 +519,7 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
       kf->v_w = u.state.v_w;
       kf->bias = u.state.bias;
       kf->refined = false;  // the agent's estimate again
+      kf->provisional = false;
       ++report.keyframe_updates;
     }
   }

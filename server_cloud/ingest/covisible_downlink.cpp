@@ -70,10 +70,9 @@ std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& conten
     if (content.keyframe(seeds[i]) == nullptr) continue;
     for (const auto& [other, shared] : content.covisible(seeds[i])) {
       if (isRecentOwn(other)) continue;
-      if (options.foreign_refined_only && other.agent != newest.agent) {
-        const ServerKeyframe* kf = content.keyframe(other);
-        if (kf == nullptr || !kf->refined) continue;
-      }
+      const ServerKeyframe* kf = content.keyframe(other);
+      if (kf == nullptr || kf->provisional) continue;
+      if (options.foreign_refined_only && other.agent != newest.agent && !kf->refined) continue;
       if (std::find(seeds.begin(), seeds.end(), other) != seeds.end()) continue;
       weight[other] += shared;
     }
@@ -204,7 +203,8 @@ void CovisibleSender::addUpdates(const MapContent& content, const std::vector<Ke
     if (sent == keyframes_sent_.end()) continue;
     const ServerKeyframe* kf = content.keyframe(id);
     const CovisibleCamera* camera = cameraOf(cameras, id.agent);
-    if (kf == nullptr || camera == nullptr) continue;
+    // A pose graph's move waits for the GBA after it: the agent keeps the state it holds until then.
+    if (kf == nullptr || camera == nullptr || kf->provisional) continue;
     const geometry::SE3d T_w_c = T_w_m * kf->T_w_s * camera->T_s_c;
     if (movedBeyond(sent->second, T_w_c, options_)) {
       v1::CovisiblePose* update = out.add_keyframe_updates();
@@ -241,7 +241,8 @@ void CovisibleSender::addNewKeyframes(const MapContent& content, const std::vect
     if (keyframes_sent_.count(id) != 0) continue;
     const ServerKeyframe* kf = content.keyframe(id);
     const CovisibleCamera* camera = cameraOf(cameras, id.agent);
-    if (kf == nullptr || camera == nullptr) continue;
+    // A pose graph's move waits for the GBA after it: the agent keeps the state it holds until then.
+    if (kf == nullptr || camera == nullptr || kf->provisional) continue;
     const geometry::SE3d T_w_c = T_w_m * kf->T_w_s * camera->T_s_c;
     std::vector<const ServerMapPoint*> new_points;
     v1::CovisibleKeyframe keyframe = describeKeyframe(content, id, *kf, *camera, T_w_c, points_sent_, new_points);

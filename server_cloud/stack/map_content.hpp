@@ -54,6 +54,9 @@ struct ServerKeyframe {
   // Its state is the server's (a GBA estimated it), not its agent's onboard estimate: set when a GBA's correction
   // is applied, cleared when a loop's pose graph moves it (until the GBA that follows) or its agent sends an update.
   bool refined = false;
+  // Moved by a pose graph (a loop's, or a merge's correction) since: neither its agent's estimate nor a refined
+  // one. No agent gets it as an anchor, its own agent included, until a GBA refines it or its agent sends an update.
+  bool provisional = false;
 
   [[nodiscard]] int observationCount() const;
 };

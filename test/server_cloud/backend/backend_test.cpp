@@ -166,14 +166,22 @@ TEST(GlobalBa, APoseGraphsCorrectionClearsTheRefinedStateThatAGbaSets) {
   }
   ASSERT_FALSE(moves.empty());
   (void)applyCorrections(map, moves, {}, ApplyOptions{.marks_refined = true});
-  for (const auto& [id, kf] : map.keyframes()) EXPECT_TRUE(kf.refined) << id.toString() << " after a GBA";
+  for (const auto& [id, kf] : map.keyframes()) {
+    EXPECT_TRUE(kf.refined) << id.toString() << " after a GBA";
+    EXPECT_FALSE(kf.provisional) << id.toString() << " after a GBA";
+  }
   for (KeyframeCorrection& m : moves) {
     m.T_w_s_before = map.keyframe(m.id)->T_w_s;
     m.T_w_s_after = SE3d(SO3d(), Vector3d(0.0, 0.02, 0.0)) * m.T_w_s_before;
   }
   const AppliedCorrections pose_graph = applyCorrections(map, moves, {}, ApplyOptions{.marks_refined = false});
   EXPECT_EQ(pose_graph.keyframes_optimised, static_cast<int>(moves.size()));
-  for (const auto& [id, kf] : map.keyframes()) EXPECT_FALSE(kf.refined) << id.toString() << " after a pose graph";
+  for (const auto& [id, kf] : map.keyframes()) {
+    EXPECT_FALSE(kf.refined) << id.toString() << " after a pose graph";
+    EXPECT_TRUE(kf.provisional) << id.toString() << " after a pose graph";
+  }
+  (void)applyCorrections(map, moves, {}, ApplyOptions{.marks_refined = true});
+  for (const auto& [id, kf] : map.keyframes()) EXPECT_FALSE(kf.provisional) << id.toString() << " after the GBA";
 }
 
 // A map whose gravity is off by 1 deg of roll (every estimate turned about the oldest keyframe): vision cannot

@@ -167,6 +167,40 @@ TEST(CovisibleDownlink, AnotherAgentsKeyframesGoDownOnlyWhileTheirStateIsTheServ
   EXPECT_TRUE(std::any_of(all.begin(), all.end(), [](std::uint32_t c) { return c < 5; }));
 }
 
+// A pose graph (a loop's, or a merge's correction) moves keyframes without their points' evidence: until the GBA
+// after it, none of them goes down, the agent's own included, and a moved anchor the agent holds is not updated.
+TEST(CovisibleDownlink, KeyframesAPoseGraphMovedWaitForTheGbaOwnOnesToo) {
+  Scene scene;
+  CovisibleOptions options;
+  options.own_recent_excluded = 50;
+  CovisibleSender sut{options};
+  v1::CovisibleMap first;
+  sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, first);
+  ASSERT_GT(first.keyframes_size(), 0);
+  const KeyframeId held{static_cast<AgentId>(first.keyframes(0).agent()), first.keyframes(0).counter()};
+  std::set<KeyframeId> before;
+  for (const auto& [id, weight] : selectCovisible(scene.map, scene.seeds(), options)) before.insert(id);
+  ASSERT_TRUE(std::any_of(before.begin(), before.end(), [](const KeyframeId& id) { return id.agent == 1; }));
+  // A pose graph moves every keyframe by 5 cm.
+  for (const auto& [id, kf_const] : scene.map.keyframes()) {
+    ServerKeyframe* kf = scene.map.keyframe(id);
+    kf->T_w_s.translation() += Vector3d(0.05, 0.0, 0.0);
+    kf->refined = false;
+    kf->provisional = true;
+  }
+  EXPECT_TRUE(selectCovisible(scene.map, scene.seeds(), options).empty());
+  v1::CovisibleMap moved;
+  const CovisibleReport report = sut.fill(scene.map, scene.seeds(), 0, SE3d(), scene.cameras, moved);
+  EXPECT_EQ(report.keyframe_updates, 0) << held.toString() << " keeps the state the agent holds";
+  // The agent updates its own keyframes (its local BA): they hold its estimate again and go down.
+  for (const KeyframeId& id : before) {
+    if (id.agent == 1) scene.map.keyframe(id)->provisional = false;
+  }
+  const auto again = selectCovisible(scene.map, scene.seeds(), options);
+  EXPECT_FALSE(again.empty());
+  for (const auto& [id, weight] : again) EXPECT_EQ(id.agent, 1U);
+}
+
 TEST(CovisibleDownlink, TheLocalMapSizeTheAgentsHelloGaveDecidesWhichOfItsOwnKeyframesAreLeftOut) {
   const Scene scene;
   const auto own_above = [](const v1::CovisibleMap& m, std::uint32_t counter) {
