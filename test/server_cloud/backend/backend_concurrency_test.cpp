@@ -67,6 +67,7 @@ TEST_F(BackendWorkerTest, KeyframesAndAMergeArrivingDuringAMergesCorrectionAreKe
   options.redundancy.enabled = false;
   options.fuse_new_keyframes = false;
   options.gba_after_change = false;  // the corrections alone
+  options.merge_correction_keyframes = 10;
   options.on_merge_correction_solve_start = gate.hook();
   BackendWorker worker(options, registry_, nullptr);
   // Both matches' transforms are a few cm off.
@@ -272,7 +273,10 @@ void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the
   BackendOptions options;
   options.redundancy.enabled = false;
   options.on_gba_solve_start = gate.hook();
-  if (hold_the_correction) options.on_merge_correction_solve_start = correction_gate.hook();
+  if (hold_the_correction) {
+    options.merge_correction_keyframes = 10;
+    options.on_merge_correction_solve_start = correction_gate.hook();
+  }
   BackendWorker worker(options, registry, nullptr);
   std::thread mission_end([&] { worker.drain(true); });
   gate.waitUntilHeld();

@@ -328,6 +328,7 @@ TEST_F(BackendWorkerTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesIt
 
   BackendOptions options;
   options.redundancy.enabled = false;
+  options.merge_correction_keyframes = 10;
   BackendWorker worker(options, registry_, nullptr);
   // What place recognition would report: agent 2's keyframe 9 seen from agent 1's keyframe 6, with the
   // match's rotation off by 0.3 deg of roll (the merge keeps 4 DoF and drops it).
@@ -388,6 +389,7 @@ TEST_F(BackendWorkerTest, AMergesCorrectionTakesOutTheMatchsErrorBeforeAnyGbaRun
   BackendOptions options;
   options.redundancy.enabled = false;
   options.fuse_new_keyframes = false;
+  options.merge_correction_keyframes = 10;
   GbaGate gate(map1->id());
   options.on_gba_solve_start = gate.hook();
   BackendWorker worker(options, registry_, nullptr);
