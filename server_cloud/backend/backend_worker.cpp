@@ -480,6 +480,30 @@ std::unordered_set<KeyframeId> aroundMatch(const MapContent& map, const recognit
   return out;
 }
 
+// Readies a merge's pose graph once the BA around the match has placed `placed`: those are held where the BA put
+// them, the candidate map's other keyframes where they are, and the query map's others follow its own edges only
+// (edges between the two maps came with the fusion, and their relative poses carry the match's error). Returns the
+// keyframes held where they are.
+std::unordered_set<KeyframeId> holdForMerge(PoseGraph& graph, const std::vector<KeyframeCorrection>& placed,
+                                            const std::unordered_set<KeyframeId>& query_keyframes) {
+  std::erase_if(graph.edges, [&](const PoseGraph::Edge& e) {
+    return query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.a)].id) !=
+           query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.b)].id);
+  });
+  std::unordered_map<KeyframeId, SE3d> after;
+  for (const KeyframeCorrection& c : placed) after.emplace(c.id, c.T_w_s_after);
+  std::unordered_set<KeyframeId> unchanged;
+  for (PoseGraph::Node& node : graph.nodes) {
+    if (const auto it = after.find(node.id); it != after.end()) {
+      node.held_at = it->second;
+    } else if (query_keyframes.count(node.id) == 0) {
+      node.held_at = node.T_w_s;
+      unchanged.insert(node.id);
+    }
+  }
+  return unchanged;
+}
+
 }  // namespace
 
 bool BackendWorker::correctMerge(Mission& mission, MissionState& state, const std::shared_ptr<ServerMap>& into,
@@ -514,24 +538,7 @@ bool BackendWorker::correctMerge(Mission& mission, MissionState& state, const st
   if (!ba || ba->cancelled) return false;
   record.correction_ba = *ba;
   std::vector<KeyframeCorrection> corrections = keyframeCorrections(*snapshot);
-  // The pose graph holds the window where the BA put it and the candidate map's other keyframes where they are.
-  // Edges between the two maps' keyframes came with the fusion, and their relative poses carry the match's error:
-  // the query map's keyframes follow its own edges only.
-  std::erase_if(graph.edges, [&](const PoseGraph::Edge& e) {
-    return query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.a)].id) !=
-           query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.b)].id);
-  });
-  std::unordered_map<KeyframeId, SE3d> placed;
-  for (const KeyframeCorrection& c : corrections) placed.emplace(c.id, c.T_w_s_after);
-  std::unordered_set<KeyframeId> unchanged;
-  for (PoseGraph::Node& node : graph.nodes) {
-    if (const auto it = placed.find(node.id); it != placed.end()) {
-      node.held_at = it->second;
-    } else if (query_keyframes.count(node.id) == 0) {
-      node.held_at = node.T_w_s;
-      unchanged.insert(node.id);
-    }
-  }
+  const std::unordered_set<KeyframeId> unchanged = holdForMerge(graph, corrections, query_keyframes);
   Result<std::vector<KeyframeCorrection>> carried = solvePoseGraph(graph, options_.pose_graph);
   if (!carried) return false;
   record.correction_graph = graph.summary;

@@ -2,7 +2,8 @@
 // threads of their own while agents keep streaming.
 //
 //   control thread  verified matches from place recognition (a map match merges the query's map into the
-//                   candidate's; a loop runs the pose graph), the fusion of every new keyframe with the points
+//                   candidate's, and with merge_correction_keyframes corrects it at once; a loop runs the pose
+//                   graph), the fusion of every new keyframe with the points
 //                   of its covisible and nearby keyframes (map_fusion.hpp), and redundancy removal every
 //                   `redundancy_every_keyframes` new keyframes of a map. Each holds the locks of the maps it
 //                   changes for the milliseconds it takes.
