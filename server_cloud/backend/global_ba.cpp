@@ -509,23 +509,9 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     applied.changed.push_back(c.id);
   }
   // Per agent map, the change of its frame: that of its newest corrected keyframes, so that one keyframe's
-  // own correction (the newest is the least constrained) does not turn the whole frame. An agent map with a held
-  // keyframe newer than those keeps its frame: a windowed solve moved older keyframes of it, away from where the
-  // agent is now.
-  std::map<std::pair<AgentId, std::uint32_t>, std::int64_t> newest_held_ns;
-  if (options.held != nullptr) {
-    for (const KeyframeId& id : *options.held) {
-      const ServerKeyframe* kf = map.keyframe(id);
-      if (kf == nullptr) continue;
-      auto [it, added] = newest_held_ns.emplace(std::make_pair(id.agent, kf->agent_map), kf->t_ns);
-      if (!added) it->second = std::max(it->second, kf->t_ns);
-    }
-  }
+  // own correction (the newest is the least constrained) does not turn the whole frame.
   for (const auto& [key, series] : by_time) {
-    if (series.empty()) continue;
-    const auto held = newest_held_ns.find(key);
-    if (held != newest_held_ns.end() && held->second > std::prev(series.end())->first) continue;
-    applied.frame_change[key] = windowChange(series, options.frame_window);
+    if (!series.empty()) applied.frame_change[key] = windowChange(series, options.frame_window);
   }
   // Keyframes that arrived meanwhile: newer than every corrected keyframe of their agent map, the frame's change
   // (they were made in that frame); else their nearest corrected keyframe in time (earlier first).
@@ -536,9 +522,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     auto it = series->second.upper_bound(kf_const.t_ns);
     const bool newest = it == series->second.end();
     if (it != series->second.begin()) --it;
-    const auto frame = applied.frame_change.find(series->first);
-    if (newest && frame == applied.frame_change.end()) continue;  // its agent map keeps its frame
-    const SE3d delta = newest ? frame->second : it->second.delta;
+    const SE3d delta = newest ? applied.frame_change.at(series->first) : it->second.delta;
     ServerKeyframe* kf = map.keyframe(id);
     kf->T_w_s = delta * kf->T_w_s;
     kf->v_w = delta.so3() * kf->v_w;
