@@ -6,6 +6,7 @@
 #include <unordered_map>
 
 #include "server_cloud/backend/map_corrections.hpp"
+#include "server_cloud/backend/merge_correction.hpp"
 
 namespace cvislam::server::backend {
 
@@ -463,97 +464,33 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   if (options_.gba_after_change) requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived);
 }
 
-namespace {
-
-// The keyframes around a match: the query's and the candidate's `n` most covisible ones each, with themselves.
-std::unordered_set<KeyframeId> aroundMatch(const MapContent& map, const recognition::VerifiedMatch& match, int n) {
-  std::unordered_set<KeyframeId> out{match.query, match.candidate};
-  for (const KeyframeId& centre : {match.query, match.candidate}) {
-    std::vector<std::pair<int, KeyframeId>> ranked;
-    for (const auto& [other, shared] : map.covisible(centre)) ranked.emplace_back(shared, other);
-    const auto count = std::min<std::size_t>(ranked.size(), static_cast<std::size_t>(n));
-    std::partial_sort(
-        ranked.begin(), ranked.begin() + static_cast<std::ptrdiff_t>(count), ranked.end(),
-        [](const auto& a, const auto& b) { return a.first > b.first || (a.first == b.first && a.second < b.second); });
-    for (std::size_t i = 0; i < count; ++i) out.insert(ranked[i].second);
-  }
-  return out;
-}
-
-// Readies a merge's pose graph once the BA around the match has placed `placed`: those are held where the BA put
-// them, the candidate map's other keyframes where they are, and the query map's others follow its own edges only
-// (edges between the two maps came with the fusion, and their relative poses carry the match's error). Returns the
-// keyframes held where they are.
-std::unordered_set<KeyframeId> holdForMerge(PoseGraph& graph, const std::vector<KeyframeCorrection>& placed,
-                                            const std::unordered_set<KeyframeId>& query_keyframes) {
-  std::erase_if(graph.edges, [&](const PoseGraph::Edge& e) {
-    return query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.a)].id) !=
-           query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.b)].id);
-  });
-  std::unordered_map<KeyframeId, SE3d> after;
-  for (const KeyframeCorrection& c : placed) after.emplace(c.id, c.T_w_s_after);
-  std::unordered_set<KeyframeId> unchanged;
-  for (PoseGraph::Node& node : graph.nodes) {
-    if (const auto it = after.find(node.id); it != after.end()) {
-      node.held_at = it->second;
-    } else if (query_keyframes.count(node.id) == 0) {
-      node.held_at = node.T_w_s;
-      unchanged.insert(node.id);
-    }
-  }
-  return unchanged;
-}
-
-}  // namespace
-
 bool BackendWorker::correctMerge(Mission& mission, MissionState& state, const std::shared_ptr<ServerMap>& into,
                                  const recognition::VerifiedMatch& match,
                                  const std::unordered_set<KeyframeId>& query_keyframes, MergeRecord& record) {
   const AgentSensorsMap sensors = sensorsOf(mission);
-  // What both solves need, copied under the read lock: the window's BA problem, where the candidate map's
-  // keyframes around it are held and the query map's others left out (they follow in the pose graph), and the
-  // pose graph of the whole map as it is.
-  GbaWindow window;
-  Result<GbaSnapshot> snapshot = Error{ErrorCode::kInternal, "no snapshot"};
-  PoseGraph graph;
+  std::vector<LoopEdge> loops;
   {
-    const auto content = into->read();
-    if (content->keyframe(match.query) == nullptr || content->keyframe(match.candidate) == nullptr) return false;
-    window.free = aroundMatch(*content, match, options_.merge_correction_keyframes);
-    for (const KeyframeId& id : query_keyframes) {
-      if (window.free.count(id) == 0) window.left_out.insert(id);
-    }
-    snapshot = makeGbaSnapshot(*content, sensors, &window);
-    std::vector<LoopEdge> loops;
-    {
-      const std::lock_guard lock(mutex_);
-      loops = state.loops[into->id()];
-    }
-    graph = buildPoseGraph(*content, loops, options_.pose_graph);
+    const std::lock_guard lock(mutex_);
+    loops = state.loops[into->id()];
   }
-  if (!snapshot) return false;
+  // What both solves need, copied under the read lock; the solves without a lock.
+  Result<MergeCorrectionInput> input = copyMergeCorrection(
+      *into->read(), match, query_keyframes, options_.merge_correction_keyframes, sensors, loops, options_.pose_graph);
+  if (!input) return false;
   if (options_.on_merge_correction_solve_start) options_.on_merge_correction_solve_start(into->id());
   const auto start = Clock::now();
-  Result<GlobalBaSummary> ba = runGlobalBa(*snapshot, options_.merge_correction_ba);
-  if (!ba || ba->cancelled) return false;
-  record.correction_ba = *ba;
-  std::vector<KeyframeCorrection> corrections = keyframeCorrections(*snapshot);
-  const std::unordered_set<KeyframeId> unchanged = holdForMerge(graph, corrections, query_keyframes);
-  Result<std::vector<KeyframeCorrection>> carried = solvePoseGraph(graph, options_.pose_graph);
-  if (!carried) return false;
-  record.correction_graph = graph.summary;
+  Result<MergeCorrection> correction = solveMergeCorrection(*input, options_.merge_correction_ba, options_.pose_graph);
+  if (!correction) return false;
   record.correction_solve_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-  corrections.insert(corrections.end(), carried->begin(), carried->end());
-  for (const KeyframeCorrection& c : corrections) {
-    if (c.id != match.query) continue;
-    const SE3d delta = c.T_w_s_before.inverse() * c.T_w_s_after;
-    record.correction_m = delta.translation().norm();
-    record.correction_deg = delta.so3().log().norm() * 180.0 / M_PI;
-  }
+  record.correction_ba = correction->ba;
+  record.correction_graph = correction->graph;
+  const Move moved = moveOf(correction->keyframes, match.query);
+  record.correction_m = moved.m;
+  record.correction_deg = moved.deg;
   StackLocks locks(mission, {into});
   // Like a loop's pose graph, the correction does not mark keyframes refined: the GBA that follows does.
-  (void)applyToMission(mission, locks, into->id(), corrections, pointCorrections(*snapshot),
-                       ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes, &unchanged},
+  (void)applyToMission(mission, locks, into->id(), correction->keyframes, correction->points,
+                       ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes, &correction->unchanged},
                        "merge correction");
   return true;
 }
@@ -610,12 +547,9 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
   record.solve_ms = std::chrono::duration<double, std::milli>(Clock::now() - solve_start).count();
   if (!corrections) return;
   record.graph = graph.summary;
-  for (const KeyframeCorrection& c : *corrections) {
-    if (c.id != match.query) continue;
-    const SE3d delta = c.T_w_s_before.inverse() * c.T_w_s_after;
-    record.correction_m = delta.translation().norm();
-    record.correction_deg = delta.so3().log().norm() * 180.0 / M_PI;
-  }
+  const Move moved = moveOf(*corrections, match.query);
+  record.correction_m = moved.m;
+  record.correction_deg = moved.deg;
   // A running GBA of this map goes on unless the loop is a big correction: both results are changes of state
   // and compose when applied, and the GBA requested below takes the loop in.
   if (record.correction_m > options_.loop_cancels_gba_m || record.correction_deg > options_.loop_cancels_gba_deg) {
