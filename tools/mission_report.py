@@ -35,6 +35,11 @@ def counter(stats_map, kind):
     return int(c.get("messages", 0)), int(c.get("bytes", 0))
 
 
+def ms(value):
+    """Milliseconds to one decimal, or '-' when the server did not record them (an older server)."""
+    return "-" if value is None else f"{value:.1f}"
+
+
 def cm(value):
     return "   n/a" if value is None or math.isnan(value) else f"{value * 100:6.2f}"
 
@@ -194,7 +199,11 @@ def report_recognition(out, mission, map_to_truth, summary):
         errors_r.sort()
         row = {"mission": name, "keyframes": rec["keyframes"], "queries": rec["queries"],
                "candidates": rec["candidates"], "loops": rec["loops"], "map_matches": rec["map_matches"],
-               "busy_s": rec["busy_s"], "map_matches_scored": scored, "map_matches_wrong": wrong,
+               "busy_s": rec["busy_s"],
+               "query_ms_p99": rec.get("query_ms", {}).get("p99"),
+               "lock_held_ms_p99": rec.get("lock_held_ms", {}).get("p99"),
+               "lock_held_ms_max": rec.get("lock_held_ms", {}).get("max"),
+               "map_matches_scored": scored, "map_matches_wrong": wrong,
                "translation_error_p50_m": errors_t[len(errors_t) // 2] if errors_t else None,
                "translation_error_max_m": errors_t[-1] if errors_t else None,
                "rotation_error_p50_deg": errors_r[len(errors_r) // 2] if errors_r else None,
@@ -214,7 +223,8 @@ def report_recognition(out, mission, map_to_truth, summary):
                 f"{r['rotation_error_p50_deg']:.2f} / {r['rotation_error_max_deg']:.2f} deg"
                 if r["map_matches_scored"] else "none scored")
         print(f"{r['mission']:10} {r['keyframes']:5d} {r['queries']:8d} {r['candidates']:9d} {r['loops']:6d} "
-              f"{r['map_matches']:8d} {r['busy_s']:8.1f}  {errs}")
+              f"{r['map_matches']:8d} {r['busy_s']:8.1f} {ms(r['query_ms_p99']):>9} "
+              f"{ms(r['lock_held_ms_p99']) + ' / ' + ms(r['lock_held_ms_max']):>17}  {errs}")
 
 
 def main():

@@ -403,6 +403,14 @@ Status writeRecognition(const std::filesystem::path& path, const recognition::Re
   j["dropped_events"] = c.dropped_events;
   j["skipped"] = c.skipped;
   j["busy_s"] = c.busy_s;
+  const auto quantiles = [](const LatencySamples& samples) {
+    return nlohmann::json{{"p50", samples.percentile(0.5)},
+                          {"p99", samples.percentile(0.99)},
+                          {"max", samples.percentile(1.0)},
+                          {"n", samples.size()}};
+  };
+  j["query_ms"] = quantiles(c.query_ms);
+  j["lock_held_ms"] = quantiles(c.lock_held_ms);
   nlohmann::json list = nlohmann::json::array();
   for (const recognition::MatchRecord& r : matches) {
     const recognition::VerifiedMatch& m = r.match;

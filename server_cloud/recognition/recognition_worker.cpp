@@ -229,6 +229,7 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
   std::vector<decltype(maps.front()->read())> locked;
   locked.reserve(maps.size());
   std::unordered_map<MapId, const MapContent*> by_id;
+  const auto locked_at = std::chrono::steady_clock::now();
   for (const auto& m : maps) {
     locked.push_back(m->read());
     by_id.emplace(m->id(), &*locked.back());
@@ -265,6 +266,8 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
   }
   locked.clear();
   const double busy_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double lock_held_ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - locked_at).count();
   MatchListener listener;
   {
     const std::lock_guard lock(mutex_);
@@ -275,6 +278,8 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
     c.map_matches += delta.map_matches;
     for (const auto& [reason, n] : delta.rejections) c.rejections[reason] += n;
     c.busy_s += busy_s;
+    c.query_ms.add(busy_s * 1e3);
+    c.lock_held_ms.add(lock_held_ms);
     for (const MatchRecord& m : accepted) state.matches.push_back(m);
     listener = on_match_;
   }

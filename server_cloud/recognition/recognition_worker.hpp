@@ -67,6 +67,10 @@ struct RecognitionCounters {
   std::uint64_t dropped_events = 0;                 // the queue was full
   std::uint64_t skipped = 0;                        // keyframes gone before their turn
   double busy_s = 0.0;                              // time spent on queries
+  LatencySamples query_ms;                          // per query keyframe (its loop and map-match queries)
+  // Per query keyframe, the longest time any map's read lock was held for it: what ingest into that map may
+  // have waited.
+  LatencySamples lock_held_ms;
 };
 
 class RecognitionWorker {
