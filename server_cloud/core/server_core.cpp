@@ -411,6 +411,8 @@ Status writeRecognition(const std::filesystem::path& path, const recognition::Re
   };
   j["query_ms"] = quantiles(c.query_ms);
   j["lock_held_ms"] = quantiles(c.lock_held_ms);
+  j["query_cpu_ms"] = quantiles(c.query_cpu_ms);
+  j["locked_cpu_ms"] = quantiles(c.locked_cpu_ms);
   nlohmann::json list = nlohmann::json::array();
   for (const recognition::MatchRecord& r : matches) {
     const recognition::VerifiedMatch& m = r.match;

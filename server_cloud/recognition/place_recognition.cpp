@@ -33,6 +33,9 @@ struct Correspondence {
   int distance = 0;
 };
 
+using CopiedKeyframe = VerificationInput::Keyframe;
+using CopiedPoint = VerificationInput::Point;
+
 // Gauss-Newton with a Huber weight on the distorted-pixel reprojection error, over T_c_m (left perturbation,
 // [rho; phi]). Returns the refined pose; correspondences behind the camera are left out of each step.
 geometry::SE3d refinePose(const camera::CameraModel& camera, const std::vector<Eigen::Vector2d>& px,
@@ -174,14 +177,14 @@ std::string_view toString(Rejection rejection) {
   return "?";
 }
 
-Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const MapContent& query_map,
-                                       const KeyframeId& query, QueryKind kind, const MapLookup& maps,
-                                       const RecognitionOptions& options) {
+Result<ScoredCandidates> scoreCandidates(const KeyframeDatabase& database, const MapContent& query_map,
+                                         const KeyframeId& query, QueryKind kind, const RecognitionOptions& options) {
   const DatabaseEntry* entry = database.find(query);
   if (entry == nullptr || query_map.keyframe(query) == nullptr) {
     return Error(ErrorCode::kNotFound, "keyframe " + query.toString() + " is not in the database or its map");
   }
-  CandidateSearch search;
+  ScoredCandidates scored;
+  CandidateSearch& search = scored.search;
   std::unordered_set<KeyframeId> exclude{query};
   for (const auto& [neighbour, shared] : query_map.covisible(query)) {
     exclude.insert(neighbour);  // every keyframe sharing a point is too close to count as a revisit
@@ -198,19 +201,30 @@ Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const M
   q.exclude = kind == QueryKind::kLoop ? &exclude : nullptr;
   q.min_score = search.min_score;
   q.min_common_words_ratio = options.min_common_words_ratio;
-  std::vector<BowCandidate> bow = database.query(entry->bow, q);
+  scored.bow = database.query(entry->bow, q);
   if (kind == QueryKind::kLoop) {
     // The agent's own keyframes from the last loop_min_interval_s are tracking's business, not a loop.
     const std::int64_t t_q = query_map.keyframe(query)->t_ns;
     const auto min_ns = static_cast<std::int64_t>(options.loop_min_interval_s * 1e9);
-    std::erase_if(bow, [&](const BowCandidate& c) {
+    std::erase_if(scored.bow, [&](const BowCandidate& c) {
       const ServerKeyframe* kf = query_map.keyframe(c.keyframe);
       return kf != nullptr && c.keyframe.agent == query.agent && std::llabs(kf->t_ns - t_q) < min_ns;
     });
   }
-  search.bow_candidates = static_cast<int>(bow.size());
-  if (bow.empty()) return search;
+  search.bow_candidates = static_cast<int>(scored.bow.size());
+  return scored;
+}
 
+std::vector<KeyframeId> groupNeighbours(const MapContent& map, const KeyframeId& keyframe,
+                                        const RecognitionOptions& options) {
+  return mostCovisible(map, keyframe, options.group_neighbours);
+}
+
+CandidateSearch groupCandidates(ScoredCandidates scored, const NeighbourLookup& neighbours,
+                                const RecognitionOptions& options) {
+  CandidateSearch search = std::move(scored.search);
+  const std::vector<BowCandidate>& bow = scored.bow;
+  if (bow.empty()) return search;
   // Group by covisibility: each candidate with its most covisible keyframes that are candidates too.
   std::unordered_map<KeyframeId, double> score_of;
   for (const BowCandidate& c : bow) score_of.emplace(c.keyframe, c.score);
@@ -223,8 +237,8 @@ Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const M
     Group g;
     g.best = Candidate{c.keyframe, c.map, c.score, 0.0};
     g.score = c.score;
-    if (const MapContent* map = maps(c.map); map != nullptr) {
-      for (const KeyframeId& n : mostCovisible(*map, c.keyframe, options.group_neighbours)) {
+    if (const std::vector<KeyframeId>* around = neighbours(c.keyframe); around != nullptr) {
+      for (const KeyframeId& n : *around) {
         const auto it = score_of.find(n);
         if (it == score_of.end()) continue;
         g.score += it->second;
@@ -249,13 +263,33 @@ Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const M
   return search;
 }
 
+Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const MapContent& query_map,
+                                       const KeyframeId& query, QueryKind kind, const MapLookup& maps,
+                                       const RecognitionOptions& options) {
+  Result<ScoredCandidates> scored = scoreCandidates(database, query_map, query, kind, options);
+  if (!scored) return scored.error();
+  std::unordered_map<KeyframeId, std::vector<KeyframeId>> around;
+  for (const BowCandidate& c : scored->bow) {
+    if (const MapContent* map = maps(c.map); map != nullptr)
+      around[c.keyframe] = groupNeighbours(*map, c.keyframe, options);
+  }
+  return groupCandidates(std::move(scored).value(), neighbourLookup(around), options);
+}
+
+NeighbourLookup neighbourLookup(const std::unordered_map<KeyframeId, std::vector<KeyframeId>>& around) {
+  return [&around](const KeyframeId& id) -> const std::vector<KeyframeId>* {
+    const auto it = around.find(id);
+    return it == around.end() ? nullptr : &it->second;
+  };
+}
+
 namespace {
 
 // a. Descriptor matching through the direct index: the query's features against the candidate's features that
 // observe a map point, under the same vocabulary node; one query keypoint per candidate point, the closest.
-std::vector<Correspondence> matchThroughDirectIndex(const ServerKeyframe& q, const DatabaseEntry& qe,
-                                                    const ServerKeyframe& c, const DatabaseEntry& ce,
-                                                    const MapContent& candidate_map,
+std::vector<Correspondence> matchThroughDirectIndex(const CopiedKeyframe& q, const DatabaseEntry& qe,
+                                                    const CopiedKeyframe& c, const DatabaseEntry& ce,
+                                                    const std::vector<CopiedPoint>& points,
                                                     const RecognitionOptions& options) {
   std::vector<Correspondence> matches;
   std::unordered_map<MapPointId, std::size_t> by_point;
@@ -280,16 +314,15 @@ std::vector<Correspondence> matchThroughDirectIndex(const ServerKeyframe& q, con
     for (std::size_t a = i; a < i_end; ++a) {
       const std::uint16_t kq = fq[a].feature;
       if (kq >= q.descriptors.size()) continue;
-      features::BestTwo<const ServerMapPoint*> nearest;
+      features::BestTwo<const CopiedPoint*> nearest;
       for (std::size_t b = j; b < j_end; ++b) {
         const std::uint16_t kc = fc[b].feature;
-        if (!usablePoint(c, kc)) continue;
-        const ServerMapPoint* p = candidate_map.point(c.point[kc]);
-        if (p == nullptr) continue;
+        if (kc >= c.point.size() || c.point[kc] < 0) continue;
+        const CopiedPoint* p = &points[static_cast<std::size_t>(c.point[kc])];
         nearest.offer(features::hammingDistance(q.descriptors[kq], c.descriptors[kc]), p);
       }
       const int best = nearest.best;
-      const ServerMapPoint* best_point = nearest.candidate;
+      const CopiedPoint* best_point = nearest.candidate;
       if (best_point == nullptr || best > options.max_descriptor_distance) continue;
       if (nearest.hasSecond() && static_cast<float>(best) >= options.match_ratio * static_cast<float>(nearest.second)) {
         continue;
@@ -314,7 +347,7 @@ struct PoseSupport {
   std::vector<Eigen::Vector3d> p_m;
   std::vector<Correspondence> used;
 
-  void add(const ServerKeyframe& q, const Correspondence& m) {
+  void add(const CopiedKeyframe& q, const Correspondence& m) {
     px.push_back(q.keypoints[m.keypoint].px.cast<double>());
     p_m.push_back(m.p_m);
     used.push_back(m);
@@ -328,7 +361,7 @@ struct RansacPose {
 
 // b. RANSAC pose of the query camera in the candidate map, on normalised coordinates; an error saying why when it
 // fails.
-Result<RansacPose> ransacPose(const ServerKeyframe& q, const AgentCamera& camera,
+Result<RansacPose> ransacPose(const CopiedKeyframe& q, const AgentCamera& camera,
                               const std::vector<Correspondence>& matches, const RecognitionOptions& options) {
   const double focal = camera.camera.calibration().fx;
   std::vector<cv::Point3d> object;
@@ -365,50 +398,39 @@ Result<RansacPose> ransacPose(const ServerKeyframe& q, const AgentCamera& camera
 
 // c. Guided search: the points of the candidate's covisible neighbourhood that are not matched yet, projected into
 // the query with T_c_m; each free query keypoint takes its closest point within the radius. Added to `support`.
-void guidedSearch(const ServerKeyframe& q, const AgentCamera& camera, const MapContent& candidate_map,
-                  const KeyframeId& candidate, const geometry::SE3d& T_c_m, const RecognitionOptions& options,
-                  PoseSupport& support) {
+void guidedSearch(const CopiedKeyframe& q, const AgentCamera& camera, const std::vector<CopiedPoint>& points,
+                  const geometry::SE3d& T_c_m, const RecognitionOptions& options, PoseSupport& support) {
   std::unordered_set<MapPointId> have;
   std::vector<char> keypoint_taken(q.keypoints.size(), 0);
   for (const Correspondence& m : support.used) {
     have.insert(m.point);
     keypoint_taken[m.keypoint] = 1;
   }
-  std::vector<KeyframeId> neighbourhood{candidate};
-  for (const KeyframeId& n : mostCovisible(candidate_map, candidate, options.guided_neighbours)) {
-    neighbourhood.push_back(n);
-  }
   std::unordered_map<std::uint16_t, Correspondence> best_for_keypoint;
   const double radius2 = options.guided_radius_px * options.guided_radius_px;
-  for (const KeyframeId& id : neighbourhood) {
-    const ServerKeyframe* kf = candidate_map.keyframe(id);
-    if (kf == nullptr) continue;
-    for (std::size_t k = 0; k < kf->point.size(); ++k) {
-      if (!usablePoint(*kf, k)) continue;
-      const ServerMapPoint* p = candidate_map.point(kf->point[k]);
-      if (p == nullptr || !have.insert(p->id).second) continue;
-      const std::optional<Eigen::Vector2d> projected = camera.camera.project(T_c_m * p->p_w);
-      if (!projected || projected->x() < 0.0 || projected->y() < 0.0 || projected->x() >= camera.camera.width() ||
-          projected->y() >= camera.camera.height()) {
-        continue;
+  for (const CopiedPoint& p : points) {
+    if (have.count(p.id) != 0) continue;
+    const std::optional<Eigen::Vector2d> projected = camera.camera.project(T_c_m * p.p_w);
+    if (!projected || projected->x() < 0.0 || projected->y() < 0.0 || projected->x() >= camera.camera.width() ||
+        projected->y() >= camera.camera.height()) {
+      continue;
+    }
+    int best = options.guided_max_distance + 1;
+    int best_keypoint = -1;
+    for (std::size_t kq = 0; kq < q.keypoints.size(); ++kq) {
+      if (keypoint_taken[kq] != 0) continue;
+      if ((q.keypoints[kq].px.cast<double>() - *projected).squaredNorm() > radius2) continue;
+      const int d = features::hammingDistance(q.descriptors[kq], p.descriptor);
+      if (d < best) {
+        best = d;
+        best_keypoint = static_cast<int>(kq);
       }
-      int best = options.guided_max_distance + 1;
-      int best_keypoint = -1;
-      for (std::size_t kq = 0; kq < q.keypoints.size(); ++kq) {
-        if (keypoint_taken[kq] != 0) continue;
-        if ((q.keypoints[kq].px.cast<double>() - *projected).squaredNorm() > radius2) continue;
-        const int d = features::hammingDistance(q.descriptors[kq], p->descriptor);
-        if (d < best) {
-          best = d;
-          best_keypoint = static_cast<int>(kq);
-        }
-      }
-      if (best_keypoint < 0) continue;
-      const auto key = static_cast<std::uint16_t>(best_keypoint);
-      const auto it = best_for_keypoint.find(key);
-      if (it == best_for_keypoint.end() || best < it->second.distance) {
-        best_for_keypoint[key] = Correspondence{key, p->id, p->p_w, best};
-      }
+    }
+    if (best_keypoint < 0) continue;
+    const auto key = static_cast<std::uint16_t>(best_keypoint);
+    const auto it = best_for_keypoint.find(key);
+    if (it == best_for_keypoint.end() || best < it->second.distance) {
+      best_for_keypoint[key] = Correspondence{key, p.id, p.p_w, best};
     }
   }
   std::vector<std::uint16_t> keys;
@@ -417,17 +439,16 @@ void guidedSearch(const ServerKeyframe& q, const AgentCamera& camera, const MapC
   for (const std::uint16_t k : keys) support.add(q, best_for_keypoint[k]);
 }
 
-// The scale between the maps from the point pairs that agree with the transform, when there are enough of them.
-std::optional<std::pair<double, std::size_t>> pairScale(const VerifiedMatch& match, const MapContent& query_map,
-                                                        const MapContent& candidate_map,
-                                                        const RecognitionOptions& options) {
+// The scale between the maps from the point pairs (query map position, candidate map position) that agree with the
+// transform, when there are enough of them.
+std::optional<std::pair<double, std::size_t>> pairScale(
+    const std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>>& pairs, const geometry::SE3d& T_qmap_cmap,
+    const RecognitionOptions& options) {
   std::vector<Eigen::Vector3d> from_candidate;
   std::vector<Eigen::Vector3d> in_query;
-  for (const auto& [pq, pc] : match.point_pairs) {
-    const Eigen::Vector3d a = query_map.point(pq)->p_w;
-    const Eigen::Vector3d b = match.T_qmap_cmap * candidate_map.point(pc)->p_w;
-    if ((a - b).norm() > options.pair_inlier_distance_m) continue;
-    from_candidate.push_back(candidate_map.point(pc)->p_w);
+  for (const auto& [a, p_c] : pairs) {
+    if ((a - T_qmap_cmap * p_c).norm() > options.pair_inlier_distance_m) continue;
+    from_candidate.push_back(p_c);
     in_query.push_back(a);
   }
   if (static_cast<int>(from_candidate.size()) < options.min_pairs_for_scale) return std::nullopt;
@@ -436,61 +457,120 @@ std::optional<std::pair<double, std::size_t>> pairScale(const VerifiedMatch& mat
   return std::pair{sim3->scale(), from_candidate.size()};
 }
 
+// A keyframe as verification reads it; its points appended to `points` (each once, first seen first, through
+// `index`), its links pointing into them.
+CopiedKeyframe copyKeyframe(const MapContent& map, const ServerKeyframe& kf, std::vector<CopiedPoint>& points,
+                            std::unordered_map<MapPointId, std::int32_t>& index) {
+  CopiedKeyframe copy;
+  copy.id = kf.id;
+  copy.T_w_s = kf.T_w_s;
+  copy.keypoints = kf.keypoints;
+  copy.descriptors = kf.descriptors;
+  copy.point.assign(kf.keypoints.size(), -1);
+  for (std::size_t k = 0; k < kf.point.size() && k < copy.point.size(); ++k) {
+    if (!usablePoint(kf, k)) continue;
+    const ServerMapPoint* p = map.point(kf.point[k]);
+    if (p == nullptr) continue;
+    const auto [it, added] = index.emplace(p->id, static_cast<std::int32_t>(points.size()));
+    if (added) points.push_back(CopiedPoint{p->id, p->p_w, p->descriptor});
+    copy.point[k] = it->second;
+  }
+  return copy;
+}
+
 }  // namespace
 
-Verification verifyCandidate(const KeyframeDatabase& database, const MapContent& query_map, const KeyframeId& query,
-                             const MapContent& candidate_map, const KeyframeId& candidate, double bow_score,
-                             const CameraLookup& cameras, const RecognitionOptions& options) {
+Status copyQuery(const MapContent& map, const KeyframeId& query, VerificationInput& input) {
+  const ServerKeyframe* q = map.keyframe(query);
+  if (q == nullptr) return Error(ErrorCode::kNotFound, "query keyframe " + query.toString() + " is not in its map");
+  input.query_map = map.id();
+  input.query_points.clear();
+  std::unordered_map<MapPointId, std::int32_t> index;
+  input.query = copyKeyframe(map, *q, input.query_points, index);
+  return Status::Ok();
+}
+
+Status copyCandidate(const MapContent& map, const KeyframeId& candidate, const RecognitionOptions& options,
+                     VerificationInput& input) {
+  const ServerKeyframe* c = map.keyframe(candidate);
+  if (c == nullptr) {
+    return Error(ErrorCode::kNotFound, "candidate keyframe " + candidate.toString() + " is not in its map");
+  }
+  input.candidate_map = map.id();
+  input.points.clear();
+  std::unordered_map<MapPointId, std::int32_t> index;
+  input.candidate = copyKeyframe(map, *c, input.points, index);
+  // The neighbours only add points; their keyframes are not kept.
+  for (const KeyframeId& n : mostCovisible(map, candidate, options.guided_neighbours)) {
+    if (const ServerKeyframe* kf = map.keyframe(n); kf != nullptr) {
+      for (std::size_t k = 0; k < kf->point.size(); ++k) {
+        if (!usablePoint(*kf, k)) continue;
+        const ServerMapPoint* p = map.point(kf->point[k]);
+        if (p == nullptr) continue;
+        if (index.emplace(p->id, static_cast<std::int32_t>(input.points.size())).second) {
+          input.points.push_back(CopiedPoint{p->id, p->p_w, p->descriptor});
+        }
+      }
+    }
+  }
+  return Status::Ok();
+}
+
+Verification verifyCopied(const KeyframeDatabase& database, const VerificationInput& input, double bow_score,
+                          const CameraLookup& cameras, const RecognitionOptions& options) {
   Verification out;
   const auto reject = [&out](Rejection r, std::string detail) {
     out.rejection = r;
     out.detail = std::move(detail);
     return out;
   };
-  const ServerKeyframe* q = query_map.keyframe(query);
-  const ServerKeyframe* c = candidate_map.keyframe(candidate);
-  const DatabaseEntry* qe = database.find(query);
-  const DatabaseEntry* ce = database.find(candidate);
-  const AgentCamera* camera = cameras(query.agent);
-  if (q == nullptr || c == nullptr || qe == nullptr || ce == nullptr || camera == nullptr) {
-    return reject(Rejection::kMissing, "keyframe, database entry or camera of " + query.toString() + " / " +
-                                           candidate.toString() + " unknown");
+  const CopiedKeyframe& q = input.query;
+  const CopiedKeyframe& c = input.candidate;
+  const DatabaseEntry* qe = database.find(q.id);
+  const DatabaseEntry* ce = database.find(c.id);
+  const AgentCamera* camera = cameras(q.id.agent);
+  if (qe == nullptr || ce == nullptr || camera == nullptr) {
+    return reject(Rejection::kMissing,
+                  "database entry or camera of " + q.id.toString() + " / " + c.id.toString() + " unknown");
   }
-  const std::vector<Correspondence> matches = matchThroughDirectIndex(*q, *qe, *c, *ce, candidate_map, options);
+  const std::vector<Correspondence> matches = matchThroughDirectIndex(q, *qe, c, *ce, input.points, options);
   if (static_cast<int>(matches.size()) < options.min_matches) {
     return reject(Rejection::kTooFewMatches, std::to_string(matches.size()) + " descriptor matches (needs " +
                                                  std::to_string(options.min_matches) + ")");
   }
-  const Result<RansacPose> ransac = ransacPose(*q, *camera, matches, options);
+  const Result<RansacPose> ransac = ransacPose(q, *camera, matches, options);
   if (!ransac) return reject(Rejection::kPoseFailed, ransac.error().message());
   const RansacPose& pose = *ransac;
   PoseSupport support;
-  for (const int index : pose.inliers) support.add(*q, matches[static_cast<std::size_t>(index)]);
+  for (const int index : pose.inliers) support.add(q, matches[static_cast<std::size_t>(index)]);
   geometry::SE3d T_c_m = refinePose(camera->camera, support.px, support.p_m, pose.T_c_m, options.max_reprojection_px);
-  guidedSearch(*q, *camera, candidate_map, candidate, T_c_m, options, support);
+  guidedSearch(q, *camera, input.points, T_c_m, options, support);
   T_c_m = refinePose(camera->camera, support.px, support.p_m, T_c_m, options.max_reprojection_px);
   const std::vector<bool> inlier =
       reprojectionInliers(camera->camera, support.px, support.p_m, T_c_m, options.max_reprojection_px);
 
   VerifiedMatch match;
-  match.query = query;
-  match.candidate = candidate;
-  match.query_map = query_map.id();
-  match.candidate_map = candidate_map.id();
+  match.query = q.id;
+  match.candidate = c.id;
+  match.query_map = input.query_map;
+  match.candidate_map = input.candidate_map;
   match.bow_score = bow_score;
   match.matches = static_cast<int>(matches.size());
   match.ransac_inliers = static_cast<int>(pose.inliers.size());
   match.T_cmap_cq = T_c_m.inverse();
-  const geometry::SE3d T_qmap_cq = q->T_w_s * camera->T_s_c;
+  const geometry::SE3d T_qmap_cq = q.T_w_s * camera->T_s_c;
   match.T_qmap_cmap = T_qmap_cq * T_c_m;
   match.tilt_deg = tiltDeg(match.T_qmap_cmap);
+  std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>> pair_positions;  // query map, candidate map
   for (std::size_t i = 0; i < support.used.size(); ++i) {
     if (!inlier[i]) continue;
     const Correspondence& m = support.used[i];
     ++match.inliers;
     match.keypoint_matches.emplace_back(m.keypoint, m.point);
-    if (usablePoint(*q, m.keypoint) && query_map.point(q->point[m.keypoint]) != nullptr) {
-      match.point_pairs.emplace_back(q->point[m.keypoint], m.point);
+    if (const std::int32_t own = q.point[m.keypoint]; own >= 0) {
+      const CopiedPoint& p = input.query_points[static_cast<std::size_t>(own)];
+      match.point_pairs.emplace_back(p.id, m.point);
+      pair_positions.emplace_back(p.p_w, m.p_m);
     }
   }
   std::ostringstream figures;
@@ -505,7 +585,7 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
     return reject(Rejection::kTilted, figures.str() + " (roll/pitch above " + std::to_string(options.max_tilt_deg) +
                                           " deg: the maps are gravity-aligned)");
   }
-  if (const auto scale = pairScale(match, query_map, candidate_map, options)) {
+  if (const auto scale = pairScale(pair_positions, match.T_qmap_cmap, options)) {
     match.scale = scale->first;
     out.match = match;
     if (std::abs(scale->first - 1.0) > options.max_scale_error) {
@@ -515,6 +595,21 @@ Verification verifyCandidate(const KeyframeDatabase& database, const MapContent&
   }
   out.detail = figures.str();
   return out;
+}
+
+Verification verifyCandidate(const KeyframeDatabase& database, const MapContent& query_map, const KeyframeId& query,
+                             const MapContent& candidate_map, const KeyframeId& candidate, double bow_score,
+                             const CameraLookup& cameras, const RecognitionOptions& options) {
+  VerificationInput input;
+  Status copied = copyQuery(query_map, query, input);
+  if (copied) copied = copyCandidate(candidate_map, candidate, options, input);
+  if (!copied) {
+    Verification v;
+    v.rejection = Rejection::kMissing;
+    v.detail = copied.error().message();
+    return v;
+  }
+  return verifyCopied(database, input, bow_score, cameras, options);
 }
 
 Result<RecognitionResult> recognize(const KeyframeDatabase& database, const MapContent& query_map,

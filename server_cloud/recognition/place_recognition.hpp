@@ -21,6 +21,8 @@
 // The output, a VerifiedMatch, is what map fusion and loop closure consume.
 //
 // Reads the maps it is given and writes nothing; the caller holds what makes that safe (a read lock or a copy).
+// Verification runs on a VerificationInput, a flat copy of the two keyframes and the neighbourhood's points it
+// reads, so that the server's worker copies under a map's read lock and verifies with no lock held.
 #pragma once
 
 #include <cstdint>
@@ -28,6 +30,7 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <unordered_map>
 #include <utility>
 #include <vector>
 
@@ -102,10 +105,28 @@ struct CandidateSearch {
   std::vector<Candidate> candidates;
 };
 
-// The candidates of `query` (held in `database` and in `query_map`). `maps` finds candidate maps.
+// The candidates of `query` (held in `database` and in `query_map`). `maps` finds candidate maps. In three steps
+// that the server's worker takes under one map's lock at a time: scoreCandidates (the query's map), the
+// candidates' groupNeighbours (each candidate's map), groupCandidates (no map).
 Result<CandidateSearch> findCandidates(const KeyframeDatabase& database, const MapContent& query_map,
                                        const KeyframeId& query, QueryKind kind, const MapLookup& maps,
                                        const RecognitionOptions& options);
+
+// The database's candidates above the floor, before grouping.
+struct ScoredCandidates {
+  CandidateSearch search;  // min_score, best_neighbour_score, bow_candidates; no candidates yet
+  std::vector<BowCandidate> bow;
+};
+Result<ScoredCandidates> scoreCandidates(const KeyframeDatabase& database, const MapContent& query_map,
+                                         const KeyframeId& query, QueryKind kind, const RecognitionOptions& options);
+// A candidate's group_neighbours most covisible keyframes in its map.
+std::vector<KeyframeId> groupNeighbours(const MapContent& map, const KeyframeId& keyframe,
+                                        const RecognitionOptions& options);
+// A candidate's groupNeighbours, or nullptr when they are unknown (its map went).
+using NeighbourLookup = std::function<const std::vector<KeyframeId>*(const KeyframeId&)>;
+NeighbourLookup neighbourLookup(const std::unordered_map<KeyframeId, std::vector<KeyframeId>>& around);
+CandidateSearch groupCandidates(ScoredCandidates scored, const NeighbourLookup& neighbours,
+                                const RecognitionOptions& options);
 
 struct VerifiedMatch {
   KeyframeId query;
@@ -144,6 +165,41 @@ struct Verification {
   [[nodiscard]] bool accepted() const { return rejection == Rejection::kNone; }
 };
 
+// What verifying one candidate reads of the two maps, copied (copyQuery, copyCandidate).
+struct VerificationInput {
+  struct Point {
+    MapPointId id;
+    Eigen::Vector3d p_w = Eigen::Vector3d::Zero();
+    features::Descriptor descriptor{};
+  };
+  struct Keyframe {
+    KeyframeId id;
+    geometry::SE3d T_w_s;
+    std::vector<features::Keypoint> keypoints;
+    std::vector<features::Descriptor> descriptors;
+    std::vector<std::int32_t> point;  // per keypoint: the index of the point it observes in its points, or -1
+  };
+  MapId query_map = 0;
+  Keyframe query;
+  std::vector<Point> query_points;
+  MapId candidate_map = 0;
+  Keyframe candidate;
+  // The candidate's points, then those of its guided_neighbours most covisible keyframes (the guided search's
+  // neighbourhood), each point once, first seen first: the order the guided search breaks ties in.
+  std::vector<Point> points;
+};
+
+// Copy the query keyframe and its points from its map (kNotFound when it is not there), or the candidate, its
+// neighbourhood and their points from the candidate's map.
+Status copyQuery(const MapContent& map, const KeyframeId& query, VerificationInput& input);
+Status copyCandidate(const MapContent& map, const KeyframeId& candidate, const RecognitionOptions& options,
+                     VerificationInput& input);
+
+// The verification of a copied candidate: needs no map and no lock.
+Verification verifyCopied(const KeyframeDatabase& database, const VerificationInput& input, double bow_score,
+                          const CameraLookup& cameras, const RecognitionOptions& options);
+
+// copyQuery and copyCandidate from the maps, then verifyCopied.
 Verification verifyCandidate(const KeyframeDatabase& database, const MapContent& query_map, const KeyframeId& query,
                              const MapContent& candidate_map, const KeyframeId& candidate, double bow_score,
                              const CameraLookup& cameras, const RecognitionOptions& options);

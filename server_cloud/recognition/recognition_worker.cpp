@@ -2,6 +2,10 @@
 
 #include <algorithm>
 #include <chrono>
+#include <ctime>
+#include <optional>
+#include <set>
+#include <string>
 #include <unordered_map>
 #include <utility>
 
@@ -214,60 +218,123 @@ void RecognitionWorker::handle(const KeyframeEvent& event) {
   }
 }
 
+namespace {
+
+double msSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+// This thread's CPU time: on a loaded machine a lock is held for as long as the scheduler keeps its holder off a
+// core, so the work done under it is told apart from the time it was held.
+double threadCpuMs() {
+  timespec t{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) * 1e3 + static_cast<double>(t.tv_nsec) * 1e-6;
+}
+
+Verification missing(std::string detail) {
+  Verification v;
+  v.rejection = Rejection::kMissing;
+  v.detail = std::move(detail);
+  return v;
+}
+
+}  // namespace
+
 void RecognitionWorker::query(MissionState& state, Mission& mission, const KeyframeId& keyframe) {
   const auto start = std::chrono::steady_clock::now();
   const DatabaseEntry* entry = state.database.find(keyframe);
   if (entry == nullptr) return;
+  const MapId query_map = entry->map;
   // The cameras first: an agent record is locked before any map, never while holding one.
   for (const SharedAgentRecord& record : mission.agents()) {
     AgentId agent = 0;
     { agent = record->read()->id; }
     (void)camera(state, mission, agent);
   }
-  // Every map of the mission under its read lock, in id order (the stack's lock order).
-  const std::vector<std::shared_ptr<ServerMap>> maps = mission.stack().maps();
-  std::vector<decltype(maps.front()->read())> locked;
-  locked.reserve(maps.size());
-  std::unordered_map<MapId, const MapContent*> by_id;
-  const auto locked_at = std::chrono::steady_clock::now();
-  for (const auto& m : maps) {
-    locked.push_back(m->read());
-    by_id.emplace(m->id(), &*locked.back());
+  const double cpu_start_ms = threadCpuMs();
+  QueryLocks locks;
+  // One map's read lock at a time, each for what is read of that map: ingest into a map never waits behind the
+  // locks of others, nor behind the searches.
+  const auto underReadLock = [&](const ServerMap& map, const auto& read) {
+    const auto content = map.read();
+    const auto locked_at = std::chrono::steady_clock::now();
+    const double cpu_at = threadCpuMs();
+    read(*content);
+    locks.add(msSince(locked_at), threadCpuMs() - cpu_at);
+  };
+  // The query's map: the database's candidates (the exclusions and the loop's time rule read it), the groups of
+  // those in it, and the query keyframe's copy.
+  std::vector<std::pair<QueryKind, ScoredCandidates>> scored;
+  std::unordered_map<KeyframeId, std::vector<KeyframeId>> around;  // each candidate's group neighbours
+  VerificationInput input;  // the query's part now, each candidate's before its turn
+  RecognitionCounters delta;
+  bool held = false;
+  if (const std::shared_ptr<ServerMap> map = mission.stack().find(query_map)) {
+    underReadLock(*map, [&](const MapContent& content) {
+      if (content.keyframe(keyframe) == nullptr) return;
+      held = true;
+      (void)copyQuery(content, keyframe, input);
+      for (const QueryKind kind : {QueryKind::kLoop, QueryKind::kMapMatch}) {
+        Result<ScoredCandidates> s = scoreCandidates(state.database, content, keyframe, kind, options_.recognition);
+        ++delta.queries;
+        if (s) scored.emplace_back(kind, std::move(s).value());
+      }
+      for (const auto& [kind, s] : scored) {
+        for (const BowCandidate& c : s.bow) {
+          if (c.map == query_map) around[c.keyframe] = groupNeighbours(content, c.keyframe, options_.recognition);
+        }
+      }
+    });
   }
-  const auto it = by_id.find(entry->map);
-  if (it == by_id.end() || it->second->keyframe(keyframe) == nullptr) {
+  if (!held) {
     const std::lock_guard lock(mutex_);
     ++state.counters.skipped;
     return;
   }
-  const MapLookup lookup = [&](MapId id) -> const MapContent* {
-    const auto found = by_id.find(id);
-    return found == by_id.end() ? nullptr : found->second;
-  };
-  const CameraLookup cameras = [&](AgentId agent) -> const AgentCamera* {
-    const auto found = state.cameras.find(agent);
-    return found == state.cameras.end() ? nullptr : found->second.get();
-  };
-  std::vector<MatchRecord> accepted;
-  RecognitionCounters delta;
-  for (const QueryKind kind : {QueryKind::kLoop, QueryKind::kMapMatch}) {
-    Result<RecognitionResult> result =
-        recognize(state.database, *it->second, keyframe, kind, lookup, cameras, options_.recognition);
-    ++delta.queries;
-    if (!result) continue;
-    delta.candidates += result->search.candidates.size();
-    for (const Verification& v : result->verifications) {
-      if (!v.accepted()) ++delta.rejections[std::string(toString(v.rejection))];
-    }
-    if (result->best) {
-      ++(kind == QueryKind::kLoop ? delta.loops : delta.map_matches);
-      accepted.push_back(MatchRecord{kind, *result->best});
+  // The other maps' candidates' groups, map by map.
+  std::set<MapId> others;
+  for (const auto& [kind, s] : scored) {
+    for (const BowCandidate& c : s.bow) {
+      if (c.map != query_map) others.insert(c.map);
     }
   }
-  locked.clear();
-  const double busy_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  const double lock_held_ms =
-      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - locked_at).count();
+  for (const MapId id : others) {
+    const std::shared_ptr<ServerMap> map = mission.stack().find(id);
+    if (!map) continue;  // merged meanwhile: its candidates stand alone
+    underReadLock(*map, [&](const MapContent& content) {
+      for (const auto& [kind, s] : scored) {
+        for (const BowCandidate& c : s.bow) {
+          if (c.map == id && content.keyframe(c.keyframe) != nullptr) {
+            around[c.keyframe] = groupNeighbours(content, c.keyframe, options_.recognition);
+          }
+        }
+      }
+    });
+  }
+  std::vector<std::pair<QueryKind, CandidateSearch>> searches;
+  for (auto& [kind, s] : scored) {
+    searches.emplace_back(kind, groupCandidates(std::move(s), neighbourLookup(around), options_.recognition));
+  }
+  // Each candidate verified on a copy (verifyOnCopies): RANSAC and the guided search hold no lock.
+  std::vector<MatchRecord> accepted;
+  for (const auto& [kind, search] : searches) {
+    delta.candidates += search.candidates.size();
+    std::optional<VerifiedMatch> best;
+    for (const Candidate& c : search.candidates) {
+      const Verification v = verifyOnCopies(state, mission, input, c, locks);
+      if (!v.accepted()) {
+        ++delta.rejections[std::string(toString(v.rejection))];
+      } else if (!best || v.match->inliers > best->inliers) {
+        best = v.match;
+      }
+    }
+    if (best) {
+      ++(kind == QueryKind::kLoop ? delta.loops : delta.map_matches);
+      accepted.push_back(MatchRecord{kind, *best});
+    }
+  }
+  const double query_ms = msSince(start);
   MatchListener listener;
   {
     const std::lock_guard lock(mutex_);
@@ -277,15 +344,39 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
     c.loops += delta.loops;
     c.map_matches += delta.map_matches;
     for (const auto& [reason, n] : delta.rejections) c.rejections[reason] += n;
-    c.busy_s += busy_s;
-    c.query_ms.add(busy_s * 1e3);
-    c.lock_held_ms.add(lock_held_ms);
+    c.busy_s += query_ms * 1e-3;
+    c.query_ms.add(query_ms);
+    c.lock_held_ms.add(locks.held_ms);
+    c.query_cpu_ms.add(threadCpuMs() - cpu_start_ms);
+    c.locked_cpu_ms.add(locks.cpu_ms);
     for (const MatchRecord& m : accepted) state.matches.push_back(m);
     listener = on_match_;
   }
   if (listener) {
     for (const MatchRecord& m : accepted) listener(mission.name(), m);
   }
+}
+
+Verification RecognitionWorker::verifyOnCopies(MissionState& state, Mission& mission, VerificationInput& input,
+                                               const Candidate& candidate, QueryLocks& locks) {
+  const std::shared_ptr<ServerMap> map = mission.stack().find(candidate.map);
+  if (!map) return missing("map " + std::to_string(candidate.map) + " went (merged) before the verification");
+  Status copied;
+  {
+    const auto content = map->read();
+    const auto locked_at = std::chrono::steady_clock::now();
+    const double cpu_at = threadCpuMs();
+    copied = copyCandidate(*content, candidate.keyframe, options_.recognition, input);
+    locks.add(msSince(locked_at), threadCpuMs() - cpu_at);
+  }
+  // A merge or removal since the candidates were found: the merge made the match moot.
+  if (!copied) return missing(copied.error().message());
+  if (options_.on_verification_start) options_.on_verification_start(mission.name(), candidate);
+  const CameraLookup cameras = [&](AgentId agent) -> const AgentCamera* {
+    const auto found = state.cameras.find(agent);
+    return found == state.cameras.end() ? nullptr : found->second.get();
+  };
+  return verifyCopied(state.database, input, candidate.score, cameras, options_.recognition);
 }
 
 }  // namespace cvislam::server::recognition

@@ -4,13 +4,17 @@
 // Ingest only enqueues (keyframe added, keyframe removed) and never waits: when the queue is full the event is
 // dropped and counted. A keyframe is queried `delay_keyframes` keyframes of its agent after it arrived, so that
 // mapping has sent its points and its covisibility links (the query's neighbours are excluded from loops).
-// The worker reads the mission's maps under their read locks, all of them in id order (the stack's lock order),
-// for the few milliseconds a query takes; ingest of those maps waits that long at most.
+// A query reads the mission's maps under one map's read lock at a time, each only for what it reads there, so that
+// ingest into a map never waits for a whole query: the query's map for the database's candidates and a copy of the
+// query keyframe, each other map with candidates for their covisibility groups, and, per candidate, its map for a
+// copy of what its verification reads (the candidate and its neighbourhood's points). The matching, RANSAC and
+// the guided search run on the copies with no lock held.
 //
 // Verified matches are kept per mission, written at the end, and handed to the back-end (setMatchListener), which
 // merges maps and closes loops; it tells the worker of merges (kMerged) and removals, so the database follows.
 #pragma once
 
+#include <algorithm>
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
@@ -36,6 +40,8 @@ struct RecognitionWorkerOptions {
   std::size_t queue_capacity = 100'000;
   int delay_keyframes = 5;
   RecognitionOptions recognition;
+  // Test seam: called on the worker thread before each candidate's verification, once its copies are taken.
+  std::function<void(const std::string& mission, const Candidate& candidate)> on_verification_start;
 
   [[nodiscard]] Status validate() const;
 };
@@ -71,6 +77,10 @@ struct RecognitionCounters {
   // Per query keyframe, the longest time any map's read lock was held for it: what ingest into that map may
   // have waited.
   LatencySamples lock_held_ms;
+  // Per query keyframe, the worker thread's CPU time in all (its work) and while holding a map's lock (the work
+  // under locks): the held times above also count the time the scheduler kept the thread off a core.
+  LatencySamples query_cpu_ms;
+  LatencySamples locked_cpu_ms;
 };
 
 class RecognitionWorker {
@@ -104,6 +114,19 @@ class RecognitionWorker {
   void run();
   void handle(const KeyframeEvent& event);
   void query(MissionState& state, Mission& mission, const KeyframeId& keyframe);
+  // The locks one query took: the longest held, and the CPU time spent holding them.
+  struct QueryLocks {
+    double held_ms = 0.0;
+    double cpu_ms = 0.0;
+    void add(double held, double cpu) {
+      held_ms = std::max(held_ms, held);
+      cpu_ms += cpu;
+    }
+  };
+  // Copies the candidate's part of `input` under its map's read lock (counted in `locks`), then verifies with no
+  // lock held.
+  Verification verifyOnCopies(MissionState& state, Mission& mission, VerificationInput& input,
+                              const Candidate& candidate, QueryLocks& locks);
   const AgentCamera* camera(MissionState& state, Mission& mission, AgentId agent);
 
   RecognitionWorkerOptions options_;

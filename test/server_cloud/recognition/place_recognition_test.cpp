@@ -131,6 +131,44 @@ TEST_F(PlaceRecognitionTest, FindsAndVerifiesATrueRevisitInAnotherMap) {
   EXPECT_FALSE(loop->best.has_value());
 }
 
+// The server verifies on copies taken under short locks: once copied, the maps may change or go, and the
+// verification still gives, to the last inlier, what verifying on the maps gave.
+TEST_F(PlaceRecognitionTest, AVerificationNeedsNothingOfTheMapsOnceTheyAreCopied) {
+  options_.guided_neighbours = 3;  // fewer than B's other keyframes: the copy is a strict part of B
+  MapContent a(0);
+  MapContent b(1);
+  buildMap(b, 1, {pose(13.0), pose(13.5), pose(14.0), pose(14.5), pose(15.0), pose(15.5), pose(16.0), pose(16.5)},
+           kE_b_w);
+  buildMap(a, 0, {pose(14.6), pose(15.1)}, geometry::SE3d());
+  const KeyframeId query{0, 1};
+  const KeyframeId candidate{1, 4};
+  const Verification whole = verify(a, query, b, candidate);
+  ASSERT_TRUE(whole.accepted()) << whole.detail;
+
+  VerificationInput input;
+  ASSERT_TRUE(copyQuery(a, query, input).ok());
+  ASSERT_TRUE(copyCandidate(b, candidate, options_, input).ok());
+  EXPECT_EQ(input.query_map, 0U);
+  EXPECT_EQ(input.candidate_map, 1U);
+  EXPECT_LT(input.points.size(), b.points().size()) << "the neighbourhood, not the map";
+  a = MapContent(0);
+  b = MapContent(1);
+  const double score = features::bowScore(database_.find(query)->bow, database_.find(candidate)->bow);
+  const Verification copied = verifyCopied(database_, input, score, cameras(), options_);
+  ASSERT_TRUE(copied.accepted()) << copied.detail;
+  EXPECT_EQ(copied.match->matches, whole.match->matches);
+  EXPECT_EQ(copied.match->ransac_inliers, whole.match->ransac_inliers);
+  EXPECT_EQ(copied.match->inliers, whole.match->inliers);
+  EXPECT_EQ(copied.match->keypoint_matches, whole.match->keypoint_matches);
+  EXPECT_EQ(copied.match->point_pairs, whole.match->point_pairs);
+  EXPECT_EQ(copied.match->scale, whole.match->scale);
+  const geometry::SE3d difference = whole.match->T_qmap_cmap.inverse() * copied.match->T_qmap_cmap;
+  EXPECT_LT(difference.log().norm(), 1e-12);
+  // A keyframe gone before its copy is a missing candidate, named.
+  EXPECT_EQ(copyCandidate(b, candidate, options_, input).error().code(), ErrorCode::kNotFound);
+  EXPECT_NE(copyQuery(a, query, input).error().message().find(query.toString()), std::string::npos);
+}
+
 TEST_F(PlaceRecognitionTest, RejectsANearMissInTheSameCorridor) {
   MapContent a(0);
   MapContent b(1);
