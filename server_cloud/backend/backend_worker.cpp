@@ -388,8 +388,13 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   const std::optional<HoldGba> hold = options_.merge_correction_keyframes > 0
                                           ? std::make_optional<HoldGba>(*this, mission.name(), into->id())
                                           : std::nullopt;
+  // The query's map goes, so a GBA of it would be for nothing. A GBA of the candidate's map goes on, unless a
+  // correction is to follow: the merge adds keyframes and points and moves none of the map's own, so the GBA's
+  // result still applies, and the merged keyframes keep their state until the GBA the merge requests. Cutting it
+  // short instead throws its work away, and with merges coming faster than GBAs finish (many agents meeting one
+  // after another) a growing map would get no GBA applied at all.
   cancelGba(mission.name(), from->id());
-  cancelGba(mission.name(), into->id());
+  if (hold) cancelGba(mission.name(), into->id());
   const AgentSensorsMap sensors = sensorsOf(mission);
   const CameraTable cameras(sensors);
 
