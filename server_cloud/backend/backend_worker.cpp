@@ -315,21 +315,23 @@ void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const
   const auto start = Clock::now();
   // Copy what the search needs under the read lock, search without a lock, apply under the write lock: ingest
   // waits for the copy and the apply only.
+  // Timed from each lock's acquisition: what ingest may wait behind, not what this waited for.
   NewKeyframeSearch search;
   double locked_ms = 0.0;
   {
     const auto content = map->read();
+    const auto locked_at = Clock::now();
     if (content->keyframe(keyframe) == nullptr) return;  // removed meanwhile
     search = gatherNewKeyframeSearch(*content, keyframe, cameras.lookup(), options_.fusion);
+    locked_ms += std::chrono::duration<double, std::milli>(Clock::now() - locked_at).count();
   }
-  locked_ms += std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   const std::vector<ProjectionMatch> matches = searchNewKeyframe(search, options_.fusion);
   FusionReport report;
   if (!matches.empty()) {
-    const auto apply_start = Clock::now();
     auto content = map->write();
+    const auto locked_at = Clock::now();
     applyProjectionMatches(*content, matches, report);
-    locked_ms += std::chrono::duration<double, std::milli>(Clock::now() - apply_start).count();
+    locked_ms += std::chrono::duration<double, std::milli>(Clock::now() - locked_at).count();
   }
   const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   const std::lock_guard lock(mutex_);

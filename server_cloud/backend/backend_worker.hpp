@@ -155,7 +155,8 @@ struct BackendStats {
   std::uint64_t new_keyframe_point_merges = 0;
   double new_keyframe_fuse_ms_max = 0.0;  // search and apply of one keyframe
   double new_keyframe_fuse_ms_total = 0.0;
-  double new_keyframe_fuse_locked_ms_max = 0.0;  // of which under the map's locks (the copy and the apply)
+  // Of which under the map's locks (the copy and the apply), from their acquisition: waits for them excluded.
+  double new_keyframe_fuse_locked_ms_max = 0.0;
   std::uint64_t redundancy_checked = 0;
   std::uint64_t final_pass_removed = 0;          // of redundant_removed, by the final pass
   std::uint64_t redundant_kept_for_imu_gap = 0;  // redundant, but removing it would leave too long an IMU link
