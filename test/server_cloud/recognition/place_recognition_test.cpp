@@ -4,8 +4,12 @@
 // of roll are rejected, each for its own reason.
 #include "server_cloud/recognition/place_recognition.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <numbers>
+#include <tuple>
+#include <unordered_set>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -151,6 +155,39 @@ TEST_F(PlaceRecognitionTest, AVerificationNeedsNothingOfTheMapsOnceTheyAreCopied
   EXPECT_EQ(input.query_map, 0U);
   EXPECT_EQ(input.candidate_map, 1U);
   EXPECT_LT(input.points.size(), b.points().size()) << "the neighbourhood, not the map";
+  // The guided search's points, worked out here from the map: the candidate's, then those of its three most
+  // covisible keyframes (most shared points first, ties by id), each once, in that order.
+  std::vector<std::pair<int, KeyframeId>> ranked;
+  for (const auto& [n, shared] : b.covisible(candidate)) ranked.emplace_back(shared, n);
+  std::sort(ranked.begin(), ranked.end(),
+            [](const auto& x, const auto& y) { return x.first != y.first ? x.first > y.first : x.second < y.second; });
+  ASSERT_GT(ranked.size(), 3U);
+  std::vector<KeyframeId> neighbourhood{candidate};
+  for (std::size_t i = 0; i < 3; ++i) neighbourhood.push_back(ranked[i].second);
+  std::vector<MapPointId> expected;
+  std::unordered_set<MapPointId> seen;
+  for (const KeyframeId& id : neighbourhood) {
+    const ServerKeyframe& kf = *b.keyframe(id);
+    for (std::size_t k = 0; k < kf.point.size(); ++k) {
+      if (kf.has_point[k] != 0 && seen.insert(kf.point[k]).second) expected.push_back(kf.point[k]);
+    }
+  }
+  std::vector<MapPointId> copied_ids;
+  for (const VerificationInput::Point& p : input.points) copied_ids.push_back(p.id);
+  EXPECT_EQ(copied_ids, expected);
+  // Every keypoint link of both keyframes leads to the point the map links it to.
+  for (const auto& [kf, points, map] :
+       {std::tuple{&input.query, &input.query_points, &a}, std::tuple{&input.candidate, &input.points, &b}}) {
+    const ServerKeyframe& held = *map->keyframe(kf->id);
+    ASSERT_EQ(kf->point.size(), held.keypoints.size());
+    for (std::size_t k = 0; k < kf->point.size(); ++k) {
+      ASSERT_EQ(kf->point[k] >= 0, held.has_point[k] != 0) << k;
+      if (kf->point[k] < 0) continue;
+      const VerificationInput::Point& p = (*points)[static_cast<std::size_t>(kf->point[k])];
+      EXPECT_EQ(p.id, held.point[k]);
+      EXPECT_EQ(p.p_w, map->point(p.id)->p_w);
+    }
+  }
   a = MapContent(0);
   b = MapContent(1);
   const double score = features::bowScore(database_.find(query)->bow, database_.find(candidate)->bow);
