@@ -457,24 +457,34 @@ std::optional<std::pair<double, std::size_t>> pairScale(
   return std::pair{sim3->scale(), from_candidate.size()};
 }
 
-// A keyframe as verification reads it; its points appended to `points` (each once, first seen first, through
-// `index`), its links pointing into them.
-CopiedKeyframe copyKeyframe(const MapContent& map, const ServerKeyframe& kf, std::vector<CopiedPoint>& points,
-                            std::unordered_map<MapPointId, std::int32_t>& index) {
+// The copies of the points a keyframe observes, each point once, first seen first (through `index`).
+class PointCopier {
+ public:
+  explicit PointCopier(std::vector<CopiedPoint>& points) : points_(points) { points_.clear(); }
+  // The index in the points of the point keypoint `k` of `kf` observes, copied if new; -1 when it observes none.
+  std::int32_t copy(const MapContent& map, const ServerKeyframe& kf, std::size_t k) {
+    if (!usablePoint(kf, k)) return -1;
+    const ServerMapPoint* p = map.point(kf.point[k]);
+    if (p == nullptr) return -1;
+    const auto [it, added] = index_.emplace(p->id, static_cast<std::int32_t>(points_.size()));
+    if (added) points_.push_back(CopiedPoint{p->id, p->p_w, p->descriptor});
+    return it->second;
+  }
+
+ private:
+  std::vector<CopiedPoint>& points_;
+  std::unordered_map<MapPointId, std::int32_t> index_;
+};
+
+// A keyframe as verification reads it, its points copied through `points` and its links pointing at them.
+CopiedKeyframe copyKeyframe(const MapContent& map, const ServerKeyframe& kf, PointCopier& points) {
   CopiedKeyframe copy;
   copy.id = kf.id;
   copy.T_w_s = kf.T_w_s;
   copy.keypoints = kf.keypoints;
   copy.descriptors = kf.descriptors;
   copy.point.assign(kf.keypoints.size(), -1);
-  for (std::size_t k = 0; k < kf.point.size() && k < copy.point.size(); ++k) {
-    if (!usablePoint(kf, k)) continue;
-    const ServerMapPoint* p = map.point(kf.point[k]);
-    if (p == nullptr) continue;
-    const auto [it, added] = index.emplace(p->id, static_cast<std::int32_t>(points.size()));
-    if (added) points.push_back(CopiedPoint{p->id, p->p_w, p->descriptor});
-    copy.point[k] = it->second;
-  }
+  for (std::size_t k = 0; k < copy.point.size(); ++k) copy.point[k] = points.copy(map, kf, k);
   return copy;
 }
 
@@ -484,9 +494,8 @@ Status copyQuery(const MapContent& map, const KeyframeId& query, VerificationInp
   const ServerKeyframe* q = map.keyframe(query);
   if (q == nullptr) return Error(ErrorCode::kNotFound, "query keyframe " + query.toString() + " is not in its map");
   input.query_map = map.id();
-  input.query_points.clear();
-  std::unordered_map<MapPointId, std::int32_t> index;
-  input.query = copyKeyframe(map, *q, input.query_points, index);
+  PointCopier points(input.query_points);
+  input.query = copyKeyframe(map, *q, points);
   return Status::Ok();
 }
 
@@ -497,20 +506,12 @@ Status copyCandidate(const MapContent& map, const KeyframeId& candidate, const R
     return Error(ErrorCode::kNotFound, "candidate keyframe " + candidate.toString() + " is not in its map");
   }
   input.candidate_map = map.id();
-  input.points.clear();
-  std::unordered_map<MapPointId, std::int32_t> index;
-  input.candidate = copyKeyframe(map, *c, input.points, index);
+  PointCopier points(input.points);
+  input.candidate = copyKeyframe(map, *c, points);
   // The neighbours only add points; their keyframes are not kept.
   for (const KeyframeId& n : mostCovisible(map, candidate, options.guided_neighbours)) {
     if (const ServerKeyframe* kf = map.keyframe(n); kf != nullptr) {
-      for (std::size_t k = 0; k < kf->point.size(); ++k) {
-        if (!usablePoint(*kf, k)) continue;
-        const ServerMapPoint* p = map.point(kf->point[k]);
-        if (p == nullptr) continue;
-        if (index.emplace(p->id, static_cast<std::int32_t>(input.points.size())).second) {
-          input.points.push_back(CopiedPoint{p->id, p->p_w, p->descriptor});
-        }
-      }
+      for (std::size_t k = 0; k < kf->point.size(); ++k) (void)points.copy(map, *kf, k);
     }
   }
   return Status::Ok();

@@ -241,6 +241,16 @@ Verification missing(std::string detail) {
 
 }  // namespace
 
+template <typename Read>
+void RecognitionWorker::QueryLocks::read(const ServerMap& map, const Read& read) {
+  const auto content = map.read();
+  const auto locked_at = std::chrono::steady_clock::now();
+  const double cpu_at = threadCpuMs();
+  read(*content);
+  held_ms = std::max(held_ms, msSince(locked_at));
+  cpu_ms += threadCpuMs() - cpu_at;
+}
+
 void RecognitionWorker::query(MissionState& state, Mission& mission, const KeyframeId& keyframe) {
   const auto start = std::chrono::steady_clock::now();
   const DatabaseEntry* entry = state.database.find(keyframe);
@@ -254,15 +264,8 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
   }
   const double cpu_start_ms = threadCpuMs();
   QueryLocks locks;
-  // One map's read lock at a time, each for what is read of that map: ingest into a map never waits behind the
-  // locks of others, nor behind the searches.
-  const auto underReadLock = [&](const ServerMap& map, const auto& read) {
-    const auto content = map.read();
-    const auto locked_at = std::chrono::steady_clock::now();
-    const double cpu_at = threadCpuMs();
-    read(*content);
-    locks.add(msSince(locked_at), threadCpuMs() - cpu_at);
-  };
+  // One map's read lock at a time (locks.read), each for what is read of that map: ingest into a map never waits
+  // behind the locks of others, nor behind the searches.
   // The query's map: the database's candidates (the exclusions and the loop's time rule read it), the groups of
   // those in it, and the query keyframe's copy.
   std::vector<std::pair<QueryKind, ScoredCandidates>> scored;
@@ -271,7 +274,7 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
   RecognitionCounters delta;
   bool held = false;
   if (const std::shared_ptr<ServerMap> map = mission.stack().find(query_map)) {
-    underReadLock(*map, [&](const MapContent& content) {
+    locks.read(*map, [&](const MapContent& content) {
       if (content.keyframe(keyframe) == nullptr) return;
       held = true;
       (void)copyQuery(content, keyframe, input);
@@ -302,7 +305,7 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
   for (const MapId id : others) {
     const std::shared_ptr<ServerMap> map = mission.stack().find(id);
     if (!map) continue;  // merged meanwhile: its candidates stand alone
-    underReadLock(*map, [&](const MapContent& content) {
+    locks.read(*map, [&](const MapContent& content) {
       for (const auto& [kind, s] : scored) {
         for (const BowCandidate& c : s.bow) {
           if (c.map == id && content.keyframe(c.keyframe) != nullptr) {
@@ -362,13 +365,9 @@ Verification RecognitionWorker::verifyOnCopies(MissionState& state, Mission& mis
   const std::shared_ptr<ServerMap> map = mission.stack().find(candidate.map);
   if (!map) return missing("map " + std::to_string(candidate.map) + " went (merged) before the verification");
   Status copied;
-  {
-    const auto content = map->read();
-    const auto locked_at = std::chrono::steady_clock::now();
-    const double cpu_at = threadCpuMs();
-    copied = copyCandidate(*content, candidate.keyframe, options_.recognition, input);
-    locks.add(msSince(locked_at), threadCpuMs() - cpu_at);
-  }
+  locks.read(*map, [&](const MapContent& content) {
+    copied = copyCandidate(content, candidate.keyframe, options_.recognition, input);
+  });
   // A merge or removal since the candidates were found: the merge made the match moot.
   if (!copied) return missing(copied.error().message());
   if (options_.on_verification_start) options_.on_verification_start(mission.name(), candidate);

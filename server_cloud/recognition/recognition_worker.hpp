@@ -118,10 +118,9 @@ class RecognitionWorker {
   struct QueryLocks {
     double held_ms = 0.0;
     double cpu_ms = 0.0;
-    void add(double held, double cpu) {
-      held_ms = std::max(held_ms, held);
-      cpu_ms += cpu;
-    }
+    // Calls `read` with `map`'s content under its read lock, timed.
+    template <typename Read>
+    void read(const ServerMap& map, const Read& read);
   };
   // Copies the candidate's part of `input` under its map's read lock (counted in `locks`), then verifies with no
   // lock held.
