@@ -146,7 +146,9 @@ server_pid=""
 cleanup() {
   for p in "${pids[@]}"; do kill -TERM "$p" 2>/dev/null || true; done
   [ -n "$server_pid" ] && kill -TERM "$server_pid" 2>/dev/null || true
-  wait 2>/dev/null || true
+  # The agents and the server first, by pid: a bare `wait` would also wait for RouDi, which runs until told to stop,
+  # and hang an early exit (a server that would not start) with RouDi left behind for the next run.
+  for p in "${pids[@]}" ${server_pid:+"$server_pid"}; do wait "$p" 2>/dev/null || true; done
   [ -n "$roudi_pid" ] && kill -TERM "$roudi_pid" 2>/dev/null && wait "$roudi_pid" 2>/dev/null || true
 }
 trap cleanup EXIT
