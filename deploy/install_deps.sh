@@ -13,6 +13,10 @@ packages=(
   cmake ninja-build g++ ccache pkg-config
   # maths and optimisation
   libeigen3-dev libceres-dev
+  # BLAS for CHOLMOD (the server's global BA on a dense map is mostly its supernodal factorisation): OpenBLAS,
+  # 2x faster there than the ATLAS that libceres-dev pulls in. The serial build, so that its threads never
+  # spin on cores the server's other workers need.
+  libopenblas0-serial
   # OpenCV, per module: OpenCVConfig.cmake ships only in libopencv-dev (+330 MB of VTK, dnn, contrib),
   # so we take the modules we use and toolchains/cmake/OpenCVMinimal.cmake makes the targets.
   libopencv-core-dev libopencv-imgproc-dev libopencv-features2d-dev libopencv-calib3d-dev libopencv-imgcodecs-dev

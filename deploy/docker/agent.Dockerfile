@@ -20,7 +20,7 @@ RUN cmake --preset release \
  && cmake --install build/release --component agent --prefix /opt/cvislam
 
 FROM debian:12.8-slim
-ARG RUNTIME_PACKAGES="libabsl20220623 libatlas3-base libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
+ARG RUNTIME_PACKAGES="libabsl20220623 libopenblas0-serial libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
 libgrpc29 libiceoryx-hoofs2 libiceoryx-posh-roudi2 libiceoryx-posh2 liblz4-1 libopencv-calib3d406 libopencv-core406 \
 libprotobuf32 libyaml-cpp0.7 libzstd1 zlib1g"
 RUN apt-get update \

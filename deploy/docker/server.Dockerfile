@@ -16,7 +16,7 @@ RUN cmake --preset release \
  && cmake --install build/release --component server --prefix /opt/cvislam
 
 FROM debian:12.8-slim
-ARG RUNTIME_PACKAGES="libabsl20220623 libpq5 libatlas3-base libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
+ARG RUNTIME_PACKAGES="libabsl20220623 libpq5 libopenblas0-serial libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
 libgrpc29 libopencv-calib3d406 libopencv-core406 libprotobuf32 \
 libsqlite3-0 libyaml-cpp0.7"
 RUN apt-get update \

@@ -2,7 +2,17 @@
 # (Debian 12 package names are given next to each).
 
 find_package(Eigen3 3.4 REQUIRED CONFIG)              # libeigen3-dev
+# BLAS: the generic libblas.so.3, which update-alternatives points at OpenBLAS where installed (install_deps.sh
+# does) and at ATLAS's otherwise. Debian's Ceres names ATLAS's own libf77blas and libatlas as well, and so does
+# CMake's FindBLAS (which SuiteSparse's module calls) unless told the vendor. Loaded first, ATLAS's dgemm_/dsyrk_
+# take the place of the selected BLAS for every library of the process, CHOLMOD's supernodal factorisation
+# included, which is most of a global BA on a dense map.
+set(BLA_VENDOR Generic)
 find_package(Ceres 2.1 REQUIRED CONFIG)              # libceres-dev (static libceres.a; pulls glog, gflags, SuiteSparse)
+get_target_property(_ceres_link Ceres::ceres INTERFACE_LINK_LIBRARIES)
+list(FILTER _ceres_link EXCLUDE REGEX "lib(f77blas|atlas)\\.so$")
+set_target_properties(Ceres::ceres PROPERTIES INTERFACE_LINK_LIBRARIES "${_ceres_link}")
+unset(_ceres_link)
 find_package(iceoryx_hoofs REQUIRED CONFIG)         # libiceoryx-hoofs-dev
 find_package(iceoryx_posh REQUIRED CONFIG)          # libiceoryx-posh-dev (+ libacl1-dev for the RouDi headers)
 find_package(yaml-cpp REQUIRED CONFIG)                # libyaml-cpp-dev  (target: yaml-cpp, no namespace in 0.7)
