@@ -129,6 +129,12 @@ def report_backend(out, mission, server_agents, summary):
               f"by a newer change; redundant KFs removed {section['redundant_keyframes_removed']} of "
               f"{section['redundancy_checked']} checked ({section['redundant_removed_by_final_pass']} by the final pass; "
               f"{section['redundant_kept_for_imu_gap']} redundant kept for the 2 s IMU gap)")
+        windowed = [g for g in gba if g.get("windowed")]
+        section["gba_windowed"] = len(windowed)
+        if windowed:
+            parts = ", ".join(f"{g['keyframes'] - g['held_keyframes']} of {g['keyframes']} in {g['solve_s']:.2f} s"
+                              for g in windowed)
+            print(f"GBA of what a merge changed (free of the solve's keyframes, the rest held): {parts}")
         changes = backend.get("merges", []) + backend.get("loops", [])
         corrected = [c["match_to_corrected_s"] for c in changes if c.get("match_to_corrected_s", -1) >= 0]
         refined = [c["match_to_optimised_s"] for c in changes if c.get("match_to_optimised_s", -1) >= 0]

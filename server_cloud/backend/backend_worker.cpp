@@ -15,6 +15,10 @@ namespace {
 using Clock = std::chrono::steady_clock;
 using geometry::SE3d;
 
+// A merge's GBA frees the whole map when what the merge changed is more than this share of it: the solve then costs
+// nearly as much either way, and the whole map's is the better one.
+constexpr double kWindowMaxFreeFraction = 0.6;
+
 double secondsSince(Clock::time_point t) {
   return std::chrono::duration<double>(Clock::now() - t).count();
 }
@@ -84,6 +88,10 @@ Status BackendOptions::validate() const {
   if (merge_correction_keyframes < 0) {
     return Error{ErrorCode::kInvalidArgument, "backend.merge_correction_keyframes must be >= 0 (0: none)"};
   }
+  if (gba_window_above_keyframes < 0) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "backend.gba_window_above_keyframes must be >= 0 (0: every GBA frees the whole map)"};
+  }
   if (Status s = merge_correction_ba.validate(); !s.ok()) return s;
   if (redundancy_every_keyframes < 1) {
     return Error{ErrorCode::kInvalidArgument, "backend.redundancy_every_keyframes must be >= 1"};
@@ -107,6 +115,9 @@ std::string BackendOptions::describe() const {
   }
   out << ", an agent's frame follows its " << frame_follows_keyframes << " newest corrected keyframes";
   if (gba_every_keyframes > 0) out << " and per " << gba_every_keyframes << " new keyframes of a map";
+  if (gba_window_above_keyframes > 0) {
+    out << ", a merge's GBA frees only what it changed in maps above " << gba_window_above_keyframes << " keyframes";
+  }
   out << ", new keyframes fused " << (fuse_new_keyframes ? "on" : "off") << " (" << fusion.neighbours << " covisible + "
       << fusion.nearby_keyframes << " within " << fusion.nearby_radius_m << " m and " << fusion.nearby_max_angle_deg
       << " deg), redundancy removal " << (redundancy.enabled ? "on" : "off") << " (" << redundancy.redundant_fraction
@@ -402,6 +413,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
 
   MergeRecord record;
   std::unordered_set<KeyframeId> query_keyframes;  // the query map's, before it went
+  std::optional<std::set<AgentMapKey>> changed;    // the smaller map's agent maps, for a GBA of them alone
   ProjectionSearchInput search;                    // the fusion's projection search, run after the locks
   {
     StackLocks locks(mission, {from, into});
@@ -411,6 +423,15 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     const ServerKeyframe* query = q.keyframe(match.query);
     if (query == nullptr || c.keyframe(match.candidate) == nullptr) return stale();
     for (const auto& [id, kf] : q.keyframes()) query_keyframes.insert(id);
+    if (options_.gba_window_above_keyframes > 0 &&
+        q.keyframes().size() + c.keyframes().size() > static_cast<std::size_t>(options_.gba_window_above_keyframes)) {
+      // The smaller of the two maps is what its GBA needs to move against the other: the merge placed one in the
+      // other's frame from a single match, and each was refined on its own before.
+      changed.emplace();
+      for (const auto& [id, kf] : q.keyframes().size() <= c.keyframes().size() ? q.keyframes() : c.keyframes()) {
+        changed->insert({id.agent, kf.agent_map});
+      }
+    }
     // The match's transform takes the candidate map into the query's; the query's map moves, in 4 DoF.
     const SE3d T_into_from = fourDofTransform(match.T_qmap_cmap.inverse(), query->T_w_s.translation());
     c.absorb(q, T_into_from);
@@ -468,7 +489,9 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     state.stats.merges.push_back(record);
     index = state.stats.merges.size() - 1;
   }
-  if (options_.gba_after_change) requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived);
+  if (options_.gba_after_change) {
+    requestGba(mission.name(), into->id(), false, std::make_pair(true, index), arrived, changed ? &*changed : nullptr);
+  }
 }
 
 bool BackendWorker::correctMerge(Mission& mission, MissionState& state, const std::shared_ptr<ServerMap>& into,
@@ -622,14 +645,20 @@ void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId
 }
 
 void BackendWorker::requestGba(const std::string& mission, MapId map, bool final,
-                               std::optional<std::pair<bool, std::size_t>> waiter, Clock::time_point since) {
+                               std::optional<std::pair<bool, std::size_t>> waiter, Clock::time_point since,
+                               const std::set<AgentMapKey>* changed) {
   {
     const std::lock_guard lock(mutex_);
     auto it = std::find_if(gba_queue_.begin(), gba_queue_.end(),
                            [&](const GbaRequest& r) { return r.mission == mission && r.map == map; });
     if (it == gba_queue_.end()) {
-      gba_queue_.push_back(GbaRequest{mission, map, final, {}, since});
+      gba_queue_.push_back(GbaRequest{mission, map, final, {}, since, {}});
       it = std::prev(gba_queue_.end());
+      if (changed != nullptr) it->changed = *changed;
+    } else if (changed == nullptr) {
+      it->changed.reset();
+    } else if (it->changed) {
+      it->changed->insert(changed->begin(), changed->end());
     }
     it->since = std::min(it->since, since);
     it->final = it->final || final;
@@ -691,10 +720,11 @@ void BackendWorker::gba(const GbaRequest& request) {
       }
     }
     if (target == request.map) return;
+    const std::set<AgentMapKey>* changed = request.changed ? &*request.changed : nullptr;
     if (request.waiting.empty() && request.final)
-      requestGba(request.mission, target, true, std::nullopt, request.since);
+      requestGba(request.mission, target, true, std::nullopt, request.since, changed);
     for (const auto& waiter : request.waiting)
-      requestGba(request.mission, target, request.final, waiter, request.since);
+      requestGba(request.mission, target, request.final, waiter, request.since, changed);
   };
   const std::shared_ptr<ServerMap> map = mission->stack().find(request.map);
   if (!map) return forward();
@@ -716,11 +746,20 @@ void BackendWorker::gba(const GbaRequest& request) {
     const auto start = Clock::now();
     const auto content = map->read();
     emptied = content->keyframes().empty();
-    if (content->keyframes().size() >= 2) snapshot = makeGbaSnapshot(*content, sensors);
+    std::optional<GbaWindow> window;
+    if (request.changed && !request.final) {
+      window = agentMapsWindow(*content, *request.changed, kWindowMaxFreeFraction);
+    }
+    // A window frees whole agent maps, so the apply leaves the others as they are (no keyframe of theirs has a
+    // correction to carry) and carries the keyframes that the free ones' agents add meanwhile.
+    if (content->keyframes().size() >= 2) snapshot = makeGbaSnapshot(*content, sensors, window ? &*window : nullptr);
+    record.windowed = window.has_value();
     record.snapshot_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   }
   if (emptied) return forward();
   if (!snapshot) return;
+  record.held_keyframes = static_cast<int>(std::count_if(snapshot->keyframes.begin(), snapshot->keyframes.end(),
+                                                         [](const GbaKeyframe& k) { return k.held; }));
   if (options_.on_gba_solve_start) options_.on_gba_solve_start(request.map);
   Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options_.gba, &gba_cancel_);
   if (!summary) return;

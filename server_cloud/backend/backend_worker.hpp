@@ -81,6 +81,14 @@ struct BackendOptions {
   // on the simulated euroc-mh mono mission it made the agents' onboard estimates worse (1.2-1.4 cm to 1.9-3.2 cm,
   // mean of five agents) while the server's map was as good; 10 is what was measured.
   int merge_correction_keyframes = 0;
+  // The GBA after a merge into a map of more than this many keyframes frees only the part the merge changed: the
+  // keyframes of the agent maps of the smaller of the two maps joined (those their agents add meanwhile
+  // included); the others that see their points are held. With many agents over one place every keyframe sees
+  // most others' points, so a GBA's linear system is dense and its cost grows with the cube of the free
+  // keyframes; what the merge did not move needs no new solve. Requests joined with a whole-map one (a loop's,
+  // the periodic one, the final one) free the whole map. 0: every GBA frees the whole map. 150 is what was
+  // measured on the simulated hall8 mission.
+  int gba_window_above_keyframes = 150;
   GlobalBaOptions merge_correction_ba{.structure_iterations = 0, .full_iterations = 6, .function_tolerance = 1e-4};
   int redundancy_every_keyframes = 10;  // per map
   // At the end of a mission (drain(true)), before the last GBA: every eligible keyframe of every map is checked
@@ -136,7 +144,9 @@ struct LoopRecord {
 
 struct GbaRecord {
   MapId map = 0;
-  GlobalBaSummary summary;
+  GlobalBaSummary summary;  // its keyframes include the held ones
+  bool windowed = false;    // a merge's, of the part it changed (gba_window_above_keyframes)
+  int held_keyframes = 0;
   double snapshot_ms = 0.0;
   double apply_ms = 0.0;
   int keyframes_propagated = 0;  // arrived while it ran
@@ -209,6 +219,8 @@ class BackendWorker {
     // Merges and loops waiting for this GBA to report their time to optimised.
     std::vector<std::pair<bool, std::size_t>> waiting;  // (is merge, index)
     std::chrono::steady_clock::time_point since;
+    // The agent maps a merge moved (gba_window_above_keyframes); none: the whole map.
+    std::optional<std::set<AgentMapKey>> changed;
   };
 
   bool push(Event event);
@@ -229,8 +241,10 @@ class BackendWorker {
   void fuseNewKeyframe(Mission& mission, MissionState& state, const CameraTable& cameras, const KeyframeId& keyframe);
   // Checks `checks` random keyframes of the map (options_.redundancy.checks_per_round when 0).
   void removeRedundant(Mission& mission, MissionState& state, MapId map, int checks = 0);
+  // `changed`: the agent maps a merge moved, for a GBA of their keyframes alone; nullptr (and any request it
+  // joins that has none): the whole map.
   void requestGba(const std::string& mission, MapId map, bool final, std::optional<std::pair<bool, std::size_t>> waiter,
-                  std::chrono::steady_clock::time_point since);
+                  std::chrono::steady_clock::time_point since, const std::set<AgentMapKey>* changed = nullptr);
   // True when a GBA of `map` was running and is now told to stop.
   bool cancelGba(const std::string& mission, MapId map);
   void gba(const GbaRequest& request);

@@ -89,6 +89,18 @@ std::vector<const ServerKeyframe*> windowKeyframes(const MapContent& map, const 
 
 }  // namespace
 
+std::optional<GbaWindow> agentMapsWindow(const MapContent& map, const std::set<AgentMapKey>& agent_maps,
+                                         double max_free_fraction) {
+  GbaWindow window;
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (agent_maps.count({id.agent, kf.agent_map}) != 0) window.free.insert(id);
+  }
+  if (static_cast<double>(window.free.size()) > max_free_fraction * static_cast<double>(map.keyframes().size())) {
+    return std::nullopt;
+  }
+  return window;
+}
+
 Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors, const GbaWindow* window) {
   GbaSnapshot snapshot;
   snapshot.map = map.id();
@@ -488,7 +500,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
   AppliedCorrections applied;
   // The change of every corrected keyframe, and per agent map its corrected keyframes by time.
   std::unordered_map<KeyframeId, SE3d> change;
-  std::map<std::pair<AgentId, std::uint32_t>, std::map<std::int64_t, TimedChange>> by_time;
+  std::map<AgentMapKey, std::map<std::int64_t, TimedChange>> by_time;
   for (const KeyframeCorrection& c : keyframes) {
     ServerKeyframe* kf = map.keyframe(c.id);
     if (kf == nullptr) continue;  // removed meanwhile

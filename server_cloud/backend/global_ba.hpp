@@ -19,6 +19,7 @@
 #include <cstdint>
 #include <map>
 #include <optional>
+#include <set>
 #include <string>
 #include <unordered_set>
 #include <utility>
@@ -117,6 +118,15 @@ struct GbaWindow {
   std::unordered_set<KeyframeId> left_out;
 };
 
+// An agent's map by (agent, the agent's map index), as ServerKeyframe::agent_map names it.
+using AgentMapKey = std::pair<AgentId, std::uint32_t>;
+
+// The window of a GBA after a merge: every keyframe of `agent_maps` (the map that the merge moved into the other's
+// frame, with the keyframes its agents added since). None when that is more than `max_free_fraction` of the
+// map's keyframes: the whole map costs little more then.
+std::optional<GbaWindow> agentMapsWindow(const MapContent& map, const std::set<AgentMapKey>& agent_maps,
+                                         double max_free_fraction);
+
 // Copies what the solve needs: the whole map, or `window` of it. kFailedPrecondition names an agent whose sensors
 // are unknown.
 Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors,
@@ -172,7 +182,7 @@ struct AppliedCorrections {
   std::vector<KeyframeId> changed;  // every keyframe whose state changed (for the downlink)
   // Per (agent, agent map): the change of its newest keyframes in this map (windowChange), for the agent map's
   // T_m_w, so that what the agent sends next lands where the corrected map expects it.
-  std::map<std::pair<AgentId, std::uint32_t>, geometry::SE3d> frame_change;
+  std::map<AgentMapKey, geometry::SE3d> frame_change;
 };
 
 // One corrected keyframe's change and its position before it.

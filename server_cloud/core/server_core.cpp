@@ -538,7 +538,9 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                      {"other", g.summary.profile.other_s}}},
                    {"snapshot_ms", g.snapshot_ms},
                    {"apply_ms", g.apply_ms},
-                   {"keyframes_propagated", g.keyframes_propagated}});
+                   {"keyframes_propagated", g.keyframes_propagated},
+                   {"windowed", g.windowed},
+                   {"held_keyframes", g.held_keyframes}});
   }
   j["merges"] = std::move(merges);
   j["loops"] = std::move(loops);

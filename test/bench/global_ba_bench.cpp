@@ -9,10 +9,12 @@
 // the slowest run). Pixel noise and a long lap put the optimum away from the truth, so convergence is judged by the
 // distance from the optimum that the same solve reaches from the truth (solved once more per size, untimed), and
 // by the final cost. Each run also times what a merge's correction would solve on that lap: a BA of 22 keyframes
-// with the rest held, and a pose graph of all of them.
+// with the rest held, and a pose graph of all of them; with --free-fraction, also a GBA of the newest keyframes
+// with the rest held at the optimum (timeWindow). --laps N flies the lap N times on a smaller circle, so that the
+// keyframes of all laps see the same points: dense covisibility, as with many agents over one place.
 //
-//   bench_global_ba [--keyframes 250,500,1000,2000] [--repetitions 3] [--threads 2] [--json OUT]
-//                   [--structure-iterations N] [--full-iterations N] [--function-tolerance F]
+//   bench_global_ba [--keyframes 250,500,1000,2000] [--laps 1] [--free-fraction F] [--repetitions 3] [--threads 2]
+//                   [--json OUT] [--structure-iterations N] [--full-iterations N] [--function-tolerance F]
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -94,11 +96,13 @@ struct Scene {
   std::vector<SE3d> truth;
 };
 
-Scene makeScene(int keyframes, std::uint64_t seed) {
+// `laps` > 1 flies the same flight on a smaller circle several times, so that keyframes of every lap see the same
+// wall points: a dense covisibility like several agents in one hall, where the lap of one keeps it banded.
+Scene makeScene(int keyframes, int laps, std::uint64_t seed) {
   Scene scene;
   const double length_m = kSpeed_mps * kKeyframeInterval_s * keyframes;
   Circle circle;
-  circle.radius = std::max(6.0, length_m / (2.0 * M_PI));
+  circle.radius = std::max(6.0, length_m / (2.0 * M_PI * laps));
   const double wall_radius = circle.radius + kWallDistance_m;
   std::mt19937_64 rng(seed);
 
@@ -206,14 +210,12 @@ std::vector<SE3d> posesOf(const backend::GbaSnapshot& snapshot) {
   return poses;
 }
 
-// The merge's correction on a lap of this size: a windowed BA of `window` keyframes from the lap's middle (the
-// points they see, the other keyframes that see those held, as makeGbaSnapshot(window) copies them), then a
-// pose graph of the whole lap (IMU chain and the next 4 keyframes as covisibility edges) that holds the window
-// where the BA put it. Returns both solve times in seconds.
-std::pair<double, double> timeCorrection(const backend::GbaSnapshot& perturbed, int window) {
+// Keyframes [first, last) of `perturbed` free, with the points they see and the other keyframes that see those
+// points (or are IMU-linked to the window) held, as makeGbaSnapshot(window) copies them. `keyframe_index` maps
+// each keyframe of `perturbed` to its index in the result (-1: left out).
+backend::GbaSnapshot windowOf(const backend::GbaSnapshot& perturbed, std::size_t first, std::size_t last,
+                              std::vector<int>& keyframe_index) {
   const std::size_t n = perturbed.keyframes.size();
-  const std::size_t first = n / 2 - static_cast<std::size_t>(window) / 2;
-  const std::size_t last = std::min(n, first + static_cast<std::size_t>(window));
   std::vector<std::uint8_t> seen(perturbed.points.size(), 0);
   for (std::size_t i = first; i < last; ++i) {
     for (const backend::GbaObservation& o : perturbed.keyframes[i].observations) seen[o.point] = 1;
@@ -226,7 +228,7 @@ std::pair<double, double> timeCorrection(const backend::GbaSnapshot& perturbed, 
     point_index[p] = static_cast<std::int64_t>(part.points.size());
     part.points.push_back(perturbed.points[p]);
   }
-  std::vector<int> keyframe_index(n, -1);
+  keyframe_index.assign(n, -1);
   for (std::size_t i = 0; i < n; ++i) {
     backend::GbaKeyframe kf = perturbed.keyframes[i];
     kf.held = i < first || i >= last;
@@ -239,6 +241,18 @@ std::pair<double, double> timeCorrection(const backend::GbaSnapshot& perturbed, 
     keyframe_index[i] = static_cast<int>(part.keyframes.size());
     part.keyframes.push_back(std::move(kf));
   }
+  return part;
+}
+
+// The merge's correction on a lap of this size: a windowed BA of `window` keyframes from the lap's middle, then a
+// pose graph of the whole lap (IMU chain and the next 4 keyframes as covisibility edges) that holds the window
+// where the BA put it. Returns both solve times in seconds.
+std::pair<double, double> timeCorrection(const backend::GbaSnapshot& perturbed, int window) {
+  const std::size_t n = perturbed.keyframes.size();
+  const std::size_t first = n / 2 - static_cast<std::size_t>(window) / 2;
+  const std::size_t last = std::min(n, first + static_cast<std::size_t>(window));
+  std::vector<int> keyframe_index;
+  backend::GbaSnapshot part = windowOf(perturbed, first, last, keyframe_index);
   const backend::GlobalBaOptions options = backend::BackendOptions{}.merge_correction_ba;
   const auto ba_start = std::chrono::steady_clock::now();
   if (!backend::runGlobalBa(part, options)) std::abort();
@@ -259,6 +273,39 @@ std::pair<double, double> timeCorrection(const backend::GbaSnapshot& perturbed, 
   if (!backend::solvePoseGraph(graph, backend::PoseGraphOptions{})) std::abort();
   const double graph_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - graph_start).count();
   return {ba_s, graph_s};
+}
+
+// The GBA after a merge with a window (backend.gba_window_above_keyframes): the newest `free` keyframes of a map
+// otherwise at its optimum (the whole map's solve from the truth) start perturbed with their points, as the map a
+// merge moved would; the rest keep the optimum and are held where they see those points. Returns the solve's time
+// in seconds and the free keyframes' RMS position to the optimum in metres.
+std::pair<double, double> timeWindow(const backend::GbaSnapshot& at_optimum, std::size_t free, std::uint64_t seed,
+                                     double scale, const backend::GlobalBaOptions& options) {
+  const std::size_t n = at_optimum.keyframes.size();
+  const std::size_t first = n - std::min(free, n - 1);
+  backend::GbaSnapshot start = at_optimum;
+  perturb(start, seed, scale);
+  std::vector<std::uint8_t> moved(start.points.size(), 0);
+  for (std::size_t i = first; i < n; ++i) {
+    for (const backend::GbaObservation& o : start.keyframes[i].observations) moved[o.point] = 1;
+  }
+  for (std::size_t i = 0; i < first; ++i) start.keyframes[i] = at_optimum.keyframes[i];
+  for (std::size_t p = 0; p < start.points.size(); ++p) {
+    if (moved[p] == 0) start.points[p] = at_optimum.points[p];
+  }
+  for (backend::GbaKeyframe& kf : start.keyframes) kf.T_w_s_before = kf.T_w_s;
+  for (backend::GbaPoint& p : start.points) p.p_w_before = p.p_w;
+  std::vector<int> keyframe_index;
+  backend::GbaSnapshot part = windowOf(start, first, n, keyframe_index);
+  const auto t0 = std::chrono::steady_clock::now();
+  if (!backend::runGlobalBa(part, options)) std::abort();
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  double sum = 0.0;
+  for (std::size_t i = first; i < n; ++i) {
+    const SE3d& solved = part.keyframes[static_cast<std::size_t>(keyframe_index[i])].T_w_s;
+    sum += (solved.translation() - at_optimum.keyframes[i].T_w_s.translation()).squaredNorm();
+  }
+  return {seconds, std::sqrt(sum / static_cast<double>(n - first))};
 }
 
 std::vector<int> parseSizes(const std::string& text) {
@@ -284,11 +331,18 @@ int main(int argc, char** argv) {
   int threads = 2;
   std::string json_path;
   double perturbation = 1.0;
+  int laps = 1;
   app.add_option("--keyframes", sizes_text, "Comma-separated keyframe counts [250,500,1000,2000]");
   app.add_option("--repetitions", repetitions, "Solves per size, each from another perturbation [3]")
       ->check(CLI::PositiveNumber);
   app.add_option("--threads", threads, "Ceres threads [2]")->check(CLI::PositiveNumber);
   app.add_option("--json", json_path, "Write the results here as JSON");
+  app.add_option("--laps", laps, "Laps of one flight (a smaller circle each time): >1 makes covisibility dense [1]")
+      ->check(CLI::PositiveNumber);
+  double free_fraction = 0.0;
+  app.add_option("--free-fraction", free_fraction,
+                 "Also time a GBA of the newest fraction of the keyframes, the rest at the optimum and held [off]")
+      ->check(CLI::Range(0.0, 1.0));
   app.add_option("--perturbation", perturbation, "Scale of the start's perturbation; 0 starts at the truth [1]")
       ->check(CLI::NonNegativeNumber);
   backend::GlobalBaOptions options;
@@ -310,14 +364,15 @@ int main(int argc, char** argv) {
 
   options.threads = threads;
   nlohmann::json results = nlohmann::json::array();
-  std::printf("SYNTHETIC mono-inertial scenes (one lap, 1 m/s, a keyframe per 0.5 s, <= 300 observations each)\n");
+  std::printf("SYNTHETIC mono-inertial scenes (%d lap(s), 1 m/s, a keyframe per 0.5 s, <= 300 observations each)\n",
+              laps);
   std::printf(
       "RMS keyframe position differences [cm]: start and result to the truth; result to the optimum reached "
       "from the truth; that optimum to the truth\n");
   std::printf("%9s %7s %9s %6s %10s %10s %10s %8s %8s %10s %10s\n", "keyframes", "points", "reproj", "iters",
               "solve p50", "solve p99", "s/KF p50", "start", "result", "to optimum", "optimum");
   for (const int n : sizes) {
-    const Scene scene = makeScene(n, 1);
+    const Scene scene = makeScene(n, laps, 1);
     // The optimum as the solve finds it from the truth: with pixel noise it is not the truth, and over a long lap
     // it drifts from it, so convergence is judged against this.
     backend::GbaSnapshot from_truth = scene.snapshot;
@@ -333,15 +388,24 @@ int main(int argc, char** argv) {
     std::vector<double> after_m;
     std::vector<double> correction_ba_s;
     std::vector<double> correction_graph_s;
+    std::vector<double> window_s;
+    std::vector<double> window_to_optimum_m;
+    const auto free_keyframes = static_cast<std::size_t>(std::lround(free_fraction * n));
     std::vector<double> final_cost;
     backend::GlobalBaSummary last;
     for (int r = 0; r < repetitions; ++r) {
       backend::GbaSnapshot snapshot = scene.snapshot;
       perturb(snapshot, 100 + static_cast<std::uint64_t>(r), perturbation);
       before_m.push_back(rmsPositionError(snapshot, scene.truth));
-      const auto [window_s, graph_s] = timeCorrection(snapshot, kCorrectionWindow);
-      correction_ba_s.push_back(window_s);
+      const auto [correction_s, graph_s] = timeCorrection(snapshot, kCorrectionWindow);
+      correction_ba_s.push_back(correction_s);
       correction_graph_s.push_back(graph_s);
+      if (free_keyframes > 0) {
+        const auto [seconds_w, rms_m] =
+            timeWindow(from_truth, free_keyframes, 100 + static_cast<std::uint64_t>(r), perturbation, options);
+        window_s.push_back(seconds_w);
+        window_to_optimum_m.push_back(rms_m);
+      }
       const auto start = std::chrono::steady_clock::now();
       auto summary = backend::runGlobalBa(snapshot, options);
       seconds.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
@@ -371,6 +435,10 @@ int main(int argc, char** argv) {
         "p50 %.0f ms, p99 %.0f ms\n",
         "", kCorrectionWindow, 1000.0 * pct(correction_ba_s, 0.5), 1000.0 * pct(correction_ba_s, 0.99), n,
         1000.0 * pct(correction_graph_s, 0.5), 1000.0 * pct(correction_graph_s, 0.99));
+    if (free_keyframes > 0) {
+      std::printf("%9s GBA of the newest %zu keyframes, the rest held: p50 %.2f s, p99 %.2f s; to optimum %.3f cm\n",
+                  "", free_keyframes, pct(window_s, 0.5), pct(window_s, 0.99), 100.0 * pct(window_to_optimum_m, 0.99));
+    }
     std::fflush(stdout);
     results.push_back(
         {{"keyframes", n},
@@ -378,6 +446,10 @@ int main(int argc, char** argv) {
           {{"window_keyframes", kCorrectionWindow},
            {"ba_s", {{"p50", pct(correction_ba_s, 0.5)}, {"p99", pct(correction_ba_s, 0.99)}}},
            {"pose_graph_s", {{"p50", pct(correction_graph_s, 0.5)}, {"p99", pct(correction_graph_s, 0.99)}}}}},
+         {"window",
+          {{"free_keyframes", free_keyframes},
+           {"solve_s", {{"p50", pct(window_s, 0.5)}, {"p99", pct(window_s, 0.99)}}},
+           {"free_to_optimum_m_p99", pct(window_to_optimum_m, 0.99)}}},
          {"points", last.points},
          {"reprojection_factors", last.reprojection_factors},
          {"imu_factors", last.imu_factors},
@@ -397,7 +469,11 @@ int main(int argc, char** argv) {
       std::cerr << "bench_global_ba: cannot write " << json_path << "\n";
       return 1;
     }
-    out << nlohmann::json{{"benchmark", "global_ba"}, {"synthetic", true}, {"threads", threads}, {"results", results}}
+    out << nlohmann::json{{"benchmark", "global_ba"},
+                          {"synthetic", true},
+                          {"threads", threads},
+                          {"laps", laps},
+                          {"results", results}}
                .dump(2)
         << "\n";
   }

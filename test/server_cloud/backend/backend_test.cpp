@@ -442,6 +442,92 @@ TEST_F(BackendWorkerTest, AMergesCorrectionTakesOutTheMatchsErrorBeforeAnyGbaRun
   EXPECT_LT(maxPositionError(*map1->read(), s, 2), 0.01);
 }
 
+// On a large map (gba_window_above_keyframes) the GBA after a merge frees what the merge changed: the keyframes
+// of the smaller map's agents, those they add meanwhile included. Agent 1's map (28 keyframes) takes agent 2's
+// (20) through a match 5 cm and 0.6 deg off; while the GBA solves, agent 2 adds four keyframes where the merge put
+// its frame.
+TEST_F(BackendWorkerTest, AMergesGbaOnALargeMapFreesTheSmallerMapsAgentsAndHoldsTheRest) {
+  const test::ViScenario s = scenario(44, 0.5, 0.3);
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, 0.7)), Vector3d(3.0, -2.0, 0.5));
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 27});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 20, .last = 39, .E = [&](int) { return T_2_truth; }});
+  std::map<std::uint32_t, SE3d> agent1_before;
+  for (const auto& [id, kf] : map1->read()->keyframes()) agent1_before.emplace(id.counter, kf.T_w_s);
+
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.fuse_new_keyframes = false;
+  options.gba_window_above_keyframes = 40;
+  GbaGate gate(map1->id());
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry_, nullptr);
+  const SE3d error(SO3d::exp(Vector3d(0.0, 0.0, 0.6 * M_PI / 180.0)), Vector3d(0.04, -0.03, 0.02));
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 24}, map2->id(), KeyframeId{1, 24}, map1->id());
+  record.match.T_qmap_cmap = error * T_2_truth;
+  ASSERT_TRUE(worker.onMatch("m", record));
+  gate.waitUntilHeld();
+  const SE3d T_into_from = worker.stats("m").merges.at(0).T_into_from;
+  ASSERT_TRUE(addArrivingKeyframes(
+      *map1, s, AgentPlan{.agent = 2, .first = 40, .last = 43, .E = [&](int) { return T_into_from * T_2_truth; }}));
+  ASSERT_GT(maxPositionError(*map1->read(), s, 2), 0.04) << "the match's error";
+  gate.release();
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.gba.size(), 1U);
+  const GbaRecord& gba = stats.gba[0];
+  EXPECT_TRUE(gba.windowed);
+  EXPECT_FALSE(gba.summary.cancelled);
+  // Free: agent 2's 20 keyframes; held: agent 1's that see their points.
+  EXPECT_EQ(gba.summary.keyframes - gba.held_keyframes, 20);
+  EXPECT_GT(gba.held_keyframes, 0);
+  EXPECT_EQ(gba.keyframes_propagated, 4);
+  EXPECT_GE(stats.merges[0].match_to_optimised_s, stats.merges[0].match_to_merged_s);
+  const auto merged = map1->read();
+  EXPECT_TRUE(merged->checkConsistency().ok());
+  // Agent 1's keyframes did not move at all. Agent 2's, the four that came during the solve included, sit on the
+  // truth: the solve took the match's error out of its frame.
+  for (const auto& [counter, T_w_s] : agent1_before) {
+    const ServerKeyframe* kf = merged->keyframe(KeyframeId{1, counter});
+    ASSERT_NE(kf, nullptr);
+    EXPECT_EQ(kf->T_w_s.matrix(), T_w_s.matrix()) << "keyframe 1/" << counter;
+  }
+  for (const auto& [id, kf] : merged->keyframes()) {
+    if (id.agent == 2 && id.counter < 40) {
+      EXPECT_TRUE(kf.refined) << "2/" << id.counter;
+    }
+  }
+  EXPECT_LT(maxPositionError(*merged, s, 2), 0.01);
+  EXPECT_LT(maxPositionError(*merged, s, 1), 0.01);
+}
+
+// Below the size, and at the mission's end, a GBA frees the whole map.
+TEST_F(BackendWorkerTest, ASmallMapsMergeAndTheFinalGbaFreeTheWholeMap) {
+  const test::ViScenario s = scenario(40, 0.5, 0.3);
+  const SE3d T_2_truth(SO3d::exp(Vector3d(0.0, 0.0, 0.7)), Vector3d(3.0, -2.0, 0.5));
+  const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 27});
+  const auto map2 = addAgent(s, AgentPlan{.agent = 2, .first = 20, .last = 39, .E = [&](int) { return T_2_truth; }});
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.fuse_new_keyframes = false;
+  options.gba_window_above_keyframes = 48;  // the merged map's size
+  BackendWorker worker(options, registry_, nullptr);
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kMapMatch, KeyframeId{2, 24}, map2->id(), KeyframeId{1, 24}, map1->id());
+  record.match.T_qmap_cmap = T_2_truth;
+  ASSERT_TRUE(worker.onMatch("m", record));
+  worker.drain(true);
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.gba.size(), 2U);
+  for (const GbaRecord& gba : stats.gba) {
+    EXPECT_FALSE(gba.windowed);
+    EXPECT_EQ(gba.held_keyframes, 0);
+    EXPECT_EQ(gba.summary.keyframes, 48);
+  }
+  EXPECT_TRUE(stats.gba[1].final);
+}
+
 TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   const test::ViScenario s = scenario(24, 0.5, 0.3);
   // From keyframe 12 on the estimate drifts, as VIO does, a little more at every keyframe up to 3 deg of yaw and
