@@ -10,9 +10,11 @@
 //   GBA thread      global BA of a map after every merge or loop, every `gba_every_keyframes` new keyframes
 //                   of a map when set, and of every map at drain(true), the end of a mission; on a snapshot:
 //                   ingest carries on meanwhile, and the result is applied with the corrections of what
-//                   arrived (applyCorrections). A merge on a map cancels its running GBA,
-//                   which then starts again on the changed map; a loop does so only when its pose graph moves
-//                   the query keyframe by more than `loop_cancels_gba_m` / `loop_cancels_gba_deg`. A smaller
+//                   arrived (applyCorrections). After a merge into a large map, only the smaller map's part is
+//                   freed (gba_window_above_keyframes). A merge cancels a running GBA of the map that goes
+//                   (and, with a merge correction, of the map it goes into, which then starts again on the
+//                   changed map); a loop cancels its map's only when its pose graph moves the query keyframe by
+//                   more than `loop_cancels_gba_m` / `loop_cancels_gba_deg`. A smaller
 //                   loop lets the running GBA finish: its result is a change of state, composed with the
 //                   loop's (applyCorrections), and the GBA the loop asks for follows it.
 //

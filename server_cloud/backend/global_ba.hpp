@@ -121,9 +121,9 @@ struct GbaWindow {
 // An agent's map by (agent, the agent's map index), as ServerKeyframe::agent_map names it.
 using AgentMapKey = std::pair<AgentId, std::uint32_t>;
 
-// The window of a GBA after a merge: every keyframe of `agent_maps` (the map that the merge moved into the other's
-// frame, with the keyframes its agents added since). None when that is more than `max_free_fraction` of the
-// map's keyframes: the whole map costs little more then.
+// The window of a GBA after a merge: every keyframe of `agent_maps` (those of the smaller of the two maps the merge
+// joined; the keyframes their agents added since included). None when that is more than `max_free_fraction` of
+// the map's keyframes: the whole map costs little more then.
 std::optional<GbaWindow> agentMapsWindow(const MapContent& map, const std::set<AgentMapKey>& agent_maps,
                                          double max_free_fraction);
 
