@@ -14,6 +14,7 @@
 #include "agent_rt/link/anchor_decoder.hpp"
 #include "agent_rt/link/link_client.hpp"
 #include "common/core/text.hpp"
+#include "common/trace/trace.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 
@@ -282,6 +283,9 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
     }
     if (connected) {
       while (s.client.poll(s.downlink)) {
+        trace::instant("downlink_received", {{"downlink", static_cast<std::int64_t>(s.downlink.sequence())},
+                                             {"acked", static_cast<std::int64_t>(s.downlink.acked_sequence())},
+                                             {"corrections", s.downlink.corrected_keyframes_size()}});
         const std::uint64_t bytes = s.downlink.ByteSizeLong();
         s.count(s.down_by_kind, "message", 1, bytes);
         if (s.downlink.acked_sequence() > 0) {
@@ -324,9 +328,16 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
       v1::AgentUplink* uplink = s.uplink;
       v1::MapBatch& batch = *uplink->mutable_batch();
       next_build = now + period;
+      trace::Span span("uplink_batch", {{"batch", static_cast<std::int64_t>(next_sequence)}});
       if (s.store.buildBatch(next_sequence, s.store.newestSensorTime(), s.pacer.batchBudget(s.options.max_batch_bytes),
                              batch)) {
         const std::uint64_t bytes = uplink->ByteSizeLong();
+        span.set("keyframes", batch.keyframes_size());
+        span.set("bytes", static_cast<std::int64_t>(bytes));
+        for (const v1::Keyframe& k : batch.keyframes()) {
+          trace::instant("keyframe_sent",
+                         {{"keyframe", k.counter()}, {"batch", static_cast<std::int64_t>(next_sequence)}});
+        }
         const bool sent = s.client.send(*uplink);
         if (sent) {
           s.pacer.onSent(next_sequence, bytes, Clock::now());

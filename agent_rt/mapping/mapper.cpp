@@ -13,6 +13,7 @@
 #include "agent_rt/mapping/two_view_initialiser.hpp"
 #include "agent_rt/messages/conversions.hpp"
 #include "common/features/best_two.hpp"
+#include "common/trace/trace.hpp"
 
 namespace cvislam::agent {
 
@@ -596,6 +597,7 @@ void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyfra
   LocalBundleAdjustmentOptions ba = s.options.ba;
   ba.use_imu = s.imu_initialised && s.options.use_imu;
   const auto t0 = std::chrono::steady_clock::now();
+  const trace::Span span("local_ba");
   auto summary = runLocalBundleAdjustment(s.map, ba, yield);
   report.ba_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - t0).count();
   if (summary) {

@@ -24,6 +24,7 @@
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/state_publisher.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
+#include "common/trace/trace.hpp"
 #include "iceoryx_posh/popo/user_trigger.hpp"
 #include "iceoryx_posh/popo/wait_set.hpp"
 
@@ -72,6 +73,19 @@ const char* toString(Pace pace) {
   return "?";
 }
 
+namespace {
+
+trace::SessionOptions traceSessionOptions(const AgentOptions& options) {
+  trace::SessionOptions o;
+  o.process_name = "agent " + std::to_string(options.agent);
+  o.agent = options.agent;
+  o.mission = options.link.mission;
+  o.events_per_thread = options.trace_events_per_thread;
+  return o;
+}
+
+}  // namespace
+
 Status AgentOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, what}; };
   const int sources =
@@ -112,6 +126,9 @@ Status AgentOptions::validate() const {
   if (Status s = tracking.validate(); !s.ok()) return s;
   if (Status s = link.validate(); !s.ok()) return s;
   if (Status s = threads.validate(); !s.ok()) return s;
+  if (!trace_file.empty()) {
+    if (Status s = traceSessionOptions(*this).validate(); !s.ok()) return s;
+  }
   return mapping.validate();
 }
 
@@ -292,7 +309,10 @@ class TrackingLoop {
                        "a new map\n");
         }
       }
+      trace::Span frame_span("track_frame", {{"frame", static_cast<std::int64_t>(frame->index)}});
+      frame_span.set("since_capture_us", (trace::nowNs() - captured_ns) / 1000);
       const FrameResult r = tracker_.track(input, sink_);
+      if (r.keyframe) frame_span.set("keyframe", r.reference.counter);
       s_.feed.release();
       publishState(frameState(r, input.t_ns, captured_ns, s_.options.agent));
       s_.latencies.addFrame(r);
@@ -584,6 +604,9 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   const ChannelDepths depths = ChannelDepths::forLag(options.tracking.lag);
   auto roudi = startIceoryx(options, depths);
   if (!roudi) return roudi.error();
+  // Before the first thread starts: each binds to it as it starts (schedule_this_thread).
+  std::optional<trace::Session> trace_session;
+  if (!options.trace_file.empty()) trace_session.emplace(traceSessionOptions(options));
 
   // Room for every frame of a recording; a live run keeps the first live_record_frames.
   const std::size_t n_frames = plan.recording ? plan.frames.size() : options.live_record_frames;
@@ -603,6 +626,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
           ? options.threads.resolved(mayTakeRealtimePriority(options.threads.tracking.realtime_priority), currentNice())
           : options.threads;
   const auto schedule_this_thread = [&](const char* name, const ThreadSchedule& schedule) {
+    trace::bindThread(name);  // every thread of the agent starts here
     if (!scheduling) return;
     const ScheduleOutcome outcome = applyToThisThread(schedule);
     if (!outcome.applied) std::fprintf(stderr, "[agent] threads.%s: %s\n", name, outcome.note.c_str());
@@ -685,6 +709,15 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   if (Status s = writeRunOutputs(options, recorder, mapping_stats, {plan.stereo, plan.imu_noise_inflation}, summary);
       !s.ok()) {
     return s.error();
+  }
+  if (trace_session) {  // every thread has ended
+    if (Status s = trace_session->writeChromeJson(options.trace_file); !s.ok()) return s.error();
+    const trace::SessionTotals totals = trace_session->totals();
+    if (totals.overwritten > 0) {
+      std::fprintf(stderr, "[agent] trace: the oldest %llu of %llu events gave way (trace_events_per_thread %zu)\n",
+                   static_cast<unsigned long long>(totals.overwritten), static_cast<unsigned long long>(totals.events),
+                   options.trace_events_per_thread);
+    }
   }
   return summary;
 }

@@ -70,6 +70,10 @@ struct AgentOptions {
   double progress_interval_s = 2.0;
   bool quiet = false;
   bool trace_mapping = false;  // one line per keyframe on stderr: links, new points, stereo matches, local BA
+  // Chrome Trace Event JSON of every thread's stages, written at the end (common/trace/trace.hpp); empty: none.
+  // Each thread keeps its newest trace_events_per_thread events (about 88 bytes each, reserved at start).
+  std::filesystem::path trace_file;
+  std::size_t trace_events_per_thread = std::size_t{1} << 16;
   std::size_t max_frames = 0;  // 0 = all
   // Live: how long a frame waits for the IMU sample that closes its interval, and how many frames are kept for the
   // trajectory files and the latency profile (their memory is reserved at start; later frames are tracked and

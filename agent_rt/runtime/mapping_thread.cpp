@@ -8,6 +8,7 @@
 #include <thread>
 
 #include "agent_rt/runtime/iceoryx_channels.hpp"
+#include "common/trace/trace.hpp"
 #include "iceoryx_posh/popo/user_trigger.hpp"
 #include "iceoryx_posh/popo/wait_set.hpp"
 
@@ -185,6 +186,9 @@ class MappingLoop {
     if (!anchors_) return;
     for (auto taken = anchors_->take(); !taken.has_error(); taken = anchors_->take()) {
       const AnchorMessage& m = *taken.value();
+      // Where the server's corrections and covisible map reach the agent's map: the end of a keyframe's journey.
+      const trace::Span span("apply_downlink", {{"downlink", static_cast<std::int64_t>(m.sequence)},
+                                                {"corrections", static_cast<std::int64_t>(m.correction_count)}});
       tsanAcquire(&m);
       auto applied = mapper_.applyDownlink(m);
       tsanRelease(&m);
@@ -204,6 +208,8 @@ class MappingLoop {
     yielded_to_tracking_ = false;
     tsanAcquire(&msg);
     const ChunkReleaseOnExit release_keyframe{&msg};
+    // Ends when the keyframe's local BA is done and its snapshot published.
+    const trace::Span span("map_keyframe", {{"keyframe", msg.state.id.counter}});
     const std::int64_t t0 = steadyNowNs();
     shared_.receive.add(t0 - msg.publish_steady_ns);
     IceoryxLoan<MapSnapshotMessage> snapshot(snapshots_);

@@ -46,6 +46,8 @@ struct CommandLine {
   std::string time_offset;
   bool quiet = false;
   bool trace_mapping = false;
+  std::filesystem::path trace_file;
+  std::size_t trace_events_per_thread = 0;
   bool no_priorities = false;
   std::size_t max_frames = 0;
   std::string mcap;
@@ -114,6 +116,11 @@ void CommandLine::define(CLI::App& app) {
                "Leave every thread at the process's scheduling (default at --pace realtime: tracking SCHED_FIFO 10 "
                "where allowed and the others at the process's nice value; without that privilege tracking nice 0, "
                "mapping 10, the link 5, the frame loader 2; see the threads section of deploy/agent_config.yaml)");
+  app.add_option("--trace", trace_file,
+                 "Write a Chrome Trace Event JSON of every thread's stages here at the end (opens in "
+                 "https://ui.perfetto.dev; cvislam_trace joins it with the server's)");
+  app.add_option("--trace-events-per-thread", trace_events_per_thread,
+                 "Events each thread keeps for --trace, the newest (about 88 bytes each, reserved at start) [65536]");
   app.add_flag("--trace-mapping", trace_mapping,
                "One line per keyframe on stderr: matches linked, points fused/made/culled, stereo matches, local BA "
                "size, cam1 factors and rejected stereo mismatches, cost");
@@ -182,6 +189,8 @@ bool CommandLine::applyTo(cvislam::agent::AgentOptions& options) {
   options.quiet = quiet;
   if (no_priorities) options.threads.enabled = false;
   options.trace_mapping = trace_mapping;
+  options.trace_file = trace_file;
+  if (trace_events_per_thread > 0) options.trace_events_per_thread = trace_events_per_thread;
   options.max_frames = max_frames;
   return true;
 }

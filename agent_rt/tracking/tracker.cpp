@@ -11,6 +11,7 @@
 #include "agent_rt/tracking/motion_window.hpp"
 #include "agent_rt/tracking/tracker_state.hpp"
 #include "common/core/steady_clock.hpp"
+#include "common/trace/trace.hpp"
 
 namespace cvislam::agent {
 
@@ -253,7 +254,9 @@ void extractFeatures(Tracker::State& s, FrameStep& f) {
     s.undistorted[k] = s.left.undistortPixel(s.keypoints[k].px.cast<double>());
   }
   f.result.keypoints = s.keypoint_count;
-  f.result.times.orb_ns = steadyNowNs() - t_orb;
+  const std::int64_t t_orb_end = steadyNowNs();
+  f.result.times.orb_ns = t_orb_end - t_orb;
+  trace::complete("orb", t_orb, t_orb_end, {{"keypoints", s.keypoint_count}});
 }
 
 // The frame's end, on every path: the state moves to the frame's pose and the result says where tracking stands.
@@ -355,7 +358,10 @@ bool publishKeyframe(Tracker::State& s, FrameStep& f, KeyframeKind kind, const S
   s.awaiting = true;
   s.awaiting_id = id;
   f.result.keyframe = true;
-  f.result.times.keyframe_ns = steadyNowNs() - t0;
+  const std::int64_t t_end = steadyNowNs();
+  f.result.times.keyframe_ns = t_end - t0;
+  // Where a keyframe's journey to the server and back starts.
+  trace::complete("keyframe_write", t0, t_end, {{"keyframe", id.counter}});
   return true;
 }
 
@@ -454,11 +460,14 @@ std::optional<PoseOptimizerResult> searchAndOptimisePose(Tracker::State& s, Fram
                    std::span(s.descriptors.data(), n), o.search,
                    std::span(s.match_of_point.data(), static_cast<std::size_t>(projected)));
   collectMatches(s, projected);
-  f.result.times.matching_ns = steadyNowNs() - t_matching;
-
   std::int64_t t_pose = steadyNowNs();
+  f.result.times.matching_ns = t_pose - t_matching;
+  trace::complete("matching", t_matching, t_pose, {{"matches", s.observation_count}});
+
   auto first = optimizePose(observationsOf(s), f.T_pred, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
-  f.pose_ns = steadyNowNs() - t_pose;
+  std::int64_t t_pose_end = steadyNowNs();
+  f.pose_ns = t_pose_end - t_pose;
+  trace::complete("pose_optimisation", t_pose, t_pose_end);
   if (!first) return std::nullopt;
 
   // Second search: points not matched yet, around their projection with the refined pose.
@@ -483,11 +492,14 @@ std::optional<PoseOptimizerResult> searchAndOptimisePose(Tracker::State& s, Fram
   }
   s.observation_count = kept;
   collectMatches(s, projected);
-  f.result.times.matching_ns += steadyNowNs() - t_second;
-
   t_pose = steadyNowNs();
+  f.result.times.matching_ns += t_pose - t_second;
+  trace::complete("matching", t_second, t_pose, {{"matches", s.observation_count}});
+
   auto second = optimizePose(observationsOf(s), first->T_w_s, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
-  f.pose_ns += steadyNowNs() - t_pose;
+  t_pose_end = steadyNowNs();
+  f.pose_ns += t_pose_end - t_pose;
+  trace::complete("pose_optimisation", t_pose, t_pose_end);
   f.result.times.pose_ns = f.pose_ns;
   if (!second) return std::nullopt;
   return *second;
@@ -527,7 +539,9 @@ void refineWithImu(Tracker::State& s, FrameStep& f, SE3d& T, Vector3d& v) {
     // Keep the visual pose; the outlier flags are recomputed for the keyframe's matches.
     (void)optimizePose(observationsOf(s), T, s.T_s_c, s.intrinsics, o.pose, outliersOf(s));
   }
-  f.result.times.motion_ba_ns = steadyNowNs() - t_ba;
+  const std::int64_t t_ba_end = steadyNowNs();
+  f.result.times.motion_ba_ns = t_ba_end - t_ba;
+  trace::complete("motion_ba", t_ba, t_ba_end);
 }
 
 // 6. The keyframe decision on the tracked frame, and the keyframe when mapping's backlog lets it through.

@@ -5,6 +5,7 @@
 #include <sstream>
 #include <unordered_map>
 
+#include "common/trace/trace.hpp"
 #include "server_cloud/backend/map_corrections.hpp"
 #include "server_cloud/backend/merge_correction.hpp"
 
@@ -236,6 +237,7 @@ std::vector<std::string> BackendWorker::missions() const {
 }
 
 void BackendWorker::runControl() {
+  trace::bindThread("backend");
   std::unique_lock lock(mutex_);
   while (true) {
     control_wake_.wait(lock, [this] { return stop_ || !queue_.empty(); });
@@ -323,6 +325,9 @@ void BackendWorker::fuseNewKeyframe(Mission& mission, MissionState& state, const
     if (held != r->keyframes.end()) map = mission.stack().find(held->second.map);
   }
   if (!map) return;
+  const trace::Span span(
+      "fusion",
+      {{"mission", trace::missionKey(mission.name())}, {"agent", keyframe.agent}, {"keyframe", keyframe.counter}});
   const auto start = Clock::now();
   // Copy what the search needs under the read lock, search without a lock, apply under the write lock: ingest
   // waits for the copy and the apply only.
@@ -363,7 +368,13 @@ void BackendWorker::handleMatch(const Event& event) {
     s = &state(event.mission);
   }
   const recognition::VerifiedMatch& match = event.match->match;
-  if (event.match->kind == recognition::QueryKind::kMapMatch) {
+  const bool map_match = event.match->kind == recognition::QueryKind::kMapMatch;
+  const trace::Span span(map_match ? "merge" : "loop", {{"mission", trace::missionKey(event.mission)},
+                                                        {"agent", match.query.agent},
+                                                        {"keyframe", match.query.counter},
+                                                        {"map", match.candidate_map},
+                                                        {"from_map", match.query_map}});
+  if (map_match) {
     if (options_.merge_maps) merge(*mission, *s, match, event.arrived);
   } else if (options_.close_loops) {
     closeLoop(*mission, *s, match, event.arrived);
@@ -436,10 +447,18 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     const SE3d T_into_from = fourDofTransform(match.T_qmap_cmap.inverse(), query->T_w_s.translation());
     c.absorb(q, T_into_from);
     for (auto& [agent, r] : locks.records()) {
+      bool member = false;
       for (auto& [index, agent_map] : r->agent_maps) {
+        if (agent_map.map == into->id()) member = true;
         if (agent_map.map != from->id()) continue;
+        member = true;
         agent_map.map = into->id();
         agent_map.T_m_w = T_into_from * agent_map.T_m_w;
+      }
+      // The agents that should receive this merge's corrections, for following them in a trace.
+      if (member) {
+        trace::instant("merged_map_agent",
+                       {{"mission", trace::missionKey(mission.name())}, {"map", into->id()}, {"agent", r->id}});
       }
       for (auto& [counter, held] : r->keyframes) {
         if (held.map == from->id()) held.map = into->id();
@@ -497,6 +516,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
 bool BackendWorker::correctMerge(Mission& mission, MissionState& state, const std::shared_ptr<ServerMap>& into,
                                  const recognition::VerifiedMatch& match,
                                  const std::unordered_set<KeyframeId>& query_keyframes, MergeRecord& record) {
+  const trace::Span span("merge_correction", {{"mission", trace::missionKey(mission.name())}, {"map", into->id()}});
   const AgentSensorsMap sensors = sensorsOf(mission);
   std::vector<LoopEdge> loops;
   {
@@ -682,6 +702,7 @@ bool BackendWorker::cancelGba(const std::string& mission, MapId map) {
 }
 
 void BackendWorker::runGba() {
+  trace::bindThread("global BA");
   std::unique_lock lock(mutex_);
   // The oldest request whose map no merge is correcting.
   const auto runnable = [this] {
@@ -728,6 +749,9 @@ void BackendWorker::gba(const GbaRequest& request) {
   };
   const std::shared_ptr<ServerMap> map = mission->stack().find(request.map);
   if (!map) return forward();
+  trace::Span span(
+      "global_ba",
+      {{"mission", trace::missionKey(request.mission)}, {"map", request.map}, {"final", request.final ? 1 : 0}});
   // From the snapshot to the applied result, ingest times its batches as "during GBA".
   struct RunningGba {
     Mission& mission;
@@ -760,6 +784,8 @@ void BackendWorker::gba(const GbaRequest& request) {
   if (!snapshot) return;
   record.held_keyframes = static_cast<int>(std::count_if(snapshot->keyframes.begin(), snapshot->keyframes.end(),
                                                          [](const GbaKeyframe& k) { return k.held; }));
+  span.set("keyframes", static_cast<std::int64_t>(snapshot->keyframes.size()));
+  span.set("held", record.held_keyframes);
   if (options_.on_gba_solve_start) options_.on_gba_solve_start(request.map);
   Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options_.gba, &gba_cancel_);
   if (!summary) return;

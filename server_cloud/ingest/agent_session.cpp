@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "common/core/text.hpp"
+#include "common/trace/trace.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 #include "server_cloud/store/operator_log.hpp"
@@ -355,6 +356,9 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   const v1::MapBatch& batch = message.batch();
   const std::uint64_t sequence = batch.sequence();
   const auto arrived = Clock::now();  // before the lock: waits for the back-end count
+  const trace::Span span("ingest", {{"mission", trace::missionKey(mission_name_)},
+                                    {"agent", agent_},
+                                    {"batch", static_cast<std::int64_t>(sequence)}});
   const bool gba_at_arrival = mission_->gbaRunning();
   if (mission_->retired()) {
     return Error{ErrorCode::kUnavailable,
@@ -388,6 +392,9 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   std::optional<StoreRecord> held;  // set when the store holds other content under this number
   if (store_ != nullptr) {
     commit = [&]() -> Status {
+      const trace::Span commit_span("store_commit", {{"mission", trace::missionKey(mission_name_)},
+                                                     {"agent", agent_},
+                                                     {"batch", static_cast<std::int64_t>(sequence)}});
       StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
       Status appended = store_->append(stored);
       if (appended.ok()) return Status::Ok();
@@ -531,6 +538,7 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
   if (!record_ || closed_ || mission_->retired()) return false;
   const auto period = std::chrono::duration<double>(1.0 / options_.downlink_rate_hz);
   if (now - last_down_ < period) return false;
+  const std::int64_t begin_ns = trace::nowNs();
   out.Clear();
   int corrections = 0;
   int removals = 0;
@@ -597,6 +605,13 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
     if (new_ack) record->down["ack"].add(1, 0);
   }
   last_down_ = now;
+  // Its end stands for the send: the adapter writes the message right after.
+  trace::complete("downlink_build", begin_ns, trace::nowNs(),
+                  {{"mission", trace::missionKey(mission_name_)},
+                   {"agent", agent_},
+                   {"downlink", static_cast<std::int64_t>(out.sequence())},
+                   {"acked", static_cast<std::int64_t>(out.acked_sequence())},
+                   {"corrections", corrections}});
   return true;
 }
 

@@ -9,6 +9,8 @@
 #include <unordered_map>
 #include <utility>
 
+#include "common/trace/trace.hpp"
+
 namespace cvislam::server::recognition {
 
 struct RecognitionWorker::MissionState {
@@ -109,6 +111,7 @@ std::vector<std::string> RecognitionWorker::missions() const {
 }
 
 void RecognitionWorker::run() {
+  trace::bindThread("recognition");
   std::unique_lock lock(mutex_);
   while (true) {
     wake_.wait(lock, [this] { return stop_ || !queue_.empty(); });
@@ -252,6 +255,9 @@ void RecognitionWorker::QueryLocks::read(const ServerMap& map, const Read& read)
 }
 
 void RecognitionWorker::query(MissionState& state, Mission& mission, const KeyframeId& keyframe) {
+  const trace::Span span(
+      "recognition_query",
+      {{"mission", trace::missionKey(mission.name())}, {"agent", keyframe.agent}, {"keyframe", keyframe.counter}});
   const auto start = std::chrono::steady_clock::now();
   const DatabaseEntry* entry = state.database.find(keyframe);
   if (entry == nullptr) return;

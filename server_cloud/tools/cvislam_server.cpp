@@ -23,6 +23,7 @@
 
 #include <CLI/CLI.hpp>
 
+#include "common/trace/trace.hpp"
 #include "cvislam/v1/monitor.pb.h"
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/service/grpc_server.hpp"
@@ -114,6 +115,8 @@ struct CommandLine {
   std::string peer_ca;
   std::vector<std::string> load_missions;
   std::string load_from;
+  std::string trace;
+  std::size_t trace_events_per_thread = std::size_t{1} << 16;
 };
 
 // Every option, bound to `cl`.
@@ -182,6 +185,13 @@ void addOptions(CLI::App& app, CommandLine& cl) {
         const auto eq = v.find('=');
         return eq == std::string::npos || eq == 0 || eq + 1 == v.size() ? std::string("give FROM=AS") : std::string();
       });
+  app.add_option("--trace", cl.trace,
+                 "Write a Chrome Trace Event JSON of ingest, store, recognition, fusion, merges, loops, GBA and the "
+                 "downlink here at shutdown (opens in https://ui.perfetto.dev; cvislam_trace joins it with the "
+                 "agents')");
+  app.add_option("--trace-events-per-thread", cl.trace_events_per_thread,
+                 "Events each thread keeps for --trace, the newest (about 88 bytes each) [65536]")
+      ->check(CLI::Range(16, 1 << 24));
   app.add_option("--load-from", cl.load_from,
                  "The store --load-mission reads (not in use by a running server) [this server's --store]");
 }
@@ -350,6 +360,15 @@ int main(int argc, char** argv) {
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
   std::signal(SIGPIPE, SIG_IGN);
 
+  // Before the workers start: they bind to it on their threads; gRPC's threads get a track on their first event.
+  std::optional<cvislam::trace::Session> trace_session;
+  if (!cl.trace.empty()) {
+    cvislam::trace::SessionOptions trace_options;
+    trace_options.process_name = "server";
+    trace_options.events_per_thread = cl.trace_events_per_thread;
+    trace_options.trace_unbound_threads = true;
+    trace_session.emplace(trace_options);
+  }
   if (!cl.quiet) std::fprintf(stderr, "[server] options:\n%s", options.describe().c_str());
   cvislam::server::ServerCore core(options);
   if (auto s = core.loadTokens(); !s.ok()) {
@@ -391,6 +410,13 @@ int main(int argc, char** argv) {
       return 1;
     }
     std::printf("outputs: %s\n", options.output.string().c_str());
+  }
+  if (trace_session) {  // the workers are idle and gRPC's threads have stopped
+    if (auto s = trace_session->writeChromeJson(cl.trace); !s.ok()) {
+      std::cerr << "cvislam_server: " << s.error().toString() << "\n";
+      return 1;
+    }
+    std::printf("trace: %s\n", cl.trace.c_str());
   }
   return 0;
 }

@@ -20,6 +20,9 @@
 //
 //   build/default/bin/cvislam_sim --preset loop --seed 1 --stereo --out /tmp/loop
 //   taskset -c 1 build/default/bin/bench_agent_tracking --dataset /tmp/loop/agent0 --server 127.0.0.1:50051
+//
+// With --compare-trace, passes alternate between tracing off and on (cvislam_agent --trace: every stage recorded
+// into the thread's ring), so the trace's cost on tracking shows side by side in one run.
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -27,6 +30,7 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -37,6 +41,7 @@
 #include "agent_rt/link/link.hpp"
 #include "agent_rt/runtime/latency_profile.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
+#include "common/trace/trace.hpp"
 #include "test/support/delta_queue.hpp"
 #include "test/support/inline_agent.hpp"
 #include "test/support/test_data.hpp"
@@ -91,6 +96,9 @@ int main(int argc, char** argv) {
   app.add_option("--mode", mode, "stereo or mono")->check(CLI::IsMember({"stereo", "mono"}));
   app.add_option("--passes", passes, "Runs over the whole sequence")->check(CLI::PositiveNumber);
   app.add_option("--json", json, "Write the summary here as JSON");
+  bool compare_trace = false;
+  app.add_flag("--compare-trace", compare_trace, "Alternate passes with tracing off and on (cvislam_agent --trace)")
+      ->excludes("--server");
   CLI11_PARSE(app, argc, argv);
 
   auto sequence = cvislam::dataset::EurocSequence::open(dataset);
@@ -99,14 +107,25 @@ int main(int argc, char** argv) {
     return 1;
   }
   const std::size_t capacity = static_cast<std::size_t>(passes) * sequence->cam0().frames.size();
-  // Index 0: without the link; 1: with it.
+  // Index 0: without the link (or the trace); 1: with it.
+  const bool compare = !server.empty() || compare_trace;
   std::vector<Recorders> recorders;
   recorders.emplace_back(capacity);
-  if (!server.empty()) recorders.emplace_back(capacity);
-  const int total_passes = server.empty() ? passes : 2 * passes;
+  if (compare) recorders.emplace_back(capacity);
+  const int total_passes = compare ? 2 * passes : passes;
   for (int pass = 0; pass < total_passes; ++pass) {
-    const bool with_link = !server.empty() && pass % 2 == 1;
-    Recorders& rec = recorders[with_link ? 1 : 0];
+    const bool second = compare && pass % 2 == 1;
+    const bool with_link = !server.empty() && second;
+    const bool with_trace = compare_trace && second;
+    Recorders& rec = recorders[second ? 1 : 0];
+    std::optional<cvislam::trace::Session> trace_session;
+    if (with_trace) {
+      cvislam::trace::SessionOptions trace_options;
+      trace_options.process_name = "agent 0";
+      trace_options.events_per_thread = std::size_t{1} << 18;
+      trace_session.emplace(trace_options);
+      cvislam::trace::bindThread("tracking");
+    }
     cvislam::agent::MapperOptions mapper_options;
     if (local_map_keyframes > 0) {
       mapper_options.max_keyframes = local_map_keyframes;
@@ -160,6 +179,8 @@ int main(int argc, char** argv) {
       if (!(*agent)->load(i).ok()) continue;
       std::int64_t t0 = 0;
       std::int64_t t1 = 0;
+      // As in the agent's tracking loop, whose span is outside the tracker's own timing.
+      cvislam::trace::Span frame_span("track_frame", {{"frame", static_cast<std::int64_t>(i)}});
       const cvislam::agent::FrameResult r = (*agent)->track([&] { t0 = nowNs(); }, [&] { t1 = nowNs(); });
       ++rec.frames;
       rec.total.add(t1 - t0);
@@ -189,20 +210,22 @@ int main(int argc, char** argv) {
     for (const auto* r : {&rec.total, &rec.orb, &rec.matching, &rec.pose, &rec.motion, &rec.local_ba}) {
       stages.push_back(cvislam::agent::summarise(*r));
     }
-    const char* label = k == 0 ? "without the link" : "with the link streaming to the server";
+    const char* label = compare_trace ? (k == 0 ? "tracing off" : "tracing on (every stage into the thread's ring)")
+                                      : (k == 0 ? "without the link" : "with the link streaming to the server");
     std::printf("%s, %s: %zu frames (%d passes), %zu tracked, %zu keyframes\n%s", dataset.c_str(), label, rec.frames,
                 passes, rec.tracked, rec.keyframes, cvislam::agent::formatLatencyTable(stages).c_str());
     const double determinism = stages[0].p50_ms > 0 ? stages[0].p99_ms / stages[0].p50_ms : 0.0;
     std::printf("tracking p99/p50 = %.2f\n", determinism);
-    if (k == 1) {
+    if (k == 1 && !server.empty()) {
       std::printf("link: %llu batches acknowledged, %.2f MB up, %d passes not flushed, %zu deltas dropped\n",
                   static_cast<unsigned long long>(rec.batches), static_cast<double>(rec.up_bytes) * 1e-6, rec.unflushed,
                   rec.dropped);
       std::printf("downlink: %d anchors added; %zu of %zu local BAs with anchors' observations in them\n",
                   rec.anchors_added, rec.keyframes_with_anchors, rec.local_ba.samplesMs().size());
     }
-    out[k == 0 ? "without_link" : "with_link"] = nlohmann::json::parse(cvislam::agent::latencyJson(stages));
+    const char* key = compare_trace ? (k == 0 ? "tracing_off" : "tracing_on") : (k == 0 ? "without_link" : "with_link");
+    out[key] = nlohmann::json::parse(cvislam::agent::latencyJson(stages));
   }
-  if (!json.empty()) std::ofstream(json) << (server.empty() ? out["without_link"].dump(2) : out.dump(2)) << "\n";
+  if (!json.empty()) std::ofstream(json) << (compare ? out.dump(2) : out["without_link"].dump(2)) << "\n";
   return 0;
 }

@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 
+#include "common/trace/trace.hpp"
 #include "test/sim/mission_writer.hpp"
 #include "test/sim/presets.hpp"
 #include "test/support/inline_agent.hpp"
@@ -49,6 +50,21 @@ TEST(TrackerAllocations, TheLargestMotionBaWindowAllocatesNothing) {
   TrackerOptions options;
   options.motion_ba_keyframes = static_cast<int>(kMaxMotionBaKeyframes);
   expectSteadyStateAllocatesNothing(options);
+}
+
+// With a trace recording every stage (cvislam_agent --trace), the same: a bound thread records into its ring.
+TEST(TrackerAllocations, TracingEveryStageAllocatesNothing) {
+  trace::SessionOptions trace_options;
+  trace_options.process_name = "agent 0";
+  trace_options.events_per_thread = std::size_t{1} << 14;
+  trace::Session session(trace_options);
+  trace::bindThread("tracking");
+  expectSteadyStateAllocatesNothing(TrackerOptions{});
+  const std::string json = session.chromeJson();
+  for (const char* stage :
+       {"\"orb\"", "\"matching\"", "\"pose_optimisation\"", "\"motion_ba\"", "\"keyframe_write\""}) {
+    EXPECT_NE(json.find(stage), std::string::npos) << stage << " was not traced";
+  }
 }
 
 }  // namespace
