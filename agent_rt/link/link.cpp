@@ -335,8 +335,9 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
         span.set("keyframes", batch.keyframes_size());
         span.set("bytes", static_cast<std::int64_t>(bytes));
         for (const v1::Keyframe& k : batch.keyframes()) {
-          trace::instant("keyframe_sent",
-                         {{"keyframe", k.counter()}, {"batch", static_cast<std::int64_t>(next_sequence)}});
+          trace::instant(
+              "keyframe_sent",
+              {{"keyframe", k.counter()}, {"batch", static_cast<std::int64_t>(next_sequence)}, {"map", k.agent_map()}});
         }
         const bool sent = s.client.send(*uplink);
         if (sent) {

@@ -6,6 +6,7 @@
 #include <string>
 
 #include "agent_rt/messages/conversions.hpp"
+#include "common/trace/trace.hpp"
 #include "cvislam/v1/agent_link.pb.h"
 #include "proto/wire/wire.hpp"
 
@@ -196,6 +197,8 @@ bool LinkStore::mapReady(std::uint32_t map_id) const {
 }
 
 void LinkStore::setMapReady(std::uint32_t map_id, bool ready) {
+  // Keyframes of a map whose frame is not final wait in the store; a trace tells that wait from the link's.
+  if (ready && !mapReady(map_id)) trace::instant("map_ready", {{"map", map_id}});
   const std::size_t n = std::min(map_ready_count_, map_ready_.size());
   for (std::size_t i = 0; i < n; ++i) {
     if (map_ready_[i].first == map_id) {

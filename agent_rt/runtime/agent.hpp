@@ -71,7 +71,7 @@ struct AgentOptions {
   bool quiet = false;
   bool trace_mapping = false;  // one line per keyframe on stderr: links, new points, stereo matches, local BA
   // Chrome Trace Event JSON of every thread's stages, written at the end (common/trace/trace.hpp); empty: none.
-  // Each thread keeps its newest trace_events_per_thread events (about 88 bytes each, reserved at start).
+  // Each thread keeps its newest trace_events_per_thread events (about 104 bytes each, reserved at start).
   std::filesystem::path trace_file;
   std::size_t trace_events_per_thread = std::size_t{1} << 16;
   std::size_t max_frames = 0;  // 0 = all

@@ -5,6 +5,7 @@
 #include "agent_rt/messages/messages.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "common/core/steady_clock.hpp"
+#include "common/trace/trace.hpp"
 
 namespace cvislam::agent {
 RecordingFeed::RecordingFeed(Recording& recording, const std::vector<dataset::RigFrame>& frames,
@@ -32,6 +33,7 @@ void RecordingFeed::load() {
   for (std::size_t i = 0; i < frames_.size(); ++i) {
     FrameRing::Slot* slot = ring_.waitForFreeSlot();
     if (slot == nullptr) return;  // tracking stopped
+    const trace::Span span("load_frame", {{"frame", static_cast<std::int64_t>(i)}});
     slot->t_ns = frames_[i].t_ns;
     slot->frame = i;
     slot->ok = true;

@@ -120,7 +120,7 @@ void CommandLine::define(CLI::App& app) {
                  "Write a Chrome Trace Event JSON of every thread's stages here at the end (opens in "
                  "https://ui.perfetto.dev; cvislam_trace joins it with the server's)");
   app.add_option("--trace-events-per-thread", trace_events_per_thread,
-                 "Events each thread keeps for --trace, the newest (about 88 bytes each, reserved at start) [65536]");
+                 "Events each thread keeps for --trace, the newest (about 104 bytes each, reserved at start) [65536]");
   app.add_flag("--trace-mapping", trace_mapping,
                "One line per keyframe on stderr: matches linked, points fused/made/culled, stereo matches, local BA "
                "size, cam1 factors and rejected stereo mismatches, cost");

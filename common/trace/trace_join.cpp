@@ -193,7 +193,8 @@ namespace {
 // What one agent's trace says of its keyframes, indexed.
 struct AgentIndex {
   std::map<std::int64_t, double> captured, decided, mapped, sent;
-  std::map<std::int64_t, std::int64_t> batch_of;
+  std::map<std::int64_t, std::int64_t> batch_of, map_of;
+  std::map<std::int64_t, double> map_ready;  // when the agent's map's frame became final (its keyframes may go)
   std::vector<const TraceRecord*> corrections_applied;  // apply_downlink spans carrying corrections, by time
 
   explicit AgentIndex(const ProcessTrace& t) {
@@ -203,11 +204,23 @@ struct AgentIndex {
       if (r.name == "track_frame") captured.emplace(kf, r.ts_us - static_cast<double>(r.arg("since_capture_us", 0)));
       if (r.name == "keyframe_write") decided.emplace(kf, r.endUs());
       if (r.name == "map_keyframe") mapped.emplace(kf, r.endUs());
-      if (r.name == "keyframe_sent" && sent.emplace(kf, r.ts_us).second) batch_of[kf] = r.arg("batch");
+      if (r.name == "keyframe_sent" && sent.emplace(kf, r.ts_us).second) {
+        batch_of[kf] = r.arg("batch");
+        map_of[kf] = r.arg("map");
+      }
     }
+    for (const TraceRecord* r : named(t, "map_ready")) map_ready.emplace(r->arg("map"), r->ts_us);
     for (const TraceRecord* r : named(t, "apply_downlink")) {
       if (r->arg("corrections", 0) > 0) corrections_applied.push_back(r);
     }
+  }
+
+  // Decided before its map's frame was final: it waited in the store for that, not for the link.
+  [[nodiscard]] bool heldForItsMap(std::int64_t kf, double decided_us) const {
+    const auto m = map_of.find(kf);
+    if (m == map_of.end()) return false;
+    const auto ready = map_ready.find(m->second);
+    return ready != map_ready.end() && decided_us < ready->second;
   }
 
   [[nodiscard]] const TraceRecord* correctionsFrom(double t_us) const {
@@ -221,15 +234,12 @@ using AgentKeyframe = std::pair<std::int64_t, std::int64_t>;
 
 Journeys followKeyframes(const ProcessTrace& server, const std::vector<ProcessTrace>& agents) {
   Journeys j;
-  const std::vector<std::string> names = {"frame captured -> keyframe decided",
-                                          "keyframe decided -> local BA done",
-                                          "keyframe decided -> batch sent",
-                                          "batch sent -> stored on the server",
-                                          "keyframe decided -> stored on the server",
-                                          "stored -> place recognition queried",
-                                          "queried -> matched and merged (or loop closed)",
-                                          "merged -> optimised by the GBA",
-                                          "optimised -> corrections applied by the agent"};
+  const std::vector<std::string> names = {
+      "frame captured -> keyframe decided",       "keyframe decided -> local BA done",
+      "keyframe decided -> batch sent",           "batch sent -> stored on the server",
+      "keyframe decided -> stored on the server", "keyframe decided -> stored, start-up waits left out",
+      "stored -> place recognition queried",      "queried -> matched and merged (or loop closed)",
+      "merged -> optimised by the GBA",           "optimised -> corrections applied by the agent"};
   for (const std::string& n : names) j.links.push_back({n, {}});
   const auto add = [&](std::size_t link, double from_us, double to_us) {
     j.links[link].ms.push_back((to_us - from_us) * 1e-3);
@@ -265,18 +275,19 @@ Journeys followKeyframes(const ProcessTrace& server, const std::vector<ProcessTr
       if (st == stored.end()) continue;
       add(3, s->second, st->second->endUs());
       add(4, decided, st->second->endUs());
+      if (!index.heldForItsMap(kf, decided)) add(5, decided, st->second->endUs());
       const auto q = queried.find({agent, kf});
       if (q == queried.end()) continue;
-      add(5, st->second->endUs(), q->second->endUs());
+      add(6, st->second->endUs(), q->second->endUs());
       const auto m = matched.find({agent, kf});
       if (m == matched.end()) continue;
-      add(6, q->second->endUs(), m->second->endUs());
+      add(7, q->second->endUs(), m->second->endUs());
       const TraceRecord* merge = m->second;
       const TraceRecord* gba =
           firstFrom(gbas, merge->endUs(), [&](const TraceRecord& g) { return g.arg("map") == merge->arg("map"); });
       if (gba == nullptr) continue;
-      add(7, merge->endUs(), gba->endUs());
-      if (const TraceRecord* applied = index.correctionsFrom(gba->endUs())) add(8, gba->endUs(), applied->ts_us);
+      add(8, merge->endUs(), gba->endUs());
+      if (const TraceRecord* applied = index.correctionsFrom(gba->endUs())) add(9, gba->endUs(), applied->ts_us);
     }
   }
 

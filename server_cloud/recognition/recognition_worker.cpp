@@ -331,7 +331,9 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
     delta.candidates += search.candidates.size();
     std::optional<VerifiedMatch> best;
     for (const Candidate& c : search.candidates) {
+      trace::Span verify_span("verify_candidate", {{"agent", c.keyframe.agent}, {"keyframe", c.keyframe.counter}});
       const Verification v = verifyOnCopies(state, mission, input, c, locks);
+      verify_span.set("accepted", v.accepted() ? 1 : 0);
       if (!v.accepted()) {
         ++delta.rejections[std::string(toString(v.rejection))];
       } else if (!best || v.match->inliers > best->inliers) {

@@ -190,7 +190,7 @@ void addOptions(CLI::App& app, CommandLine& cl) {
                  "downlink here at shutdown (opens in https://ui.perfetto.dev; cvislam_trace joins it with the "
                  "agents')");
   app.add_option("--trace-events-per-thread", cl.trace_events_per_thread,
-                 "Events each thread keeps for --trace, the newest (about 88 bytes each) [65536]")
+                 "Events each thread keeps for --trace, the newest (about 104 bytes each) [65536]")
       ->check(CLI::Range(16, 1 << 24));
   app.add_option("--load-from", cl.load_from,
                  "The store --load-mission reads (not in use by a running server) [this server's --store]");

@@ -120,7 +120,12 @@ TEST(TraceJoin, AKeyframeIsFollowedLinkByLink) {
       span("track_frame", 1000.0, 9000.0, {{"frame", 5}, {"keyframe", 7}, {"since_capture_us", 500}}),
       span("keyframe_write", 8000.0, 1000.0, {{"keyframe", 7}}),    // decided at 9 ms; captured at 0.5 ms
       span("map_keyframe", 10'000.0, 30'000.0, {{"keyframe", 7}}),  // local BA done at 40 ms
-      instantAt("keyframe_sent", 60'000.0, {{"keyframe", 7}, {"batch", 2}}),
+      instantAt("map_ready", 5'000.0, {{"map", 0}}),                // before it was decided: its wait was the link's
+      instantAt("keyframe_sent", 60'000.0, {{"keyframe", 7}, {"batch", 2}, {"map", 0}}),
+      // Decided before its map's frame was final (at 80 ms), stored at 95 ms: out of the steady-state link.
+      span("keyframe_write", 70'000.0, 1000.0, {{"keyframe", 8}}),
+      instantAt("map_ready", 80'000.0, {{"map", 1}}),
+      instantAt("keyframe_sent", 90'000.0, {{"keyframe", 8}, {"batch", 3}, {"map", 1}}),
       span("apply_downlink", 400'000.0, 500.0, {{"downlink", 4}, {"corrections", 0}}),  // no corrections: skipped
       span("apply_downlink", 900'000.0, 500.0, {{"downlink", 5}, {"corrections", 3}}),
   };
@@ -128,6 +133,7 @@ TEST(TraceJoin, AKeyframeIsFollowedLinkByLink) {
   server.agent = -1;
   server.records = {
       span("ingest", 61'000.0, 4000.0, {{"mission", key}, {"agent", kAgent}, {"batch", 2}}),  // stored at 65 ms
+      span("ingest", 91'000.0, 4000.0, {{"mission", key}, {"agent", kAgent}, {"batch", 3}}),
       span("recognition_query", 100'000.0, 10'000.0, {{"mission", key}, {"agent", kAgent}, {"keyframe", 7}}),
       span("merge", 120'000.0, 30'000.0, {{"mission", key}, {"agent", kAgent}, {"keyframe", 7}, {"map", 1}}),
       instantAt("merged_map_agent", 130'000.0, {{"mission", key}, {"map", 1}, {"agent", kAgent}}),
@@ -136,12 +142,16 @@ TEST(TraceJoin, AKeyframeIsFollowedLinkByLink) {
       span("global_ba", 300'000.0, 400'000.0, {{"mission", key}, {"map", 1}}),  // optimised at 700 ms
   };
   const Journeys j = followKeyframes(server, {agent});
-  EXPECT_EQ(j.keyframes, 1U);
-  const std::vector<double> expected_ms = {8.5, 31.0, 51.0, 5.0, 56.0, 45.0, 40.0, 550.0, 200.0};
+  EXPECT_EQ(j.keyframes, 2U);
+  // Keyframe 7's way; keyframe 8 (decided at 71 ms) adds its own sent and stored links, but not the steady one.
+  const std::vector<std::vector<double>> expected_ms = {{8.5},  {31.0}, {51.0, 19.0}, {5.0, 5.0}, {56.0, 24.0},
+                                                        {56.0}, {45.0}, {40.0},       {550.0},    {200.0}};
   ASSERT_EQ(j.links.size(), expected_ms.size());
   for (std::size_t i = 0; i < expected_ms.size(); ++i) {
-    ASSERT_EQ(j.links[i].ms.size(), 1U) << j.links[i].name;
-    EXPECT_NEAR(j.links[i].ms[0], expected_ms[i], 1e-9) << j.links[i].name;
+    ASSERT_EQ(j.links[i].ms.size(), expected_ms[i].size()) << j.links[i].name;
+    for (std::size_t k = 0; k < expected_ms[i].size(); ++k) {
+      EXPECT_NEAR(j.links[i].ms[k], expected_ms[i][k], 1e-9) << j.links[i].name;
+    }
   }
   // The match (its query's end, 110 ms) to the one agent of the merged map applying corrections (900 ms).
   ASSERT_EQ(j.match_to_all_agents_corrected_ms.size(), 1U);
