@@ -25,6 +25,9 @@
 #               euroc-mh's MH_01 and MH_02); they keep their numbers and trajectories [all]
 #   --no-store  the server keeps its maps in memory only (default: a map store, out/.../store.db, that makes
 #               every batch durable before it is acknowledged)
+#   --trace     the server and every agent write a Chrome trace (OUT/trace/); cvislam_trace joins them into
+#               OUT/trace/mission_trace.json (open it in https://ui.perfetto.dev) and prints the latency of each
+#               link of a keyframe's way, from the camera to the server and back (OUT/trace/chain.json)
 #   --kill-server N  the restart test: kill the server with SIGKILL N times at random moments (2-8 s apart,
 #               --kill-seed S, default 1) while the agents fly, and start it again on its store at once; the
 #               kills, the replays and the time until every agent streams again go to restarts.csv and the end
@@ -49,6 +52,7 @@ only_agents=""
 store=1
 kills=0
 kill_seed=1
+trace=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --preset) preset=$2; shift 2 ;;
@@ -67,6 +71,7 @@ while [ $# -gt 0 ]; do
     --no-store) store=0; shift ;;
     --kill-server) kills=$2; shift 2 ;;
     --kill-seed) kill_seed=$2; shift 2 ;;
+    --trace) trace=1; shift ;;
     -h|--help) awk 'NR > 1 && /^set -euo/ { exit } NR > 1' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
@@ -92,7 +97,7 @@ echo "== build (preset 'default' in $build)"
 if [ ! -f "$build/build.ninja" ]; then
   cmake -S "$repo" --preset default -B "$build" >/dev/null
 fi
-cmake --build "$build" --target cvislam_sim cvislam_server cvislam_agent cvislam_eval cvislam_mapctl
+cmake --build "$build" --target cvislam_sim cvislam_server cvislam_agent cvislam_eval cvislam_mapctl cvislam_trace
 bin="$build/bin"
 t_built=$(date +%s)
 
@@ -172,6 +177,11 @@ mission_token=$(new_token)
 real_token=$(new_token)
 (umask 077; printf '%s %s\neuroc-v101 %s\n' "$mission" "$mission_token" "$real_token" >"$out/tokens")
 store_args+=(--tokens "$out/tokens")
+trace_dir="$out/trace"
+if [ "$trace" = 1 ]; then
+  mkdir -p "$trace_dir"
+  store_args+=(--trace "$trace_dir/server.json")
+fi
 # Starts the server on $1 (host:port) and waits until it serves (after replaying its store).
 start_server() {
   rm -f "$out/server.port"
@@ -222,8 +232,11 @@ restart_server() {
 
 for a in "${agents[@]}"; do
   id=${a#agent}
+  trace_args=()
+  if [ "$trace" = 1 ]; then trace_args=(--trace "$trace_dir/$a.json"); fi
   CVISLAM_TOKEN="$mission_token" "$bin/cvislam_agent" --dataset "$cache/$a" --output "$out/agents/$a" --roudi external --agent-id "$id" \
     --server "127.0.0.1:$port" --mission "$mission" --mode "$mode" --pace "$pace" ${agent_args[@]+"${agent_args[@]}"} \
+    ${trace_args[@]+"${trace_args[@]}"} \
     >"$out/agents/$a.log" 2>&1 &
   pids+=("$!")
 done
@@ -291,6 +304,14 @@ kill -TERM "$roudi_pid" 2>/dev/null || true
 wait "$roudi_pid" 2>/dev/null || true
 roudi_pid=""
 t_done=$(date +%s)
+
+if [ "$trace" = 1 ]; then
+  echo "== traces: a keyframe's way from the camera to the server and back (cvislam_trace merge)"
+  traces=("$trace_dir/server.json")
+  for a in "${agents[@]}"; do [ -f "$trace_dir/$a.json" ] && traces+=("$trace_dir/$a.json"); done
+  "$bin/cvislam_trace" merge --output "$trace_dir/mission_trace.json" --json "$trace_dir/chain.json" "${traces[@]}" |
+    tee "$trace_dir/chain.txt" | sed 's/^/  /' || { echo "run_mission: cvislam_trace failed" >&2; failed=1; }
+fi
 
 # The restart test's verdict: per agent, the keyframes it made against those the last server holds, keyframes
 # held twice across the exported maps, and batches a restarted server had acknowledged but no longer held.

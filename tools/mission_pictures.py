@@ -5,6 +5,7 @@ Only the Python standard library. Everything missing (a failed agent, a server t
 named on the page. The output depends only on the inputs: same files, same bytes."""
 
 import html
+import json
 import math
 import os
 
@@ -365,6 +366,67 @@ def keyframes_svg(out, mission, notes):
 # The page
 # ---------------------------------------------------------------------------------------------------------------
 
+# A keyframe's way from the camera to the server and back, in the order the waterfall draws it (the names of
+# cvislam_trace's links; the ones beside this path, such as local BA, stay in its table).
+WAY = ["frame captured -> keyframe decided", "keyframe decided -> batch sent", "batch sent -> stored on the server",
+       "stored -> place recognition queried", "queried -> matched and merged (or loop closed)",
+       "merged -> optimised by the GBA", "optimised -> corrections applied by the agent"]
+
+
+def waterfall_svg(out):
+    """A keyframe's way as a waterfall: each link of trace/chain.json (cvislam_trace merge) a bar of its p50 that
+    starts where the link before it ended, with a whisker to its p99. None without a traced mission."""
+    chain = load_json_file(os.path.join(out, "trace", "chain.json"))
+    if not chain:
+        return None
+    links = {link["link"]: link for link in chain.get("links", [])}
+    rows = [links[name] for name in WAY if name in links and links[name]["n"] > 0]
+    if not rows:
+        return placeholder("A keyframe's way", "nothing to draw: no link of the chain has a sample")
+    ends, t = [], 0.0
+    for r in rows:
+        ends.append((t, t + r["p50_ms"], t + r["p99_ms"]))
+        t += r["p50_ms"]
+    t_max = max(e for _, _, e in ends) * 1.05
+    xstep = nice_step(t_max, 8)
+    row_h, top, label_w, plot_w = 30, 40, 360, 420
+    frame = Frame(label_w, top, plot_w, row_h * len(rows), [0.0, math.ceil(t_max / xstep - 1e-9) * xstep],
+                  [0.0, float(len(rows))])
+    body = ["<text x='10' y='22' font-size='14' font-weight='bold'>A keyframe's way (p50 bars one after "
+            "another, whiskers to p99)</text>"]
+    bottom = top + row_h * len(rows)
+    for x in ticks(frame.xr[0], frame.xr[1], xstep):
+        px, _ = frame.px(x, 0)
+        body.append(f"<line x1='{px:.1f}' y1='{top}' x2='{px:.1f}' y2='{bottom}' stroke='#eee'/>")
+        body.append(f"<text x='{px:.1f}' y='{bottom + 15}' text-anchor='middle' fill='#444'>{tick_text(x, xstep)}"
+                    f"</text>")
+    body.append(f"<text x='{label_w + plot_w / 2:.1f}' y='{bottom + 34}' text-anchor='middle'>time since the "
+                f"frame was captured [ms]</text>")
+    for i, (r, (start, p50_end, p99_end)) in enumerate(zip(rows, ends)):
+        y = top + i * row_h
+        x0, _ = frame.px(start, 0)
+        x1, _ = frame.px(p50_end, 0)
+        x2, _ = frame.px(p99_end, 0)
+        body.append(f"<text x='{label_w - 8}' y='{y + 19}' text-anchor='end' font-size='11'>{esc(r['link'])} "
+                    f"(n {r['n']})</text>")
+        body.append(f"<rect x='{x0:.1f}' y='{y + 7}' width='{max(x1 - x0, 1.5):.1f}' height='{row_h - 14}' "
+                    f"fill='#4a7bb7'/>")
+        body.append(f"<line x1='{x1:.1f}' y1='{y + row_h / 2:.1f}' x2='{x2:.1f}' y2='{y + row_h / 2:.1f}' "
+                    f"stroke='#4a7bb7'/>")
+        body.append(f"<text x='{x2 + 4:.1f}' y='{y + 19}' font-size='10' fill='#444'>{r['p50_ms']:.0f} / "
+                    f"{r['p99_ms']:.0f}</text>")
+    return svg_document(label_w + plot_w + 80, top + row_h * len(rows) + 50, body, "A keyframe's way")
+
+
+def load_json_file(path):
+    """The JSON in `path`, or None when it is missing or unreadable."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
 def num(value, fmt, scale=1.0):
     """value * scale formatted, or 'n/a' for None, NaN or anything not a number."""
     try:
@@ -501,6 +563,9 @@ def write_report(out, summary):
     notes = []
     pictures = {"topview": topview_svg(out, summary, notes), "traffic": traffic_svg(out, mission, notes),
                 "keyframes": keyframes_svg(out, mission, notes)}
+    waterfall = waterfall_svg(out)
+    if waterfall is not None:
+        pictures["waterfall"] = waterfall
     for name, svg in pictures.items():
         with open(os.path.join(report, f"{name}.svg"), "w") as f:
             f.write(svg)
@@ -558,7 +623,17 @@ def write_report(out, summary):
         "<div class='row'>", figure("keyframes"), "<div>", messages_html(summary),
         "<p class='note side'>Keyframes (paper Fig. 6): what the server holds of each agent and in total, from "
         "server/timeline.csv (one row per agent per second; this mission's rows only).</p></div></div>",
-        "<h2>Agent stage timings</h2>", stages_html(summary),
+        "<h2>Agent stage timings</h2>", stages_html(summary)]
+    if "waterfall" in pictures:
+        parts += [
+            "<h2>A keyframe's way from the camera to the server and back</h2>", "<div class='row'>",
+            figure("waterfall"),
+            "<p class='note side'>From the traces of the server and the agents (--trace), joined on the server's "
+            "clock by cvislam_trace (trace/chain.txt has every link and the clock offsets). Each bar is a link's "
+            "p50 over the keyframes that went through it, drawn after the link before it; the line runs to its "
+            "p99. Only keyframes whose query found a match go beyond the place-recognition query. Open "
+            "trace/mission_trace.json in https://ui.perfetto.dev to see every span.</p></div>"]
+    parts += [
         "<h2 id='real'>Real data: EuRoC V1_01 excerpt</h2>",
         "<p class='note'>Real images: the first 4.7 s of EuRoC V1_01 (stereo-inertial), one agent through the "
         "same server as mission 'euroc-v101'.</p>", real_data_html(out, summary),
