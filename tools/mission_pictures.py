@@ -5,7 +5,6 @@ Only the Python standard library. Everything missing (a failed agent, a server t
 named on the page. The output depends only on the inputs: same files, same bytes."""
 
 import html
-import json
 import math
 import os
 
@@ -376,7 +375,7 @@ WAY = ["frame captured -> keyframe decided", "keyframe decided -> batch sent", "
 def waterfall_svg(out):
     """A keyframe's way as a waterfall: each link of trace/chain.json (cvislam_trace merge) a bar of its p50 that
     starts where the link before it ended, with a whisker to its p99. None without a traced mission."""
-    chain = load_json_file(os.path.join(out, "trace", "chain.json"))
+    chain = load_json(os.path.join(out, "trace", "chain.json"))
     if not chain:
         return None
     links = {link["link"]: link for link in chain.get("links", [])}
@@ -416,15 +415,6 @@ def waterfall_svg(out):
         body.append(f"<text x='{x2 + 4:.1f}' y='{y + 19}' font-size='10' fill='#444'>{r['p50_ms']:.0f} / "
                     f"{r['p99_ms']:.0f}</text>")
     return svg_document(label_w + plot_w + 80, top + row_h * len(rows) + 50, body, "A keyframe's way")
-
-
-def load_json_file(path):
-    """The JSON in `path`, or None when it is missing or unreadable."""
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except (OSError, ValueError):
-        return None
 
 
 def num(value, fmt, scale=1.0):
