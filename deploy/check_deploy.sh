@@ -2,7 +2,8 @@
 # Checks the deployment files offline (no container engine, no cluster): lints the container files, renders
 # every kustomization with `kubectl kustomize` and validates each object against the Kubernetes schemas and
 # the project's rules (deploy/k8s/validate.mjs), ending with "N passed, N failed". Also checks that the
-# validator still refuses every object of deploy/k8s/testdata/broken.yaml. CTest runs it (deploy_manifests).
+# validator still refuses every object of deploy/k8s/testdata/broken.yaml, and the Grafana dashboard's queries
+# against the metrics the server exports (deploy/grafana/check_dashboard.py). CTest runs it (deploy_manifests).
 #
 #   deploy/check_deploy.sh [--keep DIR]     --keep: write the rendered manifests to DIR
 #
@@ -54,5 +55,9 @@ echo "validator self-test: $broken_refused of $broken_total broken objects refus
 if [ "$broken_refused" -ne "$broken_total" ]; then
   grep '^ok' "$work/broken.txt" | sed 's/^/  not refused: /'; rc=1
 fi
+
+echo "== Grafana dashboard (deploy/grafana): its queries against the metrics the server exports"
+python3 "$repo/deploy/grafana/check_dashboard.py" "$repo/deploy/grafana/cvislam-server.json" \
+  "$repo/server_cloud/service/metrics_endpoint.cpp" --self-test || rc=1
 if [ -n "$keep" ]; then mkdir -p "$keep" && cp "${rendered[@]}" "$keep/"; fi
 exit "$rc"

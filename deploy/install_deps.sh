@@ -31,6 +31,8 @@ packages=(
   # scale-out: the replicas' shared store and mission leases in PostgreSQL (libpq; the tests start a throwaway
   # cluster with postgresql-15's initdb and pg_ctl)
   libpq-dev postgresql-15
+  # the server's metrics endpoint (Prometheus text format over HTTP); the Prometheus parser and curl its tests use
+  prometheus-cpp-dev python3-prometheus-client curl
   # fuzzing the server's inbound messages with libFuzzer (test/fuzz/run_fuzz.sh)
   clang libclang-rt-14-dev
   # the style check (test/check_style.sh): formatting in CI, clang-tidy on changed files

@@ -28,6 +28,8 @@
 #   --trace     the server and every agent write a Chrome trace (OUT/trace/); cvislam_trace joins them into
 #               OUT/trace/mission_trace.json (open it in https://ui.perfetto.dev) and prints the latency of each
 #               link of a keyframe's way, from the camera to the server and back (OUT/trace/chain.json)
+#   --metrics   the server serves Prometheus metrics on a free loopback port (printed); after the agents end they
+#               are scraped once into OUT/server/metrics.txt
 #   --kill-server N  the restart test: kill the server with SIGKILL N times at random moments (2-8 s apart,
 #               --kill-seed S, default 1) while the agents fly, and start it again on its store at once; the
 #               kills, the replays and the time until every agent streams again go to restarts.csv and the end
@@ -53,6 +55,7 @@ store=1
 kills=0
 kill_seed=1
 trace=0
+metrics=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --preset) preset=$2; shift 2 ;;
@@ -72,6 +75,7 @@ while [ $# -gt 0 ]; do
     --kill-server) kills=$2; shift 2 ;;
     --kill-seed) kill_seed=$2; shift 2 ;;
     --trace) trace=1; shift ;;
+    --metrics) metrics=1; shift ;;
     -h|--help) awk 'NR > 1 && /^set -euo/ { exit } NR > 1' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
@@ -182,6 +186,7 @@ if [ "$trace" = 1 ]; then
   mkdir -p "$trace_dir"
   store_args+=(--trace "$trace_dir/server.json")
 fi
+[ "$metrics" = 0 ] || store_args+=(--metrics-listen 127.0.0.1:0)
 # Starts the server on $1 (host:port) and waits until it serves (after replaying its store).
 start_server() {
   rm -f "$out/server.port"
@@ -192,6 +197,7 @@ start_server() {
 }
 start_server 127.0.0.1:0
 port=$(cat "$out/server.port")
+[ "$metrics" = 0 ] || echo "== metrics: $(grep -m1 '^metrics on port' "$out/server.log")"
 echo "== mission '$mission': server on 127.0.0.1:$port, ${#agents[@]} agent(s), $mode-inertial, pace $pace," \
   "$([ "$store" = 1 ] && echo "map store $out/store.db" || echo "no map store"), mission tokens in $out/tokens"
 
@@ -286,6 +292,15 @@ fi
 
 # 4. The map service, as an API client sees it: the mission's maps, their files (PLY points, TUM keyframes, a JSON
 #    summary) and its events so far, in $out/maps. Read while the server runs, so before its final GBA.
+if [ "$metrics" = 1 ]; then
+  metrics_port=$(sed -n 's/^metrics on port \([0-9]*\).*/\1/p' "$out/server.log" | tail -1)
+  mkdir -p "$out/server"
+  if curl -sf "http://127.0.0.1:$metrics_port/metrics" -o "$out/server/metrics.txt"; then
+    echo "== metrics: http://127.0.0.1:$metrics_port/metrics, scraped into $out/server/metrics.txt"
+  else
+    echo "run_mission: the metrics endpoint on port '$metrics_port' did not answer" >&2; failed=1
+  fi
+fi
 echo "== map service (cvislam_mapctl; the maps before the server's final GBA, files in $out/maps)"
 export CVISLAM_TOKEN="$mission_token"
 if "$bin/cvislam_mapctl" --server "127.0.0.1:$port" maps "$mission" >"$out/maps.txt" 2>&1 &&

@@ -18,7 +18,7 @@ RUN cmake --preset release \
 FROM debian:12.8-slim
 ARG RUNTIME_PACKAGES="libabsl20220623 libpq5 libopenblas0-serial libcholmod3 libcxsparse3 libdeflate0 libgoogle-glog0v6 libgrpc++1.51 \
 libgrpc29 libopencv-calib3d406 libopencv-core406 libprotobuf32 \
-libsqlite3-0 libyaml-cpp0.7"
+libprometheus-cpp-core1.0 libprometheus-cpp-pull1.0 libsqlite3-0 libyaml-cpp0.7"
 RUN apt-get update \
  && apt-get install -y --no-install-recommends ${RUNTIME_PACKAGES} \
  && rm -rf /var/lib/apt/lists/* \

@@ -72,7 +72,12 @@ void ServerCore::drainWorkers(bool final_gba) const {
 
 std::unique_ptr<AgentSession> ServerCore::openSession(std::function<void()> cancel_stream, std::string token) {
   return std::make_unique<AgentSession>(missions_, options_.session, std::move(cancel_stream), storedListener(),
-                                        store_.get(), SessionCredentials{&tokens_, std::move(token)}, ownership());
+                                        store_.get(), SessionCredentials{&tokens_, std::move(token)}, ownership(),
+                                        &ingest_metrics_);
+}
+
+double ServerCore::uptimeSeconds() const {
+  return std::chrono::duration<double>(Clock::now() - start_).count();
 }
 
 MissionOwnership* ServerCore::ownership() const {
@@ -303,7 +308,7 @@ AgentSession::StoredListener ServerCore::storedListener() const {
 void ServerCore::fillStats(const std::string& mission_filter, v1::ServerStats& out,
                            const std::function<bool(const std::string&)>& visible) const {
   out.Clear();
-  out.set_uptime_s(std::chrono::duration<double>(Clock::now() - start_).count());
+  out.set_uptime_s(uptimeSeconds());
   for (const auto& mission : missions_.missions()) {
     if (!mission_filter.empty() && mission->name() != mission_filter) continue;
     if (visible && !visible(mission->name())) continue;

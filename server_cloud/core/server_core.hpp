@@ -209,6 +209,9 @@ class ServerCore {
   // The same for a map read (GetMap, ExportMap) from `address`.
   Result<StreamLimits::Slot> openMapReadSlot(const std::string& address) { return map_reads_.open(address); }
   [[nodiscard]] const StreamLimits& mapReadLimits() const { return map_reads_; }
+  // Every batch's ingest and store-commit time since start (the metrics endpoint's histograms).
+  [[nodiscard]] const IngestMetrics& ingestMetrics() const { return ingest_metrics_; }
+  [[nodiscard]] double uptimeSeconds() const;
 
   // A session for a new agent stream (see AgentSession for `cancel_stream`); `token` is what the stream
   // presented, checked against the tokens when its Hello names the mission.
@@ -242,6 +245,7 @@ class ServerCore {
   std::unique_ptr<MapStore> store_;
   MissionTokens tokens_;
   RateLimiter limiter_;
+  IngestMetrics ingest_metrics_;
   StreamLimits streams_;
   StreamLimits map_reads_;
   std::unique_ptr<cluster::ReplicaCoordinator> replica_;  // scale-out only; after store_: it goes first

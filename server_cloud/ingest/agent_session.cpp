@@ -189,7 +189,7 @@ Status SessionOptions::validate() const {
 
 AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& options,
                            std::function<void()> cancel_stream, StoredListener on_stored, MapStore* store,
-                           SessionCredentials credentials, MissionOwnership* ownership)
+                           SessionCredentials credentials, MissionOwnership* ownership, IngestMetrics* metrics)
     : missions_(missions),
       options_(options),
       cancel_stream_(std::move(cancel_stream)),
@@ -197,6 +197,7 @@ AgentSession::AgentSession(MissionRegistry& missions, const SessionOptions& opti
       store_(store),
       credentials_(std::move(credentials)),
       ownership_(ownership),
+      metrics_(metrics),
       covisible_(options.covisible) {}
 
 AgentSession::~AgentSession() {
@@ -396,7 +397,11 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
                                                      {"agent", agent_},
                                                      {"batch", static_cast<std::int64_t>(sequence)}});
       StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
+      const auto append_start = Clock::now();
       Status appended = store_->append(stored);
+      if (metrics_ != nullptr) {
+        metrics_->store_commit.observe(std::chrono::duration<double>(Clock::now() - append_start).count());
+      }
       if (appended.ok()) return Status::Ok();
       if (appended.error().code() != ErrorCode::kAlreadyExists) {
         return Error{ErrorCode::kUnavailable, "the server could not store it (" + logForOperator(appended.error()) +
@@ -422,6 +427,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   if (resend_told_ != 0 && record->resend_from == resend_told_) record->resend_from = 0;  // the agent was told
   const double ingest_ms = std::chrono::duration<double, std::milli>(Clock::now() - arrived).count();
   record->ingest_ms.add(ingest_ms);
+  if (metrics_ != nullptr) metrics_->ingest.observe(ingest_ms * 1e-3);
   if (gba_at_arrival || mission_->gbaRunning()) record->ingest_during_gba_ms.add(ingest_ms);
 
   // Traffic by kind: the serialized size of each part.

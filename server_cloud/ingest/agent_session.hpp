@@ -22,6 +22,7 @@
 #include "server_cloud/ingest/batch_ingest.hpp"
 #include "server_cloud/ingest/covisible_downlink.hpp"
 #include "server_cloud/ingest/mission_ownership.hpp"
+#include "server_cloud/stack/latency_histogram.hpp"
 #include "server_cloud/stack/map_stack.hpp"
 #include "server_cloud/store/map_store.hpp"
 
@@ -74,9 +75,10 @@ class AgentSession {
   // `credentials`: the Hello is refused with UNAUTHENTICATED, before anything is made, unless they open its mission.
   // `ownership`, when set (scale-out), decides whether this replica serves the Hello's mission: when another one
   // does, the Hello is refused with UNAVAILABLE and redirect() names where to go.
+  // `metrics`, when set, counts every batch's ingest and store-commit time (the metrics endpoint).
   AgentSession(MissionRegistry& missions, const SessionOptions& options, std::function<void()> cancel_stream,
                StoredListener on_stored = {}, MapStore* store = nullptr, SessionCredentials credentials = {},
-               MissionOwnership* ownership = nullptr);
+               MissionOwnership* ownership = nullptr, IngestMetrics* metrics = nullptr);
   ~AgentSession();
   AgentSession(const AgentSession&) = delete;
   AgentSession& operator=(const AgentSession&) = delete;
@@ -119,6 +121,7 @@ class AgentSession {
   MapStore* store_ = nullptr;
   SessionCredentials credentials_;
   MissionOwnership* ownership_ = nullptr;
+  IngestMetrics* metrics_ = nullptr;
   std::string redirect_;
   std::shared_ptr<Mission> mission_;
   SharedAgentRecord record_;

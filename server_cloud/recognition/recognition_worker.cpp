@@ -97,6 +97,11 @@ RecognitionCounters RecognitionWorker::counters(const std::string& mission) cons
   return it == states_.end() ? RecognitionCounters{} : it->second->counters;
 }
 
+std::size_t RecognitionWorker::queueDepth() const {
+  const std::lock_guard lock(mutex_);
+  return queue_.size();
+}
+
 std::vector<MatchRecord> RecognitionWorker::matches(const std::string& mission) const {
   const std::lock_guard lock(mutex_);
   const auto it = states_.find(mission);

@@ -103,6 +103,8 @@ class RecognitionWorker {
   void drain();
 
   [[nodiscard]] RecognitionCounters counters(const std::string& mission) const;
+  // Keyframe events waiting for the worker (its queue's depth now).
+  [[nodiscard]] std::size_t queueDepth() const;
   [[nodiscard]] std::vector<MatchRecord> matches(const std::string& mission) const;
   [[nodiscard]] std::vector<std::string> missions() const;
   [[nodiscard]] const features::Vocabulary& vocabulary() const { return vocabulary_; }

@@ -27,6 +27,7 @@
 #include "cvislam/v1/monitor.pb.h"
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/service/grpc_server.hpp"
+#include "server_cloud/service/metrics_endpoint.hpp"
 
 namespace {
 
@@ -116,6 +117,7 @@ struct CommandLine {
   std::vector<std::string> load_missions;
   std::string load_from;
   std::string trace;
+  std::string metrics_listen;
   std::size_t trace_events_per_thread = std::size_t{1} << 16;
 };
 
@@ -185,6 +187,9 @@ void addOptions(CLI::App& app, CommandLine& cl) {
         const auto eq = v.find('=');
         return eq == std::string::npos || eq == 0 || eq + 1 == v.size() ? std::string("give FROM=AS") : std::string();
       });
+  app.add_option("--metrics-listen", cl.metrics_listen,
+                 "host:port serving Prometheus metrics at /metrics over plain HTTP (agents, traffic, ingest and store "
+                 "latency, recognition, merges, loops, GBA, limits, leases) [none]; port 0 takes a free port");
   app.add_option("--trace", cl.trace,
                  "Write a Chrome Trace Event JSON of ingest, store, recognition, fusion, merges, loops, GBA and the "
                  "downlink here at shutdown (opens in https://ui.perfetto.dev; cvislam_trace joins it with the "
@@ -393,6 +398,17 @@ int main(int argc, char** argv) {
   std::printf("listening on %s\n", (*server)->address().c_str());
   if ((*server)->healthPort() != 0) std::printf("health checks on port %d (plaintext)\n", (*server)->healthPort());
   std::fflush(stdout);
+  std::unique_ptr<cvislam::server::MetricsEndpoint> metrics;
+  if (!cl.metrics_listen.empty()) {
+    auto started = cvislam::server::MetricsEndpoint::start(core, cl.metrics_listen);
+    if (!started) {
+      std::cerr << "cvislam_server: " << started.error().message() << "\n";
+      return 1;
+    }
+    metrics = std::move(*started);
+    std::printf("metrics on port %d (http://HOST:%d/metrics)\n", metrics->port(), metrics->port());
+    std::fflush(stdout);
+  }
   if (!cl.port_file.empty()) writePortFile(cl.port_file, (*server)->port());
 
   const int received = waitForStopSignal(signals, core, cl.quiet ? 0.0 : cl.status_interval_s);

@@ -26,6 +26,7 @@ if(CVISLAM_BUILD_SERVER)
   # libpq-dev: the replicas' shared store and mission leases (server_cloud/cluster). libpq ships no CMake config.
   find_package(PkgConfig REQUIRED)
   pkg_check_modules(LIBPQ REQUIRED IMPORTED_TARGET libpq)
+  find_package(prometheus-cpp REQUIRED CONFIG)        # prometheus-cpp-dev (the metrics endpoint: core and pull)
 endif()
 
 # libdeflate-dev: the agent's PNG decoding (common/dataset/png_gray.cpp). Its CMake config came only in 1.15;
