@@ -386,6 +386,12 @@ LinkStatus Link::status() const {
   return impl_->status;
 }
 
+LinkHealth Link::health() const {
+  std::lock_guard lock(impl_->status_mutex);
+  const LinkStatus& s = impl_->status;
+  return {s.connected, s.acked_sequence, s.backlog.keyframes_unsent + s.backlog.keyframes_unacked};
+}
+
 std::string Link::progressText() const {
   const LinkStatus st = status();
   const std::size_t waiting = st.backlog.keyframes_unsent + st.backlog.keyframes_unacked;

@@ -117,6 +117,13 @@ struct LinkStatus {
   std::uint64_t anchor_messages_dropped = 0;    // no message to loan: mapping is behind
 };
 
+// What the agent's health message says of the link; read without allocating.
+struct LinkHealth {
+  bool connected = false;
+  std::uint64_t acked_sequence = 0;
+  std::uint64_t keyframes_waiting = 0;  // not sent, or sent and not acknowledged
+};
+
 class Link {
  public:
   static Result<std::unique_ptr<Link>> create(const LinkOptions& options, AgentId agent, const LinkSensors& sensors);
@@ -136,6 +143,7 @@ class Link {
   [[nodiscard]] LinkStatus status() const;
   // One line for the agent's progress output, e.g. "link up, 2 KF waiting" or "link DOWN (retrying), 14 KF waiting".
   [[nodiscard]] std::string progressText() const;
+  [[nodiscard]] LinkHealth health() const;
   // link.json (traffic by kind and direction, reconnections, what was dropped) and link_timeline.csv (per second:
   // bytes up and down, connected, keyframes waiting). Call after run() returned.
   Status writeReport(const std::filesystem::path& dir) const;

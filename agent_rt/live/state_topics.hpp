@@ -4,6 +4,8 @@
 //   event "frames": one AgentStateMessage per camera frame, once it is tracked (kind kFrame);
 //   event "imu":    with --live, one per IMU sample between frames: the newest tracked state carried forward by the
 //                   IMU (kind kPropagated), once the IMU is initialised.
+//   event "health": once a second, AgentHealthMessage: how the agent is doing (tracking, frame rate, backlog, the
+//                   link, CPU per thread), for a robot's supervisor.
 //
 // A reader subscribes with a queue of 1 to read the newest state, or deeper to see every one; nothing waits for it.
 // Frames: the state is of the IMU (body) frame s in the agent's world frame w, which is gravity-aligned (z up) and
@@ -19,6 +21,7 @@ namespace cvislam::agent::live {
 inline constexpr const char* kStateServiceName = "cvislam_state";
 inline constexpr const char* kStateFramesEvent = "frames";
 inline constexpr const char* kStateImuEvent = "imu";
+inline constexpr const char* kStateHealthEvent = "health";
 
 inline constexpr std::uint32_t kStateMagic = 0x54535643;  // "CVST"
 inline constexpr std::uint32_t kStateVersion = 1;
@@ -50,6 +53,41 @@ struct AgentStateMessage {
   double v_w[3] = {0.0, 0.0, 0.0};         // velocity [m/s]
   double gyro_bias[3] = {0.0, 0.0, 0.0};   // [rad/s]
   double accel_bias[3] = {0.0, 0.0, 0.0};  // [m/s^2]
+};
+
+// The agent's threads, in the order of AgentHealthMessage::cpu_percent.
+inline constexpr const char* kHealthThreads[] = {"tracking", "mapping", "link", "loader", "propagation"};
+inline constexpr std::uint32_t kHealthThreadCount = 5;
+
+enum HealthFlags : std::uint32_t {
+  kImuInitialised = 1U << 0,
+  kLinkEnabled = 1U << 1,    // the agent streams to a server
+  kLinkConnected = 1U << 2,  // and its stream is up
+};
+
+struct AgentHealthMessage {
+  std::uint32_t magic = kStateMagic;
+  std::uint32_t version = kStateVersion;
+  std::uint64_t sequence = 0;  // from 0
+  std::int64_t published_steady_ns = 0;
+  std::uint32_t agent = 0;
+  StateStatus status = StateStatus::kWaitingForMap;  // of the newest frame
+  std::uint32_t flags = 0;
+  std::uint32_t map_id = 0;
+  double interval_s = 0.0;     // what the rates and CPU figures are over: since the previous message
+  double frame_rate_hz = 0.0;  // frames tracked (or tried) per second over the interval
+  std::uint64_t frames = 0;    // since start
+  std::uint64_t tracked_frames = 0;
+  std::uint64_t lost_frames = 0;
+  std::uint64_t keyframes = 0;
+  std::int32_t pending_keyframes = 0;  // keyframes mapping has not answered yet: its backlog
+  std::uint32_t reserved = 0;
+  // The link (zero without a server): the newest batch the server acknowledged, and the keyframes not yet
+  // sent or acknowledged.
+  std::uint64_t link_acked_batches = 0;
+  std::uint64_t link_keyframes_waiting = 0;
+  // Each thread's CPU over the interval, in percent of one core (-1: the thread does not run in this agent).
+  double cpu_percent[kHealthThreadCount] = {-1.0, -1.0, -1.0, -1.0, -1.0};
 };
 
 }  // namespace cvislam::agent::live

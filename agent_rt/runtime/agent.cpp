@@ -23,6 +23,7 @@
 #include "agent_rt/runtime/run_plan.hpp"
 #include "agent_rt/runtime/sensor_setup.hpp"
 #include "agent_rt/runtime/state_publisher.hpp"
+#include "agent_rt/runtime/thread_cpu.hpp"
 #include "agent_rt/runtime/trajectory_recorder.hpp"
 #include "common/trace/trace.hpp"
 #include "iceoryx_posh/popo/user_trigger.hpp"
@@ -248,6 +249,7 @@ class TrackingLoop {
     StateListener* listener;  // besides the state topic; may be null
     const std::atomic<bool>& stop;
     const Link* link;  // progress text only; nullptr without a server
+    ThreadCpuClock& cpu;
   };
 
   TrackingLoop(const Shared& shared, const ChannelDepths& depths)
@@ -256,6 +258,7 @@ class TrackingLoop {
         keyframe_pub_(service(shared.options.agent, "keyframes"), iox::popo::PublisherOptions{}),
         snapshot_sub_(service(shared.options.agent, "map_snapshot"), snapshotOptions(depths)),
         state_pub_(shared.options.agent, live::kStateFramesEvent),
+        health_pub_(live::stateService(shared.options.agent, live::kStateHealthEvent), newestKept()),
         sink_(keyframe_pub_) {
     snapshot_wait_.attachState(snapshot_sub_, iox::popo::SubscriberState::HAS_DATA).or_else([](auto) {
       std::fprintf(stderr, "[agent] cannot wait on mapping's snapshots: iceoryx refused the wait set\n");
@@ -320,6 +323,7 @@ class TrackingLoop {
       count(input.t_ns, r, summary);
       waitForMappingIfPaced(r);
       reportProgress(input.t_ns, r, summary);
+      publishHealth(r, summary);
     }
     summary.wall_s = std::chrono::duration<double>(Clock::now() - wall_start_).count();
     summary.mean_tracked_points =
@@ -345,6 +349,54 @@ class TrackingLoop {
     state_pub_.publish(state);
     s_.latencies.frame_to_state.add(state.published_steady_ns - state.captured_steady_ns);
     if (s_.listener != nullptr) s_.listener->onState(state);
+  }
+
+  static iox::popo::PublisherOptions newestKept() {
+    iox::popo::PublisherOptions options;
+    options.historyCapacity = 1;
+    options.subscriberTooSlowPolicy = iox::popo::ConsumerTooSlowPolicy::DISCARD_OLDEST_DATA;
+    return options;
+  }
+
+  // Once a second, on the health topic: how the agent is doing, for a supervisor. Reads the link's figures and
+  // each thread's /proc entry into fixed buffers: nothing is allocated.
+  void publishHealth(const FrameResult& r, const AgentRunSummary& summary) {
+    const std::int64_t now_ns = steadyNowNs();
+    if (last_health_ns_ < 0) {
+      last_health_ns_ = now_ns;
+      frames_at_health_ = summary.frames;
+      s_.cpu.sample(now_ns, health_.cpu_percent);
+      return;
+    }
+    if (now_ns - last_health_ns_ < kHealthIntervalNs) return;
+    live::AgentHealthMessage& h = health_;
+    h.sequence = health_sequence_++;
+    h.agent = s_.options.agent;
+    h.status = statusOf(r.status);
+    h.map_id = r.map_id;
+    h.interval_s = static_cast<double>(now_ns - last_health_ns_) * 1e-9;
+    h.frame_rate_hz = static_cast<double>(summary.frames - frames_at_health_) / h.interval_s;
+    h.frames = summary.frames;
+    h.tracked_frames = summary.tracked_frames;
+    h.lost_frames = summary.lost_frames;
+    h.keyframes = summary.keyframes;
+    h.pending_keyframes = tracker_.pendingKeyframes();
+    h.flags = tracker_.imuInitialised() ? live::kImuInitialised : 0U;
+    if (s_.link != nullptr) {
+      const LinkHealth link = s_.link->health();
+      h.flags |= live::kLinkEnabled | (link.connected ? live::kLinkConnected : 0U);
+      h.link_acked_batches = link.acked_sequence;
+      h.link_keyframes_waiting = link.keyframes_waiting;
+    }
+    s_.cpu.sample(now_ns, h.cpu_percent);
+    h.published_steady_ns = steadyNowNs();
+    auto loaned = health_pub_.loan();
+    if (!loaned.has_error()) {
+      *loaned.value().get() = h;
+      loaned.value().publish();
+    }
+    last_health_ns_ = now_ns;
+    frames_at_health_ = summary.frames;
   }
 
   static iox::popo::SubscriberOptions snapshotOptions(const ChannelDepths& depths) {
@@ -459,6 +511,12 @@ class TrackingLoop {
   iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub_;
   iox::popo::WaitSet<1> snapshot_wait_;
   StatePublisher state_pub_;
+  iox::popo::Publisher<live::AgentHealthMessage> health_pub_;
+  static constexpr std::int64_t kHealthIntervalNs = 1'000'000'000;
+  live::AgentHealthMessage health_;
+  std::uint64_t health_sequence_ = 0;
+  std::int64_t last_health_ns_ = -1;
+  std::size_t frames_at_health_ = 0;
   IceoryxKeyframeSink sink_;
   std::optional<iox::popo::Sample<const MapSnapshotMessage>> held_;
   Clock::time_point wall_start_;
@@ -625,8 +683,10 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
       scheduling
           ? options.threads.resolved(mayTakeRealtimePriority(options.threads.tracking.realtime_priority), currentNice())
           : options.threads;
+  ThreadCpuClock thread_cpu;  // for the health topic
   const auto schedule_this_thread = [&](const char* name, const ThreadSchedule& schedule) {
     trace::bindThread(name);  // every thread of the agent starts here
+    thread_cpu.registerCurrentThread(name);
     if (!scheduling) return;
     const ScheduleOutcome outcome = applyToThisThread(schedule);
     if (!outcome.applied) std::fprintf(stderr, "[agent] threads.%s: %s\n", name, outcome.note.c_str());
@@ -671,7 +731,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   std::int64_t first_frame_t_ns = -1;
   {
     TrackingLoop tracking({options, plan, *feed, latencies, recorder, yield_requests, hooks.listener, stop,
-                           *link ? &(*link)->link() : nullptr},
+                           *link ? &(*link)->link() : nullptr, thread_cpu},
                           depths);
     tracking.awaitMapping(mapping_ready);
     if (hooks.on_running) hooks.on_running();

@@ -9,8 +9,6 @@ namespace cvislam::agent {
 using geometry::SE3d;
 using geometry::SO3d;
 
-namespace {
-
 live::StateStatus statusOf(TrackingStatus status) {
   switch (status) {
     case TrackingStatus::kWaitingForMap:
@@ -22,6 +20,8 @@ live::StateStatus statusOf(TrackingStatus status) {
   }
   return live::StateStatus::kWaitingForMap;
 }
+
+namespace {
 
 void writePose(const SE3d& T_w_s, const Eigen::Vector3d& v_w, live::AgentStateMessage& m) {
   const Eigen::Quaterniond& q = T_w_s.quaternion();

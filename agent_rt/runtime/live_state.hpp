@@ -14,6 +14,9 @@
 
 namespace cvislam::agent {
 
+// Tracking's status as the state topics say it.
+live::StateStatus statusOf(TrackingStatus status);
+
 // The state message of a frame tracking has just handled (kind kFrame; sequence and published time left to the
 // publisher).
 live::AgentStateMessage frameState(const FrameResult& r, std::int64_t t_ns, std::int64_t captured_steady_ns,

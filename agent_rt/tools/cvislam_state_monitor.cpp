@@ -3,8 +3,10 @@
 //
 //   cvislam_state_monitor [--agent N] [--every S] [--quiet]
 //
-// At the end (SIGINT, SIGTERM, or RouDi shutting down) it prints one line of counts:
+// Each health message (once a second) is printed as a line "health: ...". At the end (SIGINT, SIGTERM, or RouDi
+// shutting down) it prints two lines of counts:
 //   states: frames F (metric M, sequence gaps G), propagated P, latency p50/p99 frame A/B ms, imu C/D ms
+//   health: H messages, the last at frames F
 // Exit status: 0 done, 1 no iox-roudi.
 #include <algorithm>
 #include <atomic>
@@ -40,6 +42,8 @@ struct Counts {
   std::uint64_t gaps = 0;
   std::uint64_t propagated = 0;
   std::int64_t next_sequence = -1;
+  std::uint64_t health = 0;
+  std::uint64_t health_frames = 0;  // the newest health message's frame count
   std::vector<double> frame_latency_ms;
   std::vector<double> imu_latency_ms;
 };
@@ -70,6 +74,26 @@ void printState(const AgentStateMessage& m, const Counts& counts) {
   std::fflush(stdout);
 }
 
+void printHealth(const live::AgentHealthMessage& h) {
+  std::printf("health: %-15s %5.1f fps  frames %llu (tracked %llu, lost %llu)  keyframes %llu, %d pending  IMU %s",
+              statusText(h.status), h.frame_rate_hz, static_cast<unsigned long long>(h.frames),
+              static_cast<unsigned long long>(h.tracked_frames), static_cast<unsigned long long>(h.lost_frames),
+              static_cast<unsigned long long>(h.keyframes), h.pending_keyframes,
+              (h.flags & live::kImuInitialised) != 0U ? "initialised" : "not yet");
+  if ((h.flags & live::kLinkEnabled) != 0U) {
+    std::printf("  link %s, %llu batches acknowledged, %llu keyframes waiting",
+                (h.flags & live::kLinkConnected) != 0U ? "up" : "DOWN",
+                static_cast<unsigned long long>(h.link_acked_batches),
+                static_cast<unsigned long long>(h.link_keyframes_waiting));
+  }
+  std::printf("  CPU");
+  for (std::uint32_t i = 0; i < live::kHealthThreadCount; ++i) {
+    if (h.cpu_percent[i] >= 0.0) std::printf(" %s %.0f%%", live::kHealthThreads[i], h.cpu_percent[i]);
+  }
+  std::printf("\n");
+  std::fflush(stdout);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -94,9 +118,11 @@ int main(int argc, char** argv) {
   options.queueCapacity = 64;
   iox::popo::Subscriber<AgentStateMessage> frames(live::stateService(agent, live::kStateFramesEvent), options);
   iox::popo::Subscriber<AgentStateMessage> imu(live::stateService(agent, live::kStateImuEvent), options);
-  iox::popo::WaitSet<2> wait;
+  iox::popo::Subscriber<live::AgentHealthMessage> health(live::stateService(agent, live::kStateHealthEvent), options);
+  iox::popo::WaitSet<3> wait;
   if (wait.attachState(frames, iox::popo::SubscriberState::HAS_DATA).has_error() ||
-      wait.attachState(imu, iox::popo::SubscriberState::HAS_DATA).has_error()) {
+      wait.attachState(imu, iox::popo::SubscriberState::HAS_DATA).has_error() ||
+      wait.attachState(health, iox::popo::SubscriberState::HAS_DATA).has_error()) {
     std::cerr << "cvislam_state_monitor: iceoryx refused to wait on the state topics\n";
     return 1;
   }
@@ -125,6 +151,11 @@ int main(int argc, char** argv) {
       copy = m;
       newest = &copy;
     }
+    for (auto taken = health.take(); !taken.has_error(); taken = health.take()) {
+      ++counts.health;
+      counts.health_frames = taken.value()->frames;
+      if (!quiet) printHealth(*taken.value());
+    }
     if (newest != nullptr && !quiet && now_ns >= next_print_ns) {
       printState(*newest, counts);
       next_print_ns = now_ns + static_cast<std::int64_t>(every_s * 1e9);
@@ -137,5 +168,7 @@ int main(int argc, char** argv) {
       static_cast<unsigned long long>(counts.gaps), static_cast<unsigned long long>(counts.propagated),
       percentile(counts.frame_latency_ms, 0.5), percentile(counts.frame_latency_ms, 0.99),
       percentile(counts.imu_latency_ms, 0.5), percentile(counts.imu_latency_ms, 0.99));
+  std::printf("health: %llu messages, the last at frames %llu\n", static_cast<unsigned long long>(counts.health),
+              static_cast<unsigned long long>(counts.health_frames));
   return 0;
 }

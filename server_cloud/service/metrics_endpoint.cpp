@@ -83,7 +83,7 @@ MetricFamily histogram(const std::string& name, const std::string& help, const L
   for (std::size_t b = 0; b < LatencyHistogram::kBuckets; ++b) {
     cumulative += s.counts[b];
     const double bound = b < LatencyHistogram::kUpperBoundsS.size() ? LatencyHistogram::kUpperBoundsS[b]
-                                                                     : std::numeric_limits<double>::infinity();
+                                                                    : std::numeric_limits<double>::infinity();
     m.histogram.bucket.push_back({cumulative, bound});
   }
   f.metric.push_back(std::move(m));
@@ -185,8 +185,8 @@ void addBackendFamilies(const backend::BackendWorker& worker, const MissionLabel
 
 void addReplicaFamilies(const cluster::ReplicaCoordinator& replica, std::vector<MetricFamily>& out) {
   const cluster::ReplicaCounters c = replica.counters();
-  out.push_back(single("cvislam_replica_missions_served", "Missions whose lease this replica holds",
-                       MetricType::Gauge, static_cast<double>(replica.served().size())));
+  out.push_back(single("cvislam_replica_missions_served", "Missions whose lease this replica holds", MetricType::Gauge,
+                       static_cast<double>(replica.served().size())));
   out.push_back(single("cvislam_replica_missions_claimed_total", "Missions taken at an agent's Hello",
                        MetricType::Counter, static_cast<double>(c.claimed)));
   out.push_back(single("cvislam_replica_takeovers_total", "Missions taken over after their lease lapsed",
@@ -220,8 +220,8 @@ std::vector<MetricFamily> collectMetrics(const ServerCore& core, const MetricsOp
   const MissionLabels labels(missions, options.max_labelled_missions);
 
   std::vector<MetricFamily> out;
-  out.push_back(single("cvislam_uptime_seconds", "Seconds since the server started", MetricType::Gauge,
-                       core.uptimeSeconds()));
+  out.push_back(
+      single("cvislam_uptime_seconds", "Seconds since the server started", MetricType::Gauge, core.uptimeSeconds()));
   out.push_back(single("cvislam_missions", "Missions this server holds", MetricType::Gauge,
                        static_cast<double>(core.missions().size())));
   addMissionFamilies(stats, labels, out);
@@ -255,7 +255,7 @@ MetricsEndpoint::MetricsEndpoint(std::unique_ptr<Impl> impl) : impl_(std::move(i
 MetricsEndpoint::~MetricsEndpoint() = default;
 
 Result<std::unique_ptr<MetricsEndpoint>> MetricsEndpoint::start(const ServerCore& core, const std::string& listen,
-                                                                 const MetricsOptions& options) {
+                                                                const MetricsOptions& options) {
   auto impl = std::make_unique<Impl>();
   impl->collectable = std::make_shared<ServerCollectable>(core, options);
   try {

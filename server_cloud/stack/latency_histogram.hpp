@@ -14,8 +14,8 @@ class LatencyHistogram {
  public:
   // Upper bounds [s], ascending: from a millisecond (an ingest) to a minute (a GBA of a large map). One more
   // bucket, +Inf, takes what lies above the last.
-  static constexpr std::array<double, 16> kUpperBoundsS = {0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25,
-                                                           0.5,   1.0,    2.5,   5.0,  10.0,  20.0,  40.0, 80.0};
+  static constexpr std::array<double, 16> kUpperBoundsS = {0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1,  0.25,
+                                                           0.5,   1.0,    2.5,   5.0,  10.0,  20.0, 40.0, 80.0};
   static constexpr std::size_t kBuckets = kUpperBoundsS.size() + 1;
 
   struct Snapshot {

@@ -158,6 +158,17 @@ TEST_F(LiveProcesses, ADriverProcessFeedsTheAgentWhichTracksAsFromTheFolderAndRe
   EXPECT_EQ(gaps, 0U) << counts;
   EXPECT_GT(metric, 0U) << counts;
   EXPECT_GE(propagated, 9 * (metric - 1)) << counts;
+  // And the health topic, once a second while the agent ran (4.7 s of frames at sensor pace).
+  unsigned long long health = 0, health_frames = 0;
+  const std::size_t health_at = counts.find("health: ");
+  ASSERT_NE(health_at, std::string::npos) << counts;
+  ASSERT_EQ(std::sscanf(counts.c_str() + health_at, "health: %llu messages, the last at frames %llu", &health,
+                        &health_frames),
+            2)
+      << counts;
+  EXPECT_GE(health, 2U) << counts;
+  EXPECT_GT(health_frames, 0U) << counts;
+  EXPECT_LE(health_frames, live["frames"].get<unsigned long long>()) << counts;
   const double ate_folder_m = ateM(dir_.path() / "folder" / "trajectory.txt", excerpt);
   const double ate_live_m = ateM(dir_.path() / "live" / "trajectory.txt", excerpt);
   std::printf("ATE (SE3, refined trajectory, realtime): folder %.3f mm, live %.3f mm\n", ate_folder_m * 1e3,

@@ -72,7 +72,8 @@ TEST(MetricsEndpoint, EveryStoredBatchIsCountedOnceAndBucketsAreCumulative) {
   const auto& h = ingest->metric[0].histogram;
   EXPECT_EQ(h.sample_count, 6U);
   ASSERT_EQ(h.bucket.size(), LatencyHistogram::kBuckets);
-  for (std::size_t b = 1; b < h.bucket.size(); ++b) EXPECT_GE(h.bucket[b].cumulative_count, h.bucket[b - 1].cumulative_count);
+  for (std::size_t b = 1; b < h.bucket.size(); ++b)
+    EXPECT_GE(h.bucket[b].cumulative_count, h.bucket[b - 1].cumulative_count);
   EXPECT_EQ(h.bucket.back().cumulative_count, 6U);
   EXPECT_TRUE(std::isinf(h.bucket.back().upper_bound));
 
