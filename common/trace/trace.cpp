@@ -12,6 +12,10 @@
 #include "common/core/hash.hpp"
 #include "common/core/steady_clock.hpp"
 
+#ifdef CVISLAM_LTTNG
+#include "common/trace/lttng_tracepoints.h"
+#endif
+
 namespace cvislam::trace {
 
 namespace {
@@ -30,6 +34,40 @@ thread_local Binding t_binding;
 
 std::int64_t threadId() {
   return static_cast<std::int64_t>(::syscall(SYS_gettid));
+}
+
+// An LTTng session wants cvislam:span (always false without CVISLAM_LTTNG).
+bool lttngEnabled() noexcept {
+#ifdef CVISLAM_LTTNG
+  return lttng_ust_tracepoint_enabled(cvislam, span);
+#else
+  return false;
+#endif
+}
+
+void fireLttng([[maybe_unused]] const Event& e) noexcept {
+#ifdef CVISLAM_LTTNG
+  // The keys joined by commas into a buffer on the stack, the values beside them.
+  char keys[128];
+  std::int64_t values[kMaxArgs];
+  unsigned int count = 0;
+  std::size_t used = 0;
+  keys[0] = '\0';
+  for (const Arg& a : e.args) {
+    if (a.key == nullptr) continue;
+    const int n = std::snprintf(keys + used, sizeof(keys) - used, "%s%s", count == 0 ? "" : ",", a.key);
+    if (n < 0 || used + static_cast<std::size_t>(n) >= sizeof(keys)) break;
+    used += static_cast<std::size_t>(n);
+    values[count++] = a.value;
+  }
+  lttng_ust_do_tracepoint(cvislam, span, e.name, e.begin_ns, e.duration_ns, keys, values, count);
+#endif
+}
+
+// Into the thread's ring and to LTTng, whichever wants it.
+void deliver(ThreadTrack* track, bool lttng, const Event& e) noexcept {
+  if (track != nullptr) track->record(e);
+  if (lttng) fireLttng(e);
 }
 
 void fillArgs(Event& event, std::initializer_list<Arg> args) {
@@ -229,40 +267,43 @@ std::int64_t missionKey(std::string_view mission) noexcept {
 
 void instant(const char* name, std::initializer_list<Arg> args) noexcept {
   ThreadTrack* track = currentTrack();
-  if (track == nullptr) return;
+  const bool lttng = lttngEnabled();
+  if (track == nullptr && !lttng) return;
   Event e;
   e.name = name;
   e.begin_ns = steadyNowNs();
   fillArgs(e, args);
-  track->record(e);
+  deliver(track, lttng, e);
 }
 
 void complete(const char* name, std::int64_t begin_ns, std::int64_t end_ns, std::initializer_list<Arg> args) noexcept {
   ThreadTrack* track = currentTrack();
-  if (track == nullptr) return;
+  const bool lttng = lttngEnabled();
+  if (track == nullptr && !lttng) return;
   Event e;
   e.name = name;
   e.begin_ns = begin_ns;
   e.duration_ns = std::max<std::int64_t>(end_ns - begin_ns, 0);
   fillArgs(e, args);
-  track->record(e);
+  deliver(track, lttng, e);
 }
 
-Span::Span(const char* name, std::initializer_list<Arg> args) noexcept : track_(currentTrack()) {
-  if (track_ == nullptr) return;
+Span::Span(const char* name, std::initializer_list<Arg> args) noexcept
+    : track_(currentTrack()), lttng_(lttngEnabled()) {
+  if (!active()) return;
   event_.name = name;
   fillArgs(event_, args);
   event_.begin_ns = steadyNowNs();
 }
 
 Span::~Span() {
-  if (track_ == nullptr) return;
+  if (!active()) return;
   event_.duration_ns = std::max<std::int64_t>(steadyNowNs() - event_.begin_ns, 0);
-  track_->record(event_);
+  deliver(track_, lttng_, event_);
 }
 
 void Span::set(const char* key, std::int64_t value) noexcept {
-  if (track_ == nullptr) return;
+  if (!active()) return;
   for (Arg& a : event_.args) {
     if (a.key == nullptr || a.key == key) {
       a = Arg{key, value};

@@ -7,7 +7,9 @@
 // a machine shares; the trace also states the wall clock's offset to it, so that traces of several machines can
 // be joined (cvislam_trace estimates what is left from the link's own messages).
 //
-// Without a session, or on a thread that did not bind, every call here is a thread-local load and a branch.
+// Without a session, or on a thread that did not bind, every call here is a thread-local load and a branch. Built
+// with -DCVISLAM_LTTNG=ON, every event also fires the LTTng-UST tracepoint cvislam:span when an LTTng session
+// listens (common/trace/lttng_tracepoints.h), with or without a session of its own.
 #pragma once
 
 #include <array>
@@ -135,10 +137,12 @@ class Span {
 
   // Sets an argument known only later (e.g. the sequence a batch got); a key beyond kMaxArgs is ignored.
   void set(const char* key, std::int64_t value) noexcept;
-  [[nodiscard]] bool active() const { return track_ != nullptr; }
+  // Recorded: into the thread's ring, or (CVISLAM_LTTNG) to an LTTng session that listens.
+  [[nodiscard]] bool active() const { return track_ != nullptr || lttng_; }
 
  private:
   ThreadTrack* track_;
+  bool lttng_;
   Event event_;
 };
 
