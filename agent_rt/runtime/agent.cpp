@@ -248,7 +248,7 @@ class TrackingLoop {
     YieldRequests& yield_requests;
     StateListener* listener;  // besides the state topic; may be null
     const std::atomic<bool>& stop;
-    const Link* link;  // progress text only; nullptr without a server
+    const Link* link;  // progress text and health only; nullptr without a server
     ThreadCpuClock& cpu;
   };
 
@@ -313,7 +313,7 @@ class TrackingLoop {
         }
       }
       trace::Span frame_span("track_frame", {{"frame", static_cast<std::int64_t>(frame->index)}});
-      frame_span.set("since_capture_us", (trace::nowNs() - captured_ns) / 1000);
+      if (frame_span.active()) frame_span.set("since_capture_us", (trace::nowNs() - captured_ns) / 1000);
       const FrameResult r = tracker_.track(input, sink_);
       if (r.keyframe) frame_span.set("keyframe", r.reference.counter);
       s_.feed.release();

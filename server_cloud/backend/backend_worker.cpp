@@ -593,7 +593,7 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     graph = buildPoseGraph(*content, loops, options_.pose_graph);
   }
   const auto solve_start = Clock::now();
-  trace::Span graph_span("loop_pose_graph", {{"map", map->id()}});
+  trace::Span graph_span("loop_pose_graph", {{"mission", trace::missionKey(mission.name())}, {"map", map->id()}});
   Result<std::vector<KeyframeCorrection>> corrections = solvePoseGraph(graph, options_.pose_graph);
   graph_span.set("keyframes", static_cast<std::int64_t>(corrections ? corrections->size() : 0));
   record.solve_ms = std::chrono::duration<double, std::milli>(Clock::now() - solve_start).count();

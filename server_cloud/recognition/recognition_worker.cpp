@@ -336,7 +336,9 @@ void RecognitionWorker::query(MissionState& state, Mission& mission, const Keyfr
     delta.candidates += search.candidates.size();
     std::optional<VerifiedMatch> best;
     for (const Candidate& c : search.candidates) {
-      trace::Span verify_span("verify_candidate", {{"agent", c.keyframe.agent}, {"keyframe", c.keyframe.counter}});
+      trace::Span verify_span("verify_candidate", {{"mission", trace::missionKey(mission.name())},
+                                                   {"agent", c.keyframe.agent},
+                                                   {"keyframe", c.keyframe.counter}});
       const Verification v = verifyOnCopies(state, mission, input, c, locks);
       verify_span.set("accepted", v.accepted() ? 1 : 0);
       if (!v.accepted()) {

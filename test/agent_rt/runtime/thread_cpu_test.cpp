@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "common/core/steady_clock.hpp"
+#include "test/support/malloc_counter.hpp"
 
 namespace cvislam::agent {
 namespace {
@@ -46,6 +47,19 @@ TEST(ThreadCpu, AWorkingThreadShowsAndAnAbsentOneDoesNot) {
   EXPECT_LE(percent[1], 110.0);  // one thread, one core at most (10 ms ticks round the figure)
   EXPECT_EQ(percent[0], -1.0);   // tracking: never registered
   EXPECT_EQ(percent[4], -1.0);
+}
+
+// The tracking thread samples it once a second: that must not allocate (this binary counts every malloc).
+TEST(ThreadCpu, SamplingAllocatesNothing) {
+  ThreadCpuClock clock;
+  clock.registerCurrentThread("tracking");
+  double percent[live::kHealthThreadCount];
+  const std::int64_t start_ns = steadyNowNs();
+  clock.sample(start_ns, percent);  // the first call sets the clock tick rate up
+  const long before = test::mallocCount();
+  for (int i = 1; i <= 100; ++i) clock.sample(start_ns + i * 1'000'000'000LL, percent);
+  EXPECT_EQ(test::mallocCount() - before, 0);
+  EXPECT_GE(percent[0], 0.0);  // this thread's figure was read
 }
 
 }  // namespace
