@@ -258,7 +258,7 @@ class TrackingLoop {
         keyframe_pub_(service(shared.options.agent, "keyframes"), iox::popo::PublisherOptions{}),
         snapshot_sub_(service(shared.options.agent, "map_snapshot"), snapshotOptions(depths)),
         state_pub_(shared.options.agent, live::kStateFramesEvent),
-        health_pub_(live::stateService(shared.options.agent, live::kStateHealthEvent), newestKept()),
+        health_pub_(shared.options.agent, live::kStateHealthEvent),
         sink_(keyframe_pub_) {
     snapshot_wait_.attachState(snapshot_sub_, iox::popo::SubscriberState::HAS_DATA).or_else([](auto) {
       std::fprintf(stderr, "[agent] cannot wait on mapping's snapshots: iceoryx refused the wait set\n");
@@ -351,13 +351,6 @@ class TrackingLoop {
     if (s_.listener != nullptr) s_.listener->onState(state);
   }
 
-  static iox::popo::PublisherOptions newestKept() {
-    iox::popo::PublisherOptions options;
-    options.historyCapacity = 1;
-    options.subscriberTooSlowPolicy = iox::popo::ConsumerTooSlowPolicy::DISCARD_OLDEST_DATA;
-    return options;
-  }
-
   // Once a second, on the health topic: how the agent is doing, for a supervisor. Reads the link's figures and
   // each thread's /proc entry into fixed buffers: nothing is allocated.
   void publishHealth(const FrameResult& r, const AgentRunSummary& summary) {
@@ -370,7 +363,6 @@ class TrackingLoop {
     }
     if (now_ns - last_health_ns_ < kHealthIntervalNs) return;
     live::AgentHealthMessage& h = health_;
-    h.sequence = health_sequence_++;
     h.agent = s_.options.agent;
     h.status = statusOf(r.status);
     h.map_id = r.map_id;
@@ -389,12 +381,7 @@ class TrackingLoop {
       h.link_keyframes_waiting = link.keyframes_waiting;
     }
     s_.cpu.sample(now_ns, h.cpu_percent);
-    h.published_steady_ns = steadyNowNs();
-    auto loaned = health_pub_.loan();
-    if (!loaned.has_error()) {
-      *loaned.value().get() = h;
-      loaned.value().publish();
-    }
+    health_pub_.publish(h);
     last_health_ns_ = now_ns;
     frames_at_health_ = summary.frames;
   }
@@ -510,11 +497,10 @@ class TrackingLoop {
   iox::popo::Publisher<KeyframeMessage> keyframe_pub_;
   iox::popo::Subscriber<MapSnapshotMessage> snapshot_sub_;
   iox::popo::WaitSet<1> snapshot_wait_;
-  StatePublisher state_pub_;
-  iox::popo::Publisher<live::AgentHealthMessage> health_pub_;
+  StatePublisher<> state_pub_;
+  StatePublisher<live::AgentHealthMessage> health_pub_;
   static constexpr std::int64_t kHealthIntervalNs = 1'000'000'000;
   live::AgentHealthMessage health_;
-  std::uint64_t health_sequence_ = 0;
   std::int64_t last_health_ns_ = -1;
   std::size_t frames_at_health_ = 0;
   IceoryxKeyframeSink sink_;

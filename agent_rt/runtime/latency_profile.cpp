@@ -1,9 +1,7 @@
 #include "agent_rt/runtime/latency_profile.hpp"
 
-#include <algorithm>
 #include <cmath>
 #include <cstdio>
-#include <numeric>
 
 #include <nlohmann/json.hpp>
 
@@ -12,18 +10,8 @@
 namespace cvislam::agent {
 
 StageSummary summarise(const LatencyRecorder& recorder) {
-  StageSummary s;
-  s.name = recorder.name();
-  std::vector<double> sorted = recorder.samplesMs();
-  std::sort(sorted.begin(), sorted.end());
-  s.count = sorted.size();
-  if (sorted.empty()) return s;
-  s.p50_ms = nearestRankPercentile(sorted, 0.50);
-  s.p90_ms = nearestRankPercentile(sorted, 0.90);
-  s.p99_ms = nearestRankPercentile(sorted, 0.99);
-  s.max_ms = sorted.back();
-  s.mean_ms = std::accumulate(sorted.begin(), sorted.end(), 0.0) / static_cast<double>(sorted.size());
-  return s;
+  const SampleSummary q = summariseSamples(recorder.samplesMs());
+  return StageSummary{recorder.name(), q.count, q.p50, q.p90, q.p99, q.max, q.mean};
 }
 
 std::string formatLatencyTable(const std::vector<StageSummary>& stages) {

@@ -74,7 +74,7 @@ struct PropagationThread::Impl {
   ImuPropagator propagator;
   iox::popo::UntypedSubscriber imu;
   iox::popo::Subscriber<live::AgentStateMessage> frame_states;
-  StatePublisher publisher;
+  StatePublisher<> publisher;
   iox::popo::UserTrigger stop;
   iox::popo::WaitSet<3> wait;
   std::atomic<bool> stopping{false};

@@ -1,6 +1,7 @@
 // One of the agent's state topics (agent_rt/live/state_topics.hpp) as the threads that publish on it use it: each
-// state numbered and stamped at publication, and counted when no chunk was free, for a state is never waited for. A
-// reader that comes late still gets the newest one. Holds an iceoryx publisher: for the runtime's .cpp files only.
+// message (a state, or the health message) numbered and stamped at publication, and counted when no chunk was
+// free, for a message is never waited for. A reader that comes late still gets the newest one. Holds an iceoryx
+// publisher: for the runtime's .cpp files only.
 #pragma once
 
 #include <cstdint>
@@ -12,12 +13,13 @@
 
 namespace cvislam::agent {
 
+template <typename Message = live::AgentStateMessage>
 class StatePublisher {
  public:
   StatePublisher(std::uint32_t agent, const char* event) : publisher_(live::stateService(agent, event), newestKept()) {}
 
   // Numbers and stamps `state` (published_steady_ns), and publishes it if a chunk is free.
-  void publish(live::AgentStateMessage& state) {
+  void publish(Message& state) {
     state.sequence = sequence_++;
     auto loaned = publisher_.loan();
     state.published_steady_ns = steadyNowNs();
@@ -40,7 +42,7 @@ class StatePublisher {
     return options;
   }
 
-  iox::popo::Publisher<live::AgentStateMessage> publisher_;
+  iox::popo::Publisher<Message> publisher_;
   std::uint64_t sequence_ = 0;
   std::uint64_t not_sent_ = 0;
 };

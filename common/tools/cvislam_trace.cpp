@@ -101,9 +101,9 @@ int merge(const MergeCommand& command) {
   std::printf("\na keyframe's way (%zu keyframes decided by %zu agents):\n", journeys.keyframes, agents.size());
   std::printf("  %-54s %6s %10s %10s %10s\n", "link", "n", "p50 [ms]", "p99 [ms]", "max [ms]");
   for (const cvislam::trace::LinkSummary& s : cvislam::trace::summarise(journeys)) {
-    std::printf("  %-54s %6zu %10.1f %10.1f %10.1f\n", s.name.c_str(), s.count, s.p50_ms, s.p99_ms, s.max_ms);
+    std::printf("  %-54s %6zu %10.1f %10.1f %10.1f\n", s.name.c_str(), s.ms.count, s.ms.p50, s.ms.p99, s.ms.max);
     summary["links"].push_back(
-        {{"link", s.name}, {"n", s.count}, {"p50_ms", s.p50_ms}, {"p99_ms", s.p99_ms}, {"max_ms", s.max_ms}});
+        {{"link", s.name}, {"n", s.ms.count}, {"p50_ms", s.ms.p50}, {"p99_ms", s.ms.p99}, {"max_ms", s.ms.max}});
   }
   if (journeys.merges_not_reaching_every_agent > 0) {
     std::printf(

@@ -132,14 +132,17 @@ ProcessTrace onlyMission(const ProcessTrace& server, std::int64_t mission_key) {
   return out;
 }
 
-Result<ClockOffset> estimateClockOffset(const ProcessTrace& agent, const ProcessTrace& all_missions) {
-  const ProcessTrace server = onlyMission(all_missions, agent.mission_key);
+Result<ClockOffset> estimateClockOffset(const ProcessTrace& agent, const ProcessTrace& server) {
+  // The server's events of this agent: its id within its mission (the same id may fly in another).
+  const auto ofAgent = [&](const TraceRecord& r) {
+    return r.arg("agent") == agent.agent && r.arg("mission") == agent.mission_key;
+  };
   ClockOffset c;
   // Uplink: the server began to ingest batch b after the agent began the span that sent it.
   double upper = std::numeric_limits<double>::infinity();
   const auto sent = firstBy<std::int64_t>(agent, "uplink_batch", [](const TraceRecord& r) { return r.arg("batch"); });
   for (const TraceRecord& r : server.records) {
-    if (r.name != "ingest" || r.arg("agent") != agent.agent) continue;
+    if (r.name != "ingest" || !ofAgent(r)) continue;
     const auto it = sent.find(r.arg("batch"));
     if (it == sent.end()) continue;
     upper = std::min(upper, r.ts_us - it->second->ts_us);
@@ -150,7 +153,7 @@ Result<ClockOffset> estimateClockOffset(const ProcessTrace& agent, const Process
   double lower = -std::numeric_limits<double>::infinity();
   std::map<std::int64_t, std::vector<double>> built;
   for (const TraceRecord* r : named(server, "downlink_build")) {
-    if (r->arg("agent") == agent.agent) built[r->arg("downlink")].push_back(r->endUs());
+    if (ofAgent(*r)) built[r->arg("downlink")].push_back(r->endUs());
   }
   std::map<std::int64_t, std::size_t> seen;
   for (const TraceRecord* r : named(agent, "downlink_received")) {
@@ -323,15 +326,8 @@ Journeys followKeyframes(const ProcessTrace& server, const std::vector<ProcessTr
 
 std::vector<LinkSummary> summarise(const Journeys& journeys) {
   std::vector<LinkSummary> out;
-  const auto one = [](const std::string& name, std::vector<double> ms) {
-    std::sort(ms.begin(), ms.end());
-    LinkSummary s;
-    s.name = name;
-    s.count = ms.size();
-    s.p50_ms = nearestRankPercentile(ms, 0.5);
-    s.p99_ms = nearestRankPercentile(ms, 0.99);
-    s.max_ms = ms.empty() ? 0.0 : ms.back();
-    return s;
+  const auto one = [](const std::string& name, const std::vector<double>& ms) {
+    return LinkSummary{name, summariseSamples(ms)};
   };
   for (const JourneyLink& link : journeys.links) out.push_back(one(link.name, link.ms));
   out.push_back(one("map match -> every agent of the merged map corrected", journeys.match_to_all_agents_corrected_ms));

@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "common/core/percentile.hpp"
 #include "common/core/result.hpp"
 
 namespace cvislam::trace {
@@ -86,10 +87,7 @@ Journeys followKeyframes(const ProcessTrace& server, const std::vector<ProcessTr
 
 struct LinkSummary {
   std::string name;
-  std::size_t count = 0;
-  double p50_ms = 0.0;
-  double p99_ms = 0.0;
-  double max_ms = 0.0;
+  SampleSummary ms;  // over the link's samples [ms]
 };
 std::vector<LinkSummary> summarise(const Journeys& journeys);
 

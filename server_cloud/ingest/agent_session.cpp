@@ -348,6 +348,7 @@ Status AgentSession::onHello(const v1::AgentUplink& message, std::size_t wire_by
   mission_ = std::move(mission);
   record_ = std::move(shared_record);
   mission_name_ = hello.mission();
+  mission_trace_key_ = trace::missionKey(mission_name_);
   agent_ = agent_id;
   last_down_ = Clock::now();
   return Status::Ok();
@@ -357,9 +358,8 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   const v1::MapBatch& batch = message.batch();
   const std::uint64_t sequence = batch.sequence();
   const auto arrived = Clock::now();  // before the lock: waits for the back-end count
-  const trace::Span span("ingest", {{"mission", trace::missionKey(mission_name_)},
-                                    {"agent", agent_},
-                                    {"batch", static_cast<std::int64_t>(sequence)}});
+  const trace::Span span(
+      "ingest", {{"mission", mission_trace_key_}, {"agent", agent_}, {"batch", static_cast<std::int64_t>(sequence)}});
   const bool gba_at_arrival = mission_->gbaRunning();
   if (mission_->retired()) {
     return Error{ErrorCode::kUnavailable,
@@ -393,9 +393,9 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   std::optional<StoreRecord> held;  // set when the store holds other content under this number
   if (store_ != nullptr) {
     commit = [&]() -> Status {
-      const trace::Span commit_span("store_commit", {{"mission", trace::missionKey(mission_name_)},
-                                                     {"agent", agent_},
-                                                     {"batch", static_cast<std::int64_t>(sequence)}});
+      const trace::Span commit_span(
+          "store_commit",
+          {{"mission", mission_trace_key_}, {"agent", agent_}, {"batch", static_cast<std::int64_t>(sequence)}});
       StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
       const auto append_start = Clock::now();
       Status appended = store_->append(stored);
@@ -613,7 +613,7 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
   last_down_ = now;
   // Its end stands for the send: the adapter writes the message right after.
   trace::complete("downlink_build", begin_ns, trace::nowNs(),
-                  {{"mission", trace::missionKey(mission_name_)},
+                  {{"mission", mission_trace_key_},
                    {"agent", agent_},
                    {"downlink", static_cast<std::int64_t>(out.sequence())},
                    {"acked", static_cast<std::int64_t>(out.acked_sequence())},

@@ -126,6 +126,7 @@ class AgentSession {
   std::shared_ptr<Mission> mission_;
   SharedAgentRecord record_;
   std::string mission_name_;
+  std::int64_t mission_trace_key_ = 0;  // trace::missionKey(mission_name_), the mission in trace events
   AgentId agent_ = 0;
   std::uint64_t stream_ = 0;         // this stream's number among the agent's streams
   std::uint64_t last_sequence_ = 0;  // the newest batch sequence seen on this stream

@@ -158,8 +158,8 @@ TEST(TraceJoin, AKeyframeIsFollowedLinkByLink) {
   EXPECT_NEAR(j.match_to_all_agents_corrected_ms[0], 790.0, 1e-9);
   EXPECT_EQ(j.merges_not_reaching_every_agent, 0U);
   const std::vector<LinkSummary> s = summarise(j);
-  EXPECT_EQ(s.back().count, 1U);
-  EXPECT_NEAR(s.back().p99_ms, 790.0, 1e-9);
+  EXPECT_EQ(s.back().ms.count, 1U);
+  EXPECT_NEAR(s.back().ms.p99, 790.0, 1e-9);
 }
 
 TEST(TraceJoin, AMergeSomeAgentNeverHeardOfIsCountedApart) {
