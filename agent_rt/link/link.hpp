@@ -55,6 +55,9 @@ struct LinkOptions {
   // covisible map leaves them out; 0: the server's default.
   std::uint32_t local_map_keyframes = 0;
   LinkStoreOptions store;
+  // Mapping hands a keyframe to the link as soon as it is in the local map, and its refined state after the local
+  // BA: the BA's time is then not on the keyframe's way to the server. Off: one delta after the BA.
+  bool keyframe_before_local_ba = true;
 
   [[nodiscard]] Status validate() const;
 };

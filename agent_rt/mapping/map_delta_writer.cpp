@@ -35,7 +35,8 @@ void MapDeltaWriter::record(const MapEvent& event) {
   }
 }
 
-void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, const MapFrame& frame) {
+void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, const MapFrame& frame,
+                            bool with_keyframe) {
   MapDeltaMessage& delta = *delta_;
   delta.map_id = frame.map_id;
   delta.map_epoch = frame.epoch;
@@ -49,7 +50,7 @@ void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, con
     if (kf.anchor) return;  // the server's, not this agent's to send
     KeyframeStateMsg& m = delta.keyframes[delta.keyframe_count++];
     m = toStateMsg(kf);
-    if (!(kf.id == msg.state.id)) return;
+    if (!with_keyframe || !(kf.id == msg.state.id)) return;
     // The keyframe just processed, in full, with its links as they are now.
     delta.has_keyframe = 1;
     delta.keyframe_map_id = frame.keyframe_map_id;

@@ -1,7 +1,7 @@
 // The map delta for the link to the server (messages/messages.hpp: MapDeltaMessage). While mapping processes a
 // keyframe, the local map reports its structural changes here and they go straight into the delta; afterwards
 // finish() adds the keyframe in full, the points made with it, and the states and positions of everything in
-// the local map.
+// the local map. A keyframe may have two deltas (before and after its local BA): only the first carries it whole.
 #pragma once
 
 #include <cstdint>
@@ -31,8 +31,8 @@ class MapDeltaWriter final : public MapEventSink {
     bool ready = false;                 // final (IMU initialised; vision only: started): the link may send it
     std::uint32_t keyframe_map_id = 0;  // the map the keyframe was inserted into
   };
-  // Writes the rest of the delta started with start().
-  void finish(const LocalMap& map, const KeyframeMessage& keyframe, const MapFrame& frame);
+  // Writes the rest of the delta started with start(); the keyframe in full only `with_keyframe` (its first delta).
+  void finish(const LocalMap& map, const KeyframeMessage& keyframe, const MapFrame& frame, bool with_keyframe = true);
 
  private:
   MapDeltaMessage* delta_ = nullptr;

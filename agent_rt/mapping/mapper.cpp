@@ -629,29 +629,36 @@ void tryImuInitialisation(Mapper::State& s, bool stereo, MapperReport& report) {
   }
 }
 
-}  // namespace
-
-Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta,
-                                     const std::function<bool()>& keyframe_waiting) {
-  State& s = *s_;
-  MapperReport report;
-  if (delta != nullptr) {
-    s.delta_writer.start(*delta);
-    s.map.setEventSink(&s.delta_writer);
+// Writes the map's changes into `delta` while it lives, and the map as it is then when it ends, whatever path
+// leaves the phase. `with_keyframe`: the delta carries the keyframe in full (it is the first delta of it).
+class DeltaScope {
+ public:
+  DeltaScope(Mapper::State& s, MapDeltaMessage* delta, const KeyframeMessage& msg, bool with_keyframe,
+             MapperReport& report)
+      : s_(s), delta_(delta), msg_(msg), with_keyframe_(with_keyframe), report_(report) {
+    if (delta_ == nullptr) return;
+    s_.delta_writer.start(*delta_);
+    s_.map.setEventSink(&s_.delta_writer);
   }
-  // Whatever path leaves this function, the sink is detached and the delta written.
-  struct DeltaGuard {
-    State& s;
-    MapDeltaMessage* delta;
-    const KeyframeMessage& msg;
-    MapperReport& report;
-    ~DeltaGuard() {
-      if (delta == nullptr) return;
-      s.map.setEventSink(nullptr);
-      s.delta_writer.finish(s.map, msg, {s.map_id, s.epoch, s.frameFinal(), s.keyframe_map_id});
-      report.delta_events_lost = delta->events_lost;
-    }
-  } delta_guard{s, delta, msg, report};
+  ~DeltaScope() {
+    if (delta_ == nullptr) return;
+    s_.map.setEventSink(nullptr);
+    s_.delta_writer.finish(s_.map, msg_, {s_.map_id, s_.epoch, s_.frameFinal(), s_.keyframe_map_id}, with_keyframe_);
+    report_.delta_events_lost += delta_->events_lost;
+  }
+  DeltaScope(const DeltaScope&) = delete;
+  DeltaScope& operator=(const DeltaScope&) = delete;
+
+ private:
+  Mapper::State& s_;
+  MapDeltaMessage* delta_;
+  const KeyframeMessage& msg_;
+  bool with_keyframe_;
+  MapperReport& report_;
+};
+
+// The keyframe into the map: its links, fused and new points, culling.
+Status insertKeyframe(Mapper::State& s, const KeyframeMessage& msg, MapperReport& report) {
   if (s.seen_message && msg.sequence > s.expected_sequence) report.lost_messages = msg.sequence - s.expected_sequence;
   s.seen_message = true;
   s.expected_sequence = msg.sequence + 1;
@@ -685,7 +692,13 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
     report.triangulated += triangulateWithNeighbours(s, handle, order);
     report.culled = s.map.cullMapPoints(s.options.cull);
   }
+  return Status{};
+}
 
+// The map refined around the keyframe: local BA, the IMU initialisation when due, the snapshot for tracking.
+void refineAroundKeyframe(Mapper::State& s, MapSnapshotMessage& snapshot, const KeyframeMessage& msg,
+                          const std::function<bool()>& keyframe_waiting, MapperReport& report) {
+  const bool stereo = s.right.has_value();
   const bool map_ready = stereo || s.mono_initialised;
   if (map_ready && s.map.keyframes().size() >= 2) {
     localBundleAdjustment(s, keyframe_waiting, report);
@@ -695,7 +708,34 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
   if (map_ready && s.options.use_imu && !s.imu_initialised) tryImuInitialisation(s, stereo, report);
   writeSnapshot(s, msg.state.id, snapshot);
   report.time_correction_ns = snapshot.time_correction_ns;
+}
+
+}  // namespace
+
+Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMessage& snapshot, MapDeltaMessage* delta,
+                                     const std::function<bool()>& keyframe_waiting) {
+  MapperReport report;
+  {
+    const DeltaScope scope(*s_, delta, msg, true, report);
+    if (Status st = insertKeyframe(*s_, msg, report); !st.ok()) return st.error();
+    refineAroundKeyframe(*s_, snapshot, msg, keyframe_waiting, report);
+  }
   return report;
+}
+
+Result<MapperReport> Mapper::insert(const KeyframeMessage& msg, MapDeltaMessage* delta) {
+  MapperReport report;
+  {
+    const DeltaScope scope(*s_, delta, msg, true, report);
+    if (Status st = insertKeyframe(*s_, msg, report); !st.ok()) return st.error();
+  }
+  return report;
+}
+
+void Mapper::refine(const KeyframeMessage& msg, MapperReport& report, MapSnapshotMessage& snapshot,
+                    MapDeltaMessage* delta, const std::function<bool()>& keyframe_waiting) {
+  const DeltaScope scope(*s_, delta, msg, false, report);
+  refineAroundKeyframe(*s_, snapshot, msg, keyframe_waiting, report);
 }
 
 }  // namespace cvislam::agent

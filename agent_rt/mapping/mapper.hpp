@@ -147,6 +147,13 @@ class Mapper {
   // has arrived or tracking has asked mapping to yield (see MapperOptions::yield_to_waiting_keyframes).
   Result<MapperReport> process(const KeyframeMessage& keyframe, MapSnapshotMessage& snapshot,
                                MapDeltaMessage* delta = nullptr, const std::function<bool()>& keyframe_waiting = {});
+  // The same in two phases, each writing a delta of its own, so that the keyframe can leave for the server before
+  // its local BA: insert() puts the keyframe into the map (links, fused and new points, culling) and writes it in
+  // full into `delta`; refine() runs the local BA and the IMU initialisation, writes the snapshot and, into
+  // `delta`, the refined states and positions. refine() follows a successful insert() of the same keyframe.
+  Result<MapperReport> insert(const KeyframeMessage& keyframe, MapDeltaMessage* delta);
+  void refine(const KeyframeMessage& keyframe, MapperReport& report, MapSnapshotMessage& snapshot,
+              MapDeltaMessage* delta, const std::function<bool()>& keyframe_waiting = {});
 
   // Applies one downlink message (link -> mapping) between keyframes. Messages of a stream apply in sequence;
   // one older than the newest applied is ignored (stale), one that repeats what the map holds changes nothing.

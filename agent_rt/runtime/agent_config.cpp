@@ -103,6 +103,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   link.read("uplink_window_s", o.link.pacer.window_s);
   link.read("keepalive_timeout_ms", o.link.keepalive_timeout_ms);
   link.read("point_update_min_m", o.link.store.point_update_min_m);
+  link.read("keyframe_before_local_ba", o.link.keyframe_before_local_ba);
   link.read("reconnect_max_s", o.link.reconnect_max_s);
   link.read("flush_timeout_s", o.link.flush_timeout_s);
   link.read("use_anchors", o.mapping.downlink.use_anchors);

@@ -219,23 +219,7 @@ class MappingLoop {
       out = fallback_.get();
       std::fprintf(stderr, "[mapping] no free snapshot chunk: this keyframe's map is not sent\n");
     }
-    std::optional<IceoryxLoan<MapDeltaMessage>> delta_loan;
-    MapDeltaMessage* delta = nullptr;
-    if (deltas_) {
-      delta = delta_loan.emplace(*deltas_).loan();
-      if (delta == nullptr) {
-        if (!delta_fallback_) delta_fallback_ = std::make_unique<MapDeltaMessage>();
-        delta = delta_fallback_.get();
-        std::fprintf(stderr, "[mapping] no free delta chunk: the link misses this keyframe's changes\n");
-      }
-    }
-    auto report = mapper_.process(msg, *out, delta, keyframe_waiting);
-    if (delta != nullptr) {
-      // Published whatever happened to the keyframe: the link counts deltas by sequence.
-      delta->sequence = delta_sequence_++;
-      delta->publish_steady_ns = steadyNowNs();
-      delta_loan->publish();
-    }
+    auto report = processInto(msg, *out, keyframe_waiting);
     shared_.mapping_total.add(steadyNowNs() - t0);
     const double t_s = static_cast<double>(msg.state.t_ns) * 1e-9;
     if (!report) {
@@ -253,6 +237,53 @@ class MappingLoop {
       snapshot.publish();
     }
   }
+
+  // The mapper's work on one keyframe, with its deltas to the link. By default the keyframe goes to the link as
+  // soon as it is in the map and its refined states follow after the local BA, so that the BA's time (hundreds of
+  // ms when agents share the cores) is not on the keyframe's way to the server.
+  Result<MapperReport> processInto(const KeyframeMessage& msg, MapSnapshotMessage& out,
+                                   const std::function<bool()>& keyframe_waiting) {
+    if (!deltas_) return mapper_.process(msg, out, nullptr, keyframe_waiting);
+    if (!options_.link.keyframe_before_local_ba) {
+      DeltaLoan delta(*this);
+      return mapper_.process(msg, out, delta.get(), keyframe_waiting);
+    }
+    Result<MapperReport> report = [&] {
+      DeltaLoan delta(*this);
+      return mapper_.insert(msg, delta.get());
+    }();
+    if (!report) return report;
+    DeltaLoan delta(*this);
+    mapper_.refine(msg, *report, out, delta.get(), keyframe_waiting);
+    return report;
+  }
+
+  // A delta loaned for the mapper to write, published when it goes out of scope whatever happened to the keyframe:
+  // the link counts deltas by sequence.
+  class DeltaLoan {
+   public:
+    explicit DeltaLoan(MappingLoop& loop) : loop_(loop), loan_(*loop.deltas_) {
+      delta_ = loan_.loan();
+      if (delta_ == nullptr) {
+        if (!loop_.delta_fallback_) loop_.delta_fallback_ = std::make_unique<MapDeltaMessage>();
+        delta_ = loop_.delta_fallback_.get();
+        std::fprintf(stderr, "[mapping] no free delta chunk: the link misses this keyframe's changes\n");
+      }
+    }
+    ~DeltaLoan() {
+      delta_->sequence = loop_.delta_sequence_++;
+      delta_->publish_steady_ns = steadyNowNs();
+      loan_.publish();
+    }
+    DeltaLoan(const DeltaLoan&) = delete;
+    DeltaLoan& operator=(const DeltaLoan&) = delete;
+    [[nodiscard]] MapDeltaMessage* get() const { return delta_; }
+
+   private:
+    MappingLoop& loop_;
+    IceoryxLoan<MapDeltaMessage> loan_;
+    MapDeltaMessage* delta_ = nullptr;
+  };
 
   void count(const MapperReport& report, double t_s) {
     MappingStats& stats = shared_.stats;

@@ -193,6 +193,100 @@ TEST_F(MapperTest, MonocularStartLinkFuseTriangulateAndBound) {
   EXPECT_EQ(snapshot_->keyframe_count, 6u);
 }
 
+// The two-phase path the agent takes by default: insert() hands the keyframe to the link before its local BA,
+// refine() the refined map after it. Together they must build the same map as process() and tell the link the
+// same things, only sooner: the first delta carries the keyframe in full with tracking's estimate, the second
+// the states the BA moved.
+TEST_F(MapperTest, InsertThenRefineSendsTheKeyframeBeforeItsLocalBaAndBuildsTheSameMapAsProcess) {
+  auto split_mapper = Mapper::create(options_, *camera_, nullptr, T_s_c_, SE3d());
+  ASSERT_TRUE(split_mapper.ok());
+  Mapper& split = **split_mapper;
+  auto split_snapshot = std::make_unique<MapSnapshotMessage>();
+  auto whole = std::make_unique<MapDeltaMessage>();
+  auto first = std::make_unique<MapDeltaMessage>();
+  auto second = std::make_unique<MapDeltaMessage>();
+
+  const auto both = [&](const KeyframeMessage& m) {
+    auto one = mapper_->process(m, *snapshot_, whole.get());
+    ASSERT_TRUE(one.ok()) << one.error().toString();
+    auto inserted = split.insert(m, first.get());
+    ASSERT_TRUE(inserted.ok()) << inserted.error().toString();
+    split.refine(m, *inserted, *split_snapshot, second.get());
+    EXPECT_EQ(inserted->ba_ran, one->ba_ran);
+    EXPECT_EQ(inserted->triangulated, one->triangulated);
+  };
+  both(keyframe(0, KeyframeKind::kNewMap, truePose(0)));
+  both(keyframe(2, KeyframeKind::kTracked, truePose(0)));
+  ASSERT_EQ(snapshot_->keyframe_count, 2u);
+  const Vector3d t0(snapshot_->keyframes[0].T_w_s.p[0], snapshot_->keyframes[0].T_w_s.p[1],
+                    snapshot_->keyframes[0].T_w_s.p[2]);
+  const Vector3d t2(snapshot_->keyframes[1].T_w_s.p[0], snapshot_->keyframes[1].T_w_s.p[1],
+                    snapshot_->keyframes[1].T_w_s.p[2]);
+  const double scale = (t2 - t0).norm() / (truePose(2).translation() - truePose(0).translation()).norm();
+
+  const auto stateOf = [](const MapDeltaMessage& d, std::uint32_t counter) -> const KeyframeStateMsg* {
+    for (std::uint16_t i = 0; i < d.keyframe_count; ++i) {
+      if (d.keyframes[i].id.counter == counter) return &d.keyframes[i];
+    }
+    return nullptr;
+  };
+  const auto position = [](const PoseMsg& T) { return Vector3d(T.p[0], T.p[1], T.p[2]); };
+  for (int k = 3; k < 10; ++k) {
+    SCOPED_TRACE(k);
+    // Tracking's estimate is 2 cm off (in the map's scale): the BA moves it.
+    SE3d estimate = truePose(k, scale);
+    estimate.translation() += Vector3d(0.02, -0.01, 0.015) * scale;
+    both(keyframe(k, KeyframeKind::kTracked, estimate));
+    const auto counter = static_cast<std::uint32_t>(k);
+
+    // First delta: the keyframe whole, as tracking estimated it, with the points made with it.
+    ASSERT_EQ(first->has_keyframe, 1);
+    EXPECT_EQ(first->keyframe.id.counter, counter);
+    EXPECT_LT((position(first->keyframe.T_w_s) - estimate.translation()).norm(), 1e-9);
+    ASSERT_EQ(first->keypoint_count, whole->keypoint_count);
+    for (std::uint16_t i = 0; i < whole->keypoint_count; ++i) {
+      ASSERT_EQ(first->has_observation[i], whole->has_observation[i]) << i;
+      if (whole->has_observation[i] != 0) {
+        EXPECT_EQ(first->observation[i], whole->observation[i]) << i;
+      }
+    }
+    ASSERT_EQ(first->new_point_count, whole->new_point_count);
+    for (std::uint16_t i = 0; i < whole->new_point_count; ++i)
+      EXPECT_EQ(first->new_points[i].id, whole->new_points[i].id);
+
+    // Second delta: not the keyframe again, nothing new, but the refined states; every structural change of the
+    // keyframe is in one of the two, in order.
+    EXPECT_EQ(second->has_keyframe, 0);
+    EXPECT_EQ(second->new_point_count, 0);
+    ASSERT_EQ(first->event_count + second->event_count, whole->event_count);
+    for (std::uint16_t i = 0; i < whole->event_count; ++i) {
+      const MapEvent& e = i < first->event_count ? first->events[i] : second->events[i - first->event_count];
+      EXPECT_EQ(e.type, whole->events[i].type) << i;
+      EXPECT_EQ(e.point, whole->events[i].point) << i;
+      EXPECT_EQ(e.keyframe, whole->events[i].keyframe) << i;
+    }
+    const KeyframeStateMsg* refined = stateOf(*second, counter);
+    const KeyframeStateMsg* refined_whole = stateOf(*whole, counter);
+    ASSERT_NE(refined, nullptr);
+    ASSERT_NE(refined_whole, nullptr);
+    EXPECT_GT((position(refined->T_w_s) - estimate.translation()).norm(), 0.002 * scale) << "the BA moved it";
+
+    // The same map either way: the last delta's states and positions, and the snapshot for tracking.
+    ASSERT_EQ(second->keyframe_count, whole->keyframe_count);
+    for (std::uint16_t i = 0; i < whole->keyframe_count; ++i) {
+      EXPECT_EQ(second->keyframes[i].id, whole->keyframes[i].id);
+      EXPECT_LT((position(second->keyframes[i].T_w_s) - position(whole->keyframes[i].T_w_s)).norm(), 1e-9);
+    }
+    ASSERT_EQ(second->point_count, whole->point_count);
+    for (std::uint32_t i = 0; i < whole->point_count; ++i) {
+      EXPECT_EQ(second->points[i].id, whole->points[i].id);
+      EXPECT_EQ(second->points[i].p_w, whole->points[i].p_w);
+    }
+    ASSERT_EQ(split_snapshot->point_count, snapshot_->point_count);
+    ASSERT_EQ(split_snapshot->keyframe_count, snapshot_->keyframe_count);
+  }
+}
+
 // Mapping behind tracking: with the next keyframe waiting, a keyframe's local BA is skipped, and one that is
 // running stops when the next keyframe arrives; the keyframe itself is still taken into the map. Without the
 // option, the waiting keyframe changes nothing.
