@@ -105,6 +105,7 @@ struct Agent::Impl final : agent::StateListener {
     out.frames_dropped = r.live_faults.frames_lost;
     out.imu_dropped = r.live_faults.imu_lost;
     out.imu_initialised_at_s = r.imu_initialised_at_s;
+    out.tracking_initialised_at_s = r.tracking_initialised_at_s;
     out.time_offset_ms = r.time_offset_ms;
     out.trajectory = r.trajectory.string();
     out.summary_json = (options.output / "summary.json").string();

@@ -657,7 +657,7 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   StageLatencies latencies(n_frames);
   MappingStats mapping_stats;
   AgentRunSummary summary;
-  TrajectoryRecorder recorder(n_frames);
+  TrajectoryRecorder recorder(n_frames, options.use_imu);
   std::atomic<bool> tracking_done{false};
   std::atomic<bool> mapping_ready{false};
   YieldRequests yield_requests;  // tracking -> mapping: cut the local BA short (FrameResult::keyframe_overdue)
@@ -746,6 +746,10 @@ Result<AgentRunSummary> runAgent(const AgentOptions& options_in, const std::atom
   summary.time_offset_calibrated_ms = static_cast<double>(plan.rig.timeshift_cam_imu_ns) * 1e-6;
   summary.time_offset_ms = summary.time_offset_calibrated_ms;
   addMappingFigures(mapping_stats, yield_requests, first_frame_t_ns, summary);
+  if (recorder.firstInitialisedFrameTns() >= 0 && first_frame_t_ns >= 0) {
+    summary.tracking_initialised_at_s =
+        static_cast<double>(recorder.firstInitialisedFrameTns() - first_frame_t_ns) * 1e-9;
+  }
   summary.stages = latencies.summarise(propagation_started);
 
   // Outputs, on every path that got here (end of data, SIGINT/SIGTERM).

@@ -110,6 +110,9 @@ struct AgentRunSummary {
   bool link_enabled = false;
   LinkStatus link;
   double imu_initialised_at_s = -1.0;  // sequence time of the IMU initialisation; -1 never
+  // Sequence time of the first frame tracked in a final world frame (with the IMU: after its initialisation, so
+  // metric and gravity-aligned); earlier poses are marked in the trajectory files. -1 never.
+  double tracking_initialised_at_s = -1.0;
   // The camera-IMU time offset (t_imu = t_cam + offset): the calibration's, and the estimate at the end (the same
   // unless imu.estimate_time_offset).
   bool time_offset_estimated = false;

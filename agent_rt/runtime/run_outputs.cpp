@@ -29,6 +29,7 @@ nlohmann::json summaryJson(const AgentRunSummary& summary, const AgentOptions& o
                       {"local_ba_stopped_early", summary.local_ba_stopped_early},
                       {"local_ba_yielded_to_tracking", summary.local_ba_yielded_to_tracking},
                       {"imu_initialised_at_s", summary.imu_initialised_at_s},
+                      {"tracking_initialised_at_s", summary.tracking_initialised_at_s},
                       {"mean_tracked_points", summary.mean_tracked_points},
                       {"mode", setup.stereo ? "stereo" : "mono"},
                       {"imu_noise_inflation", setup.imu_noise_inflation},
@@ -117,13 +118,15 @@ std::string formatSummary(const AgentRunSummary& s) {
   std::snprintf(
       text, sizeof(text),
       "frames %zu, tracked %zu (%.1f %%), keyframes %zu, maps %zu, mean tracked points %.0f\n"
-      "IMU initialised at %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, keyframes dropped %zu\n"
+      "IMU initialised at %s, tracking in a final frame from %s, unreadable frames %zu, IMU gaps %zu, frames lost %zu, "
+      "keyframes dropped %zu\n"
       "mapping busy: keyframes deferred %zu, frames that needed mapping's answer %zu, most keyframes pending %d\n"
       "mapping asked to yield on %zu frames; local BAs skipped %zu, cut short %zu (for tracking's request %zu)\n"
       "camera-IMU time offset %.2f ms (calibrated %.2f ms)\n",
       s.frames, s.tracked_frames, s.frames > 0 ? 100.0 * s.tracked_frames / s.frames : 0.0, s.keyframes, s.new_maps,
       s.mean_tracked_points,
       s.imu_initialised_at_s < 0 ? "never" : (std::to_string(s.imu_initialised_at_s) + " s").c_str(),
+      s.tracking_initialised_at_s < 0 ? "never" : (std::to_string(s.tracking_initialised_at_s) + " s").c_str(),
       s.unreadable_frames, s.imu_gaps, s.lost_frames, s.dropped_keyframes, s.deferred_keyframes,
       s.frames_needing_mapping, s.most_pending_keyframes, s.mapping_yield_requests, s.local_ba_skipped,
       s.local_ba_stopped_early, s.local_ba_yielded_to_tracking, s.time_offset_ms, s.time_offset_calibrated_ms);

@@ -8,15 +8,17 @@ namespace cvislam::agent {
 
 using geometry::SE3d;
 
-TrajectoryRecorder::TrajectoryRecorder(std::size_t frames) {
+TrajectoryRecorder::TrajectoryRecorder(std::size_t frames, bool uses_imu) : uses_imu_(uses_imu) {
   frames_.reserve(frames);
   keyframes_.resize(frames + 1);
 }
 
 bool TrajectoryRecorder::addFrame(std::int64_t t_ns, std::int64_t time_correction_ns, const FrameResult& r) {
   if (frames_.size() == frames_.capacity()) return false;
+  const bool before_initialisation = uses_imu_ && !r.imu_initialised;
+  if (r.tracked && !before_initialisation && first_initialised_t_ns_ < 0) first_initialised_t_ns_ = t_ns;
   frames_.push_back({t_ns, time_correction_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U,
-                     r.has_reference, r.tracked, r.keyframe, r.map_id, r.map_epoch});
+                     r.has_reference, r.tracked, r.keyframe, before_initialisation, r.map_id, r.map_epoch});
   return true;
 }
 
@@ -63,9 +65,9 @@ void TrajectoryRecorder::build(dataset::Trajectory& refined, dataset::Trajectory
     // Tracked frames, and keyframes made before the map existed once mapping has placed them (a monocular
     // start drops the keyframes between its two views: those are left out).
     if (!f.tracked && !(f.keyframe && refinable)) continue;
-    online.push_back({f.t_ns, f.T_w_s});
+    online.push_back({f.t_ns, f.T_w_s, f.before_initialisation});
     if (!refinable) {
-      refined.push_back({f.t_ns, f.T_w_s});
+      refined.push_back({f.t_ns, f.T_w_s, f.before_initialisation});
       continue;
     }
     // Tracking placed the frame against its keyframe image to image, so hung from the keyframe's state the
@@ -73,7 +75,8 @@ void TrajectoryRecorder::build(dataset::Trajectory& refined, dataset::Trajectory
     // the keyframe's time correction. The two differ for frames tracked before the time offset was estimated
     // (or while the frames' correction was still catching up) whose keyframe mapping has re-timed since.
     const Keyframe& kf = keyframes_[f.reference];
-    refined.push_back({f.t_ns - f.time_correction_ns + kf.time_correction_ns, kf.T_w_s * f.T_ref_s});
+    refined.push_back(
+        {f.t_ns - f.time_correction_ns + kf.time_correction_ns, kf.T_w_s * f.T_ref_s, f.before_initialisation});
   }
   std::sort(refined.begin(), refined.end(), [](const auto& a, const auto& b) { return a.t_ns < b.t_ns; });
   for (const Keyframe& kf : keyframes_) {

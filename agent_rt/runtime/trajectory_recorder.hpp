@@ -16,7 +16,9 @@ namespace cvislam::agent {
 
 class TrajectoryRecorder {
  public:
-  explicit TrajectoryRecorder(std::size_t frames);
+  // `uses_imu`: frames tracked before the IMU initialisation are marked (StampedPose::before_initialisation) in
+  // both frame trajectories; their world frame was not final (in mono, not even its scale).
+  TrajectoryRecorder(std::size_t frames, bool uses_imu);
 
   // False when the reserved room is full: the frame is not recorded.
   // `time_correction_ns`: the time-offset correction the frame's time carries.
@@ -26,6 +28,8 @@ class TrajectoryRecorder {
   // The trajectory of tracked frames with every frame hung from its keyframe's newest pose, the trajectory
   // as tracked live, and the keyframe trajectory.
   void build(dataset::Trajectory& refined, dataset::Trajectory& online, dataset::Trajectory& keyframes) const;
+  // The time of the first frame tracked in a final world frame (with the IMU: once it is initialised); -1 none.
+  [[nodiscard]] std::int64_t firstInitialisedFrameTns() const { return first_initialised_t_ns_; }
 
  private:
   struct Frame {
@@ -37,6 +41,7 @@ class TrajectoryRecorder {
     bool has_reference;
     bool tracked;
     bool keyframe;
+    bool before_initialisation;
     std::uint32_t map_id;
     std::uint32_t epoch;
   };
@@ -52,6 +57,8 @@ class TrajectoryRecorder {
   std::vector<Keyframe> keyframes_;
   std::uint32_t map_id_ = 0;
   std::uint32_t epoch_ = 0;
+  bool uses_imu_ = true;
+  std::int64_t first_initialised_t_ns_ = -1;
 };
 
 }  // namespace cvislam::agent

@@ -23,6 +23,9 @@ struct CsvFormat {
   // Sensor streams need strictly increasing time. Trajectory files may repeat a timestamp (estimators do
   // emit two poses for one frame); such rows are kept and reported.
   bool keep_repeated_timestamps = false;
+  // Comment lines that start with this hold a row all the same: read, with `row.before_initialisation` set
+  // (empty: every comment line is skipped).
+  std::string_view marked_prefix = {};
 };
 
 // Parses the fields of one row into `row`; returns an empty string on success, else the problem.
@@ -40,8 +43,10 @@ Result<std::vector<Row>> readTimestampedRows(const std::filesystem::path& path, 
   std::string_view line;
   const std::string file = path.string();
   while (reader->next(line)) {
-    const std::string_view content = text::trim(line);
-    if (content.empty() || content.front() == '#') continue;
+    std::string_view content = text::trim(line);
+    const bool marked = !format.marked_prefix.empty() && content.starts_with(format.marked_prefix);
+    if (marked) content = text::trim(content.substr(format.marked_prefix.size()));
+    if (!marked && (content.empty() || content.front() == '#')) continue;
     const std::int64_t line_number = reader->lineNumber();
     std::string problem;
     text::splitFields(content, format.comma, fields);
@@ -53,6 +58,7 @@ Result<std::vector<Row>> readTimestampedRows(const std::filesystem::path& path, 
     }
     Row row{};
     if constexpr (requires { row.csv_line; }) row.csv_line = line_number;  // rows that remember their line
+    if constexpr (requires { row.before_initialisation; }) row.before_initialisation = marked;
     if (problem.empty()) problem = parse(fields, row);
     if (problem.empty() && !rows.empty() && row.t_ns <= rows.back().t_ns) {
       if (row.t_ns == rows.back().t_ns && format.keep_repeated_timestamps) {

@@ -1,5 +1,6 @@
 #include "common/dataset/trajectory_io.hpp"
 
+#include <algorithm>
 #include <fstream>
 #include <string>
 
@@ -26,7 +27,10 @@ Result<TrajectoryFormat> sniffFormat(const std::filesystem::path& path) {
   if (!reader) return reader.error();
   std::string_view line;
   while (reader->next(line)) {
-    const std::string_view content = text::trim(line);
+    std::string_view content = text::trim(line);
+    // A file of nothing but rows from before the initialisation is still a trajectory (of an estimator that never
+    // initialised): it is read, and what is scored decides what to do with them.
+    if (content.starts_with(kBeforeInitialisationMark)) content = content.substr(kBeforeInitialisationMark.size());
     if (content.empty() || content.front() == '#') continue;
     return content.find(',') != std::string_view::npos ? TrajectoryFormat::kEurocCsv : TrajectoryFormat::kTum;
   }
@@ -80,7 +84,12 @@ Result<Trajectory> readTrajectory(const std::filesystem::path& path, const Traje
     trajectory.reserve(states->size());
     for (const GroundTruthState& s : *states) trajectory.push_back({s.t_ns, s.T_w_b});
   } else {
-    const CsvFormat tum{false, 8, 8, "timestamp [s], x, y, z, qx, qy, qz, qw", /*keep_repeated_timestamps=*/true};
+    const CsvFormat tum{false,
+                        8,
+                        8,
+                        "timestamp [s], x, y, z, qx, qy, qz, qw",
+                        /*keep_repeated_timestamps=*/true,
+                        kBeforeInitialisationMark};
     auto rows = readTimestampedRows<StampedPose>(file, tum, &parseTumRow, options.strict, diagnostics);
     if (!rows) return rows.error();
     trajectory = std::move(*rows);
@@ -103,11 +112,18 @@ Status writeTrajectory(const std::filesystem::path& path, const Trajectory& traj
   const bool tum = format == TrajectoryFormat::kTum;
   out << (tum ? "# timestamp[s] tx ty tz qx qy qz qw\n"
               : "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []\n");
+  const bool any_marked = std::any_of(trajectory.begin(), trajectory.end(),
+                                      [](const StampedPose& pose) { return pose.before_initialisation; });
+  if (any_marked) {
+    out << "# rows after '" << text::trim(kBeforeInitialisationMark)
+        << "' were estimated before the initialisation (world frame not final; mono: up to scale): not scored\n";
+  }
   const char sep = tum ? ' ' : ',';
   for (const StampedPose& pose : trajectory) {
     const Eigen::Vector3d& p = pose.T_w_b.translation();
     const Eigen::Quaterniond& q = pose.T_w_b.quaternion();
-    std::string line = tum ? text::formatNsAsSeconds(pose.t_ns) : std::to_string(pose.t_ns);
+    std::string line = pose.before_initialisation ? std::string(kBeforeInitialisationMark) : std::string();
+    line += tum ? text::formatNsAsSeconds(pose.t_ns) : std::to_string(pose.t_ns);
     const double values_tum[] = {p.x(), p.y(), p.z(), q.x(), q.y(), q.z(), q.w()};
     const double values_euroc[] = {p.x(), p.y(), p.z(), q.w(), q.x(), q.y(), q.z()};
     for (double v : tum ? values_tum : values_euroc) {

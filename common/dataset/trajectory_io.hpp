@@ -1,5 +1,9 @@
 // Trajectory files: TUM ("t[s] x y z qx qy qz qw", blank-separated) and EuRoC CSV ("t[ns],x,y,z,qw,qx,qy,qz"
 // plus optional velocity and biases). Also reads a EuRoC sequence folder's ground truth.
+//
+// Poses made before the estimator's initialisation (StampedPose::before_initialisation) are written as comment
+// lines, the row behind kBeforeInitialisationMark: tools that read TUM (evo, rpg_trajectory_evaluation) skip them,
+// and a TUM file read here gives them back marked. A column would have broken those tools, which want 8 fields.
 #pragma once
 
 #include <filesystem>
@@ -19,6 +23,8 @@ enum class TrajectoryFormat {
 
 Result<TrajectoryFormat> parseTrajectoryFormat(std::string_view name);  // "auto", "tum", "euroc"
 std::string_view toString(TrajectoryFormat format);
+
+inline constexpr std::string_view kBeforeInitialisationMark = "# before_init ";
 
 struct TrajectoryReadOptions {
   TrajectoryFormat format = TrajectoryFormat::kAuto;

@@ -23,6 +23,9 @@ struct ImuSample {
 struct StampedPose {
   std::int64_t t_ns = 0;
   geometry::SE3d T_w_b;
+  // Made before the estimator's world frame was final (before its IMU initialisation): up to scale in mono, and
+  // not what a metric estimate is scored on. Trajectory files mark such rows (kBeforeInitialisationMark).
+  bool before_initialisation = false;
 };
 using Trajectory = std::vector<StampedPose>;
 

@@ -51,6 +51,14 @@ std::string escapeXml(const std::string& s) {
   return out;
 }
 
+// The line on poses from before the estimator's initialisation, when it marked any.
+std::string beforeInitialisationLine(const ReportLabels& labels) {
+  if (labels.before_initialisation == 0) return {};
+  return fmt::format("before init:  {} poses marked as estimated before the initialisation: {}\n",
+                     labels.before_initialisation,
+                     labels.before_initialisation_scored ? "scored (--include-before-init)" : "left out");
+}
+
 }  // namespace
 
 std::string formatTable(const Evaluation& ev, const ReportLabels& labels) {
@@ -59,6 +67,7 @@ std::string formatTable(const Evaluation& ev, const ReportLabels& labels) {
   out += fmt::format("estimate:     {}\nground truth: {}\n", labels.estimate, labels.ground_truth);
   out += fmt::format("poses:        {} of {} associated ({} outside the ground-truth time span, {} without a match)\n",
                      p.size(), p.estimate_poses, p.outside_span, p.unmatched);
+  out += beforeInitialisationLine(labels);
   out += fmt::format("span:         {:.1f} s, ground-truth path {:.2f} m\n\n", ev.duration_s, ev.ground_truth_path_m);
   out += fmt::format("{:<8} {:>11} {:>9} {:>9} {:>9} {:>13}\n", "align", "ATE rmse[m]", "mean", "median", "max",
                      "rot rmse[deg]");
@@ -116,6 +125,8 @@ nlohmann::json evaluationJson(const Evaluation& ev, const ReportLabels& labels, 
   j["groundtruth"] = labels.ground_truth;
   j["poses"] = ev.poses.size();
   j["estimate_poses"] = ev.poses.estimate_poses;
+  j["before_initialisation"] = labels.before_initialisation;
+  j["before_initialisation_scored"] = labels.before_initialisation_scored;
   j["outside_groundtruth_span"] = ev.poses.outside_span;
   j["unmatched"] = ev.poses.unmatched;
   j["duration_s"] = ev.duration_s;
@@ -293,6 +304,7 @@ std::string formatJointTable(const JointEvaluation& joint, std::span<const Repor
     out +=
         fmt::format("poses:        {} of {} associated ({} outside the ground-truth time span, {} without a match)\n",
                     p.size(), p.estimate_poses, p.outside_span, p.unmatched);
+    out += beforeInitialisationLine(labels[i]);
     out += fmt::format("span:         {:.1f} s, ground-truth path {:.2f} m\n", ev.duration_s, ev.ground_truth_path_m);
   }
   if (joint.mode == JointAlignment::kJoint) {

@@ -14,13 +14,17 @@ struct ReportLabels {
   std::string ground_truth;  // against what
   std::string rpe_pairing;   // "all-starts" or "consecutive"
   std::string label;         // the agent's name when several estimates are scored together
+  // Poses marked as made before the estimator's initialisation (and left out unless asked for).
+  std::size_t before_initialisation = 0;
+  bool before_initialisation_scored = false;
 };
 
 // A fixed-width table for the terminal.
 std::string formatTable(const Evaluation& evaluation, const ReportLabels& labels);
 
 // JSON with "poses", "posyaw"/"se3"/"sim3" objects (rmse, mean, median, max, min, std, rotation and the
-// alignment transform), "scale", "scale_error_percent", "rpe" and the association counts. With
+// alignment transform), "scale", "scale_error_percent", "rpe", the association counts and "before_initialisation"
+// (poses marked as from before the estimator's initialisation; "before_initialisation_scored": whether they were). With
 // `per_pose`, also the timestamps, per-pose translation errors under each alignment, the associated
 // ground-truth positions ("groundtruth_xyz_m") and the SE3-aligned estimate positions
 // ("estimate_se3_aligned_xyz_m"), each an array of [x, y, z].

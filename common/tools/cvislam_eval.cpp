@@ -8,6 +8,7 @@
 // each), with --label naming them.
 //
 // Exit status: 0 evaluated, 1 the inputs could not be evaluated (the message says why), 2 bad command line.
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -82,6 +83,7 @@ struct CommandLine {
   std::vector<double> rpe_distances;
   std::string rpe_pairing = "all-starts";
   bool strict = false;
+  bool include_before_init = false;
   bool per_pose = false;
   bool quiet = false;
 };
@@ -128,6 +130,9 @@ void addOptions(CLI::App& app, CommandLine& cl) {
                  "estimate's path, as evo does")
       ->check(CLI::IsMember({"all-starts", "consecutive"}));
   app.add_flag("--strict", cl.strict, "Refuse files with any malformed row instead of skipping the row");
+  app.add_flag("--include-before-init", cl.include_before_init,
+               "Also score the estimate's poses from before its initialisation (rows marked '# before_init': not yet "
+               "in a final world frame, up to scale in mono); by default they are left out and counted");
   app.add_flag("--per-pose", cl.per_pose,
                "Add timestamps, per-pose errors, ground-truth positions and SE3-aligned estimate positions to the "
                "JSON");
@@ -175,6 +180,15 @@ struct Inputs {
   std::vector<cvislam::eval::ReportLabels> report_labels;
 };
 
+// Poses from before the estimator's initialisation are scored only when asked: they are not in the frame (nor,
+// in mono, the scale) that the rest is. Returns how many there were (left out unless `include`).
+std::size_t leaveOutBeforeInitialisation(cvislam::dataset::Trajectory& estimate, bool include) {
+  const auto before = [](const cvislam::dataset::StampedPose& p) { return p.before_initialisation; };
+  const auto count = static_cast<std::size_t>(std::count_if(estimate.begin(), estimate.end(), before));
+  if (!include) estimate.erase(std::remove_if(estimate.begin(), estimate.end(), before), estimate.end());
+  return count;
+}
+
 // Every estimate with its ground truth, printing what was skipped in each; nothing after saying which file
 // could not be read.
 std::optional<Inputs> readInputs(const CommandLine& cl) {
@@ -199,6 +213,12 @@ std::optional<Inputs> readInputs(const CommandLine& cl) {
       std::cerr << "cvislam_eval: cannot read the ground truth: " << ground_truth.error().message() << "\n";
       return std::nullopt;
     }
+    const std::size_t before_init = leaveOutBeforeInitialisation(*estimate, cl.include_before_init);
+    if (estimate->empty()) {
+      std::cerr << "cvislam_eval: " << cl.estimate_paths[i] << ": every pose is from before the estimator's "
+                << "initialisation (" << before_init << " marked '# before_init'); --include-before-init scores them\n";
+      return std::nullopt;
+    }
     const std::string suffix = several ? " " + in.labels[i] : "";
     printFindings(("estimate" + suffix).c_str(), estimate_findings);
     printFindings(("ground truth" + suffix).c_str(), gt_findings);
@@ -206,7 +226,7 @@ std::optional<Inputs> readInputs(const CommandLine& cl) {
     in.ground_truths.push_back(std::move(*ground_truth));
     in.report_labels.push_back({std::filesystem::path(cl.estimate_paths[i]).filename().string(),
                                 std::filesystem::path(cl.ground_truth_paths[i]).filename().string(), cl.rpe_pairing,
-                                in.labels[i]});
+                                in.labels[i], before_init, cl.include_before_init});
   }
   return in;
 }

@@ -99,6 +99,23 @@ TEST_F(AgentTest, StereoInertialTracksTheSimulatedLoop) {
   EXPECT_EQ(summary->new_maps, 1u);
   EXPECT_GE(summary->imu_initialised_at_s, 0.0);
   EXPECT_LT(summary->imu_initialised_at_s, 10.0);
+  // Tracking works in the final frame from the first frame after mapping's IMU initialisation; the frames before
+  // it are marked in both trajectories, and only those.
+  EXPECT_GE(summary->tracking_initialised_at_s, summary->imu_initialised_at_s);
+  EXPECT_LT(summary->tracking_initialised_at_s, summary->imu_initialised_at_s + 0.5);
+  for (const char* file : {"trajectory.txt", "trajectory_online.txt"}) {
+    Diagnostics diagnostics;
+    auto written = dataset::readTrajectory(o.output / file, {}, diagnostics);
+    ASSERT_TRUE(written.ok()) << file;
+    const std::int64_t first_t_ns = written->front().t_ns;
+    std::size_t marked = 0;
+    for (const dataset::StampedPose& pose : *written) {
+      const double t_s = static_cast<double>(pose.t_ns - first_t_ns) * 1e-9;
+      EXPECT_EQ(pose.before_initialisation, t_s < summary->tracking_initialised_at_s - 1e-6) << file << " " << t_s;
+      marked += pose.before_initialisation ? 1 : 0;
+    }
+    EXPECT_GT(marked, 0u) << file;
+  }
   const auto [ate_m, scale_error] = evaluate(summary->trajectory, sequence());
   std::printf("stereo-inertial, 12 s loop: ATE %.3f m, scale error %.2f %%\n", ate_m, scale_error);
   EXPECT_LT(ate_m, 0.05);

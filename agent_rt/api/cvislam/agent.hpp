@@ -82,6 +82,9 @@ struct AgentSummary {
   std::uint64_t frames_dropped = 0;  // pushed into a full ring
   std::uint64_t imu_dropped = 0;     // pushed into a full queue
   double imu_initialised_at_s = -1.0;
+  // The first frame tracked in a final world frame (metric, gravity-aligned); -1 never. Earlier poses are marked
+  // in the trajectory files ("# before_init" rows) and their states carry no kMetric flag.
+  double tracking_initialised_at_s = -1.0;
   // The camera-IMU time offset at the end (t_imu = t_cam + offset): the calibration's, or the estimate when the
   // config file says imu.estimate_time_offset.
   double time_offset_ms = 0.0;

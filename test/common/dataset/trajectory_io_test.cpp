@@ -1,5 +1,9 @@
 #include "common/dataset/trajectory_io.hpp"
 
+#include <algorithm>
+#include <sstream>
+#include <string>
+
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
@@ -46,6 +50,48 @@ INSTANTIATE_TEST_SUITE_P(Formats, TrajectoryRoundTrip,
                          [](const ::testing::TestParamInfo<TrajectoryFormat>& format) {
                            return std::string(toString(format.param));
                          });
+
+// Poses from before an estimator's initialisation go out as comment rows, so that TUM tools that want 8 fields
+// (evo) skip them, and come back marked when read here; a file of nothing else is still read.
+TEST(TrajectoryIo, PosesFromBeforeTheInitialisationAreCommentRowsReadBackMarked) {
+  test::TempDir dir;
+  Trajectory original = sampleTrajectory();
+  original[0].before_initialisation = true;
+  original[1].before_initialisation = true;
+  ASSERT_TRUE(writeTrajectory(dir / "traj.txt", original).ok());
+  const std::string text = test::readTextFile(dir / "traj.txt");
+  std::size_t marked_rows = 0;
+  std::size_t plain_rows = 0;
+  std::istringstream lines(text);
+  for (std::string line; std::getline(lines, line);) {
+    if (line.rfind(kBeforeInitialisationMark, 0) == 0) {
+      ++marked_rows;
+    } else if (!line.empty() && line.front() != '#') {
+      ++plain_rows;
+      EXPECT_EQ(std::count(line.begin(), line.end(), ' '), 7) << "8 fields, as TUM readers want: " << line;
+    }
+  }
+  EXPECT_EQ(marked_rows, 2u);
+  EXPECT_EQ(plain_rows, 3u);
+
+  Diagnostics diag;
+  auto read = readTrajectory(dir / "traj.txt", {}, diag);
+  ASSERT_TRUE(read.ok()) << read.error().toString();
+  EXPECT_TRUE(diag.empty());
+  ASSERT_EQ(read->size(), original.size());
+  for (std::size_t i = 0; i < original.size(); ++i) {
+    EXPECT_EQ((*read)[i].before_initialisation, i < 2) << i;
+    EXPECT_EQ((*read)[i].t_ns, original[i].t_ns);
+    EXPECT_EQ((*read)[i].T_w_b.translation(), original[i].T_w_b.translation());
+  }
+
+  Trajectory never = sampleTrajectory();
+  for (StampedPose& p : never) p.before_initialisation = true;
+  ASSERT_TRUE(writeTrajectory(dir / "never.txt", never).ok());
+  auto read_never = readTrajectory(dir / "never.txt", {}, diag);
+  ASSERT_TRUE(read_never.ok()) << read_never.error().toString();
+  EXPECT_EQ(read_never->size(), never.size());
+}
 
 TEST(TrajectoryIo, ReadsTheGroundTruthOfASequenceFolder) {
   test::TempDir dir;

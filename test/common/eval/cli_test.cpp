@@ -63,6 +63,49 @@ TEST(CvislamEvalCli, PrintsATableAndWritesJsonAndSvg) {
   EXPECT_THAT(svg, HasSubstr("<polyline"));
 }
 
+// An estimate whose first poses were made before its initialisation (marked rows, here off by a metre): they are
+// left out and counted unless asked for.
+TEST(CvislamEvalCli, PosesFromBeforeTheInitialisationAreLeftOutAndCountedUnlessAskedFor) {
+  cvislam::test::TempDir dir;
+  cvislam::dataset::Trajectory gt;
+  cvislam::dataset::Trajectory est;
+  for (int k = 0; k < 100; ++k) {
+    const double a = 0.05 * k;
+    const Eigen::Vector3d p(std::cos(a), std::sin(a), 0.05 * a);
+    const cvislam::geometry::SO3d R = cvislam::geometry::SO3d::exp(Eigen::Vector3d(0, 0, a));
+    const std::int64_t t_ns = 1'000'000'000LL + k * 10'000'000LL;
+    gt.push_back({t_ns, {R, p}});
+    const bool before = k < 20;
+    est.push_back({t_ns, {R, before ? p + Eigen::Vector3d(1.0, 0.0, 0.0) : p}, before});
+  }
+  ASSERT_TRUE(cvislam::dataset::writeTrajectory(dir / "gt.csv", gt).ok());
+  ASSERT_TRUE(cvislam::dataset::writeTrajectory(dir / "est.txt", est).ok());
+  const std::string args = "--estimate " + (dir / "est.txt").string() + " --groundtruth " + (dir / "gt.csv").string();
+
+  const CommandResult metric = runEval(args + " --json " + (dir / "metric.json").string());
+  ASSERT_EQ(metric.exit_code, 0) << metric.output;
+  EXPECT_THAT(metric.output, HasSubstr("80 of 80 associated"));
+  EXPECT_THAT(metric.output, HasSubstr("20 poses marked as estimated before the initialisation: left out"));
+  const auto m = nlohmann::json::parse(cvislam::test::readTextFile(dir / "metric.json"));
+  EXPECT_EQ(m["before_initialisation"], 20);
+  EXPECT_FALSE(m["before_initialisation_scored"].get<bool>());
+  EXPECT_LT(m["se3"]["rmse"].get<double>(), 1e-9);
+
+  const CommandResult all = runEval(args + " --include-before-init --json " + (dir / "all.json").string());
+  ASSERT_EQ(all.exit_code, 0) << all.output;
+  EXPECT_THAT(all.output, HasSubstr("100 of 100 associated"));
+  const auto a = nlohmann::json::parse(cvislam::test::readTextFile(dir / "all.json"));
+  EXPECT_TRUE(a["before_initialisation_scored"].get<bool>());
+  EXPECT_GT(a["se3"]["rmse"].get<double>(), 0.1);
+
+  // Nothing but poses from before the initialisation: nothing to score, and the message says how to score them.
+  for (auto& pose : est) pose.before_initialisation = true;
+  ASSERT_TRUE(cvislam::dataset::writeTrajectory(dir / "est.txt", est).ok());
+  const CommandResult none = runEval(args);
+  EXPECT_EQ(none.exit_code, 1) << none.output;
+  EXPECT_THAT(none.output, HasSubstr("--include-before-init"));
+}
+
 TEST(CvislamEvalCli, BadInputGivesAMessageAndExitCodeOne) {
   cvislam::test::TempDir dir;
   writePair(dir);
