@@ -238,9 +238,9 @@ class MappingLoop {
     }
   }
 
-  // The mapper's work on one keyframe, with its deltas to the link. By default the keyframe goes to the link as
-  // soon as it is in the map and its refined states follow after the local BA, so that the BA's time (hundreds of
-  // ms when agents share the cores) is not on the keyframe's way to the server.
+  // The mapper's work on one keyframe, with its deltas to the link. With link.keyframe_before_local_ba the keyframe
+  // goes to the link as soon as it is in the map and its refined states follow after the local BA, so that the
+  // BA's time (hundreds of ms when agents share the cores) is not on the keyframe's way to the server.
   Result<MapperReport> processInto(const KeyframeMessage& msg, MapSnapshotMessage& out,
                                    const std::function<bool()>& keyframe_waiting) {
     if (!deltas_) return mapper_.process(msg, out, nullptr, keyframe_waiting);
