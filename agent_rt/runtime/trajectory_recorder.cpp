@@ -14,9 +14,10 @@ TrajectoryRecorder::TrajectoryRecorder(std::size_t frames, bool uses_imu) : uses
 }
 
 bool TrajectoryRecorder::addFrame(std::int64_t t_ns, std::int64_t time_correction_ns, const FrameResult& r) {
-  if (frames_.size() == frames_.capacity()) return false;
   const bool before_initialisation = uses_imu_ && !r.imu_initialised;
+  // Noted even when the room is full (a long live run): the summary's time does not depend on what was kept.
   if (r.tracked && !before_initialisation && first_initialised_t_ns_ < 0) first_initialised_t_ns_ = t_ns;
+  if (frames_.size() == frames_.capacity()) return false;
   frames_.push_back({t_ns, time_correction_ns, r.T_w_s, r.T_ref_s, r.has_reference ? r.reference.counter : 0U,
                      r.has_reference, r.tracked, r.keyframe, before_initialisation, r.map_id, r.map_epoch});
   return true;
