@@ -76,7 +76,9 @@ class Sweep:
 
     def render(self, preset, seed):
         folder = self.mission_dir(preset, seed)
-        if (folder / "mission.yaml").exists():
+        # Written only once the simulator has finished: an interrupted render is made again.
+        done = folder / ".rendered"
+        if done.exists():
             return folder
         sim = Path(self.args.build) / "bin" / "cvislam_sim"
         log = folder.with_suffix(".log")
@@ -87,6 +89,7 @@ class Sweep:
                                   "--out", str(folder)], stdout=f, stderr=subprocess.STDOUT)
         if rc != 0 or not (folder / "mission.yaml").exists():
             sys.exit(f"agent_accuracy_seeds: rendering {preset} seed {seed} failed ({rc}): see {log}")
+        done.touch()
         return folder
 
     # --- one run ----------------------------------------------------------------------------------------------
