@@ -10,16 +10,15 @@
 namespace cvislam::agent {
 
 StageSummary summarise(const LatencyRecorder& recorder) {
-  const SampleSummary q = summariseSamples(recorder.samplesMs());
-  return StageSummary{recorder.name(), q.count, q.p50, q.p90, q.p99, q.max, q.mean};
+  return StageSummary{recorder.name(), summariseSamples(recorder.samplesMs())};
 }
 
 std::string formatLatencyTable(const std::vector<StageSummary>& stages) {
   std::string out = "stage                          count      p50      p90      p99      max   [ms]\n";
   char line[160];
   for (const StageSummary& s : stages) {
-    std::snprintf(line, sizeof(line), "%-28s %7zu %8.2f %8.2f %8.2f %8.2f\n", s.name.c_str(), s.count, s.p50_ms,
-                  s.p90_ms, s.p99_ms, s.max_ms);
+    std::snprintf(line, sizeof(line), "%-28s %7zu %8.2f %8.2f %8.2f %8.2f\n", s.name.c_str(), s.ms.count, s.ms.p50,
+                  s.ms.p90, s.ms.p99, s.ms.max);
     out += line;
   }
   return out;
@@ -28,8 +27,8 @@ std::string formatLatencyTable(const std::vector<StageSummary>& stages) {
 std::string latencyJson(const std::vector<StageSummary>& stages) {
   nlohmann::json j = nlohmann::json::object();
   for (const StageSummary& s : stages) {
-    j[s.name] = {{"count", s.count},   {"p50_ms", s.p50_ms}, {"p90_ms", s.p90_ms},
-                 {"p99_ms", s.p99_ms}, {"max_ms", s.max_ms}, {"mean_ms", s.mean_ms}};
+    j[s.name] = {{"count", s.ms.count}, {"p50_ms", s.ms.p50}, {"p90_ms", s.ms.p90},
+                 {"p99_ms", s.ms.p99},  {"max_ms", s.ms.max}, {"mean_ms", s.ms.mean}};
   }
   return j.dump(2) + "\n";
 }

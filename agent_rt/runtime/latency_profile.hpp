@@ -7,6 +7,8 @@
 #include <string>
 #include <vector>
 
+#include "common/core/percentile.hpp"
+
 namespace cvislam::agent {
 
 class LatencyRecorder {
@@ -30,14 +32,10 @@ class LatencyRecorder {
   std::uint64_t dropped_ = 0;
 };
 
+// One stage's samples, in milliseconds.
 struct StageSummary {
   std::string name;
-  std::size_t count = 0;
-  double p50_ms = 0.0;
-  double p90_ms = 0.0;
-  double p99_ms = 0.0;
-  double max_ms = 0.0;
-  double mean_ms = 0.0;
+  SampleSummary ms;
 };
 
 // Nearest-rank percentiles of the recorded samples.

@@ -214,7 +214,7 @@ int main(int argc, char** argv) {
                                       : (k == 0 ? "without the link" : "with the link streaming to the server");
     std::printf("%s, %s: %zu frames (%d passes), %zu tracked, %zu keyframes\n%s", dataset.c_str(), label, rec.frames,
                 passes, rec.tracked, rec.keyframes, cvislam::agent::formatLatencyTable(stages).c_str());
-    const double determinism = stages[0].p50_ms > 0 ? stages[0].p99_ms / stages[0].p50_ms : 0.0;
+    const double determinism = stages[0].ms.p50 > 0 ? stages[0].ms.p99 / stages[0].ms.p50 : 0.0;
     std::printf("tracking p99/p50 = %.2f\n", determinism);
     if (k == 1 && !server.empty()) {
       std::printf("link: %llu batches acknowledged, %.2f MB up, %d passes not flushed, %zu deltas dropped\n",
