@@ -27,6 +27,8 @@ struct LinkStore::Keyframe {
   std::uint64_t state_sent = 0;  // the batch that carried sent_state; 0: to send again
   std::uint64_t stamp = 0;       // the last delta that listed it in the local map
   bool in_local_map = true;
+  // `state` is tracking's: the keyframe came before its local BA (MapDeltaMessage::keyframe_before_local_ba).
+  bool before_local_ba = false;
   bool has_imu_from = false;
   std::uint32_t imu_from = 0;
   std::uint16_t keypoint_count = 0;
@@ -120,6 +122,7 @@ void writeKeyframe(const LinkStore::Keyframe& kf, v1::Keyframe& k) {
   k.set_agent_map(kf.map_id);
   k.set_t_ns(kf.t_ns);
   writeState(kf.id.counter, kf.state, k.mutable_state());
+  if (kf.before_local_ba) k.set_before_local_ba(true);
   if (kf.has_imu_from) k.set_imu_from(kf.imu_from);
   v1::ImuSamples& imu = *k.mutable_imu();
   std::int64_t previous = kf.t_ns;
@@ -251,6 +254,7 @@ void LinkStore::addKeyframe(const MapDeltaMessage& d) {
   kf.state_sent = 0;
   kf.stamp = delta_stamp_;
   kf.in_local_map = true;
+  kf.before_local_ba = d.keyframe_before_local_ba != 0;
   kf.has_imu_from = d.has_imu_link != 0 && d.imu_from.agent == agent_;
   kf.imu_from = d.imu_from.counter;
   kf.keypoint_count = std::min<std::uint16_t>(d.keypoint_count, kMaxKeypointsPerKeyframe);
@@ -417,6 +421,12 @@ void LinkStore::onDelta(const MapDeltaMessage& d) {
       kf->state = m;
       kf->stamp = delta_stamp_;
       kf->in_local_map = true;
+      if (kf->before_local_ba && !(own_keyframe && m.id == d.keyframe.id)) {
+        // Any later delta comes after the keyframe's local BA. The server holds the keyframe back from fusion and
+        // recognition until it hears this state, so it goes even when the BA barely moved it.
+        kf->before_local_ba = false;
+        kf->state_sent = 0;
+      }
     }
   }
   for (std::uint32_t i = 0; i < d.point_count; ++i) {

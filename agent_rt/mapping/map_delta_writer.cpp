@@ -35,14 +35,14 @@ void MapDeltaWriter::record(const MapEvent& event) {
   }
 }
 
-void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, const MapFrame& frame,
-                            bool with_keyframe) {
+void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, const MapFrame& frame, KeyframePart part) {
   MapDeltaMessage& delta = *delta_;
   delta.map_id = frame.map_id;
   delta.map_epoch = frame.epoch;
   delta.ready = frame.ready ? 1 : 0;
   delta.t_ns = msg.state.t_ns;
   delta.has_keyframe = 0;
+  delta.keyframe_before_local_ba = 0;
   delta.keypoint_count = 0;
   delta.imu_count = 0;
   delta.keyframe_count = 0;
@@ -50,9 +50,10 @@ void MapDeltaWriter::finish(const LocalMap& map, const KeyframeMessage& msg, con
     if (kf.anchor) return;  // the server's, not this agent's to send
     KeyframeStateMsg& m = delta.keyframes[delta.keyframe_count++];
     m = toStateMsg(kf);
-    if (!with_keyframe || !(kf.id == msg.state.id)) return;
+    if (part == KeyframePart::kStateOnly || !(kf.id == msg.state.id)) return;
     // The keyframe just processed, in full, with its links as they are now.
     delta.has_keyframe = 1;
+    delta.keyframe_before_local_ba = part == KeyframePart::kBeforeLocalBa ? 1 : 0;
     delta.keyframe_map_id = frame.keyframe_map_id;
     delta.keyframe = m;
     delta.has_imu_link = kf.has_preintegration ? 1 : 0;

@@ -31,8 +31,12 @@ class MapDeltaWriter final : public MapEventSink {
     bool ready = false;                 // final (IMU initialised; vision only: started): the link may send it
     std::uint32_t keyframe_map_id = 0;  // the map the keyframe was inserted into
   };
-  // Writes the rest of the delta started with start(); the keyframe in full only `with_keyframe` (its first delta).
-  void finish(const LocalMap& map, const KeyframeMessage& keyframe, const MapFrame& frame, bool with_keyframe = true);
+  // What the delta says of the keyframe just processed: its first delta carries it in full, after its local BA or
+  // (when the link sends it sooner) before; a second delta, after the BA, only its state.
+  enum class KeyframePart : std::uint8_t { kAfterLocalBa, kBeforeLocalBa, kStateOnly };
+  // Writes the rest of the delta started with start().
+  void finish(const LocalMap& map, const KeyframeMessage& keyframe, const MapFrame& frame,
+              KeyframePart part = KeyframePart::kAfterLocalBa);
 
  private:
   MapDeltaMessage* delta_ = nullptr;

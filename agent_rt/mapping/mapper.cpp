@@ -630,12 +630,12 @@ void tryImuInitialisation(Mapper::State& s, bool stereo, MapperReport& report) {
 }
 
 // Writes the map's changes into `delta` while it lives, and the map as it is then when it ends, whatever path
-// leaves the phase. `with_keyframe`: the delta carries the keyframe in full (it is the first delta of it).
+// leaves the phase. `part`: what it says of the keyframe (MapDeltaWriter::KeyframePart).
 class DeltaScope {
  public:
-  DeltaScope(Mapper::State& s, MapDeltaMessage* delta, const KeyframeMessage& msg, bool with_keyframe,
+  DeltaScope(Mapper::State& s, MapDeltaMessage* delta, const KeyframeMessage& msg, MapDeltaWriter::KeyframePart part,
              MapperReport& report)
-      : s_(s), delta_(delta), msg_(msg), with_keyframe_(with_keyframe), report_(report) {
+      : s_(s), delta_(delta), msg_(msg), part_(part), report_(report) {
     if (delta_ == nullptr) return;
     s_.delta_writer.start(*delta_);
     s_.map.setEventSink(&s_.delta_writer);
@@ -643,7 +643,7 @@ class DeltaScope {
   ~DeltaScope() {
     if (delta_ == nullptr) return;
     s_.map.setEventSink(nullptr);
-    s_.delta_writer.finish(s_.map, msg_, {s_.map_id, s_.epoch, s_.frameFinal(), s_.keyframe_map_id}, with_keyframe_);
+    s_.delta_writer.finish(s_.map, msg_, {s_.map_id, s_.epoch, s_.frameFinal(), s_.keyframe_map_id}, part_);
     report_.delta_events_lost += delta_->events_lost;
   }
   DeltaScope(const DeltaScope&) = delete;
@@ -653,7 +653,7 @@ class DeltaScope {
   Mapper::State& s_;
   MapDeltaMessage* delta_;
   const KeyframeMessage& msg_;
-  bool with_keyframe_;
+  MapDeltaWriter::KeyframePart part_;
   MapperReport& report_;
 };
 
@@ -716,7 +716,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
                                      const std::function<bool()>& keyframe_waiting) {
   MapperReport report;
   {
-    const DeltaScope scope(*s_, delta, msg, true, report);
+    const DeltaScope scope(*s_, delta, msg, MapDeltaWriter::KeyframePart::kAfterLocalBa, report);
     if (Status st = insertKeyframe(*s_, msg, report); !st.ok()) return st.error();
     refineAroundKeyframe(*s_, snapshot, msg, keyframe_waiting, report);
   }
@@ -726,7 +726,7 @@ Result<MapperReport> Mapper::process(const KeyframeMessage& msg, MapSnapshotMess
 Result<MapperReport> Mapper::insert(const KeyframeMessage& msg, MapDeltaMessage* delta) {
   MapperReport report;
   {
-    const DeltaScope scope(*s_, delta, msg, true, report);
+    const DeltaScope scope(*s_, delta, msg, MapDeltaWriter::KeyframePart::kBeforeLocalBa, report);
     if (Status st = insertKeyframe(*s_, msg, report); !st.ok()) return st.error();
   }
   return report;
@@ -734,7 +734,7 @@ Result<MapperReport> Mapper::insert(const KeyframeMessage& msg, MapDeltaMessage*
 
 void Mapper::refine(const KeyframeMessage& msg, MapperReport& report, MapSnapshotMessage& snapshot,
                     MapDeltaMessage* delta, const std::function<bool()>& keyframe_waiting) {
-  const DeltaScope scope(*s_, delta, msg, false, report);
+  const DeltaScope scope(*s_, delta, msg, MapDeltaWriter::KeyframePart::kStateOnly, report);
   refineAroundKeyframe(*s_, snapshot, msg, keyframe_waiting, report);
 }
 

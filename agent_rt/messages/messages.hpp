@@ -180,6 +180,9 @@ struct MapDeltaMessage {
   std::int64_t t_ns = 0;  // the keyframe's time
   // The keyframe just processed, in full, when it is still in the map.
   std::uint8_t has_keyframe = 0;
+  // The keyframe's state is tracking's: its local BA runs after this delta went (the link sends the keyframe
+  // sooner), and a later delta carries the refined state.
+  std::uint8_t keyframe_before_local_ba = 0;
   std::uint32_t keyframe_map_id = 0;
   KeyframeStateMsg keyframe;
   std::uint8_t has_imu_link = 0;  // `imu` joins `imu_from` (the previous keyframe of this map) to this one

@@ -293,12 +293,12 @@ AgentSession::StoredListener ServerCore::storedListener() const {
         for (const KeyframeId& id : report.removed_keyframe_ids) {
           worker->enqueue(Event{Event::Kind::kRemoved, mission, 0, id});
         }
-        for (const auto& [map, id] : report.added_keyframes) {
+        for (const auto& [map, id] : report.keyframes_ready) {
           worker->enqueue(Event{Event::Kind::kAdded, mission, map, id});
         }
       }
-      if (back_end != nullptr && !report.added_keyframes.empty()) {
-        back_end->onKeyframesAdded(mission, report.added_keyframes);
+      if (back_end != nullptr && !report.keyframes_ready.empty()) {
+        back_end->onKeyframesAdded(mission, report.keyframes_ready);
       }
     };
   }

@@ -187,6 +187,7 @@ class Checker {
     kf.id = keyframeId(c);
     kf.agent_map = k.agent_map();
     kf.t_ns = k.t_ns();
+    kf.awaiting_local_ba = k.before_local_ba();
     kf.T_w_s = state->T_w_s;
     kf.v_w = state->v_w;
     kf.bias = state->bias;
@@ -486,8 +487,14 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
         ++report.imu_links_missing;
       }
     }
+    const bool awaiting = kf.awaiting_local_ba;
     (void)map.addKeyframe(std::move(kf));
     report.added_keyframes.emplace_back(map.id(), KeyframeId{agent.id, counter});
+    if (awaiting) {
+      ++report.keyframes_awaiting_local_ba;
+    } else {
+      report.keyframes_ready.emplace_back(map.id(), KeyframeId{agent.id, counter});
+    }
     agent.keyframes[counter] = AgentRecord::HeldKeyframe{map.id(), agent_map, keypoints};
     ++report.keyframes;
   }
@@ -520,6 +527,10 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
       kf->bias = u.state.bias;
       kf->refined = false;  // the agent's estimate again
       kf->provisional = false;
+      if (kf->awaiting_local_ba) {
+        kf->awaiting_local_ba = false;
+        report.keyframes_ready.emplace_back(mapOf(u.map).id(), kf->id);
+      }
       ++report.keyframe_updates;
     }
   }

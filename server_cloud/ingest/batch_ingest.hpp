@@ -39,7 +39,11 @@ struct IngestReport {
   int duplicate_objects = 0;     // keyframes or points sent in full again: dropped
   int observations_refused = 0;  // a second keypoint of one keyframe on the same point: dropped
   int imu_links_missing = 0;     // the IMU predecessor is not held (or its samples do not cover the gap)
-  std::vector<std::pair<MapId, KeyframeId>> added_keyframes;  // for place recognition
+  std::vector<std::pair<MapId, KeyframeId>> added_keyframes;
+  // For place recognition and the back-end: the keyframes added with their agent's refined state, and those sent
+  // before their local BA (ServerKeyframe::awaiting_local_ba) whose update came in this batch.
+  std::vector<std::pair<MapId, KeyframeId>> keyframes_ready;
+  int keyframes_awaiting_local_ba = 0;  // of `keyframes`, held back until their update
   std::vector<KeyframeId> removed_keyframe_ids;
   std::vector<MapId> removed_keyframe_maps;  // the map each of removed_keyframe_ids was in
 };

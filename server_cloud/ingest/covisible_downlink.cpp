@@ -71,7 +71,8 @@ std::vector<std::pair<KeyframeId, int>> selectCovisible(const MapContent& conten
     for (const auto& [other, shared] : content.covisible(seeds[i])) {
       if (isRecentOwn(other)) continue;
       const ServerKeyframe* kf = content.keyframe(other);
-      if (kf == nullptr || kf->provisional) continue;
+      // A pose graph's move waits for the GBA after it; a keyframe sent before its local BA, for its update.
+      if (kf == nullptr || kf->provisional || kf->awaiting_local_ba) continue;
       if (options.foreign_refined_only && other.agent != newest.agent && !kf->refined) continue;
       if (std::find(seeds.begin(), seeds.end(), other) != seeds.end()) continue;
       weight[other] += shared;

@@ -57,6 +57,9 @@ struct ServerKeyframe {
   // Moved by a pose graph (a loop's, or a merge's correction) since: neither its agent's estimate nor a refined
   // one. No agent gets it as an anchor, its own agent included, until a GBA refines it or its agent sends an update.
   bool provisional = false;
+  // Its agent sent it before its local BA (v1::Keyframe::before_local_ba): the state is tracking's until the update
+  // that follows. No agent gets it as an anchor, and the back-end and place recognition hear of it with that update.
+  bool awaiting_local_ba = false;
 
   [[nodiscard]] int observationCount() const;
 };

@@ -344,6 +344,57 @@ TEST_F(LinkStoreTest, AKeyframeThatLeavesInTheDeltaThatMakesTheMapReadyIsForgott
   EXPECT_NE(server.keyframe(2), nullptr);
 }
 
+// With link.keyframe_before_local_ba, mapping writes a keyframe's delta before its local BA and another after it.
+// The server stores the keyframe at once, but place recognition and the back-end wait for its refined state.
+TEST_F(LinkStoreTest, AKeyframeSentBeforeItsLocalBaWaitsOnTheServerForItsRefinedState) {
+  const auto workers = ServerSide::withWorkers();
+  ServerSide& side = *workers;
+  const auto send = [&] {
+    EXPECT_TRUE(sut.buildBatch(next_sequence, 0, kLargeBatch, batch));
+    const Status s = side.deliver(batch);
+    ASSERT_TRUE(s.ok()) << s.error().toString();
+    ++next_sequence;
+    side.core().drainWorkers(false);
+  };
+  const auto recognised = [&] { return side.core().recognition()->counters("link-test").keyframes; };
+  next_sequence = side.connect(0) + 1;
+  map.ready = true;
+  map.addKeyframe(0, {}, {100, 101, 102});
+  sut.onDelta(map.finish());
+  map.addKeyframe(1, {100, 101}, {103}).keyframe_before_local_ba = 1;
+  sut.onDelta(map.finish());
+  send();
+  ASSERT_EQ(batch.keyframes_size(), 2);
+  EXPECT_FALSE(batch.keyframes(0).before_local_ba());
+  EXPECT_TRUE(batch.keyframes(1).before_local_ba());
+  ASSERT_NE(side.keyframe(1), nullptr);
+  EXPECT_TRUE(side.keyframe(1)->awaiting_local_ba);
+  EXPECT_FALSE(side.keyframe(0)->awaiting_local_ba);
+  EXPECT_EQ(recognised(), 1U);
+
+  // Its local BA did not move it: its state still goes, since the server waits for it.
+  sut.onDelta((map.change(), map.finish()));
+  send();
+  ASSERT_EQ(batch.keyframe_updates_size(), 1);
+  EXPECT_EQ(batch.keyframe_updates(0).counter(), 1U);
+  EXPECT_FALSE(side.keyframe(1)->awaiting_local_ba);
+  EXPECT_EQ(recognised(), 2U);
+
+  // Both deltas before the next batch: the keyframe goes once, with its refined state, and nothing waits.
+  map.addKeyframe(2, {103}, {104}).keyframe_before_local_ba = 1;
+  sut.onDelta(map.finish());
+  map.keyframes[2].p_w.y() += 0.01;
+  sut.onDelta((map.change(), map.finish()));
+  send();
+  ASSERT_EQ(batch.keyframes_size(), 1);
+  EXPECT_FALSE(batch.keyframes(0).before_local_ba());
+  EXPECT_EQ(batch.keyframe_updates_size(), 0);
+  EXPECT_NEAR(side.keyframe(2)->T_w_s.translation().y(), 0.01, 1e-9);
+  EXPECT_FALSE(side.keyframe(2)->awaiting_local_ba);
+  EXPECT_EQ(recognised(), 3U);
+  EXPECT_FALSE(sut.buildBatch(next_sequence, 0, kLargeBatch, batch));  // nothing due
+}
+
 TEST_F(LinkStoreTest, AGapInMappingsDeltasIsCounted) {
   map.addKeyframe(0, {}, {});
   sut.onDelta(map.finish());

@@ -152,6 +152,7 @@ class DeltaWriter {
     MapDeltaMessage& d = *delta_;
     d.sequence = sequence_++;
     d.has_keyframe = 0;
+    d.keyframe_before_local_ba = 0;
     d.event_count = 0;
     d.events_lost = 0;
     d.new_point_count = 0;
@@ -169,11 +170,24 @@ class ServerSide {
       : mission_(mission), stereo_(stereo) {
     restart();
   }
+  // A server with place recognition and the back-end running, which hear of what ingest stored.
+  static std::unique_ptr<ServerSide> withWorkers(const std::string& mission = "link-test") {
+    auto side = std::make_unique<ServerSide>(mission);
+    side->with_workers_ = true;
+    side->restart();
+    return side;
+  }
 
   // A restarted server: it lost everything unless it keeps a store (useStore), which it then replays.
   void restart() {
     session_.reset();
-    core_ = std::make_unique<server::ServerCore>(server::ServerOptions{});
+    server::ServerOptions options;
+    options.recognition.delay_keyframes = 0;  // each keyframe queried as soon as recognition hears of it
+    core_ = std::make_unique<server::ServerCore>(options);
+    if (with_workers_) {
+      const Status started = core_->startWorkers();
+      ASSERT_TRUE(started.ok()) << started.error().toString();
+    }
     if (open_store_) {
       auto store = open_store_();
       ASSERT_TRUE(store.ok()) << store.error().toString();
@@ -262,6 +276,7 @@ class ServerSide {
  private:
   std::string mission_;
   bool stereo_ = false;
+  bool with_workers_ = false;
   std::unique_ptr<server::ServerCore> core_;
   std::unique_ptr<server::AgentSession> session_;
   StoreOpener open_store_;

@@ -241,6 +241,8 @@ TEST_F(MapperTest, InsertThenRefineSendsTheKeyframeBeforeItsLocalBaAndBuildsTheS
 
     // First delta: the keyframe whole, as tracking estimated it, with the points made with it.
     ASSERT_EQ(first->has_keyframe, 1);
+    EXPECT_EQ(first->keyframe_before_local_ba, 1);  // the link tells the server that a refined state follows
+    EXPECT_EQ(whole->keyframe_before_local_ba, 0);
     EXPECT_EQ(first->keyframe.id.counter, counter);
     EXPECT_LT((position(first->keyframe.T_w_s) - estimate.translation()).norm(), 1e-9);
     ASSERT_EQ(first->keypoint_count, whole->keypoint_count);

@@ -201,6 +201,28 @@ TEST(CovisibleDownlink, KeyframesAPoseGraphMovedWaitForTheGbaOwnOnesToo) {
   for (const auto& [id, weight] : again) EXPECT_EQ(id.agent, 1U);
 }
 
+// A keyframe its agent sent before its local BA holds tracking's state until the update after the BA: no agent
+// gets it as an anchor before then.
+TEST(CovisibleDownlink, AKeyframeSentBeforeItsLocalBaGoesToNoAgentUntilItsUpdate) {
+  Scene scene;
+  CovisibleOptions options;
+  options.own_recent_excluded = 50;
+  const auto selected = [&] {
+    std::set<KeyframeId> out;
+    for (const auto& [id, weight] : selectCovisible(scene.map, scene.seeds(), options)) out.insert(id);
+    return out;
+  };
+  const std::set<KeyframeId> before = selected();
+  ASSERT_GE(before.size(), 2U);
+  const KeyframeId waiting = *before.begin();
+  scene.map.keyframe(waiting)->awaiting_local_ba = true;
+  const std::set<KeyframeId> meanwhile = selected();
+  EXPECT_EQ(meanwhile.count(waiting), 0U);
+  EXPECT_FALSE(meanwhile.empty());
+  scene.map.keyframe(waiting)->awaiting_local_ba = false;  // its update came
+  EXPECT_EQ(selected(), before);
+}
+
 TEST(CovisibleDownlink, TheLocalMapSizeTheAgentsHelloGaveDecidesWhichOfItsOwnKeyframesAreLeftOut) {
   const Scene scene;
   const auto own_above = [](const v1::CovisibleMap& m, std::uint32_t counter) {
