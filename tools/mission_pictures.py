@@ -441,16 +441,17 @@ def table(header, rows, caption="", text_columns=1):
 def accuracy_html(summary):
     """Accuracy per agent and the joint line: (the table, notes on it)."""
     rows = [[r.get("agent"), num(r.get("frames"), ".0f"),
-             num(r.get("onboard_ate_se3_m"), ".2f", 100), num(r.get("onboard_ate_sim3_m"), ".2f", 100),
-             num(r.get("onboard_scale_error_percent"), "+.2f"), num(r.get("server_keyframes"), ".0f"),
+             num(r.get("onboard_ate_se3_m"), ".2f", 100), num(r.get("live_ate_se3_m"), ".2f", 100),
+             num(r.get("onboard_ate_sim3_m"), ".2f", 100), num(r.get("onboard_scale_error_percent"), "+.2f"), num(r.get("server_keyframes"), ".0f"),
              num(r.get("server_ate_se3_m"), ".2f", 100), num(r.get("server_ate_sim3_m"), ".2f", 100),
              num(r.get("server_scale_error_percent"), "+.2f"), num(r.get("server_maps"), ".0f")]
             for r in summary.get("agents") or []]
     joint = summary.get("joint")
     if joint:
-        rows.append(["joint (server)", "", "", "", "", num(joint.get("poses"), ".0f"),
+        rows.append(["joint (server)", "", "", "", "", "", num(joint.get("poses"), ".0f"),
                      num(joint.get("ate_se3_m"), ".2f", 100), num(joint.get("ate_sim3_m"), ".2f", 100), "", ""])
-    header = ["agent", "frames", "onboard ATE SE3 [cm]", "onboard ATE Sim3 [cm]", "onboard scale err [%]",
+    header = ["agent", "frames", "onboard ATE SE3 [cm]", "live ATE SE3 [cm]", "onboard ATE Sim3 [cm]",
+              "onboard scale err [%]",
               "server KFs", "server ATE SE3 [cm]", "server ATE Sim3 [cm]", "server scale err [%]", "server maps"]
     text = ""
     if joint:
@@ -515,9 +516,9 @@ def real_data_html(out, summary):
     evaluation = load_json(os.path.join(out, "eval", "onboard_real_v101.json")) or {}
     path = evaluation.get("groundtruth_path_m")
     rows = [[num(r.get("frames"), ".0f"), num(r.get("onboard_ate_se3_m"), ".2f", 1000),
-             num(r.get("server_keyframes"), ".0f"), num(r.get("server_ate_se3_m"), ".2f", 1000),
+             num(r.get("live_ate_se3_m"), ".2f", 1000), num(r.get("server_keyframes"), ".0f"), num(r.get("server_ate_se3_m"), ".2f", 1000),
              num(r.get("up_bytes"), ".2f", 1e-6), num(path, ".1f", 100)]]
-    text = table(["frames", "onboard ATE SE3 [mm]", "server KFs", "server ATE SE3 [mm]", "up [MB]",
+    text = table(["frames", "onboard ATE SE3 [mm]", "live ATE SE3 [mm]", "server KFs", "server ATE SE3 [mm]", "up [MB]",
                   "ground-truth path [cm]"], rows)
     if path is not None and path < 0.5:
         text += (f"<p class='warn'>The ground truth moves only {num(path, '.1f', 100)} cm over the excerpt: the "
