@@ -21,9 +21,9 @@ if pgrep -x iox-roudi >/dev/null; then
   echo "mission_observability_test: an iox-roudi runs already; this test needs the machine's only one" >&2
   exit 1
 fi
-# The agents hand each keyframe to the link before its local BA (not the default), so that this path too is run
-# end to end: its keyframes must join up in the traces and its counters match like the default path's.
-printf 'link:\n  keyframe_before_local_ba: true\n' >"$tmp/agent.yaml"
+# The agents hand each keyframe to the link after its local BA, in one delta (not the default), so that this path
+# too is run end to end: its keyframes must join up in the traces and its counters match like the default path's.
+printf 'link:\n  keyframe_before_local_ba: false\n' >"$tmp/agent.yaml"
 CVISLAM_SIM_CACHE="$tmp/cache" timeout 600 "$repo/deploy/run_mission.sh" --build-dir "$build" --duration 12 \
   --no-real --trace --metrics --agent-config "$tmp/agent.yaml" --out "$tmp/out" >"$tmp/log" 2>&1 &
 mission=$!
