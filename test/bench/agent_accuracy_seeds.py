@@ -8,10 +8,13 @@ paired ratios B/A per run: geometric mean, worst, and how many got worse by more
 
   test/bench/agent_accuracy_seeds.py [--build build/default] [--presets loop,aggressive,euroc-mh] [--seeds 100-119]
       [--modes mono,stereo] [--jobs 2] [--config A.yaml] [--b-build DIR] [--b-config B.yaml] [--out DIR]
+      [--plots N]
 
 Every figure here is SIMULATED. Results stay in --out (default $CVISLAM_SIM_CACHE/seeds, with the renders beside
 it): a run whose eval.json is there already is not made again, so an interrupted sweep resumes. The report goes to
-stdout (markdown) and, with every run's figures, to OUT/report.json.
+stdout (markdown) and, with every run's figures, to OUT/report.json. With --plots N it then draws the error over
+time of the N worst runs of each preset and mode (tools/error_over_time.py: position error, and the heading and scale
+in 5 s windows) into OUT/plots/ and sums up each in one line.
 """
 import argparse
 import json
@@ -273,6 +276,35 @@ def print_report(args, sweep, distribution, paired):
             print(f"| {r['preset']} | {r['mode']} | {r['pairs']} | " + " | ".join(cells) + " |")
 
 
+def print_worst_runs(args, sweep, records):
+    """The error over time of the worst runs (refined trajectory), drawn and summed up."""
+    plots = sweep.out / "plots"
+    plots.mkdir(exist_ok=True)
+    draw = REPO / "tools" / "error_over_time.py"
+    print()
+    print(f"The {args.plots} worst runs per variant, preset and mode (refined trajectory; pictures in {plots}):")
+    print()
+    groups = {}
+    for r in records:
+        if not r.get("failed") and "trajectory" in r:
+            groups.setdefault((r["variant"], r["preset"], r["mode"]), []).append(r)
+    for (variant, preset, mode), runs in sorted(groups.items()):
+        runs.sort(key=lambda r: -r["trajectory"]["ate_se3_m"])
+        for r in runs[:args.plots]:
+            name = f"{preset}-seed{r['seed']}-{r['agent']}-{mode}"
+            build, _ = sweep.variants[variant]
+            estimate = sweep.out / variant / name / "agent" / "trajectory.txt"
+            groundtruth = sweep.mission_dir(preset, r["seed"]) / r["agent"]
+            svg = plots / f"{variant}-{name}.svg"
+            result = subprocess.run([sys.executable, str(draw), "--eval", str(build / "bin" / "cvislam_eval"),
+                                     "--estimate", str(estimate), "--groundtruth", str(groundtruth), "--out", str(svg),
+                                     "--title", f"{variant}: {preset} seed {r['seed']} {r['agent']} {mode}, SIMULATED"],
+                                    capture_output=True, text=True)
+            said = result.stdout.strip() if result.returncode == 0 else f"not drawn: {result.stderr.strip()}"
+            print(f"- {variant} {preset} seed {r['seed']} {r['agent']} {mode} (maps {r.get('maps', 1)}, IMU "
+                  f"initialised at {r.get('imu_init_s', -1):.2f} s): {said}")
+
+
 def roudi_running():
     return subprocess.call(["pgrep", "-x", "iox-roudi"], stdout=subprocess.DEVNULL) == 0
 
@@ -290,6 +322,9 @@ def main():
     parser.add_argument("--b-build", help="B's build folder (a paired comparison)")
     parser.add_argument("--b-config", help="B's --config (a paired comparison)")
     parser.add_argument("--out", help="results folder [$CVISLAM_SIM_CACHE/seeds/runs]")
+    parser.add_argument("--plots", type=int, default=0,
+                        help="draw the error over time of this many worst runs per variant, preset and mode into "
+                             "OUT/plots/ (tools/error_over_time.py) and say what each shows [0]")
     args = parser.parse_args()
     args.presets = [p for p in args.presets.split(",") if p]
     args.modes = [m for m in args.modes.split(",") if m]
@@ -299,6 +334,8 @@ def main():
             sys.exit(f"agent_accuracy_seeds: --modes: {m!r} is neither mono nor stereo")
     if args.jobs < 1:
         sys.exit("agent_accuracy_seeds: --jobs must be at least 1")
+    if args.plots < 0:
+        sys.exit("agent_accuracy_seeds: --plots must be 0 or more")
     for build in {args.build, args.b_build or args.build}:
         for tool in ("cvislam_sim", "cvislam_agent", "cvislam_eval"):
             if not os.access(Path(build) / "bin" / tool, os.X_OK):
@@ -332,6 +369,8 @@ def main():
     (sweep.out / "report.json").write_text(
         json.dumps({"distribution": distribution, "paired": paired, "runs": records}, indent=1))
     print_report(args, sweep, distribution, paired)
+    if args.plots:
+        print_worst_runs(args, sweep, records)
 
 
 if __name__ == "__main__":
