@@ -490,11 +490,7 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
     const bool awaiting = kf.awaiting_local_ba;
     (void)map.addKeyframe(std::move(kf));
     report.added_keyframes.emplace_back(map.id(), KeyframeId{agent.id, counter});
-    if (awaiting) {
-      ++report.keyframes_awaiting_local_ba;
-    } else {
-      report.keyframes_ready.emplace_back(map.id(), KeyframeId{agent.id, counter});
-    }
+    if (!awaiting) report.keyframes_ready.emplace_back(map.id(), KeyframeId{agent.id, counter});
     agent.keyframes[counter] = AgentRecord::HeldKeyframe{map.id(), agent_map, keypoints};
     ++report.keyframes;
   }

@@ -43,7 +43,6 @@ struct IngestReport {
   // For place recognition and the back-end: the keyframes added with their agent's refined state, and those sent
   // before their local BA (ServerKeyframe::awaiting_local_ba) whose update came in this batch.
   std::vector<std::pair<MapId, KeyframeId>> keyframes_ready;
-  int keyframes_awaiting_local_ba = 0;  // of `keyframes`, held back until their update
   std::vector<KeyframeId> removed_keyframe_ids;
   std::vector<MapId> removed_keyframe_maps;  // the map each of removed_keyframe_ids was in
 };
