@@ -80,14 +80,15 @@ TEST(RealDataAccuracy, MonoInertialOnAHandHeldMachineHallStart) {
   EXPECT_EQ(summary.new_maps, 1u);
   EXPECT_GT(summary.tracking_initialised_at_s, 0.0);
   EXPECT_LT(summary.tracking_initialised_at_s, 5.5);
-  const Scored refined = scoreMetricPoses(dir.path() / "mono" / "trajectory.txt", truth,
-                                          summary.tracking_initialised_at_s);
-  const Scored live = scoreMetricPoses(dir.path() / "mono" / "trajectory_online.txt", truth,
-                                       summary.tracking_initialised_at_s);
-  std::printf("MH_01 30 s mono-inertial: metric from %.2f s; ATE refined %.2f mm over %zu poses (%zu marked), live "
-              "%.2f mm over %zu\n",
-              summary.tracking_initialised_at_s, refined.ate_m * 1e3, refined.scored, refined.marked,
-              live.ate_m * 1e3, live.scored);
+  const Scored refined =
+      scoreMetricPoses(dir.path() / "mono" / "trajectory.txt", truth, summary.tracking_initialised_at_s);
+  const Scored live =
+      scoreMetricPoses(dir.path() / "mono" / "trajectory_online.txt", truth, summary.tracking_initialised_at_s);
+  std::printf(
+      "MH_01 30 s mono-inertial: metric from %.2f s; ATE refined %.2f mm over %zu poses (%zu marked), live "
+      "%.2f mm over %zu\n",
+      summary.tracking_initialised_at_s, refined.ate_m * 1e3, refined.scored, refined.marked, live.ate_m * 1e3,
+      live.scored);
   EXPECT_GT(refined.marked, 0u);
   EXPECT_GT(refined.scored, 400u);
   EXPECT_LE(refined.ate_m, 0.0045);
@@ -100,10 +101,10 @@ TEST(RealDataAccuracy, StereoInertialOnTheVicon101Excerpt) {
   const test::TempDir dir;
   const AgentRunSummary summary = runOn(excerpt, dir.path() / "stereo", AgentMode::kStereo);
   EXPECT_EQ(summary.new_maps, 1u);
-  const Scored refined = scoreMetricPoses(dir.path() / "stereo" / "trajectory.txt", excerpt,
-                                          summary.tracking_initialised_at_s);
-  const Scored live = scoreMetricPoses(dir.path() / "stereo" / "trajectory_online.txt", excerpt,
-                                       summary.tracking_initialised_at_s);
+  const Scored refined =
+      scoreMetricPoses(dir.path() / "stereo" / "trajectory.txt", excerpt, summary.tracking_initialised_at_s);
+  const Scored live =
+      scoreMetricPoses(dir.path() / "stereo" / "trajectory_online.txt", excerpt, summary.tracking_initialised_at_s);
   std::printf("V1_01 excerpt stereo-inertial: metric from %.2f s; ATE refined %.3f mm over %zu poses, live %.3f mm\n",
               summary.tracking_initialised_at_s, refined.ate_m * 1e3, refined.scored, live.ate_m * 1e3);
   EXPECT_GT(refined.scored, 50u);
