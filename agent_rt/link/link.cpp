@@ -22,6 +22,20 @@ namespace cvislam::agent {
 
 using Clock = std::chrono::steady_clock;
 
+namespace {
+
+void writeLivePose(const LivePose& pose, v1::LivePose& out) {
+  out.set_t_ns(pose.t_ns);
+  out.set_agent_map(pose.map_id);
+  const Eigen::Vector3d& p = pose.T_w_s.translation();
+  const Eigen::Quaterniond& q = pose.T_w_s.so3().quaternion();
+  for (double v : {p.x(), p.y(), p.z()}) out.add_p_w_s(static_cast<float>(v));
+  for (double v : {q.x(), q.y(), q.z(), q.w()}) out.add_q_w_s(static_cast<float>(v));
+  out.set_metric(pose.metric);
+}
+
+}  // namespace
+
 Status LinkOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "link: " + what}; };
   if (server.empty()) return Status::Ok();
@@ -215,7 +229,7 @@ Result<std::unique_ptr<Link>> Link::create(const LinkOptions& options, AgentId a
 Link::Link(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 Link::~Link() = default;
 
-void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* anchors) {
+void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* anchors, PoseSource* poses) {
   Impl& s = *impl_;
   const auto seconds = [](double v) {
     return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(v));
@@ -331,6 +345,8 @@ void Link::run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* a
       trace::Span span("uplink_batch", {{"batch", static_cast<std::int64_t>(next_sequence)}});
       if (s.store.buildBatch(next_sequence, s.store.newestSensorTime(), s.pacer.batchBudget(s.options.max_batch_bytes),
                              batch)) {
+        LivePose pose;
+        if (poses != nullptr && poses->newest(pose)) writeLivePose(pose, *batch.mutable_live_pose());
         const std::uint64_t bytes = uplink->ByteSizeLong();
         span.set("keyframes", batch.keyframes_size());
         span.set("bytes", static_cast<std::int64_t>(bytes));

@@ -97,6 +97,22 @@ class AnchorSink {
   virtual void discard() = 0;
 };
 
+// The agent's newest tracked pose, which each uplink batch carries for the server's live viewers.
+struct LivePose {
+  std::int64_t t_ns = 0;
+  std::uint32_t map_id = 0;  // the agent's map whose world frame w it is in
+  geometry::SE3d T_w_s;
+  bool metric = false;  // the IMU is initialised (else up to scale)
+};
+
+// Where the link reads that pose from: tracking's state topic over iceoryx in the agent, a value in tests.
+class PoseSource {
+ public:
+  virtual ~PoseSource() = default;
+  // The newest pose; false when tracking has none yet.
+  virtual bool newest(LivePose& out) = 0;
+};
+
 // Counters for the progress line and link.json; a copy, safe to read from any thread.
 struct LinkStatus {
   bool connected = false;
@@ -138,8 +154,10 @@ class Link {
 
   // Runs on the calling thread until `stop` is set and then everything is acknowledged (or flush_timeout_s has
   // passed): reads deltas from `source`, keeps the stream up, sends, reads acknowledgements, and passes the
-  // server's covisible maps and corrections on to `anchors` (nullptr: they are checked and counted only).
-  void run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* anchors = nullptr);
+  // server's covisible maps and corrections on to `anchors` (nullptr: they are checked and counted only). Each
+  // batch carries the newest pose of `poses` (nullptr: none).
+  void run(DeltaSource& source, const std::atomic<bool>& stop, AnchorSink* anchors = nullptr,
+           PoseSource* poses = nullptr);
 
   // From another thread: ends the current stream at once (a write blocked on a server that stopped reading
   // returns). run() goes on, and reconnects unless it was stopping.

@@ -538,7 +538,10 @@ class LinkThread {
       iox::popo::Publisher<AnchorMessage> anchor_publisher(service(options_.agent, "anchors"),
                                                            iox::popo::PublisherOptions{});
       IceoryxAnchorSink anchor_sink(anchor_publisher);
-      link_->run(source, stop_, &anchor_sink);
+      iox::popo::Subscriber<live::AgentStateMessage> state_subscriber(
+          live::stateService(options_.agent, live::kStateFramesEvent), live::dropOldestQueue(1));
+      IceoryxPoseSource poses(state_subscriber);
+      link_->run(source, stop_, &anchor_sink, &poses);
       done_.set();
     });
   }

@@ -10,6 +10,7 @@
 #include <string>
 
 #include "agent_rt/link/link.hpp"
+#include "agent_rt/live/state_topics.hpp"
 #include "agent_rt/messages/messages.hpp"
 #include "agent_rt/runtime/channel_depths.hpp"
 #include "agent_rt/tracking/tracker.hpp"
@@ -96,6 +97,34 @@ class IceoryxAnchorSink final : public AnchorSink {
 
  private:
   IceoryxLoan<AnchorMessage> loan_;
+};
+
+// The link reads tracking's newest frame state from the agent's own state topic ("frames", kept newest-only):
+// whatever states came since the last batch, the newest is the one sent. Copies into the caller's value.
+class IceoryxPoseSource final : public PoseSource {
+ public:
+  explicit IceoryxPoseSource(iox::popo::Subscriber<live::AgentStateMessage>& subscriber) : subscriber_(subscriber) {}
+  bool newest(LivePose& out) override {
+    while (true) {
+      auto taken = subscriber_.take();
+      if (taken.has_error()) break;
+      const live::AgentStateMessage& state = *taken.value();
+      if (state.status != live::StateStatus::kTracking) continue;  // a lost frame's pose is a guess: keep the last
+      held_.t_ns = state.t_ns;
+      held_.map_id = state.map_id;
+      const Eigen::Quaterniond q(state.q_w_s[3], state.q_w_s[0], state.q_w_s[1], state.q_w_s[2]);
+      held_.T_w_s = geometry::SE3d(q, Eigen::Vector3d(state.p_w_s[0], state.p_w_s[1], state.p_w_s[2]));
+      held_.metric = (state.flags & live::kMetric) != 0U;
+      have_ = true;
+    }
+    if (have_) out = held_;
+    return have_;
+  }
+
+ private:
+  iox::popo::Subscriber<live::AgentStateMessage>& subscriber_;
+  LivePose held_;
+  bool have_ = false;
 };
 
 // The link reads mapping's deltas from iceoryx.

@@ -396,7 +396,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
       const trace::Span commit_span(
           "store_commit",
           {{"mission", mission_trace_key_}, {"agent", agent_}, {"batch", static_cast<std::int64_t>(sequence)}});
-      StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, batch.SerializeAsString()};
+      StoreRecord stored{0, StoreRecord::Kind::kBatch, mission_name_, agent_, sequence, storedBody(batch)};
       const auto append_start = Clock::now();
       Status appended = store_->append(stored);
       if (metrics_ != nullptr) {

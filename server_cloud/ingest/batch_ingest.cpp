@@ -116,7 +116,28 @@ class Checker {
       if (!removed_keyframes_.insert(c).second) return invalid(keyframeName(c) + " removed twice in one batch");
       plan_.removed_keyframes.emplace_back(c, k->map);
     }
+    if (batch.has_live_pose()) {
+      if (Status s = checkLivePose(batch.live_pose()); !s.ok()) return s.error();
+    }
     return std::move(plan_);
+  }
+
+  // The pose is in no map, so any agent map goes; its numbers must make a pose.
+  static Status checkLivePose(const v1::LivePose& pose) {
+    if (pose.p_w_s_size() != 3 || pose.q_w_s_size() != 4) {
+      return invalid("live pose: " + std::to_string(pose.p_w_s_size()) + " position and " +
+                     std::to_string(pose.q_w_s_size()) + " orientation values (3 and 4 expected)");
+    }
+    double norm2 = 0.0;
+    for (float v : pose.q_w_s()) {
+      if (!std::isfinite(v)) return invalid("live pose: a non-finite orientation");
+      norm2 += static_cast<double>(v) * static_cast<double>(v);
+    }
+    for (float v : pose.p_w_s()) {
+      if (!std::isfinite(v)) return invalid("live pose: a non-finite position");
+    }
+    if (std::abs(norm2 - 1.0) > 1e-3) return invalid("live pose: the orientation is not a unit quaternion");
+    return Status::Ok();
   }
 
  private:
@@ -414,6 +435,13 @@ void toMapFrame(const SE3d& T_m_w, wire::KeyframeStateValues& state) {
 
 }  // namespace
 
+std::string storedBody(const v1::MapBatch& batch) {
+  if (!batch.has_live_pose()) return batch.SerializeAsString();
+  v1::MapBatch copy(batch);
+  copy.clear_live_pose();
+  return copy.SerializeAsString();
+}
+
 Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, MapStack& stack,
                                  const IngestLimits& limits, const std::function<Status()>& commit) {
   if (!agent.sensors) return Error{ErrorCode::kFailedPrecondition, "a map batch before the Hello"};
@@ -427,6 +455,12 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
   }
 
   // Everything is checked: from here on nothing fails. New agent maps get new server maps.
+  if (batch.has_live_pose()) {
+    const v1::LivePose& p = batch.live_pose();
+    const Eigen::Quaterniond q(p.q_w_s(3), p.q_w_s(0), p.q_w_s(1), p.q_w_s(2));
+    agent.live_pose = AgentRecord::LivePose{p.t_ns(), p.agent_map(),
+                                            SE3d(q, Eigen::Vector3d(p.p_w_s(0), p.p_w_s(1), p.p_w_s(2))), p.metric()};
+  }
   for (std::uint32_t agent_map : plan.new_agent_maps) {
     agent.agent_maps[agent_map] = AgentRecord::AgentMap{stack.createMap(MapOrigin{agent.id, agent_map})->id(), SE3d()};
     ++report.maps_opened;

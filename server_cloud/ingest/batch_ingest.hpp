@@ -8,6 +8,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -46,6 +47,10 @@ struct IngestReport {
   std::vector<KeyframeId> removed_keyframe_ids;
   std::vector<MapId> removed_keyframe_maps;  // the map each of removed_keyframe_ids was in
 };
+
+// What the store keeps of a batch: all of it but the live pose, which belongs to no map and differs each time an
+// agent resends a batch after a reconnect (the store compares a resend's bytes with what it holds).
+std::string storedBody(const v1::MapBatch& batch);
 
 // `agent` is the caller's (locked) record of the agent; its sensors must be known (a Hello came first).
 // `commit`, when set, runs once every check has passed and before anything changes (no map is locked then); when

@@ -177,6 +177,14 @@ struct AgentRecord {
   [[nodiscard]] std::size_t serverKeyframes() const {
     return keyframes.size() - std::min(keyframes.size(), server_removed_keyframes.size());
   }
+  // The agent's newest tracked pose, as its newest batch carried it: for live viewers, in no map.
+  struct LivePose {
+    std::int64_t t_ns = 0;
+    std::uint32_t agent_map = 0;  // in this agent map's world frame
+    geometry::SE3d T_w_s;
+    bool metric = false;
+  };
+  std::optional<LivePose> live_pose;
   // Statistics.
   std::map<std::string, TrafficCount> up;
   std::map<std::string, TrafficCount> down;
