@@ -33,6 +33,8 @@ packages=(
   libpq-dev postgresql-15
   # the server's metrics endpoint (Prometheus text format over HTTP); the Prometheus parser and curl its tests use
   prometheus-cpp-dev python3-prometheus-client curl
+  # the live viewer's endpoint (Foxglove WebSocket protocol and the page over HTTP, TLS by OpenSSL)
+  libwebsocketpp-dev libasio-dev libssl-dev
   # fuzzing the server's inbound messages with libFuzzer (test/fuzz/run_fuzz.sh)
   clang libclang-rt-14-dev
   # the style check (test/check_style.sh): formatting in CI, clang-tidy on changed files

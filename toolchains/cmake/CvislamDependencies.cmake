@@ -27,6 +27,31 @@ if(CVISLAM_BUILD_SERVER)
   find_package(PkgConfig REQUIRED)
   pkg_check_modules(LIBPQ REQUIRED IMPORTED_TARGET libpq)
   find_package(prometheus-cpp REQUIRED CONFIG)        # prometheus-cpp-dev (the metrics endpoint: core and pull)
+  # The live viewer's endpoint: websocketpp (libwebsocketpp-dev, header-only) on standalone asio (libasio-dev), TLS
+  # through OpenSSL (libssl-dev). websocketpp 0.8.2 does not compile as C++20: its constructors are declared with
+  # template-ids (upstream issues 991 and 1068). The build uses a copy of its headers with those names plain.
+  find_package(OpenSSL REQUIRED)
+  find_package(Threads REQUIRED)
+  find_path(CVISLAM_WEBSOCKETPP_DIR websocketpp/server.hpp REQUIRED)
+  find_path(CVISLAM_ASIO_DIR asio.hpp REQUIRED)
+  set(CVISLAM_WEBSOCKETPP_COPY "${CMAKE_BINARY_DIR}/third_party/websocketpp-cxx20")
+  if(NOT EXISTS "${CVISLAM_WEBSOCKETPP_COPY}/websocketpp/server.hpp")
+    file(COPY "${CVISLAM_WEBSOCKETPP_DIR}/websocketpp" DESTINATION "${CVISLAM_WEBSOCKETPP_COPY}")
+    foreach(_header logger/basic.hpp logger/syslog.hpp endpoint.hpp roles/server_endpoint.hpp
+                    roles/client_endpoint.hpp)
+      execute_process(
+        COMMAND sed -E -i "s/^(\\s*)(~?)(basic|syslog|endpoint|server|client)<[a-z_, ]+>\\(/\\1\\2\\3(/"
+                "${CVISLAM_WEBSOCKETPP_COPY}/websocketpp/${_header}"
+        RESULT_VARIABLE _sed_result)
+      if(NOT _sed_result EQUAL 0)
+        message(FATAL_ERROR "could not make the C++20 copy of websocketpp/${_header}")
+      endif()
+    endforeach()
+  endif()
+  add_library(cvislam_websocketpp INTERFACE)
+  target_include_directories(cvislam_websocketpp SYSTEM INTERFACE "${CVISLAM_WEBSOCKETPP_COPY}" "${CVISLAM_ASIO_DIR}")
+  target_compile_definitions(cvislam_websocketpp INTERFACE ASIO_STANDALONE _WEBSOCKETPP_CPP11_STL_)
+  target_link_libraries(cvislam_websocketpp INTERFACE OpenSSL::SSL OpenSSL::Crypto Threads::Threads)
 endif()
 
 # libdeflate-dev: the agent's PNG decoding (common/dataset/png_gray.cpp). Its CMake config came only in 1.15;

@@ -1,0 +1,109 @@
+// What a viewer sees of one mission, as foxglove.* messages (foxglove_messages.hpp) on the mission's channels:
+// every agent's live pose and keyframe trajectory, the keyframes with their links, each map's points, the agents'
+// world frames, the mission's events and its figures. The feed looks at the mission when asked (update()) and
+// says only what changed since it last looked; fullState() is the whole scene for a client that comes later.
+// Plain C++ over the map stack: the live endpoint and the MCAP recorder consume it, tests drive it directly.
+//
+// Locking: each map's read lock and each agent's record lock are held only to copy what the feed draws (poses,
+// links, a decimated set of points); building the messages happens after.
+#pragma once
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "common/core/ids.hpp"
+#include "common/core/result.hpp"
+#include "common/geometry/lie.hpp"
+#include "server_cloud/viewer/foxglove_messages.hpp"
+
+namespace cvislam::server {
+class Mission;
+}
+
+namespace cvislam::server::viewer {
+
+struct FeedOptions {
+  std::size_t max_points_per_map = 20000;  // a fixed subset of the map's points, by id, beyond that
+  std::size_t covisible_links = 3;         // lines from each keyframe to its strongest older covisible keyframes
+  double moved_m = 1e-3;                   // a keyframe is sent again when it moved more than this
+  double moved_deg = 0.1;                  // or turned more than this
+  double points_period_s = 1.0;            // a map's point cloud goes at most this often (when the map changed)
+  double stats_period_s = 1.0;
+
+  [[nodiscard]] Status validate() const;
+};
+
+struct FeedChannel {
+  std::string topic;
+  std::string schema_name;
+};
+
+struct FeedMessage {
+  std::size_t channel = 0;  // index into MissionFeed::channels()
+  std::int64_t t_unix_ns = 0;
+  std::string payload;  // JSON
+};
+
+class MissionFeed {
+ public:
+  using Clock = std::chrono::steady_clock;
+
+  MissionFeed(std::string mission, FeedOptions options);
+
+  // Looks at the mission now and appends to `out` what changed since the last call (everything, the first time).
+  // New agents and maps add channels (see channels()).
+  void update(const Mission& mission, std::int64_t t_unix_ns, Clock::time_point now, std::vector<FeedMessage>& out);
+  // The scene as the feed last saw it, in full: one scene update with every keyframe, the newest message of every
+  // other channel, and the newest events.
+  void fullState(std::vector<FeedMessage>& out) const;
+
+  // Every channel so far, in the order they came: an index never changes meaning.
+  [[nodiscard]] const std::vector<FeedChannel>& channels() const { return channels_; }
+  [[nodiscard]] const std::string& mission() const { return mission_; }
+  // Frame ids of the mission's maps and of its agents' world frames.
+  [[nodiscard]] std::string mapFrame(std::uint32_t map) const;
+  [[nodiscard]] std::string agentWorldFrame(AgentId agent, std::uint32_t agent_map) const;
+
+  // What one look copies of the mission (defined in the .cpp).
+  struct Captured;
+
+ private:
+  struct DrawnKeyframe {
+    KeyframeEntity entity;
+    std::vector<KeyframeId> links;  // the keyframes its segments go to
+  };
+
+  std::size_t channel(const std::string& topic, const char* schema_name);
+  void sendKeyframes(const Captured& now, std::int64_t t_ns, std::vector<FeedMessage>& out);
+  void sendAgents(const Captured& now, std::int64_t t_ns, std::vector<FeedMessage>& out);
+  void sendEvents(const Mission& mission, std::int64_t t_ns, std::vector<FeedMessage>& out);
+  void keep(FeedMessage message, std::vector<FeedMessage>& out);  // sends it and keeps it as its channel's newest
+
+  std::string mission_;
+  FeedOptions options_;
+  std::vector<FeedChannel> channels_;
+  std::map<std::string, std::size_t> channel_by_topic_;
+  std::map<KeyframeId, DrawnKeyframe> drawn_;
+  std::map<std::uint32_t, std::uint64_t> points_signature_;  // per map: what its last cloud was made of
+  std::map<std::uint32_t, Clock::time_point> points_sent_at_;
+  std::map<AgentId, std::int64_t> pose_sent_t_ns_;
+  std::map<std::string, geometry::SE3d> frames_sent_;  // child frame -> T_parent_child as sent
+  std::map<std::string, FeedMessage> newest_tf_;       // child frame -> its newest transform
+  std::map<AgentId, std::pair<std::uint32_t, std::vector<geometry::SE3d>>> trajectory_sent_;  // map, poses
+  std::map<std::size_t, FeedMessage> newest_;  // per channel (not the scene's, nor the events')
+  std::vector<FeedMessage> recent_events_;
+  std::uint64_t next_event_ = 1;
+  std::optional<Clock::time_point> stats_sent_at_;
+  std::size_t scene_channel_ = 0;
+  std::size_t events_channel_ = 0;
+  std::size_t stats_channel_ = 0;
+  std::size_t tf_channel_ = 0;
+};
+
+}  // namespace cvislam::server::viewer

@@ -1,0 +1,57 @@
+// The viewer's network side: one port that serves the browser viewer's files over HTTP(S) and the Foxglove
+// WebSocket protocol on upgrade, checking each upgrade's mission and token (viewer_hub.hpp decides; this file only
+// moves bytes). websocketpp stays inside viewer_endpoint.cpp, which is built as C++17 (websocketpp 0.8 does not
+// compile as C++20).
+//
+// Per client, at most `socket_buffer_bytes` wait in the socket's send buffer; the rest waits in the hub's bounded
+// queue, which drops the oldest. A client that stops reading costs that much memory and no more.
+#pragma once
+
+#include <cstddef>
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include "common/core/result.hpp"
+
+namespace cvislam::server {
+class MissionTokens;
+}
+
+namespace cvislam::server::viewer {
+
+class ViewerHub;
+
+struct EndpointOptions {
+  std::string listen;                // host:port; port 0 takes a free port
+  std::filesystem::path static_dir;  // served at / (index.html for /)
+  std::filesystem::path three_dir;   // three.js' build/ folder, served at /three/
+  std::filesystem::path tls_cert;    // with tls_key: https and wss only
+  std::filesystem::path tls_key;
+  std::size_t socket_buffer_bytes = std::size_t{1} << 20U;
+  std::size_t max_client_message_bytes = 64U << 10U;  // subscribe messages are small; anything larger is refused
+
+  [[nodiscard]] Status validate() const;
+};
+
+class ViewerEndpoint {
+ public:
+  // Binds and starts serving on a thread of its own. The error names the address, or the TLS file, that failed.
+  // `hub` and `tokens` must outlive the endpoint.
+  static Result<std::unique_ptr<ViewerEndpoint>> start(ViewerHub& hub, const MissionTokens& tokens,
+                                                       const EndpointOptions& options);
+  ~ViewerEndpoint();  // closes every connection and stops
+  ViewerEndpoint(const ViewerEndpoint&) = delete;
+  ViewerEndpoint& operator=(const ViewerEndpoint&) = delete;
+
+  [[nodiscard]] int port() const;
+  [[nodiscard]] bool tls() const;
+
+  struct Impl;
+
+ private:
+  explicit ViewerEndpoint(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace cvislam::server::viewer
