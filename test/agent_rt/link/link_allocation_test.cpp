@@ -26,6 +26,25 @@
 namespace cvislam::agent {
 namespace {
 
+// A pose that moves each time the link asks for one; the newest handed out is remembered.
+class MovingPoses final : public PoseSource {
+ public:
+  bool newest(LivePose& out) override {
+    const std::int64_t n = ++asked_;
+    out.t_ns = test::kStartNs + n;  // a new time each batch
+    out.map_id = 0;
+    out.T_w_s = geometry::SE3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.01 * static_cast<double>(n), 0, 1));
+    out.metric = true;
+    last_t_ns_.store(out.t_ns);
+    return true;
+  }
+  [[nodiscard]] std::int64_t lastTns() const { return last_t_ns_.load(); }
+
+ private:
+  std::int64_t asked_ = 0;
+  std::atomic<std::int64_t> last_t_ns_{0};
+};
+
 TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   cvislam::test::TempDir dir;
   // Long enough for the loop to come back over its start: the server then sends the agent's own older
@@ -69,9 +88,10 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   long link_allocations = 0;
   long link_allocations_at_end = 0;
   auto end_at = std::chrono::steady_clock::now();
+  MovingPoses poses;
   std::thread link_thread([&] {
     const long before = cvislam::test::threadMallocCount();
-    (*link)->run(deltas, stop, &anchors);
+    (*link)->run(deltas, stop, &anchors, &poses);
     link_allocations_at_end = cvislam::test::threadMallocCount();
     link_allocations = link_allocations_at_end - before;
   });
@@ -143,6 +163,11 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   core.fillStats("allocations", stats);
   ASSERT_EQ(stats.agents_size(), 1);
   EXPECT_GE(stats.agents(0).keyframes(), static_cast<std::uint64_t>(steady_keyframes));
+  // Every batch carried the newest pose: the server holds the last one handed to the link.
+  const auto record = core.missions().find("allocations")->findAgent(test::kAgent);
+  ASSERT_NE(record, nullptr);
+  ASSERT_TRUE(record->read()->live_pose.has_value());
+  EXPECT_EQ(record->read()->live_pose->t_ns, poses.lastTns());
   (*grpc_server)->shutdown();
 }
 

@@ -683,6 +683,23 @@ const std::vector<BadBatchCase>& badBatchCases() {
          b.add_removed_keyframes(0);
        },
        {"removal: keyframe 3:0", "was removed in this batch"}},
+      {"LivePoseWithoutItsOrientation",
+       [](auto& b) {
+         for (float v : {1.0F, 2.0F, 3.0F}) b.mutable_live_pose()->add_p_w_s(v);
+       },
+       {"live pose", "0 orientation values"}},
+      {"LivePoseNotFinite",
+       [](auto& b) {
+         for (float v : {1.0F, std::numeric_limits<float>::quiet_NaN(), 3.0F}) b.mutable_live_pose()->add_p_w_s(v);
+         for (float v : {0.0F, 0.0F, 0.0F, 1.0F}) b.mutable_live_pose()->add_q_w_s(v);
+       },
+       {"live pose: a non-finite position"}},
+      {"LivePoseNotARotation",
+       [](auto& b) {
+         for (float v : {1.0F, 2.0F, 3.0F}) b.mutable_live_pose()->add_p_w_s(v);
+         for (float v : {0.0F, 0.0F, 0.0F, 2.0F}) b.mutable_live_pose()->add_q_w_s(v);
+       },
+       {"live pose: the orientation is not a unit quaternion"}},
   };
   return cases;
 }
@@ -707,6 +724,28 @@ TEST_F(BatchIngestTest, UnbrokenBatchOfTheBadInputCasesIsStored) {
   EXPECT_EQ(report->imu_links_missing, 0);
 }
 
+TEST_F(BatchIngestTest, TheLivePoseIsKeptOnTheRecordAndLeftOutOfTheStoredBatch) {
+  ingestOk(makeKeyframeBatch(1, 0, 2));
+  v1::MapBatch batch = unbrokenBatch();
+  v1::LivePose& pose = *batch.mutable_live_pose();
+  pose.set_t_ns(123);
+  for (float v : {1.0F, 2.0F, 3.0F}) pose.add_p_w_s(v);
+  for (float v : {0.0F, 0.0F, 0.6F, 0.8F}) pose.add_q_w_s(v);
+  pose.set_metric(true);
+  // What the store keeps is the batch without its pose: a resend with a newer pose is the same stored batch.
+  v1::MapBatch without = batch;
+  without.clear_live_pose();
+  EXPECT_EQ(storedBody(batch), without.SerializeAsString());
+  EXPECT_EQ(storedBody(without), without.SerializeAsString());
+
+  ingestOk(batch);
+  ASSERT_TRUE(agent_.live_pose.has_value());
+  EXPECT_EQ(agent_.live_pose->t_ns, 123);
+  EXPECT_TRUE(agent_.live_pose->metric);
+  EXPECT_NEAR((agent_.live_pose->T_w_s.translation() - Eigen::Vector3d(1, 2, 3)).norm(), 0.0, 1e-6);
+  EXPECT_NEAR(agent_.live_pose->T_w_s.so3().quaternion().z(), 0.6, 1e-6);
+}
+
 TEST_P(BadBatchTest, IsRefusedNamingTheProblemAndChangesNothing) {
   v1::MapBatch batch = unbrokenBatch();
   GetParam().break_it(batch);
@@ -718,6 +757,7 @@ TEST_P(BadBatchTest, IsRefusedNamingTheProblemAndChangesNothing) {
   ASSERT_FALSE(report.ok()) << "accepted";
   EXPECT_EQ(report.error().code(), GetParam().code) << report.error().toString();
   for (const std::string& part : GetParam().message_parts) EXPECT_THAT(report.error().message(), HasSubstr(part));
+  EXPECT_FALSE(agent_.live_pose.has_value()) << "a refused batch's live pose is not kept";
   EXPECT_EQ(stack_.maps().size(), maps_before);
   EXPECT_EQ(snapshot(agent_, stack_), before);
 }
