@@ -2,7 +2,9 @@
 # Installs the npm tools of the offline checks, from the npm registry, into out/deploy-tools (never into the
 # repository): for the deployment files kubernetes-models (Kubernetes schemas), yaml, dockerfilelint; for the
 # MCAP and ROS 2 interop test (test/common/mcap/interop_test.mjs) @mcap/core, @mcap/nodejs, @mcap/support,
-# @foxglove/wasm-zstd, @foxglove/rosmsg and @foxglove/rosmsg2-serialization. Versions are pinned in
+# @foxglove/wasm-zstd, @foxglove/rosmsg and @foxglove/rosmsg2-serialization; for the live viewer three.js (which
+# the server serves to browsers), and for its tests @foxglove/ws-protocol, @foxglove/schemas, ws, ajv,
+# puppeteer-core and pngjs, with Debian's chromium. Versions are pinned in
 # deploy/tools/package.json. Idempotent: with the same versions installed it returns at once, offline.
 #
 #   deploy/install_deploy_tools.sh [--dir DIR]      (default: out/deploy-tools, or $CVISLAM_DEPLOY_TOOLS)
@@ -19,6 +21,13 @@ if ! command -v npm >/dev/null 2>&1; then
   sudo_cmd=()
   if [ "$(id -u)" -ne 0 ]; then sudo_cmd=(sudo); fi
   DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -q --no-install-recommends nodejs npm >&2
+fi
+# The viewer's browser test runs the page in Debian's Chromium (headless, software WebGL) through puppeteer-core.
+if ! command -v chromium >/dev/null 2>&1; then
+  echo "install_deploy_tools: installing chromium from Debian (the viewer's browser test)" >&2
+  sudo_cmd=()
+  if [ "$(id -u)" -ne 0 ]; then sudo_cmd=(sudo); fi
+  DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -q --no-install-recommends chromium >&2
 fi
 if ! command -v kubectl >/dev/null 2>&1; then
   echo "install_deploy_tools: kubectl not found. The manifest check renders with 'kubectl kustomize' (kubectl" \

@@ -7,6 +7,7 @@
 #
 #   deploy/run_mission.sh [--preset NAME] [--seed N] [--duration SEC] [--mode stereo|mono] [--pace realtime|sync]
 #                         [--out DIR] [--build-dir DIR] [--no-real] [--server-arg ARG ...] [--agent-config FILE]
+#                         [--viewer HOST:PORT | --no-viewer] [--hold]
 #
 #   --preset    a cvislam_sim preset: overlap2 (default; 2 agents), loop, hall4, hall8, aggressive, or euroc-mh
 #               (the five real EuRoC Machine Hall flights, replayed by the simulator in one world frame)
@@ -30,6 +31,11 @@
 #               link of a keyframe's way, from the camera to the server and back (OUT/trace/chain.json)
 #   --metrics   the server serves Prometheus metrics on a free loopback port (printed); after the agents end they
 #               are scraped once into OUT/server/metrics.txt
+#   --viewer    where the server serves the live viewer [127.0.0.1:8765; port 0 takes a free one]: open the printed
+#               http://... address in a browser while the mission runs, or connect Foxglove/Lichtblick to the
+#               printed ws://... address. The mission is also recorded into OUT/mission.mcap either way
+#   --no-viewer no live viewer (the recording is still written)
+#   --hold      after the agents end, keep the server (and the viewer) up until Ctrl-C, then finish as usual
 #   --kill-server N  the restart test: kill the server with SIGKILL N times at random moments (2-8 s apart,
 #               --kill-seed S, default 1) while the agents fly, and start it again on its store at once; the
 #               kills, the replays and the time until every agent streams again go to restarts.csv and the end
@@ -56,6 +62,8 @@ kills=0
 kill_seed=1
 trace=0
 metrics=0
+viewer=127.0.0.1:8765
+hold=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --preset) preset=$2; shift 2 ;;
@@ -76,6 +84,9 @@ while [ $# -gt 0 ]; do
     --kill-seed) kill_seed=$2; shift 2 ;;
     --trace) trace=1; shift ;;
     --metrics) metrics=1; shift ;;
+    --viewer) viewer=$2; shift 2 ;;
+    --no-viewer) viewer=""; shift ;;
+    --hold) hold=1; shift ;;
     -h|--help) awk 'NR > 1 && /^set -euo/ { exit } NR > 1' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "run_mission: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
@@ -187,6 +198,17 @@ if [ "$trace" = 1 ]; then
   store_args+=(--trace "$trace_dir/server.json")
 fi
 [ "$metrics" = 0 ] || store_args+=(--metrics-listen 127.0.0.1:0)
+# The live viewer, and every mission recorded as MCAP (the simulated one becomes OUT/mission.mcap at the end).
+store_args+=(--record "$out/recordings")
+if [ -n "$viewer" ]; then
+  # The page draws with three.js from npm (deploy/install_deploy_tools.sh puts it in out/deploy-tools).
+  tools=${CVISLAM_DEPLOY_TOOLS:-"$repo/out/deploy-tools"}
+  if [ ! -f "$tools/node_modules/three/build/three.module.js" ]; then
+    "$repo/deploy/install_deploy_tools.sh" >/dev/null ||
+      echo "run_mission: could not install three.js (deploy/install_deploy_tools.sh); the viewer page will not draw" >&2
+  fi
+  store_args+=(--viewer-listen "$viewer" --viewer-three "$tools/node_modules/three/build")
+fi
 # Starts the server on $1 (host:port) and waits until it serves (after replaying its store).
 start_server() {
   rm -f "$out/server.port"
@@ -198,6 +220,13 @@ start_server() {
 start_server 127.0.0.1:0
 port=$(cat "$out/server.port")
 [ "$metrics" = 0 ] || echo "== metrics: $(grep -m1 '^metrics on port' "$out/server.log")"
+if [ -n "$viewer" ]; then
+  viewer_port=$(sed -n 's/^viewer on port \([0-9]*\).*/\1/p' "$out/server.log" | head -1)
+  viewer_host=${viewer%:*}
+  [ "$viewer_host" = 0.0.0.0 ] && viewer_host=$(hostname)
+  echo "== live viewer: http://$viewer_host:$viewer_port/?mission=$mission&token=$mission_token"
+  echo "   (Foxglove or Lichtblick: open ws://$viewer_host:$viewer_port/?mission=$mission&token=$mission_token)"
+fi
 echo "== mission '$mission': server on 127.0.0.1:$port, ${#agents[@]} agent(s), $mode-inertial, pace $pace," \
   "$([ "$store" = 1 ] && echo "map store $out/store.db" || echo "no map store"), mission tokens in $out/tokens"
 
@@ -312,8 +341,27 @@ else
   echo "run_mission: the map service failed:" >&2; cat "$out/maps.txt" >&2; failed=1
 fi
 
+if "$bin/cvislam_mapctl" --server "127.0.0.1:$port" export "$mission" --mcap "$out/maps/maps.mcap" >>"$out/maps.txt" 2>&1; then
+  echo "  $(tail -1 "$out/maps.txt")"
+else
+  echo "run_mission: cvislam_mapctl export --mcap failed:" >&2; tail -3 "$out/maps.txt" >&2; failed=1
+fi
+
+if [ "$hold" = 1 ]; then
+  echo "== holding the server (and the viewer) until Ctrl-C"
+  held=1
+  trap 'held=0' INT
+  while [ "$held" = 1 ] && kill -0 "$server_pid" 2>/dev/null; do sleep 1; done
+  trap 'echo "run_mission: interrupted" >&2; exit 130' INT
+fi
 kill -TERM "$server_pid"
 wait "$server_pid" || { echo "run_mission: cvislam_server failed:" >&2; tail -5 "$out/server.log" >&2; failed=1; }
+if [ -f "$out/recordings/$mission.mcap" ]; then
+  mv "$out/recordings/$mission.mcap" "$out/mission.mcap"
+  echo "== recording: $out/mission.mcap ($(du -h "$out/mission.mcap" | cut -f1); open it in Foxglove or Lichtblick)"
+else
+  echo "run_mission: the server wrote no recording of mission $mission" >&2; failed=1
+fi
 server_pid=""
 kill -TERM "$roudi_pid" 2>/dev/null || true
 wait "$roudi_pid" 2>/dev/null || true

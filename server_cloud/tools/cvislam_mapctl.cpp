@@ -4,7 +4,7 @@
 //   cvislam_mapctl ... maps MISSION
 //   cvislam_mapctl ... get MISSION MAP [--observations] [--descriptors] [--chunk-bytes N] [--out FILE.json|FILE.ply]
 //   cvislam_mapctl ... trajectory MISSION AGENT [--out FILE.txt]
-//   cvislam_mapctl ... export MISSION [--map M] --out DIR
+//   cvislam_mapctl ... export MISSION [--map M] --out DIR | --mcap FILE
 //   cvislam_mapctl ... watch MISSION [--from N] [--count N] [--seconds S]
 //
 // Tables by default; --json prints the server's answer as JSON instead (get: a summary, since a map can be large;
@@ -28,6 +28,8 @@
 
 #include "common/core/text.hpp"
 #include "cvislam/v1/map_service.grpc.pb.h"
+#include "server_cloud/viewer/foxglove_messages.hpp"
+#include "server_cloud/viewer/mcap_recorder.hpp"
 
 namespace {
 
@@ -158,31 +160,47 @@ bool writePly(const std::filesystem::path& path, const v1::MapChunk& map) {
   return static_cast<bool>(out);
 }
 
-int get(const Globals& g, v1::MapService::Stub& stub, const v1::GetMapRequest& request,
-        const std::filesystem::path& out_path) {
-  const auto start = std::chrono::steady_clock::now();
-  const auto c = context(g);
-  auto reader = stub.GetMap(c.get(), request);
-  v1::MapChunk chunk;
-  v1::MapChunk all;  // every chunk merged: the whole map
+// One map, its chunks merged. On an error it prints why and returns the exit status.
+struct FetchedMap {
+  v1::MapChunk all;
   std::size_t chunks = 0;
   std::size_t bytes = 0;
   std::size_t largest = 0;
+};
+std::variant<FetchedMap, int> fetchMap(const Globals& g, v1::MapService::Stub& stub, const v1::GetMapRequest& request) {
+  FetchedMap fetched;
+  const auto c = context(g);
+  auto reader = stub.GetMap(c.get(), request);
+  v1::MapChunk chunk;
   bool last = false;
   while (reader->Read(&chunk)) {
-    ++chunks;
+    ++fetched.chunks;
     const std::size_t n = chunk.ByteSizeLong();
-    bytes += n;
-    largest = std::max(largest, n);
+    fetched.bytes += n;
+    fetched.largest = std::max(fetched.largest, n);
     last = chunk.last();
-    all.MergeFrom(chunk);
+    fetched.all.MergeFrom(chunk);
   }
   if (auto s = reader->Finish(); !s.ok()) return failed(g, s);
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (!last) {
-    std::fprintf(stderr, "cvislam_mapctl: the server ended GetMap without its last chunk (%zu chunks read)\n", chunks);
+    std::fprintf(stderr, "cvislam_mapctl: the server ended GetMap without its last chunk (%zu chunks read)\n",
+                 fetched.chunks);
     return 1;
   }
+  return fetched;
+}
+
+int get(const Globals& g, v1::MapService::Stub& stub, const v1::GetMapRequest& request,
+        const std::filesystem::path& out_path) {
+  const auto start = std::chrono::steady_clock::now();
+  auto result = fetchMap(g, stub, request);
+  if (const int* status = std::get_if<int>(&result)) return *status;
+  FetchedMap& fetched = std::get<FetchedMap>(result);
+  v1::MapChunk& all = fetched.all;  // every chunk merged: the whole map
+  const std::size_t chunks = fetched.chunks;
+  const std::size_t bytes = fetched.bytes;
+  const std::size_t largest = fetched.largest;
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   std::map<std::uint32_t, std::size_t> per_agent;
   for (const auto& kf : all.keyframes()) ++per_agent[kf.id().agent()];
   if (g.json) {
@@ -306,6 +324,97 @@ int exportMap(const Globals& g, v1::MapService::Stub& stub, const v1::ExportMapR
     total += data.size();
   }
   std::printf("exported %zu files, %.2f MB, in %.3f s\n", files.size(), static_cast<double>(total) / 1e6, seconds);
+  return 0;
+}
+
+// The mission's maps as the live viewer draws them (cvislam_server --viewer-listen), into one MCAP file: the
+// keyframes (linked along each agent's own sequence: the map service sends no covisibility), each map's points, and
+// each agent's trajectory in the map that holds its newest keyframes, all stamped now.
+int exportMcap(const Globals& g, v1::MapService::Stub& stub, const std::string& mission,
+               std::optional<std::uint32_t> only_map, const std::filesystem::path& file) {
+  namespace viewer = cvislam::server::viewer;
+  v1::ListMapsRequest list_request;
+  list_request.set_mission(mission);
+  v1::ListMapsResponse listed;
+  {
+    const auto c = context(g);
+    if (auto s = stub.ListMaps(c.get(), list_request, &listed); !s.ok()) return failed(g, s);
+  }
+  const std::int64_t t_ns =
+      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch()).count();
+  const auto pose = [](const v1::Pose& p) {
+    return cvislam::geometry::SE3d(Eigen::Quaterniond(p.qw(), p.qx(), p.qy(), p.qz()),
+                                   Eigen::Vector3d(p.px(), p.py(), p.pz()));
+  };
+  std::vector<viewer::FeedChannel> channels{{"/" + mission + "/keyframes", viewer::kSceneUpdateSchema}};
+  std::vector<viewer::FeedMessage> messages;
+  std::vector<viewer::KeyframeEntity> entities;
+  // Per agent: (time, map, pose) of every keyframe.
+  std::map<std::uint32_t, std::vector<std::tuple<std::int64_t, std::uint32_t, cvislam::geometry::SE3d>>> agents;
+  for (const v1::MapInfo& info : listed.maps()) {
+    if (only_map && info.map_id() != *only_map) continue;
+    v1::GetMapRequest request;
+    request.set_mission(mission);
+    request.set_map_id(info.map_id());
+    auto result = fetchMap(g, stub, request);
+    if (const int* status = std::get_if<int>(&result)) return *status;
+    const v1::MapChunk& map = std::get<FetchedMap>(result).all;
+    const std::string frame = mission + "/map" + std::to_string(info.map_id());
+    // Each agent map's keyframes by time: each is linked to the one before.
+    std::map<std::pair<std::uint32_t, std::uint32_t>, std::vector<const v1::MapKeyframe*>> sequences;
+    for (const v1::MapKeyframe& k : map.keyframes()) sequences[{k.id().agent(), k.agent_map()}].push_back(&k);
+    for (auto& [key, sequence] : sequences) {
+      std::sort(sequence.begin(), sequence.end(), [](const auto* a, const auto* b) { return a->t_ns() < b->t_ns(); });
+      for (std::size_t i = 0; i < sequence.size(); ++i) {
+        const v1::MapKeyframe& k = *sequence[i];
+        viewer::KeyframeEntity e;
+        e.id = {static_cast<cvislam::AgentId>(k.id().agent()), k.id().counter()};
+        e.map = info.map_id();
+        e.frame_id = frame;
+        e.T_frame_body = pose(k.t_m_s());
+        if (i > 0) e.segments = {e.T_frame_body.translation(), pose(sequence[i - 1]->t_m_s()).translation()};
+        entities.push_back(std::move(e));
+        agents[key.first].emplace_back(k.t_ns(), info.map_id(), pose(k.t_m_s()));
+      }
+    }
+    std::vector<Eigen::Vector3f> points;
+    points.reserve(static_cast<std::size_t>(map.points_size()));
+    for (const v1::MapPointState& p : map.points()) {
+      points.emplace_back(static_cast<float>(p.p_m().x()), static_cast<float>(p.p_m().y()),
+                          static_cast<float>(p.p_m().z()));
+    }
+    channels.push_back({"/" + mission + "/map" + std::to_string(info.map_id()) + "/points", viewer::kPointCloudSchema});
+    messages.push_back({channels.size() - 1, t_ns, viewer::pointCloud(t_ns, frame, points)});
+  }
+  messages.insert(messages.begin(), {0, t_ns, viewer::sceneUpdate(t_ns, entities, {})});
+  for (auto& [agent, keyframes] : agents) {
+    std::sort(keyframes.begin(), keyframes.end(),
+              [](const auto& a, const auto& b) { return std::get<0>(a) < std::get<0>(b); });
+    const std::uint32_t newest_map = std::get<1>(keyframes.back());
+    std::vector<cvislam::geometry::SE3d> poses;
+    for (const auto& [t, map, T] : keyframes) {
+      if (map == newest_map) poses.push_back(T);
+    }
+    channels.push_back({"/" + mission + "/agent" + std::to_string(agent) + "/trajectory", viewer::kPosesInFrameSchema});
+    messages.push_back(
+        {channels.size() - 1, t_ns, viewer::posesInFrame(t_ns, mission + "/map" + std::to_string(newest_map), poses)});
+  }
+  auto recorder = viewer::McapRecorder::create(file);
+  if (!recorder) {
+    std::fprintf(stderr, "cvislam_mapctl: %s\n", recorder.error().message().c_str());
+    return 1;
+  }
+  if (auto s = recorder->write(channels, messages); !s.ok()) {
+    std::fprintf(stderr, "cvislam_mapctl: %s\n", s.error().message().c_str());
+    return 1;
+  }
+  if (auto s = recorder->close(); !s.ok()) {
+    std::fprintf(stderr, "cvislam_mapctl: %s\n", s.error().message().c_str());
+    return 1;
+  }
+  std::printf("wrote %s: %zu keyframes, %zu channels, %llu messages (%.2f MB)\n", file.c_str(), entities.size(),
+              channels.size(), static_cast<unsigned long long>(recorder->messages()),
+              static_cast<double>(std::filesystem::file_size(file)) / 1e6);
   return 0;
 }
 
@@ -435,10 +544,16 @@ int main(int argc, char** argv) {
   traj_cmd->add_option("--out", out, "Write it as TUM text (t x y z qx qy qz qw)");
 
   std::optional<std::uint32_t> export_map;
-  auto* export_cmd = app.add_subcommand("export", "Files of a mission's maps: PLY points, TUM keyframes, JSON summary");
+  std::filesystem::path mcap_file;
+  auto* export_cmd = app.add_subcommand(
+      "export", "Files of a mission's maps: PLY points, TUM keyframes, JSON summary; or an MCAP file for Foxglove");
   export_cmd->add_option("mission", mission, "Mission name")->required();
   export_cmd->add_option("--map", export_map, "Only this map [every map]");
-  export_cmd->add_option("--out", out, "Folder to write the files into")->required();
+  auto* out_option = export_cmd->add_option("--out", out, "Folder to write the files into");
+  auto* mcap_option = export_cmd->add_option(
+      "--mcap", mcap_file,
+      "Write the maps as the live viewer draws them (keyframes, points, trajectories) into this MCAP file");
+  out_option->excludes(mcap_option);
 
   std::uint64_t from_event = 0;
   std::uint64_t count = 0;
@@ -495,6 +610,11 @@ int main(int argc, char** argv) {
     request.set_mission(mission);
     request.set_from_event(from_event);
     return watch(g, *stub, request, count, seconds);
+  }
+  if (!mcap_file.empty()) return exportMcap(g, *stub, mission, export_map, mcap_file);
+  if (out.empty()) {
+    std::fprintf(stderr, "cvislam_mapctl: export needs --out DIR (files) or --mcap FILE\n");
+    return 2;
   }
   v1::ExportMapRequest request;
   request.set_mission(mission);

@@ -28,6 +28,9 @@
 #include "server_cloud/core/server_core.hpp"
 #include "server_cloud/service/grpc_server.hpp"
 #include "server_cloud/service/metrics_endpoint.hpp"
+#include "server_cloud/viewer/viewer_endpoint.hpp"
+#include "server_cloud/viewer/viewer_hub.hpp"
+#include "server_cloud/viewer/viewer_publisher.hpp"
 
 namespace {
 
@@ -119,6 +122,14 @@ struct CommandLine {
   std::string trace;
   std::string metrics_listen;
   std::size_t trace_events_per_thread = std::size_t{1} << 16;
+  std::string viewer_listen;
+  std::string viewer_port_file;
+  std::string viewer_dir = CVISLAM_DEFAULT_VIEWER_DIR;
+  std::string viewer_three = CVISLAM_DEFAULT_VIEWER_THREE;
+  double viewer_period_s = 0.2;
+  std::size_t viewer_points = 20000;
+  std::size_t viewer_queue = 256;
+  std::string record;
 };
 
 // Every option, bound to `cl`.
@@ -199,6 +210,24 @@ void addOptions(CLI::App& app, CommandLine& cl) {
       ->check(CLI::Range(16, 1 << 24));
   app.add_option("--load-from", cl.load_from,
                  "The store --load-mission reads (not in use by a running server) [this server's --store]");
+  app.add_option("--viewer-listen", cl.viewer_listen,
+                 "host:port serving the live viewer: the browser page over HTTP and the Foxglove WebSocket protocol "
+                 "(Foxglove, Lichtblick) on the same port; TLS with --tls-cert; port 0 takes a free port [none]");
+  app.add_option("--viewer-port-file", cl.viewer_port_file, "Write the viewer's bound port here once serving");
+  app.add_option("--viewer-dir", cl.viewer_dir, "The browser viewer's files, served at / [" + cl.viewer_dir + "]");
+  app.add_option("--viewer-three", cl.viewer_three,
+                 "three.js' build/ folder, served at /three/ (deploy/install_deploy_tools.sh installs it) [" +
+                     cl.viewer_three + "]");
+  app.add_option("--viewer-period", cl.viewer_period_s,
+                 "Seconds between the viewer's looks at the missions (what changed goes out) [0.2]")
+      ->check(CLI::Range(0.01, 60.0));
+  app.add_option("--viewer-points", cl.viewer_points, "Map points per map a viewer gets at most [20000]")
+      ->check(CLI::Range(0, 5000000));
+  app.add_option("--viewer-queue", cl.viewer_queue,
+                 "Messages waiting per viewer at most; the oldest is dropped beyond that [256]")
+      ->check(CLI::Range(1, 1000000));
+  app.add_option("--record", cl.record,
+                 "Write each mission to DIR/<mission>.mcap (the viewer's channels; opens in Foxglove or Lichtblick)");
 }
 
 // The command line over the config file: each option given replaces the config's value. Returns the exit
@@ -330,6 +359,51 @@ void writePortFile(const std::string& port_file, int port) {
   std::filesystem::rename(tmp, port_file);
 }
 
+// The live viewer (--viewer-listen) and the recordings (--record): the publisher runs when either is asked for.
+// False (after saying why) when one cannot start.
+bool startViewer(const CommandLine& cl, const ServerOptions& options, const cvislam::server::ServerCore& core,
+                 cvislam::server::viewer::ViewerHub& hub,
+                 std::unique_ptr<cvislam::server::viewer::ViewerEndpoint>& endpoint,
+                 std::unique_ptr<cvislam::server::viewer::ViewerPublisher>& publisher) {
+  namespace viewer = cvislam::server::viewer;
+  if (cl.viewer_listen.empty() && cl.record.empty()) return true;
+  if (!cl.viewer_listen.empty()) {
+    viewer::EndpointOptions endpoint_options;
+    endpoint_options.listen = cl.viewer_listen;
+    endpoint_options.static_dir = cl.viewer_dir;
+    endpoint_options.three_dir = cl.viewer_three;
+    endpoint_options.tls_cert = options.tls_certificate;
+    endpoint_options.tls_key = options.tls_private_key;
+    auto started = viewer::ViewerEndpoint::start(hub, core.tokens(), endpoint_options);
+    if (!started) {
+      std::cerr << "cvislam_server: --viewer-listen: " << started.error().message() << "\n";
+      return false;
+    }
+    endpoint = std::move(*started);
+    if (!std::filesystem::exists(std::filesystem::path(cl.viewer_three) / "three.module.js")) {
+      std::fprintf(stderr,
+                   "[server] viewer: three.js is not in %s: the page cannot draw until "
+                   "deploy/install_deploy_tools.sh has run (or give --viewer-three)\n",
+                   cl.viewer_three.c_str());
+    }
+    std::printf("viewer on port %d (%s://HOST:%d/; Foxglove WebSocket on the same port)\n", endpoint->port(),
+                endpoint->tls() ? "https" : "http", endpoint->port());
+    std::fflush(stdout);
+    if (!cl.viewer_port_file.empty()) writePortFile(cl.viewer_port_file, endpoint->port());
+  }
+  viewer::PublisherOptions publisher_options;
+  publisher_options.period_s = cl.viewer_period_s;
+  publisher_options.feed.max_points_per_map = cl.viewer_points;
+  publisher_options.record_dir = cl.record;
+  auto started = viewer::ViewerPublisher::start(core.missions(), endpoint ? &hub : nullptr, publisher_options);
+  if (!started) {
+    std::cerr << "cvislam_server: " << started.error().message() << "\n";
+    return false;
+  }
+  publisher = std::move(*started);
+  return true;
+}
+
 // Waits for SIGINT or SIGTERM (blocked in every thread, so only this wait sees them), printing a status line
 // every `status_interval_s` (0: none). Returns the signal.
 int waitForStopSignal(const sigset_t& signals, const cvislam::server::ServerCore& core, double status_interval_s) {
@@ -409,6 +483,11 @@ int main(int argc, char** argv) {
     std::printf("metrics on port %d (http://HOST:%d/metrics)\n", metrics->port(), metrics->port());
     std::fflush(stdout);
   }
+  // The viewer's hub lives as long as its endpoint and publisher, which both point at it.
+  cvislam::server::viewer::ViewerHub viewer_hub({cl.viewer_queue});
+  std::unique_ptr<cvislam::server::viewer::ViewerEndpoint> viewer;
+  std::unique_ptr<cvislam::server::viewer::ViewerPublisher> publisher;
+  if (!startViewer(cl, options, core, viewer_hub, viewer, publisher)) return 1;
   if (!cl.port_file.empty()) writePortFile(cl.port_file, (*server)->port());
 
   const int received = waitForStopSignal(signals, core, cl.quiet ? 0.0 : cl.status_interval_s);
@@ -426,6 +505,17 @@ int main(int argc, char** argv) {
       return 1;
     }
     std::printf("outputs: %s\n", options.output.string().c_str());
+  }
+  viewer.reset();
+  if (publisher) {
+    // After the outputs: the recordings end with the map as the final GBA left it.
+    if (auto s = publisher->finish(); !s.ok()) {
+      std::cerr << "cvislam_server: " << s.error().message() << "\n";
+      return 1;
+    }
+    for (const auto& [mission, file] : publisher->recordings()) {
+      std::printf("recording of mission %s: %s\n", mission.c_str(), file.string().c_str());
+    }
   }
   if (trace_session) {  // the workers are idle and gRPC's threads have stopped
     if (auto s = trace_session->writeChromeJson(cl.trace); !s.ok()) {
