@@ -506,6 +506,10 @@ int main(int argc, char** argv) {
     }
     std::printf("outputs: %s\n", options.output.string().c_str());
   }
+  if (viewer) {
+    std::printf("viewer: %llu messages dropped for viewers that did not keep up\n",
+                static_cast<unsigned long long>(viewer_hub.droppedTotal()));
+  }
   viewer.reset();
   if (publisher) {
     // After the outputs: the recordings end with the map as the final GBA left it.

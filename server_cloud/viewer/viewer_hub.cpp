@@ -221,6 +221,7 @@ void ViewerHub::pushData(State& state, Client& client, Frame frame) const {
     client.data.pop_front();
     ++client.counters.dropped;
     ++state.dropped;
+    client.resync = true;
   }
   client.data.push_back(std::move(frame));
 }
@@ -267,6 +268,17 @@ std::vector<ViewerHub::CatchUp> ViewerHub::takeCatchUps() {
   std::vector<CatchUp> out;
   auto state = state_.write();
   for (auto& [id, client] : state->clients) {
+    // Not while the client still has half a queue to read: a client that stays stalled would only drop it again.
+    if (client.resync && client.data.size() < options_.client_queue / 2) {
+      client.resync = false;
+      for (const auto& [sub, channel_id] : client.subscriptions) {
+        const Channel& c = state->channels[channel_id - 1];  // ids are dense from 1
+        if (client.pending.mission.empty() || client.pending.mission == c.mission) {
+          client.pending.mission = c.mission;
+          client.pending.channels.insert(c.index);
+        }
+      }
+    }
     if (client.pending.channels.empty()) continue;
     out.push_back(std::move(client.pending));
     client.pending = CatchUp{};

@@ -63,7 +63,8 @@ class ViewerHub {
     std::uint64_t dropped = 0;  // data frames dropped because the queue was full
     std::size_t queued = 0;
   };
-  // A client's new subscriptions since the last takeCatchUps(): it needs the channels' newest state first.
+  // A client's new subscriptions since the last takeCatchUps(): it needs the channels' newest state first. Also a
+  // client that lost messages to its full queue and has read half of it since: every channel it subscribed to.
   struct CatchUp {
     ClientId client = 0;
     std::string mission;
@@ -112,6 +113,9 @@ class ViewerHub {
     std::deque<Frame> control;
     std::deque<Frame> data;  // oldest first
     CatchUp pending;
+    // Messages were dropped: the client's scene misses changes (only changes are sent), so once it reads again it
+    // gets the full state of every channel it subscribed to.
+    bool resync = false;
     ClientCounters counters;
   };
   struct State {

@@ -116,6 +116,7 @@ TEST(ViewerHubTest, AClientThatDoesNotReadLosesItsOldestDataButNeverItsProtocolM
   hub.registerChannels("survey", channels());
   const auto client = hub.open({false, "survey"});
   ASSERT_TRUE(hub.onText(client, R"({"op":"subscribe","subscriptions":[{"id":1,"channelId":1}]})").ok());
+  (void)hub.takeCatchUps();  // the subscription's own
   for (int i = 0; i < 1000; ++i) hub.publish("survey", {{0, i, "{\"n\":" + std::to_string(i) + "}"}});
   auto more = channels();
   more.push_back({"/survey/agent2/pose", kPoseInFrameSchema});
@@ -136,6 +137,24 @@ TEST(ViewerHubTest, AClientThatDoesNotReadLosesItsOldestDataButNeverItsProtocolM
   EXPECT_EQ(data, 10U);
   EXPECT_EQ(advertises, 2U) << "at open and the new channel";
   EXPECT_EQ(frames.back().bytes.substr(13), "{\"n\":999}") << "the newest are kept";
+  // What was dropped was changes: once the client has read, it is caught up on every channel it subscribed to.
+  const auto catch_ups = hub.takeCatchUps();
+  ASSERT_EQ(catch_ups.size(), 1U);
+  EXPECT_EQ(catch_ups[0].channels, std::set<std::size_t>{0});
+  EXPECT_TRUE(hub.takeCatchUps().empty()) << "once";
+}
+
+TEST(ViewerHubTest, AClientThatStaysStalledIsNotCaughtUpIntoItsFullQueue) {
+  ViewerHub hub({10});
+  hub.registerChannels("survey", channels());
+  const auto client = hub.open({false, "survey"});
+  ASSERT_TRUE(hub.onText(client, R"({"op":"subscribe","subscriptions":[{"id":1,"channelId":1}]})").ok());
+  (void)hub.takeCatchUps();  // the subscription's own
+  for (int i = 0; i < 30; ++i) hub.publish("survey", {{0, i, "{}"}});
+  EXPECT_TRUE(hub.takeCatchUps().empty()) << "its queue is still full";
+  ViewerHub::Frame f;
+  while (hub.counters(client).queued > 4) ASSERT_TRUE(hub.pop(client, f));
+  EXPECT_EQ(hub.takeCatchUps().size(), 1U) << "it reads again";
 }
 
 TEST(ViewerHubTest, HostileClientMessagesGetAStatusAndTheClientGoesOn) {
