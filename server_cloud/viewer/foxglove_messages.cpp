@@ -118,13 +118,19 @@ json stamp(std::int64_t t_unix_ns) {
   const std::int64_t t = t_unix_ns < 0 ? 0 : t_unix_ns;
   return {{"sec", t / 1000000000}, {"nsec", t % 1000000000}};
 }
+// Numbers as float: a viewer needs no more than float's 7 digits, and JSON prints a double with 17 (a third of a
+// scene update's bytes).
+json num(double v) {
+  return static_cast<float>(v);
+}
 json vec(const Eigen::Vector3d& v) {
-  return {{"x", v.x()}, {"y", v.y()}, {"z", v.z()}};
+  return {{"x", num(v.x())}, {"y", num(v.y())}, {"z", num(v.z())}};
+}
+json quat(const Eigen::Quaterniond& q) {
+  return {{"x", num(q.x())}, {"y", num(q.y())}, {"z", num(q.z())}, {"w", num(q.w())}};
 }
 json pose(const geometry::SE3d& T) {
-  const Eigen::Quaterniond& q = T.so3().quaternion();
-  return {{"position", vec(T.translation())},
-          {"orientation", {{"x", q.x()}, {"y", q.y()}, {"z", q.z()}, {"w", q.w()}}}};
+  return {{"position", vec(T.translation())}, {"orientation", quat(T.so3().quaternion())}};
 }
 json colour(const Rgba& c) {
   return {{"r", c.r}, {"g", c.g}, {"b", c.b}, {"a", c.a}};
@@ -203,12 +209,11 @@ std::string posesInFrame(std::int64_t t_unix_ns, std::string_view frame_id,
 
 std::string frameTransform(std::int64_t t_unix_ns, std::string_view parent_frame_id, std::string_view child_frame_id,
                            const geometry::SE3d& T_parent_child) {
-  const Eigen::Quaterniond& q = T_parent_child.so3().quaternion();
   return json{{"timestamp", stamp(t_unix_ns)},
               {"parent_frame_id", std::string(parent_frame_id)},
               {"child_frame_id", std::string(child_frame_id)},
               {"translation", vec(T_parent_child.translation())},
-              {"rotation", {{"x", q.x()}, {"y", q.y()}, {"z", q.z()}, {"w", q.w()}}}}
+              {"rotation", quat(T_parent_child.so3().quaternion())}}
       .dump();
 }
 

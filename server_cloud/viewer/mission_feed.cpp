@@ -11,6 +11,16 @@ namespace cvislam::server::viewer {
 
 using geometry::SE3d;
 
+struct MissionFeed::CapturedAgent {
+  AgentId id = 0;
+  bool connected = false;
+  std::optional<AgentRecord::LivePose> live;
+  std::map<std::uint32_t, AgentRecord::AgentMap> agent_maps;
+  std::uint64_t keyframes = 0;
+  std::uint64_t up_bytes = 0;
+  std::uint64_t down_bytes = 0;
+};
+
 struct MissionFeed::Captured {
   struct Keyframe {
     std::uint32_t map = 0;
@@ -26,18 +36,9 @@ struct MissionFeed::Captured {
     std::vector<AgentId> agents;
     std::optional<std::vector<Eigen::Vector3f>> cloud;  // when due
   };
-  struct Agent {
-    AgentId id = 0;
-    bool connected = false;
-    std::optional<AgentRecord::LivePose> live;
-    std::map<std::uint32_t, AgentRecord::AgentMap> agent_maps;
-    std::uint64_t keyframes = 0;
-    std::uint64_t up_bytes = 0;
-    std::uint64_t down_bytes = 0;
-  };
   std::map<KeyframeId, Keyframe> keyframes;
   std::map<std::uint32_t, Map> maps;
-  std::vector<Agent> agents;
+  std::vector<CapturedAgent> agents;
 };
 
 namespace {
@@ -105,7 +106,9 @@ Status FeedOptions::validate() const {
   if (max_points_per_map > 5000000) return bad("points per map must be at most 5000000");
   if (covisible_links > 64) return bad("covisible links must be at most 64");
   if (!(moved_m >= 0.0) || !(moved_deg >= 0.0)) return bad("the move thresholds must be >= 0");
-  if (!(points_period_s >= 0.0) || !(stats_period_s >= 0.0)) return bad("the periods must be >= 0");
+  if (!(points_period_s >= 0.0) || !(stats_period_s >= 0.0) || !(trajectory_period_s >= 0.0)) {
+    return bad("the periods must be >= 0");
+  }
   return Status::Ok();
 }
 
@@ -170,7 +173,7 @@ void MissionFeed::update(const Mission& mission, std::int64_t t_unix_ns, Clock::
   }
   for (const auto& shared : mission.agents()) {
     auto record = shared->read();
-    Captured::Agent& a = captured.agents.emplace_back();
+    CapturedAgent& a = captured.agents.emplace_back();
     a.id = record->id;
     a.connected = record->connected;
     a.live = record->live_pose;
@@ -193,7 +196,7 @@ void MissionFeed::update(const Mission& mission, std::int64_t t_unix_ns, Clock::
     points_signature_[map] = m.signature;
     points_sent_at_[map] = now;
   }
-  sendAgents(captured, t_unix_ns, out);
+  sendAgents(captured, t_unix_ns, now, out);
   if (!stats_sent_at_ || now - *stats_sent_at_ >= std::chrono::duration<double>(options_.stats_period_s)) {
     MissionStatsMessage stats;
     for (const auto& a : captured.agents) {
@@ -245,62 +248,80 @@ void MissionFeed::sendKeyframes(const Captured& now, std::int64_t t_ns, std::vec
   out.push_back({scene_channel_, t_ns, sceneUpdate(t_ns, entities, deleted)});
 }
 
-void MissionFeed::sendAgents(const Captured& now, std::int64_t t_ns, std::vector<FeedMessage>& out) {
-  // Each agent's keyframes by time, in the map that holds its newest keyframe.
-  std::map<AgentId, std::pair<std::uint32_t, std::vector<std::pair<std::int64_t, SE3d>>>> trajectories;
-  {
-    std::map<AgentId, std::pair<std::int64_t, std::uint32_t>> newest;  // time and map of each agent's newest
-    for (const auto& [id, k] : now.keyframes) {
-      auto it = newest.find(id.agent);
-      if (it == newest.end() || k.t_ns > it->second.first) newest[id.agent] = {k.t_ns, k.map};
-    }
-    for (const auto& [id, k] : now.keyframes) {
-      auto& [map, trajectory] = trajectories[id.agent];
-      map = newest.at(id.agent).second;
-      if (k.map == map) trajectory.emplace_back(k.t_ns, k.T_m_s);
-    }
-    for (auto& [agent, t] : trajectories) {
-      std::sort(t.second.begin(), t.second.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
-    }
+void MissionFeed::sendAgents(const Captured& now, std::int64_t t_ns, Clock::time_point at,
+                             std::vector<FeedMessage>& out) {
+  const auto trajectories = trajectoriesOf(now);
+  for (const CapturedAgent& a : now.agents) {
+    sendWorldFrames(a, t_ns, out);
+    if (auto t = trajectories.find(a.id); t != trajectories.end()) sendTrajectory(a.id, t->second, t_ns, at, out);
+    sendLivePose(a, t_ns, out);
   }
-  for (const auto& a : now.agents) {
-    // World frames: where each of the agent's maps is in its server map.
-    for (const auto& [agent_map, held] : a.agent_maps) {
-      const std::string child = agentWorldFrame(a.id, agent_map);
-      auto it = frames_sent_.find(child);
-      if (it != frames_sent_.end() && !moved(it->second, held.T_m_w, options_.moved_m, options_.moved_deg)) continue;
-      frames_sent_[child] = held.T_m_w;
-      FeedMessage message{tf_channel_, t_ns, frameTransform(t_ns, mapFrame(held.map), child, held.T_m_w)};
-      out.push_back(message);
-      newest_tf_[child] = std::move(message);
-    }
-    if (auto traj = trajectories.find(a.id); traj != trajectories.end()) {
-      const std::size_t c =
-          channel("/" + mission_ + "/agent" + std::to_string(a.id) + "/trajectory", kPosesInFrameSchema);
-      const std::uint32_t map = traj->second.first;
-      std::vector<SE3d> poses;
-      poses.reserve(traj->second.second.size());
-      for (const auto& [t, T] : traj->second.second) poses.push_back(T);
-      auto& [sent_map, sent] = trajectory_sent_[a.id];
-      bool changed = sent_map != map || sent.size() != poses.size();
-      for (std::size_t i = 0; !changed && i < poses.size(); ++i) {
-        changed = moved(sent[i], poses[i], options_.moved_m, options_.moved_deg);
-      }
-      if (changed) {
-        keep({c, t_ns, posesInFrame(t_ns, mapFrame(map), poses)}, out);
-        sent = std::move(poses);
-        sent_map = map;
-      }
-    }
-    if (!a.live) continue;
-    auto held = a.agent_maps.find(a.live->agent_map);
-    if (held == a.agent_maps.end()) continue;  // that map has not reached the server yet
-    auto sent = pose_sent_t_ns_.find(a.id);
-    if (sent != pose_sent_t_ns_.end() && sent->second == a.live->t_ns) continue;
-    pose_sent_t_ns_[a.id] = a.live->t_ns;
-    const std::size_t c = channel("/" + mission_ + "/agent" + std::to_string(a.id) + "/pose", kPoseInFrameSchema);
-    keep({c, t_ns, poseInFrame(t_ns, mapFrame(held->second.map), held->second.T_m_w * a.live->T_w_s)}, out);
+}
+
+// Each agent's keyframes by time, in the map that holds its newest keyframe.
+std::map<AgentId, MissionFeed::Trajectory> MissionFeed::trajectoriesOf(const Captured& now) {
+  std::map<AgentId, std::pair<std::int64_t, std::uint32_t>> newest;  // time and map of each agent's newest
+  for (const auto& [id, k] : now.keyframes) {
+    auto it = newest.find(id.agent);
+    if (it == newest.end() || k.t_ns > it->second.first) newest[id.agent] = {k.t_ns, k.map};
   }
+  std::map<AgentId, std::vector<std::pair<std::int64_t, SE3d>>> timed;
+  for (const auto& [id, k] : now.keyframes) {
+    if (k.map == newest.at(id.agent).second) timed[id.agent].emplace_back(k.t_ns, k.T_m_s);
+  }
+  std::map<AgentId, Trajectory> out;
+  for (auto& [agent, poses] : timed) {
+    std::sort(poses.begin(), poses.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+    Trajectory& t = out[agent];
+    t.map = newest.at(agent).second;
+    for (const auto& [time, T] : poses) t.T_m_s.push_back(T);
+  }
+  return out;
+}
+
+// Where each of the agent's maps is in its server map.
+void MissionFeed::sendWorldFrames(const CapturedAgent& a, std::int64_t t_ns, std::vector<FeedMessage>& out) {
+  for (const auto& [agent_map, held] : a.agent_maps) {
+    const std::string child = agentWorldFrame(a.id, agent_map);
+    auto it = frames_sent_.find(child);
+    if (it != frames_sent_.end() && !moved(it->second, held.T_m_w, options_.moved_m, options_.moved_deg)) continue;
+    frames_sent_[child] = held.T_m_w;
+    FeedMessage message{tf_channel_, t_ns, frameTransform(t_ns, mapFrame(held.map), child, held.T_m_w)};
+    out.push_back(message);
+    newest_tf_[child] = std::move(message);
+  }
+}
+
+void MissionFeed::sendTrajectory(AgentId agent, const Trajectory& now, std::int64_t t_ns, Clock::time_point at,
+                                 std::vector<FeedMessage>& out) {
+  // The whole trajectory goes each time (a PosesInFrame replaces the last): at most once a period.
+  if (auto last = trajectory_sent_at_.find(agent);
+      last != trajectory_sent_at_.end() &&
+      at - last->second < std::chrono::duration<double>(options_.trajectory_period_s)) {
+    return;
+  }
+  Trajectory& sent = trajectory_sent_[agent];
+  bool changed = sent.map != now.map || sent.T_m_s.size() != now.T_m_s.size();
+  for (std::size_t i = 0; !changed && i < now.T_m_s.size(); ++i) {
+    changed = moved(sent.T_m_s[i], now.T_m_s[i], options_.moved_m, options_.moved_deg);
+  }
+  if (!changed) return;
+  const std::size_t c = channel("/" + mission_ + "/agent" + std::to_string(agent) + "/trajectory", kPosesInFrameSchema);
+  keep({c, t_ns, posesInFrame(t_ns, mapFrame(now.map), now.T_m_s)}, out);
+  sent = now;
+  trajectory_sent_at_[agent] = at;
+}
+
+// The newest tracked pose the agent's batches brought, in its server map's frame; once per pose.
+void MissionFeed::sendLivePose(const CapturedAgent& a, std::int64_t t_ns, std::vector<FeedMessage>& out) {
+  if (!a.live) return;
+  auto held = a.agent_maps.find(a.live->agent_map);
+  if (held == a.agent_maps.end()) return;  // that map has not reached the server yet
+  auto sent = pose_sent_t_ns_.find(a.id);
+  if (sent != pose_sent_t_ns_.end() && sent->second == a.live->t_ns) return;
+  pose_sent_t_ns_[a.id] = a.live->t_ns;
+  const std::size_t c = channel("/" + mission_ + "/agent" + std::to_string(a.id) + "/pose", kPoseInFrameSchema);
+  keep({c, t_ns, poseInFrame(t_ns, mapFrame(held->second.map), held->second.T_m_w * a.live->T_w_s)}, out);
 }
 
 void MissionFeed::sendEvents(const Mission& mission, std::int64_t t_ns, std::vector<FeedMessage>& out) {

@@ -31,9 +31,12 @@ namespace cvislam::server::viewer {
 struct FeedOptions {
   std::size_t max_points_per_map = 20000;  // a fixed subset of the map's points, by id, beyond that
   std::size_t covisible_links = 3;         // lines from each keyframe to its strongest older covisible keyframes
-  double moved_m = 1e-3;                   // a keyframe is sent again when it moved more than this
-  double moved_deg = 0.1;                  // or turned more than this
-  double points_period_s = 1.0;            // a map's point cloud goes at most this often (when the map changed)
+  // A keyframe (and a trajectory, a world frame) is sent again when it moved or turned more than this: less is
+  // not seen in a viewer, and each local BA nudges a dozen keyframes by about a millimetre.
+  double moved_m = 0.005;
+  double moved_deg = 0.5;
+  double points_period_s = 1.0;      // a map's point cloud goes at most this often (when the map changed)
+  double trajectory_period_s = 1.0;  // an agent's trajectory likewise (the keyframes' cubes go at once)
   double stats_period_s = 1.0;
 
   [[nodiscard]] Status validate() const;
@@ -70,8 +73,9 @@ class MissionFeed {
   [[nodiscard]] std::string mapFrame(std::uint32_t map) const;
   [[nodiscard]] std::string agentWorldFrame(AgentId agent, std::uint32_t agent_map) const;
 
-  // What one look copies of the mission (defined in the .cpp).
+  // What one look copies of the mission, and of each agent (defined in the .cpp).
   struct Captured;
+  struct CapturedAgent;
 
  private:
   struct DrawnKeyframe {
@@ -79,9 +83,19 @@ class MissionFeed {
     std::vector<KeyframeId> links;  // the keyframes its segments go to
   };
 
+  struct Trajectory {
+    std::uint32_t map = 0;
+    std::vector<geometry::SE3d> T_m_s;  // oldest first
+  };
+
   std::size_t channel(const std::string& topic, const char* schema_name);
   void sendKeyframes(const Captured& now, std::int64_t t_ns, std::vector<FeedMessage>& out);
-  void sendAgents(const Captured& now, std::int64_t t_ns, std::vector<FeedMessage>& out);
+  void sendAgents(const Captured& now, std::int64_t t_ns, Clock::time_point at, std::vector<FeedMessage>& out);
+  static std::map<AgentId, Trajectory> trajectoriesOf(const Captured& now);
+  void sendWorldFrames(const CapturedAgent& agent, std::int64_t t_ns, std::vector<FeedMessage>& out);
+  void sendTrajectory(AgentId agent, const Trajectory& now, std::int64_t t_ns, Clock::time_point at,
+                      std::vector<FeedMessage>& out);
+  void sendLivePose(const CapturedAgent& agent, std::int64_t t_ns, std::vector<FeedMessage>& out);
   void sendEvents(const Mission& mission, std::int64_t t_ns, std::vector<FeedMessage>& out);
   void keep(FeedMessage message, std::vector<FeedMessage>& out);  // sends it and keeps it as its channel's newest
 
@@ -95,7 +109,8 @@ class MissionFeed {
   std::map<AgentId, std::int64_t> pose_sent_t_ns_;
   std::map<std::string, geometry::SE3d> frames_sent_;  // child frame -> T_parent_child as sent
   std::map<std::string, FeedMessage> newest_tf_;       // child frame -> its newest transform
-  std::map<AgentId, std::pair<std::uint32_t, std::vector<geometry::SE3d>>> trajectory_sent_;  // map, poses
+  std::map<AgentId, Trajectory> trajectory_sent_;
+  std::map<AgentId, Clock::time_point> trajectory_sent_at_;
   std::map<std::size_t, FeedMessage> newest_;  // per channel (not the scene's, nor the events')
   std::vector<FeedMessage> recent_events_;
   std::uint64_t next_event_ = 1;

@@ -1,6 +1,8 @@
 // The only file that includes websocketpp (built as C++17, standalone asio).
 #include "server_cloud/viewer/viewer_endpoint.hpp"
 
+#include <pthread.h>
+
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -128,6 +130,7 @@ class ServerOf final : public Server {
     timer_ = std::make_unique<asio::steady_timer>(endpoint_.get_io_service());
     armTimer();
     thread_ = std::thread([this] {
+      pthread_setname_np(pthread_self(), "viewer_ws");
       try {
         endpoint_.run();
       } catch (const std::exception& e) {

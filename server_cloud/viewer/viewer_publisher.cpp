@@ -1,5 +1,7 @@
 #include "server_cloud/viewer/viewer_publisher.hpp"
 
+#include <pthread.h>
+
 #include <chrono>
 #include <cstdio>
 #include <system_error>
@@ -60,6 +62,7 @@ ViewerPublisher::~ViewerPublisher() {
 }
 
 void ViewerPublisher::run() {
+  pthread_setname_np(pthread_self(), "viewer_feed");  // its CPU is the viewer's cost: named for top and /proc
   const auto period =
       std::chrono::duration_cast<std::chrono::steady_clock::duration>(std::chrono::duration<double>(options_.period_s));
   std::unique_lock lock(wake_mutex_);

@@ -45,7 +45,8 @@ for (let i = 0; i < n; i++) {
   clients.push({ ws, c });
 }
 const started = Date.now();
-while (Date.now() - started < seconds * 1000 && clients.some(({ c }) => !c.closed)) {
+// Until the server has closed every reading client (a stalled one never hears of it).
+while (Date.now() - started < seconds * 1000 && clients.some(({ c }) => !c.stalled && !c.closed)) {
   await new Promise((r) => setTimeout(r, 500));
 }
 const reading = clients.filter(({ c }) => !c.stalled).map(({ c }) => {
