@@ -35,7 +35,8 @@
 #               http://... address in a browser while the mission runs, or connect Foxglove/Lichtblick to the
 #               printed ws://... address. The mission is also recorded into OUT/mission.mcap either way
 #   --no-viewer no live viewer (the recording is still written)
-#   --hold      after the agents end, keep the server (and the viewer) up until Ctrl-C, then finish as usual
+#   --hold      after the agents end, keep the server (and the viewer) up until Ctrl-C or SIGTERM, then finish as
+#               usual (the server's final GBA, its outputs, the report)
 #   --kill-server N  the restart test: kill the server with SIGKILL N times at random moments (2-8 s apart,
 #               --kill-seed S, default 1) while the agents fly, and start it again on its store at once; the
 #               kills, the replays and the time until every agent streams again go to restarts.csv and the end
@@ -348,11 +349,11 @@ else
 fi
 
 if [ "$hold" = 1 ]; then
-  echo "== holding the server (and the viewer) until Ctrl-C"
+  echo "== holding the server (and the viewer) until Ctrl-C (or SIGTERM to this script, pid $$); then it finishes"
   held=1
-  trap 'held=0' INT
+  trap 'held=0' INT TERM
   while [ "$held" = 1 ] && kill -0 "$server_pid" 2>/dev/null; do sleep 1; done
-  trap 'echo "run_mission: interrupted" >&2; exit 130' INT
+  trap 'echo "run_mission: interrupted" >&2; exit 130' INT TERM
 fi
 kill -TERM "$server_pid"
 wait "$server_pid" || { echo "run_mission: cvislam_server failed:" >&2; tail -5 "$out/server.log" >&2; failed=1; }

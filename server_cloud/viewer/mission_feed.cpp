@@ -361,7 +361,8 @@ void MissionFeed::sendEvents(const Mission& mission, std::int64_t t_ns, std::vec
   }
   for (const auto& [key, count] : removed) {
     lines.emplace_back(LogLevel::kInfo, "agent " + std::to_string(key.first) + ": " + std::to_string(count) +
-                                            " keyframes removed (" + key.second + ")");
+                                            (count == 1 ? " keyframe" : " keyframes") + " removed (" + key.second +
+                                            ")");
   }
   for (const auto& [level, line] : lines) {
     FeedMessage message{events_channel_, t_ns, logMessage(t_ns, level, line)};
