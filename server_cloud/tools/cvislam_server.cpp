@@ -90,6 +90,17 @@ void printSummary(const cvislam::server::ServerCore& core) {
   }
 }
 
+// A folder the server ships: in the source tree where the build ran, else where `cmake --install` (and the server
+// image's npm step) put it, <prefix>/share/cvislam/<installed>, beside the binary.
+std::string shipped(const std::filesystem::path& in_source_tree, const char* installed) {
+  std::error_code ec;
+  if (std::filesystem::exists(in_source_tree, ec)) return in_source_tree.string();
+  const std::filesystem::path binary = std::filesystem::read_symlink("/proc/self/exe", ec);
+  if (ec) return in_source_tree.string();
+  const auto beside = binary.parent_path().parent_path() / "share" / "cvislam" / installed;
+  return std::filesystem::exists(beside, ec) ? beside.string() : in_source_tree.string();
+}
+
 struct CommandLine {
   std::string listen;
   std::string config;
@@ -124,11 +135,12 @@ struct CommandLine {
   std::size_t trace_events_per_thread = std::size_t{1} << 16;
   std::string viewer_listen;
   std::string viewer_port_file;
-  std::string viewer_dir = CVISLAM_DEFAULT_VIEWER_DIR;
-  std::string viewer_three = CVISLAM_DEFAULT_VIEWER_THREE;
+  std::string viewer_dir = shipped(CVISLAM_DEFAULT_VIEWER_DIR, "viewer");
+  std::string viewer_three = shipped(CVISLAM_DEFAULT_VIEWER_THREE, "node_modules/three/build");
   double viewer_period_s = 0.2;
   std::size_t viewer_points = 20000;
   std::size_t viewer_queue = 256;
+  std::size_t viewer_send_buffer = std::size_t{1} << 20U;
   std::string record;
 };
 
@@ -226,6 +238,10 @@ void addOptions(CLI::App& app, CommandLine& cl) {
   app.add_option("--viewer-queue", cl.viewer_queue,
                  "Messages waiting per viewer at most; the oldest is dropped beyond that [256]")
       ->check(CLI::Range(1, 1000000));
+  app.add_option("--viewer-send-buffer", cl.viewer_send_buffer,
+                 "Bytes handed to a viewer's socket and not yet sent, at most; beyond them messages wait in the queue "
+                 "[1048576]")
+      ->check(CLI::Range(4096, 1 << 30));
   app.add_option("--record", cl.record,
                  "Write each mission to DIR/<mission>.mcap (the viewer's channels; opens in Foxglove or Lichtblick)");
 }
@@ -374,6 +390,7 @@ bool startViewer(const CommandLine& cl, const ServerOptions& options, const cvis
     endpoint_options.three_dir = cl.viewer_three;
     endpoint_options.tls_cert = options.tls_certificate;
     endpoint_options.tls_key = options.tls_private_key;
+    endpoint_options.socket_buffer_bytes = cl.viewer_send_buffer;
     auto started = viewer::ViewerEndpoint::start(hub, core.tokens(), endpoint_options);
     if (!started) {
       std::cerr << "cvislam_server: --viewer-listen: " << started.error().message() << "\n";

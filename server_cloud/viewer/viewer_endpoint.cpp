@@ -200,6 +200,11 @@ class ServerOf final : public Server {
       access = std::move(it->second);
       admitted_.erase(it);
     }
+    // The kernel's send buffer, fixed (Linux would grow it to megabytes): with the socket buffer above it, what a
+    // client that stops reading can hold on the server. The TCP socket, under TLS too; only open sockets take it.
+    asio::error_code ignored;  // the default buffer is bounded as well
+    con->get_raw_socket().set_option(
+        asio::socket_base::send_buffer_size(static_cast<int>(options_.kernel_send_buffer_bytes)), ignored);
     const ViewerHub::ClientId id = hub_.open(std::move(access));
     const std::lock_guard lock(mutex_);
     clients_[id] = h;

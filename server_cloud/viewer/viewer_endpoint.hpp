@@ -3,8 +3,9 @@
 // moves bytes). websocketpp stays inside viewer_endpoint.cpp, which is built as C++17 (websocketpp 0.8 does not
 // compile as C++20).
 //
-// Per client, at most `socket_buffer_bytes` wait in the socket's send buffer; the rest waits in the hub's bounded
-// queue, which drops the oldest. A client that stops reading costs that much memory and no more.
+// Per client, at most `socket_buffer_bytes` wait to be written to the socket (whose kernel buffer is fixed at
+// `kernel_send_buffer_bytes`); the rest waits in the hub's bounded queue, which drops the oldest. A client that stops
+// reading costs that much memory and no more.
 #pragma once
 
 #include <cstddef>
@@ -28,8 +29,9 @@ struct EndpointOptions {
   std::filesystem::path three_dir;   // three.js' build/ folder, served at /three/
   std::filesystem::path tls_cert;    // with tls_key: https and wss only
   std::filesystem::path tls_key;
-  std::size_t socket_buffer_bytes = std::size_t{1} << 20U;
-  std::size_t max_client_message_bytes = 64U << 10U;  // subscribe messages are small; anything larger is refused
+  std::size_t socket_buffer_bytes = std::size_t{1} << 20U;  // handed to the socket and not yet sent, per client
+  std::size_t kernel_send_buffer_bytes = 64U << 10U;        // the kernel's send buffer of each client's socket
+  std::size_t max_client_message_bytes = 64U << 10U;        // subscribe messages are small; anything larger is refused
 
   [[nodiscard]] Status validate() const;
 };

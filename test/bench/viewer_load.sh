@@ -55,14 +55,18 @@ for n in $viewer_counts; do
   tick=$(getconf CLK_TCK)
   # CPU seconds of the threads named $1 (utime + stime of /proc/PID/task/*/stat; the name is field 2).
   thread_cpu() {
-    cat /proc/"$server"/task/*/stat 2>/dev/null |
+    # The server may exit between two reads: then the last figure stands.
+    { cat /proc/"$server"/task/*/stat 2>/dev/null || true; } |
       awk -v name="($1)" -v t="$tick" '$2 == name { s += $14 + $15 } END { printf "%.2f", s / t }'
   }
   while kill -0 "$server" 2>/dev/null; do
     if stat=$(cat "/proc/$server/stat" 2>/dev/null); then
       cpu=$(echo "$stat" | awk -v t="$tick" '{ printf "%.2f", ($14 + $15) / t }')
-      feed_cpu=$(thread_cpu viewer_feed)
-      ws_cpu=$(thread_cpu viewer_ws)
+      f=$(thread_cpu viewer_feed)
+      w=$(thread_cpu viewer_ws)
+      # A read after the exit finds no threads (0.00): keep the last real one.
+      [ "$f" = 0.00 ] || feed_cpu=$f
+      [ "$w" = 0.00 ] || ws_cpu=$w
       hwm=$(awk '/VmHWM/ { print $2 }' "/proc/$server/status" 2>/dev/null || echo "$hwm")
     fi
     sleep 0.5

@@ -6,6 +6,9 @@
 #    pose moving, a merge announced;
 #  - the browser viewer in headless Chromium (test/viewer/browser_test.mjs): every agent drawn in its colour; the
 #    screenshot is kept as BUILD_DIR/viewer_screenshot.png;
+#  - ten more viewers (test/viewer/viewers.mjs), one of which stops reading: the server drops that one's oldest
+#    messages (its queue and send buffer are made small here: 16 messages, 64 KiB) and the nine others keep
+#    receiving;
 #  - after the mission: OUT/mission.mcap (the server's recording) and OUT/maps/maps.mcap (cvislam_mapctl export
 #    --mcap) read back alike by @mcap/core and by the project's reader (test/viewer/mcap_check.mjs).
 #
@@ -30,7 +33,8 @@ fi
 [ -d "$tools/node_modules/@foxglove/ws-protocol" ] ||
   { echo "mission_viewer_test: the npm tools are missing in $tools: run deploy/install_deploy_tools.sh" >&2; exit 1; }
 CVISLAM_SIM_CACHE="$tmp/cache" timeout 600 "$repo/deploy/run_mission.sh" --build-dir "$build" --duration 30 \
-  --no-real --viewer 127.0.0.1:0 --out "$tmp/out" >"$tmp/log" 2>&1 &
+  --no-real --viewer 127.0.0.1:0 --server-arg --viewer-queue --server-arg 16 --server-arg --viewer-send-buffer \
+  --server-arg 65536 --out "$tmp/out" >"$tmp/log" 2>&1 &
 mission_pid=$!
 port=""
 while [ -z "$port" ]; do
@@ -46,6 +50,9 @@ client=$!
 node "$repo/test/viewer/browser_test.mjs" --url "http://127.0.0.1:$port/?mission=overlap2&token=$token" --agents 2 \
   --screenshot "$build/viewer_screenshot.png" --tools "$tools" --timeout 240 >"$tmp/browser.txt" 2>&1 &
 browser=$!
+node "$repo/test/viewer/viewers.mjs" --port "$port" --mission overlap2 --token "$token" --clients 10 --stalled 1 \
+  --tools "$tools" --seconds 400 >"$tmp/viewers.txt" 2>&1 &
+viewers=$!
 wait "$client" || rc=1
 wait "$browser" || rc=1
 echo "foxglove client: $(tail -1 "$tmp/client.txt")"
@@ -56,6 +63,16 @@ if ! wait "$mission_pid"; then
   rc=1
 fi
 mission_pid=""
+wait "$viewers" || true
+echo "ten viewers: $(tail -1 "$tmp/viewers.txt")"
+dropped=$(sed -n 's/^viewer: \([0-9]*\) messages dropped.*/\1/p' "$tmp/out/server.log")
+if [ -z "$dropped" ] || [ "$dropped" -eq 0 ]; then
+  echo "mission_viewer_test: the stalled viewer lost no message (server says '${dropped:-nothing}'): its queue was not bounded" >&2
+  rc=1
+fi
+echo "the stalled viewer: $dropped messages dropped"
+reading=$(tail -1 "$tmp/viewers.txt" | jq '[.reading[] | select(.messages_per_s >= 1)] | length' 2>/dev/null || echo 0)
+[ "$reading" = 9 ] || { echo "mission_viewer_test: $reading of the 9 reading viewers kept receiving" >&2; rc=1; }
 for file in "$tmp/out/mission.mcap:events,stats,keyframes,tf,points,pose,trajectory" \
             "$tmp/out/maps/maps.mcap:keyframes,points,trajectory"; do
   node "$repo/test/viewer/mcap_check.mjs" --file "${file%%:*}" --expect "${file#*:}" --tool "$mcap_tool" \
