@@ -31,9 +31,10 @@
 #               link of a keyframe's way, from the camera to the server and back (OUT/trace/chain.json)
 #   --metrics   the server serves Prometheus metrics on a free loopback port (printed); after the agents end they
 #               are scraped once into OUT/server/metrics.txt
-#   --viewer    where the server serves the live viewer [127.0.0.1:8765; port 0 takes a free one]: open the printed
-#               http://... address in a browser while the mission runs, or connect Foxglove/Lichtblick to the
-#               printed ws://... address. The mission is also recorded into OUT/mission.mcap either way
+#   --viewer    where the server serves the live viewer [127.0.0.1:8765, or a free port when that one is taken;
+#               port 0 takes a free one]: open the printed http://... address in a browser while the mission runs,
+#               or connect Foxglove/Lichtblick to the printed ws://... address. The mission is also recorded into
+#               OUT/mission.mcap either way
 #   --no-viewer no live viewer (the recording is still written)
 #   --hold      after the agents end, keep the server (and the viewer) up until Ctrl-C or SIGTERM, then finish as
 #               usual (the server's final GBA, its outputs, the report)
@@ -63,7 +64,7 @@ kills=0
 kill_seed=1
 trace=0
 metrics=0
-viewer=127.0.0.1:8765
+viewer=default
 hold=0
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -201,6 +202,14 @@ fi
 [ "$metrics" = 0 ] || store_args+=(--metrics-listen 127.0.0.1:0)
 # The live viewer, and every mission recorded as MCAP (the simulated one becomes OUT/mission.mcap at the end).
 store_args+=(--record "$out/recordings")
+if [ "$viewer" = default ]; then
+  # 8765 unless something listens there already (another mission held open, say): then any free port.
+  viewer=127.0.0.1:8765
+  if (exec 3<>/dev/tcp/127.0.0.1/8765) 2>/dev/null; then
+    echo "run_mission: port 8765 is taken; the viewer takes a free port (printed below)"
+    viewer=127.0.0.1:0
+  fi
+fi
 if [ -n "$viewer" ]; then
   # The page draws with three.js from npm (deploy/install_deploy_tools.sh puts it in out/deploy-tools).
   tools=${CVISLAM_DEPLOY_TOOLS:-"$repo/out/deploy-tools"}

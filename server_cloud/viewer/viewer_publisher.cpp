@@ -123,7 +123,12 @@ void ViewerPublisher::lookAt(const std::string& name) {
   auto recorder = recorders_.find(name);
   if (recorder == recorders_.end()) {
     if (recording_files_.count(name) != 0) return;  // it failed before: said once
-    const std::filesystem::path file = options_.record_dir / (fileNameOf(name) + ".mcap");
+    // A restarted server records into a new file beside the old one: truncating would lose what it recorded before.
+    std::filesystem::path file = options_.record_dir / (fileNameOf(name) + ".mcap");
+    std::error_code ec;
+    for (int n = 1; std::filesystem::exists(file, ec); ++n) {
+      file = options_.record_dir / (fileNameOf(name) + "." + std::to_string(n) + ".mcap");
+    }
     recording_files_[name] = file;
     auto made = McapRecorder::create(file);
     if (!made) {

@@ -13,8 +13,11 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "common/mcap/reader.hpp"
 #include "server_cloud/stack/map_stack.hpp"
+#include "server_cloud/viewer/viewer_publisher.hpp"
 #include "test/server_cloud/maps/example_maps.hpp"
+#include "test/support/temp_dir.hpp"
 
 namespace cvislam::server::viewer {
 namespace {
@@ -224,6 +227,30 @@ TEST_F(MissionFeedTest, TheFullStateHoldsEveryKeyframeAndTheNewestOfEachChannel)
   EXPECT_EQ(by_topic.count("/survey/map0/points"), 1U);
   EXPECT_EQ(by_topic.count("/survey/agent3/trajectory"), 1U);
   EXPECT_EQ(by_topic.count("/survey/stats"), 1U);
+}
+
+TEST_F(MissionFeedTest, TheRecordingHoldsTheSceneAndARestartDoesNotOverwriteIt) {
+  const test::TempDir dir;
+  PublisherOptions options;
+  options.record_dir = dir.path() / "recordings";
+  options.period_s = 60.0;  // the test looks itself
+  for (int server_run = 0; server_run < 2; ++server_run) {
+    auto publisher = ViewerPublisher::start(missions_, nullptr, options);
+    ASSERT_TRUE(publisher.ok()) << publisher.error().toString();
+    (*publisher)->step();
+    ASSERT_TRUE((*publisher)->finish().ok());
+  }
+  for (const char* name : {"survey.mcap", "survey.1.mcap"}) {
+    auto reader = mcap::Reader::open(options.record_dir / name);
+    ASSERT_TRUE(reader.ok()) << name << ": " << reader.error().toString();
+    std::set<std::string> topics;
+    mcap::MessageView view;
+    for (auto more = reader->next(view); more.ok() && *more; more = reader->next(view)) {
+      topics.insert(view.channel->topic);
+    }
+    EXPECT_EQ(topics.count("/survey/keyframes"), 1U) << name;
+    EXPECT_EQ(topics.count("/survey/map1/points"), 1U) << name;
+  }
 }
 
 TEST(FeedOptionsTest, BadValuesAreRefusedWithTheirName) {
