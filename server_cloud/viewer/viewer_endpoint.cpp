@@ -1,4 +1,4 @@
-// The only file that includes websocketpp (built as C++17, standalone asio).
+// The only file that includes websocketpp (on standalone asio).
 #include "server_cloud/viewer/viewer_endpoint.hpp"
 
 #include <pthread.h>

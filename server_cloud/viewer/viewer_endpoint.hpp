@@ -1,7 +1,7 @@
 // The viewer's network side: one port that serves the browser viewer's files over HTTP(S) and the Foxglove
 // WebSocket protocol on upgrade, checking each upgrade's mission and token (viewer_hub.hpp decides; this file only
-// moves bytes). websocketpp stays inside viewer_endpoint.cpp, which is built as C++17 (websocketpp 0.8 does not
-// compile as C++20).
+// moves bytes). websocketpp stays inside viewer_endpoint.cpp: its headers are heavy, and the build compiles them
+// from a copy made C++20-clean (toolchains/cmake/CvislamDependencies.cmake).
 //
 // Per client, at most `socket_buffer_bytes` wait to be written to the socket (whose kernel buffer is fixed at
 // `kernel_send_buffer_bytes`); the rest waits in the hub's bounded queue, which drops the oldest. A client that stops
