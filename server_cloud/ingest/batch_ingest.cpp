@@ -457,9 +457,10 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
   // Everything is checked: from here on nothing fails. New agent maps get new server maps.
   if (batch.has_live_pose()) {
     const v1::LivePose& p = batch.live_pose();
-    const Eigen::Quaterniond q(p.q_w_s(3), p.q_w_s(0), p.q_w_s(1), p.q_w_s(2));
-    agent.live_pose = AgentRecord::LivePose{p.t_ns(), p.agent_map(),
-                                            SE3d(q, Eigen::Vector3d(p.p_w_s(0), p.p_w_s(1), p.p_w_s(2))), p.metric()};
+    const auto d = [](float v) { return static_cast<double>(v); };
+    const Eigen::Quaterniond q(d(p.q_w_s(3)), d(p.q_w_s(0)), d(p.q_w_s(1)), d(p.q_w_s(2)));
+    const Eigen::Vector3d p_w_s(d(p.p_w_s(0)), d(p.p_w_s(1)), d(p.p_w_s(2)));
+    agent.live_pose = AgentRecord::LivePose{p.t_ns(), p.agent_map(), SE3d(q, p_w_s), p.metric()};
   }
   for (std::uint32_t agent_map : plan.new_agent_maps) {
     agent.agent_maps[agent_map] = AgentRecord::AgentMap{stack.createMap(MapOrigin{agent.id, agent_map})->id(), SE3d()};

@@ -343,7 +343,8 @@ int exportMcap(const Globals& g, v1::MapService::Stub& stub, const std::string& 
   const std::int64_t t_ns =
       std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch()).count();
   const auto pose = [](const v1::Pose& p) {
-    return cvislam::geometry::SE3d(Eigen::Quaterniond(p.qw(), p.qx(), p.qy(), p.qz()),
+    const auto d = [](float v) { return static_cast<double>(v); };
+    return cvislam::geometry::SE3d(Eigen::Quaterniond(d(p.qw()), d(p.qx()), d(p.qy()), d(p.qz())),
                                    Eigen::Vector3d(p.px(), p.py(), p.pz()));
   };
   std::vector<viewer::FeedChannel> channels{{"/" + mission + "/keyframes", viewer::kSceneUpdateSchema}};

@@ -75,7 +75,7 @@ std::vector<Eigen::Vector3f> decimatedCloud(const MapContent& content, std::size
     // A multiplicative hash spreads the (agent, counter) ids over the buckets.
     const std::uint64_t h = ((std::uint64_t{id.agent} << 32U) ^ id.counter) * 0x9E3779B97F4A7C15ULL;
     if (keep < 1.0 && (h >> 20U) % kBuckets >= threshold) continue;
-    cloud.push_back(point.p_w.cast<float>());
+    cloud.emplace_back(point.p_w.cast<float>());
   }
   return cloud;
 }

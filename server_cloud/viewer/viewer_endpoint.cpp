@@ -10,6 +10,7 @@
 #include <map>
 #include <mutex>
 #include <sstream>
+#include <string_view>
 #include <thread>
 
 #include <websocketpp/config/asio.hpp>
@@ -41,7 +42,7 @@ std::filesystem::path resolve(const EndpointOptions& options, std::string path) 
   if (const std::size_t q = path.find('?'); q != std::string::npos) path.resize(q);
   if (path.empty() || path == "/") path = "/index.html";
   if (path.find("..") != std::string::npos || path.find('\\') != std::string::npos) return {};
-  static const std::string kThree = "/three/";
+  constexpr std::string_view kThree = "/three/";
   if (path.rfind(kThree, 0) == 0) return options.three_dir / path.substr(kThree.size());
   return options.static_dir / path.substr(1);
 }
@@ -304,7 +305,7 @@ void ServerOf<websocketpp::config::asio>::configureTls() {}
 
 template <>
 void ServerOf<websocketpp::config::asio_tls>::configureTls() {
-  endpoint_.set_tls_init_handler([this](connection_hdl) {
+  endpoint_.set_tls_init_handler([this](const connection_hdl& /*connection*/) {
     auto context = std::make_shared<asio::ssl::context>(asio::ssl::context::tls_server);
     context->set_options(asio::ssl::context::default_workarounds | asio::ssl::context::no_sslv2 |
                          asio::ssl::context::no_sslv3 | asio::ssl::context::no_tlsv1 | asio::ssl::context::no_tlsv1_1);
