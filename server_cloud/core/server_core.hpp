@@ -34,6 +34,11 @@ namespace cvislam::server {
 // (deploy/vocabulary/orb_k10_l5.cvvoc).
 recognition::RecognitionWorkerOptions defaultRecognitionOptions();
 
+// A file or folder this build ships: in the source tree where the build ran, else where `cmake --install` put it
+// beside the binary, <prefix>/share/cvislam/<installed> (as in the container images). When neither exists, the
+// source tree's path, so that what fails to open names it.
+std::filesystem::path shippedPath(const std::filesystem::path& in_source_tree, const std::filesystem::path& installed);
+
 // Scale-out (server_cloud/cluster): replicas that share a PostgreSQL store, each serving the missions whose leases it
 // holds. Off when `postgres` is empty.
 struct ClusterOptions {

@@ -286,28 +286,21 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   return Status::Ok();  // the caller validates once the command line is applied: options combine from both
 }
 
-namespace {
-
-// The vocabulary this build ships: in the source tree where the build ran, else where `cmake --install` put
-// it beside the binary (<prefix>/share/cvislam/vocabulary), as in the container images.
-std::filesystem::path shippedVocabulary() {
-  const std::filesystem::path in_source_tree = CVISLAM_DEFAULT_VOCABULARY;
+std::filesystem::path shippedPath(const std::filesystem::path& in_source_tree, const std::filesystem::path& installed) {
   std::error_code ec;
   if (std::filesystem::exists(in_source_tree, ec)) return in_source_tree;
   const std::filesystem::path binary = std::filesystem::read_symlink("/proc/self/exe", ec);
   if (!ec) {
-    const auto installed =
-        binary.parent_path().parent_path() / "share" / "cvislam" / "vocabulary" / in_source_tree.filename();
-    if (std::filesystem::exists(installed, ec)) return installed;
+    const auto beside = binary.parent_path().parent_path() / "share" / "cvislam" / installed;
+    if (std::filesystem::exists(beside, ec)) return beside;
   }
-  return in_source_tree;  // loading it fails naming this path
+  return in_source_tree;
 }
-
-}  // namespace
 
 recognition::RecognitionWorkerOptions defaultRecognitionOptions() {
   recognition::RecognitionWorkerOptions o;
-  o.vocabulary = shippedVocabulary();
+  const std::filesystem::path vocabulary = CVISLAM_DEFAULT_VOCABULARY;
+  o.vocabulary = shippedPath(vocabulary, std::filesystem::path("vocabulary") / vocabulary.filename());
   return o;
 }
 

@@ -90,17 +90,6 @@ void printSummary(const cvislam::server::ServerCore& core) {
   }
 }
 
-// A folder the server ships: in the source tree where the build ran, else where `cmake --install` (and the server
-// image's npm step) put it, <prefix>/share/cvislam/<installed>, beside the binary.
-std::string shipped(const std::filesystem::path& in_source_tree, const char* installed) {
-  std::error_code ec;
-  if (std::filesystem::exists(in_source_tree, ec)) return in_source_tree.string();
-  const std::filesystem::path binary = std::filesystem::read_symlink("/proc/self/exe", ec);
-  if (ec) return in_source_tree.string();
-  const auto beside = binary.parent_path().parent_path() / "share" / "cvislam" / installed;
-  return std::filesystem::exists(beside, ec) ? beside.string() : in_source_tree.string();
-}
-
 struct CommandLine {
   std::string listen;
   std::string config;
@@ -135,8 +124,10 @@ struct CommandLine {
   std::size_t trace_events_per_thread = std::size_t{1} << 16;
   std::string viewer_listen;
   std::string viewer_port_file;
-  std::string viewer_dir = shipped(CVISLAM_DEFAULT_VIEWER_DIR, "viewer");
-  std::string viewer_three = shipped(CVISLAM_DEFAULT_VIEWER_THREE, "node_modules/three/build");
+  // Installed: the page by `cmake --install`, three.js by the server image's npm step.
+  std::string viewer_dir = cvislam::server::shippedPath(CVISLAM_DEFAULT_VIEWER_DIR, "viewer").string();
+  std::string viewer_three =
+      cvislam::server::shippedPath(CVISLAM_DEFAULT_VIEWER_THREE, "node_modules/three/build").string();
   double viewer_period_s = 0.2;
   std::size_t viewer_points = 20000;
   std::size_t viewer_queue = 256;

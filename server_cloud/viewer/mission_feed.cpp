@@ -284,11 +284,13 @@ void MissionFeed::sendWorldFrames(const CapturedAgent& a, std::int64_t t_ns, std
   for (const auto& [agent_map, held] : a.agent_maps) {
     const std::string child = agentWorldFrame(a.id, agent_map);
     auto it = frames_sent_.find(child);
-    if (it != frames_sent_.end() && !moved(it->second, held.T_m_w, options_.moved_m, options_.moved_deg)) continue;
-    frames_sent_[child] = held.T_m_w;
+    if (it != frames_sent_.end() &&
+        !moved(it->second.T_parent_child, held.T_m_w, options_.moved_m, options_.moved_deg)) {
+      continue;
+    }
     FeedMessage message{tf_channel_, t_ns, frameTransform(t_ns, mapFrame(held.map), child, held.T_m_w)};
     out.push_back(message);
-    newest_tf_[child] = std::move(message);
+    frames_sent_[child] = {held.T_m_w, std::move(message)};
   }
 }
 
@@ -383,7 +385,7 @@ void MissionFeed::fullState(std::vector<FeedMessage>& out) const {
   for (const auto& [id, d] : drawn_) entities.push_back(d.entity);
   for (const auto& [c, m] : newest_) t_ns = std::max(t_ns, m.t_unix_ns);
   if (!entities.empty()) out.push_back({scene_channel_, t_ns, sceneUpdate(t_ns, entities, {})});
-  for (const auto& [child, m] : newest_tf_) out.push_back(m);
+  for (const auto& [child, sent] : frames_sent_) out.push_back(sent.message);
   for (const auto& [c, m] : newest_) out.push_back(m);
 }
 

@@ -107,8 +107,11 @@ class MissionFeed {
   std::map<std::uint32_t, std::uint64_t> points_signature_;  // per map: what its last cloud was made of
   std::map<std::uint32_t, Clock::time_point> points_sent_at_;
   std::map<AgentId, std::int64_t> pose_sent_t_ns_;
-  std::map<std::string, geometry::SE3d> frames_sent_;  // child frame -> T_parent_child as sent
-  std::map<std::string, FeedMessage> newest_tf_;       // child frame -> its newest transform
+  struct SentFrame {
+    geometry::SE3d T_parent_child;
+    FeedMessage message;
+  };
+  std::map<std::string, SentFrame> frames_sent_;  // child frame -> its newest transform
   std::map<AgentId, Trajectory> trajectory_sent_;
   std::map<AgentId, Clock::time_point> trajectory_sent_at_;
   std::map<std::size_t, FeedMessage> newest_;  // per channel (not the scene's, nor the events')

@@ -164,10 +164,7 @@ Status ViewerHub::onText(ClientId id, std::string_view text) {
         }
         const auto sub = s["id"].get<std::uint64_t>();
         const auto channel_id = s["channelId"].get<std::uint64_t>();
-        const Channel* channel = nullptr;
-        for (const Channel& c : state->channels) {
-          if (c.id == channel_id) channel = &c;
-        }
+        const Channel* channel = channelById(*state, channel_id);
         if (channel == nullptr || !sees(client, channel->mission) || sub > UINT32_MAX) {
           refuse("subscribe: channel " + std::to_string(channel_id) + " is not advertised to this client");
           continue;
@@ -226,20 +223,29 @@ void ViewerHub::pushData(State& state, Client& client, Frame frame) const {
   client.data.push_back(std::move(frame));
 }
 
+const ViewerHub::Channel* ViewerHub::channelById(const State& state, std::uint64_t id) {
+  // Ids are dense from 1, in the order the channels were registered.
+  return id >= 1 && id <= state.channels.size() ? &state.channels[id - 1] : nullptr;
+}
+
+bool ViewerHub::queueFor(State& state, Client& client, const std::string& mission, const FeedMessage& m) const {
+  auto id = state.channel_ids.find({mission, m.channel});
+  if (id == state.channel_ids.end()) return false;
+  bool any = false;
+  for (const auto& [sub, channel] : client.subscriptions) {
+    if (channel != id->second) continue;
+    pushData(state, client, {true, messageData(sub, static_cast<std::uint64_t>(m.t_unix_ns), m.payload)});
+    any = true;
+  }
+  return any;
+}
+
 void ViewerHub::publish(const std::string& mission, const std::vector<FeedMessage>& messages) {
   bool any = false;
   {
     auto state = state_.write();
-    for (const FeedMessage& m : messages) {
-      auto id = state->channel_ids.find({mission, m.channel});
-      if (id == state->channel_ids.end()) continue;
-      for (auto& [client_id, client] : state->clients) {
-        for (const auto& [sub, channel] : client.subscriptions) {
-          if (channel != id->second) continue;
-          pushData(*state, client, {true, messageData(sub, static_cast<std::uint64_t>(m.t_unix_ns), m.payload)});
-          any = true;
-        }
-      }
+    for (auto& [client_id, client] : state->clients) {
+      for (const FeedMessage& m : messages) any = queueFor(*state, client, mission, m) || any;
     }
   }
   if (any) wake();
@@ -251,15 +257,7 @@ void ViewerHub::publishTo(ClientId client_id, const std::string& mission, const 
     auto state = state_.write();
     auto it = state->clients.find(client_id);
     if (it == state->clients.end()) return;
-    for (const FeedMessage& m : messages) {
-      auto id = state->channel_ids.find({mission, m.channel});
-      if (id == state->channel_ids.end()) continue;
-      for (const auto& [sub, channel] : it->second.subscriptions) {
-        if (channel != id->second) continue;
-        pushData(*state, it->second, {true, messageData(sub, static_cast<std::uint64_t>(m.t_unix_ns), m.payload)});
-        any = true;
-      }
-    }
+    for (const FeedMessage& m : messages) any = queueFor(*state, it->second, mission, m) || any;
   }
   if (any) wake();
 }
@@ -272,7 +270,7 @@ std::vector<ViewerHub::CatchUp> ViewerHub::takeCatchUps() {
     if (client.resync && client.data.size() < options_.client_queue / 2) {
       client.resync = false;
       for (const auto& [sub, channel_id] : client.subscriptions) {
-        const Channel& c = state->channels[channel_id - 1];  // ids are dense from 1
+        const Channel& c = *channelById(*state, channel_id);
         if (client.pending.mission.empty() || client.pending.mission == c.mission) {
           client.pending.mission = c.mission;
           client.pending.channels.insert(c.index);

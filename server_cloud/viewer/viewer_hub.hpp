@@ -127,7 +127,10 @@ class ViewerHub {
   };
 
   static bool sees(const Client& client, const std::string& mission);
+  static const Channel* channelById(const State& state, std::uint64_t id);
   void pushData(State& state, Client& client, Frame frame) const;
+  // Queues the message for each of the client's subscriptions to its channel; whether there was one.
+  bool queueFor(State& state, Client& client, const std::string& mission, const FeedMessage& message) const;
   static std::string advertise(const std::vector<const Channel*>& channels);
   void wake() const;
 

@@ -7,14 +7,9 @@
 //
 // Prints one JSON line of what it found; exits 0 when everything above held, 1 (saying what was missing) otherwise.
 // A page error (an uncaught exception in the page) is a failure; console errors are printed.
-import { createRequire } from "node:module";
-import path from "node:path";
+import { scriptArgs } from "./script_args.mjs";
 
-const args = Object.fromEntries(
-  process.argv.slice(2).reduce((pairs, a, i, all) => (a.startsWith("--") ? [...pairs, [a.slice(2), all[i + 1]]] : pairs), []),
-);
-const tools = args.tools ?? process.env.CVISLAM_DEPLOY_TOOLS ?? path.resolve(import.meta.dirname, "../../out/deploy-tools");
-const require = createRequire(path.join(tools, "node_modules", "x.js"));
+const { args, tools, require } = scriptArgs();
 const puppeteer = require("puppeteer-core");
 const { PNG } = require("pngjs");
 

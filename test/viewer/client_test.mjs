@@ -8,15 +8,10 @@
 //   node client_test.mjs --port P --mission M --token T --agents N [--tools DIR] [--timeout S] [--json OUT]
 //
 // Prints one JSON line of what it saw; exits 0 when everything above held, 1 (saying what was missing) otherwise.
-import { createRequire } from "node:module";
 import { writeFileSync } from "node:fs";
-import path from "node:path";
+import { scriptArgs } from "./script_args.mjs";
 
-const args = Object.fromEntries(
-  process.argv.slice(2).reduce((pairs, a, i, all) => (a.startsWith("--") ? [...pairs, [a.slice(2), all[i + 1]]] : pairs), []),
-);
-const tools = args.tools ?? process.env.CVISLAM_DEPLOY_TOOLS ?? path.resolve(import.meta.dirname, "../../out/deploy-tools");
-const require = createRequire(path.join(tools, "node_modules", "x.js"));
+const { args, require } = scriptArgs();
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
 const WebSocket = require("ws");
 const Ajv = require("ajv/dist/2020");

@@ -4,14 +4,9 @@
 // a message over the size limit) get a status back or end only that connection, and a new client still connects.
 //
 //   node endpoint_client.mjs --url ws(s)://127.0.0.1:P/ --mission M --token T [--tools DIR]
-import { createRequire } from "node:module";
-import path from "node:path";
+import { scriptArgs } from "./script_args.mjs";
 
-const args = Object.fromEntries(
-  process.argv.slice(2).reduce((pairs, a, i, all) => (a.startsWith("--") ? [...pairs, [a.slice(2), all[i + 1]]] : pairs), []),
-);
-const tools = args.tools ?? process.env.CVISLAM_DEPLOY_TOOLS ?? path.resolve(import.meta.dirname, "../../out/deploy-tools");
-const require = createRequire(path.join(tools, "node_modules", "x.js"));
+const { args, require } = scriptArgs();
 const WebSocket = require("ws");
 const PROTOCOL = "foxglove.websocket.v1";
 const failures = [];

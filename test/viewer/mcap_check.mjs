@@ -8,15 +8,10 @@
 // Prints one JSON line (messages per topic, bytes); exits 1 saying what differs or is missing.
 import { execFileSync } from "node:child_process";
 import fs from "node:fs";
-import { createRequire } from "node:module";
-import path from "node:path";
 import zlib from "node:zlib";
+import { scriptArgs } from "./script_args.mjs";
 
-const args = Object.fromEntries(
-  process.argv.slice(2).reduce((pairs, a, i, all) => (a.startsWith("--") ? [...pairs, [a.slice(2), all[i + 1]]] : pairs), []),
-);
-const tools = args.tools ?? process.env.CVISLAM_DEPLOY_TOOLS ?? path.resolve(import.meta.dirname, "../../out/deploy-tools");
-const require = createRequire(path.join(tools, "node_modules", "x.js"));
+const { args, require } = scriptArgs();
 const { McapStreamReader } = require("@mcap/core");
 const { loadDecompressHandlers } = require("@mcap/support");
 const Ajv = require("ajv/dist/2020");

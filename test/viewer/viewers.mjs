@@ -4,14 +4,9 @@
 // prints one JSON line: bytes and messages received per reading client, per second of connection.
 //
 //   node viewers.mjs --port P --mission M --token T --clients 10 --stalled 1 [--seconds S] [--tools DIR]
-import { createRequire } from "node:module";
-import path from "node:path";
+import { scriptArgs } from "./script_args.mjs";
 
-const args = Object.fromEntries(
-  process.argv.slice(2).reduce((pairs, a, i, all) => (a.startsWith("--") ? [...pairs, [a.slice(2), all[i + 1]]] : pairs), []),
-);
-const tools = args.tools ?? process.env.CVISLAM_DEPLOY_TOOLS ?? path.resolve(import.meta.dirname, "../../out/deploy-tools");
-const require = createRequire(path.join(tools, "node_modules", "x.js"));
+const { args, require } = scriptArgs();
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
 const WebSocket = require("ws");
 

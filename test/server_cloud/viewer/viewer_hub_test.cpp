@@ -30,6 +30,15 @@ std::vector<FeedChannel> channels() {
   return {{"/survey/events", kLogSchema}, {"/survey/agent1/pose", kPoseInFrameSchema}};
 }
 
+// A client of mission "survey" subscribed (as subscription 1) to its events channel, its catch-up taken.
+ViewerHub::ClientId subscribedToEvents(ViewerHub& hub) {
+  hub.registerChannels("survey", channels());
+  const auto client = hub.open({false, "survey"});
+  EXPECT_TRUE(hub.onText(client, R"({"op":"subscribe","subscriptions":[{"id":1,"channelId":1}]})").ok());
+  (void)hub.takeCatchUps();  // the subscription's own
+  return client;
+}
+
 // Every frame waiting for the client.
 std::vector<ViewerHub::Frame> drain(ViewerHub& hub, ViewerHub::ClientId client) {
   std::vector<ViewerHub::Frame> frames;
@@ -113,10 +122,7 @@ TEST(ViewerHubTest, AClientIsToldOfItsMissionsChannelsAndGetsWhatItSubscribedTo)
 
 TEST(ViewerHubTest, AClientThatDoesNotReadLosesItsOldestDataButNeverItsProtocolMessages) {
   ViewerHub hub({10});
-  hub.registerChannels("survey", channels());
-  const auto client = hub.open({false, "survey"});
-  ASSERT_TRUE(hub.onText(client, R"({"op":"subscribe","subscriptions":[{"id":1,"channelId":1}]})").ok());
-  (void)hub.takeCatchUps();  // the subscription's own
+  const auto client = subscribedToEvents(hub);
   for (int i = 0; i < 1000; ++i) hub.publish("survey", {{0, i, "{\"n\":" + std::to_string(i) + "}"}});
   auto more = channels();
   more.push_back({"/survey/agent2/pose", kPoseInFrameSchema});
@@ -146,10 +152,7 @@ TEST(ViewerHubTest, AClientThatDoesNotReadLosesItsOldestDataButNeverItsProtocolM
 
 TEST(ViewerHubTest, AClientThatStaysStalledIsNotCaughtUpIntoItsFullQueue) {
   ViewerHub hub({10});
-  hub.registerChannels("survey", channels());
-  const auto client = hub.open({false, "survey"});
-  ASSERT_TRUE(hub.onText(client, R"({"op":"subscribe","subscriptions":[{"id":1,"channelId":1}]})").ok());
-  (void)hub.takeCatchUps();  // the subscription's own
+  const auto client = subscribedToEvents(hub);
   for (int i = 0; i < 30; ++i) hub.publish("survey", {{0, i, "{}"}});
   EXPECT_TRUE(hub.takeCatchUps().empty()) << "its queue is still full";
   ViewerHub::Frame f;
