@@ -109,4 +109,38 @@ Result<std::vector<Lease>> MissionLeases::otherHolders() {
   return out;
 }
 
+Status MissionLeases::heartbeat() {
+  auto beat = connection_->exec(
+      "INSERT INTO cvislam_replicas AS r (holder, address, expires_at) "
+      "VALUES ($1, $2, now() + make_interval(secs => $3)) "
+      "ON CONFLICT (holder) DO UPDATE SET address = EXCLUDED.address, expires_at = EXCLUDED.expires_at",
+      PgParams().text(options_.holder).text(options_.address).f64(options_.ttl_s));
+  if (!beat) return beat.error().withContext("writing the heartbeat of " + options_.holder);
+  return Status::Ok();
+}
+
+Status MissionLeases::leave() {
+  auto gone = connection_->exec("DELETE FROM cvislam_replicas WHERE holder = $1", PgParams().text(options_.holder));
+  if (!gone) return gone.error().withContext("removing the heartbeat of " + options_.holder);
+  return Status::Ok();
+}
+
+Result<std::vector<ReplicaLoad>> MissionLeases::liveReplicas() {
+  // A released lease (expires_at at the epoch) does not make its holder dead: a replica may give one mission back.
+  auto rows = connection_->exec(
+      "SELECT r.holder, r.address, "
+      "  (SELECT count(*) FROM cvislam_leases l WHERE l.holder = r.holder AND l.expires_at > now()) "
+      "FROM cvislam_replicas r WHERE r.expires_at > now() AND NOT EXISTS ("
+      "  SELECT 1 FROM cvislam_leases l WHERE l.holder = r.holder AND l.expires_at <= now() "
+      "    AND l.expires_at > 'epoch'::timestamptz) "
+      "ORDER BY r.holder");
+  if (!rows) return rows.error().withContext("listing the live replicas");
+  std::vector<ReplicaLoad> out;
+  for (int i = 0; i < rows->rows(); ++i) {
+    out.push_back(
+        ReplicaLoad{std::string(rows->bytes(i, 0)), std::string(rows->bytes(i, 1)), static_cast<int>(rows->i64(i, 2))});
+  }
+  return out;
+}
+
 }  // namespace cvislam::server::cluster

@@ -28,6 +28,13 @@ struct LeaseOptions {
   [[nodiscard]] Status validate() const;
 };
 
+// A live replica, as its heartbeat row says, and how many missions' live leases it holds.
+struct ReplicaLoad {
+  std::string holder;
+  std::string address;
+  int missions = 0;
+};
+
 struct Lease {
   std::string mission;
   std::string holder;
@@ -56,6 +63,16 @@ class MissionLeases {
   Result<std::optional<Lease>> find(const std::string& mission);
   // The other holders with a live lease, each once (holder and address; the mission is that of one of them).
   Result<std::vector<Lease>> otherHolders();
+
+  // Says that this holder is alive for one more TTL (table cvislam_replicas), so that the others count it when they
+  // share out lapsed missions even while it serves none. Called before the leases are renewed, so that a dead
+  // holder's heartbeat lapses before its leases do.
+  Status heartbeat();
+  // Removes this holder's heartbeat (a clean shutdown).
+  Status leave();
+  // The replicas with a live heartbeat and no lapsed lease (a holder whose lease lapsed is dead or stalled), by
+  // holder name, each with the number of live leases it holds.
+  Result<std::vector<ReplicaLoad>> liveReplicas();
 
   [[nodiscard]] const LeaseOptions& options() const { return options_; }
 

@@ -163,6 +163,8 @@ Status ensureClusterSchema(PgConnection& connection, const std::string& software
       "CREATE INDEX IF NOT EXISTS cvislam_records_mission ON cvislam_records (mission, number);"
       "CREATE TABLE IF NOT EXISTS cvislam_leases (mission text PRIMARY KEY, holder text NOT NULL, "
       "  address text NOT NULL, epoch bigint NOT NULL, expires_at timestamptz NOT NULL);"
+      "CREATE TABLE IF NOT EXISTS cvislam_replicas (holder text PRIMARY KEY, address text NOT NULL, "
+      "  expires_at timestamptz NOT NULL);"
       "INSERT INTO cvislam_meta VALUES ('format', '" +
       kFormat + "'), ('schema', '" + std::to_string(kClusterSchemaVersion) +
       "') ON CONFLICT (key) DO NOTHING;"

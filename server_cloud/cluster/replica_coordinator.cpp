@@ -22,6 +22,23 @@ std::string seconds(double s) {
 }
 }  // namespace
 
+std::vector<std::string> takeoverShare(std::vector<std::string> lapsed, std::vector<ReplicaLoad> live,
+                                       const std::string& me) {
+  if (std::none_of(live.begin(), live.end(), [&](const ReplicaLoad& r) { return r.holder == me; })) {
+    live.push_back(ReplicaLoad{me, "", 0});
+  }
+  std::sort(lapsed.begin(), lapsed.end());
+  std::vector<std::string> mine;
+  for (const std::string& mission : lapsed) {
+    auto least = std::min_element(live.begin(), live.end(), [](const ReplicaLoad& a, const ReplicaLoad& b) {
+      return a.missions != b.missions ? a.missions < b.missions : a.holder < b.holder;
+    });
+    ++least->missions;
+    if (least->holder == me) mine.push_back(mission);
+  }
+  return mine;
+}
+
 std::string makeHolderName(const std::string& replica) {
   std::random_device entropy;  // not a simulation: a name that must differ between processes
   const std::uint64_t nonce = (static_cast<std::uint64_t>(entropy()) << 32U) ^ entropy();
@@ -79,6 +96,8 @@ Status ReplicaCoordinator::release() {
   std::vector<std::string> missions = served();
   Status result = Status::Ok();
   std::lock_guard db(db_mutex_);
+  // The heartbeat goes first: the others then share the released missions among themselves only.
+  if (Status s = leases_->leave(); !s.ok()) result = s;
   for (const std::string& mission : missions) {
     if (Status s = leases_->release(mission); !s.ok() && result.ok()) result = s;
   }
@@ -122,7 +141,13 @@ Result<MissionOwner> ReplicaCoordinator::claim(const std::string& mission) {
   return Error{ErrorCode::kUnavailable, "mission '" + mission + "' is not served here now: connect again"};
 }
 
-Result<MissionOwner> ReplicaCoordinator::acquireAndQueue(const std::string& mission, bool by_takeover) {
+Result<MissionOwner> ReplicaCoordinator::claimPrepared(const std::string& mission,
+                                                       const std::function<Status()>& prepare) {
+  return acquireAndQueue(mission, /*by_takeover=*/false, prepare);
+}
+
+Result<MissionOwner> ReplicaCoordinator::acquireAndQueue(const std::string& mission, bool by_takeover,
+                                                         const std::function<Status()>& prepare) {
   {
     std::lock_guard lock(state_mutex_);
     if (served_.count(mission) != 0U || loading_.count(mission) != 0U) return here();
@@ -132,6 +157,18 @@ Result<MissionOwner> ReplicaCoordinator::acquireAndQueue(const std::string& miss
     std::lock_guard db(db_mutex_);
     return leases_->acquire(mission);
   }();
+  if (lease && lease->holder == leases_->options().holder && prepare) {
+    if (Status prepared = prepare(); !prepared.ok()) {
+      {
+        std::lock_guard db(db_mutex_);
+        (void)leases_->release(mission);
+      }
+      std::lock_guard lock(state_mutex_);
+      loading_.erase(mission);
+      state_changed_.notify_all();
+      return prepared.error();
+    }
+  }
   std::lock_guard lock(state_mutex_);
   if (!lease || lease->holder != leases_->options().holder) {
     loading_.erase(mission);
@@ -286,8 +323,9 @@ Result<std::vector<MissionOwner>> ReplicaCoordinator::others() {
 }
 
 void ReplicaCoordinator::renewLeases() {
-  Result<std::vector<std::string>> renewed = [&] {
+  Result<std::vector<std::string>> renewed = [&]() -> Result<std::vector<std::string>> {
     std::lock_guard renewing(renew_mutex_);
+    if (Status beat = renewals_->heartbeat(); !beat.ok()) return beat.error();
     return renewals_->renew();
   }();
   if (!renewed) {
@@ -327,12 +365,36 @@ void ReplicaCoordinator::queueTakeovers() {
     return leases_->lapsed();
   }();
   if (!lapsed) return;
-  for (const std::string& mission : *lapsed) {
-    {
-      std::lock_guard lock(state_mutex_);
+  const auto now = Clock::now();
+  const auto whole_ttl = std::chrono::duration_cast<Clock::duration>(cache_ttl_ * 3);
+  std::vector<std::string> candidates;
+  std::vector<std::string> overdue;  // lapsed for a whole TTL: whoever looks takes them
+  {
+    std::lock_guard lock(state_mutex_);
+    std::map<std::string, Clock::time_point> seen;
+    for (const std::string& mission : *lapsed) {
+      auto it = lapsed_seen_.find(mission);
+      const Clock::time_point since = it == lapsed_seen_.end() ? now : it->second;
+      seen.emplace(mission, since);
       if (stopping_ || served_.count(mission) != 0U || loading_.count(mission) != 0U) continue;
-      if (blockedLocked(mission, Clock::now())) continue;
+      if (blockedLocked(mission, now)) continue;
+      candidates.push_back(mission);
+      if (now - since >= whole_ttl) overdue.push_back(mission);
     }
+    lapsed_seen_ = std::move(seen);
+  }
+  if (candidates.empty()) return;
+  Result<std::vector<ReplicaLoad>> live = [&] {
+    std::lock_guard db(db_mutex_);
+    return leases_->liveReplicas();
+  }();
+  // Without the list of replicas, this one takes what it sees, as one replica alone would.
+  std::vector<std::string> mine = live ? takeoverShare(*lapsed, *live, leases_->options().holder) : candidates;
+  std::set<std::string> take(overdue.begin(), overdue.end());
+  for (const std::string& mission : mine) {
+    if (std::find(candidates.begin(), candidates.end(), mission) != candidates.end()) take.insert(mission);
+  }
+  for (const std::string& mission : take) {
     if (has_room_ && !has_room_()) return;
     auto taken = acquireAndQueue(mission, /*by_takeover=*/true);
     if (!taken) {

@@ -7,8 +7,12 @@
 //     another replica serves is redirected there (the adapter names the owner's address in the stream's trailing
 //     metadata).
 //   - A renewal thread renews this replica's leases every ttl/3 on a connection of its own, so that neither a long
-//     load nor a burst of lookups delays it, and queues a takeover of every mission whose lease lapsed (its owner
-//     died or stalled) for the loading thread.
+//     load nor a burst of lookups delays it, and writes its heartbeat first, so that the other replicas count it.
+//   - The same thread queues takeovers of missions whose lease lapsed (their owner died or stalled) for the loading
+//     thread. Lapsed missions are shared out over the live replicas, each in turn to the one that serves fewest
+//     (takeoverShare()); every replica computes the same share from the database and takes only its own, so that
+//     the missions of a dead replica spread instead of all going to the first replica that looks. A mission that
+//     stays lapsed for a whole TTL (its replica has no room, or died too) is taken by whoever looks next.
 //   - After a load the lease is read again: a mission whose lease lapsed or moved while it loaded is dropped, not
 //     served.
 //   - A mission whose lease this replica loses is dropped at once (its streams end, its in-memory state goes); it
@@ -81,6 +85,11 @@ class ReplicaCoordinator final : public MissionOwnership {
   Status release();
 
   Result<MissionOwner> claim(const std::string& mission) override;
+  // A claim that first runs `prepare` while this replica holds the mission's lease, before the load is queued (map
+  // reuse writes the mission's records into the shared store there, where no other replica can load half of
+  // them). When another replica holds the lease, nothing runs and that replica is named; when `prepare` fails, the
+  // lease is given back and its error returned. Does not wait for the load (waitForLoads() does).
+  Result<MissionOwner> claimPrepared(const std::string& mission, const std::function<Status()>& prepare);
   Result<MissionOwner> owner(const std::string& mission) override;
   Result<std::vector<MissionOwner>> others() override;
 
@@ -116,7 +125,8 @@ class ReplicaCoordinator final : public MissionOwnership {
   void stopThreads();  // the renewals first, then the loads
   std::optional<std::string> blockedLocked(const std::string& mission, Clock::time_point now) const;
   // Acquires the lease and, when it is this replica's, queues its load. Returns the owner (here: queued).
-  Result<MissionOwner> acquireAndQueue(const std::string& mission, bool by_takeover);
+  Result<MissionOwner> acquireAndQueue(const std::string& mission, bool by_takeover,
+                                       const std::function<Status()>& prepare = {});
 
   std::unique_ptr<MissionLeases> leases_;
   std::unique_ptr<MissionLeases> renewals_;
@@ -136,6 +146,7 @@ class ReplicaCoordinator final : public MissionOwnership {
   bool load_running_ = false;
   std::map<std::string, Retry> retries_;
   std::map<std::string, std::pair<Clock::time_point, MissionOwner>> owner_cache_;
+  std::map<std::string, Clock::time_point> lapsed_seen_;  // lapsed missions, since when this replica has seen them
   std::optional<std::pair<Clock::time_point, std::vector<MissionOwner>>> others_cache_;
   ReplicaCounters counters_;
   bool stopping_ = false;
@@ -146,6 +157,12 @@ class ReplicaCoordinator final : public MissionOwnership {
   std::thread renew_thread_;
   std::thread load_thread_;
 };
+
+// The lapsed missions (by name) that `me` takes over: each mission in name order goes to the replica of `live` that
+// then serves fewest, ties going to the first by holder name. `me` counts even when it is missing from `live` (its
+// heartbeat could not be read back).
+std::vector<std::string> takeoverShare(std::vector<std::string> lapsed, std::vector<ReplicaLoad> live,
+                                       const std::string& me);
 
 // A lease holder name for this process: "<replica>/<random 64-bit hex>".
 std::string makeHolderName(const std::string& replica);

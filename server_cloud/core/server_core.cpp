@@ -195,11 +195,6 @@ Status ServerCore::loadFromStore(const std::string& mission) {
 
 Result<LoadReport> ServerCore::loadMission(const MapStore* source, const std::string& from, const std::string& as) {
   const auto start = Clock::now();
-  if (replica_) {
-    return Error{ErrorCode::kFailedPrecondition,
-                 "loading a mission (--load-mission) is not supported on scale-out replicas yet: load it with a "
-                 "single server, or fly the mission anew"};
-  }
   if (source == nullptr) source = store_.get();
   if (source == nullptr) {
     return Error{ErrorCode::kFailedPrecondition,
@@ -247,6 +242,7 @@ Result<LoadReport> ServerCore::loadMission(const MapStore* source, const std::st
       return s.error().withContext("reading mission '" + as + "' of " + store_->describe());
     }
   }
+  if (replica_) return loadOnReplica(records, held, std::move(report), start);
   if (held >= records.size()) {
     report.already_held = true;
     return report;
@@ -254,17 +250,7 @@ Result<LoadReport> ServerCore::loadMission(const MapStore* source, const std::st
   const AgentSession::StoredListener on_stored = storedListener();
   for (std::size_t i = held; i < records.size(); ++i) {
     StoreRecord& r = records[i];
-    r.mission = as;
-    if (r.kind == StoreRecord::Kind::kHello) {
-      // The Hello names its mission; the copy names the new one (replay checks that they agree).
-      v1::Hello hello;
-      if (!hello.ParseFromString(r.body)) {
-        return Error{ErrorCode::kDataError,
-                     report.source + " record " + std::to_string(r.number) + ": the Hello does not parse"};
-      }
-      hello.set_mission(as);
-      r.body = hello.SerializeAsString();
-    }
+    if (Status s = renameLoaded(r, report); !s.ok()) return s.error();
     if (store_) {
       if (Status s = store_->append(r); !s.ok()) {
         return s.error().withContext("storing mission '" + as + "' (loaded from '" + from + "')");
@@ -278,6 +264,62 @@ Result<LoadReport> ServerCore::loadMission(const MapStore* source, const std::st
   if (auto mission = missions_.find(as)) {
     for (const auto& agent : mission->agents()) report.keyframes += agent->read()->keyframes.size();
   }
+  report.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  return report;
+}
+
+Status ServerCore::renameLoaded(StoreRecord& r, const LoadReport& report) {
+  r.mission = report.as;
+  if (r.kind != StoreRecord::Kind::kHello) return Status::Ok();
+  // The Hello names its mission; the copy names the new one (replay checks that they agree).
+  v1::Hello hello;
+  if (!hello.ParseFromString(r.body)) {
+    return Error{ErrorCode::kDataError,
+                 report.source + " record " + std::to_string(r.number) + ": the Hello does not parse"};
+  }
+  hello.set_mission(report.as);
+  r.body = hello.SerializeAsString();
+  return Status::Ok();
+}
+
+// On a replica the copy goes into the shared store under the mission's lease, so that no other replica takes the
+// mission while it is half written; then the replica loads it from the store as it loads any mission it takes,
+// and serves it.
+Result<LoadReport> ServerCore::loadOnReplica(std::vector<StoreRecord>& records, std::size_t held, LoadReport report,
+                                             Clock::time_point start) {
+  const std::string as = report.as;
+  const auto copy = [&]() -> Status {
+    for (std::size_t i = held; i < records.size(); ++i) {
+      StoreRecord& r = records[i];
+      if (Status s = renameLoaded(r, report); !s.ok()) return s;
+      if (Status s = store_->append(r); !s.ok()) {
+        return s.error().withContext("storing mission '" + as + "' (loaded from '" + report.from + "')");
+      }
+      (r.kind == StoreRecord::Kind::kHello ? report.hellos : report.batches) += 1;
+    }
+    return Status::Ok();
+  };
+  Result<MissionOwner> owner = replica_->claimPrepared(as, copy);
+  if (!owner) return owner.error().withContext("loading mission '" + report.from + "' as '" + as + "'");
+  if (!owner->here) {
+    if (held >= records.size()) {  // copied before; another replica serves it
+      report.already_held = true;
+      return report;
+    }
+    return Error{ErrorCode::kFailedPrecondition, "mission '" + as + "' is served by replica " + owner->holder + " at " +
+                                                     owner->address +
+                                                     " and the store holds only part of the copy: load it when that "
+                                                     "replica has let it go, or load it under another name"};
+  }
+  report.already_held = held >= records.size();
+  replica_->waitForLoads();
+  auto mission = missions_.find(as);
+  if (!mission) {
+    return Error{ErrorCode::kUnavailable, "mission '" + as + "' was copied into " + store_->describe() +
+                                              " but did not load on this replica (see its log); it is loaded when "
+                                              "an agent of it connects"};
+  }
+  for (const auto& agent : mission->agents()) report.keyframes += agent->read()->keyframes.size();
   report.seconds = std::chrono::duration<double>(Clock::now() - start).count();
   return report;
 }

@@ -188,7 +188,9 @@ class ServerCore {
   // what they derive; an agent that flies `as` later is matched against it. The loaded agents keep their ids (and
   // their keyframes' ids), so the agents of `as` take other ids. When `as` is here already (a restarted server
   // replayed it from its store) nothing is copied. Call after openStore() and before serving. Errors name the
-  // store and the mission (NOT_FOUND lists the missions the store holds).
+  // store and the mission (NOT_FOUND lists the missions the store holds). On a scale-out replica the copy goes
+  // into the shared store while this replica holds the mission's lease, and this replica serves it; when another
+  // replica serves `as` already, nothing is copied.
   Result<LoadReport> loadMission(const MapStore* source, const std::string& from, const std::string& as);
 
   // Scale-out: the mission is no longer this replica's (its lease went to another). Its agent streams and watches
@@ -257,6 +259,11 @@ class ServerCore {
 
   // Replays what store_ holds of `mission` (this replica has just taken its lease).
   Status loadFromStore(const std::string& mission);
+  // loadMission's steps: a record of the source renamed into mission report.as; and, on a replica, the copy and
+  // the load under the mission's lease.
+  static Status renameLoaded(StoreRecord& r, const LoadReport& report);
+  Result<LoadReport> loadOnReplica(std::vector<StoreRecord>& records, std::size_t held, LoadReport report,
+                                   Clock::time_point start);
 
   [[nodiscard]] AgentSession::StoredListener storedListener() const;
 };

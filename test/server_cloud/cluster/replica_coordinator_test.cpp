@@ -235,5 +235,74 @@ TEST_F(ReplicaCoordinatorTest, LookupsInBulkLeaveTheLeasesRenewed) {
   EXPECT_EQ(b->acquire("here")->holder, "replica/a");
 }
 
+// Lapsed missions are shared out in name order, each to the live replica that then serves fewest; every replica
+// computes the same share, so the shares of two replicas are disjoint and together cover every mission.
+TEST(TakeoverShareTest, EachLapsedMissionGoesToTheReplicaServingFewestAndTheSharesAreDisjoint) {
+  const std::vector<std::string> lapsed = {"m8", "m1", "m2", "m3", "m4", "m5", "m6", "m7"};
+  const std::vector<ReplicaLoad> even = {{"a", "", 8}, {"b", "", 8}};
+  EXPECT_THAT(takeoverShare(lapsed, even, "a"), ElementsAre("m1", "m3", "m5", "m7"));
+  EXPECT_THAT(takeoverShare(lapsed, even, "b"), ElementsAre("m2", "m4", "m6", "m8"));
+  // b serves 4 fewer: it takes the first four, then they alternate (ties go to a, first by name).
+  const std::vector<ReplicaLoad> uneven = {{"a", "", 10}, {"b", "", 6}};
+  EXPECT_THAT(takeoverShare(lapsed, uneven, "b"), ElementsAre("m1", "m2", "m3", "m4", "m6", "m8"));
+  EXPECT_THAT(takeoverShare(lapsed, uneven, "a"), ElementsAre("m5", "m7"));
+  // A replica missing from the list (its heartbeat not read back yet) counts as serving none.
+  EXPECT_THAT(takeoverShare({"x", "y"}, {{"a", "", 3}}, "new"), ElementsAre("x", "y"));
+  EXPECT_THAT(takeoverShare({"x", "y"}, {{"a", "", 3}, {"new", "", 0}}, "a"), IsEmpty());
+}
+
+// Replica c dies holding six missions while a and b serve two each: a and b share c's missions (three each)
+// instead of the first to look taking all six, each is loaded once more, and c, which left no heartbeat behind
+// it that lives, gets none of them.
+TEST_F(ReplicaCoordinatorTest, TheMissionsOfADeadReplicaAreSharedOverTheLiveOnes) {
+  auto a = coordinator("replica/a");
+  auto b = coordinator("replica/b");
+  auto c = coordinator("replica/c");
+  for (auto* r : {a.get(), b.get(), c.get()}) r->start();
+  for (const char* m : {"a1", "a2"}) ASSERT_TRUE(claimServed(*a, m).ok());
+  for (const char* m : {"b1", "b2"}) ASSERT_TRUE(claimServed(*b, m).ok());
+  const std::vector<std::string> of_c = {"c1", "c2", "c3", "c4", "c5", "c6"};
+  for (const std::string& m : of_c) ASSERT_TRUE(claimServed(*c, m).ok());
+  c.reset();  // dies: its threads stop, nothing is released; its heartbeat and leases lapse after the TTL
+
+  for (int i = 0; i < 100 && a->served().size() + b->served().size() < 10; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  a->waitForLoads();
+  b->waitForLoads();
+  const std::vector<std::string> on_a = a->served();
+  const std::vector<std::string> on_b = b->served();
+  std::printf("after c died: a serves %zu, b serves %zu\n", on_a.size(), on_b.size());
+  EXPECT_EQ(on_a.size() + on_b.size(), 10U);
+  EXPECT_EQ(on_a.size(), 5U);
+  EXPECT_EQ(on_b.size(), 5U);
+  for (const std::string& m : of_c) {
+    EXPECT_EQ(core_.loadsOf(m), 2) << m;  // once by c, once by its new owner
+  }
+  EXPECT_EQ(a->counters().taken_over + b->counters().taken_over, 6U);
+}
+
+// A replica that shuts down cleanly removes its heartbeat and releases its missions: the others share them at
+// their next look, without waiting for a TTL.
+TEST_F(ReplicaCoordinatorTest, AReplicaThatLeavesCleanlyHasItsMissionsSharedAtOnce) {
+  auto a = coordinator("replica/a");
+  auto b = coordinator("replica/b");
+  auto c = coordinator("replica/c");
+  for (auto* r : {a.get(), b.get(), c.get()}) r->start();
+  for (const char* m : {"c1", "c2", "c3", "c4"}) ASSERT_TRUE(claimServed(*c, m).ok());
+  ASSERT_TRUE(c->release().ok());
+  const auto released = std::chrono::steady_clock::now();
+  while (a->served().size() + b->served().size() < 4 &&
+         std::chrono::steady_clock::now() - released < std::chrono::seconds(5)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  const double took_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - released).count();
+  a->waitForLoads();
+  b->waitForLoads();
+  EXPECT_EQ(a->served().size(), 2U);
+  EXPECT_EQ(b->served().size(), 2U);
+  EXPECT_LT(took_s, kTtlS) << "the released missions waited for a TTL";
+}
+
 }  // namespace
 }  // namespace cvislam::server::cluster
