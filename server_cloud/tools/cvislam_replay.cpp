@@ -7,6 +7,10 @@
 // Welcome's stored sequence on, paced by their sensor times (--rate 1: real time), resending after a reconnect
 // what the server had not stored, and following a replica's redirect to the mission's owner.
 //
+// With --copies N each recorded agent flies N times at once, under new agent ids and in world frames of their own
+// (server_cloud/replay/replay_copies.hpp), each copy starting --copy-delay seconds after the one before: a mission
+// of many agents from a recording of a few.
+//
 //   cvislam_replay --recording rec.db --server 127.0.0.1:50051,127.0.0.1:50061 --mission m1 --report m1.json
 #include <algorithm>
 #include <chrono>
@@ -27,6 +31,7 @@
 #include "agent_rt/link/link_client.hpp"
 #include "common/core/percentile.hpp"
 #include "cvislam/v1/agent_link.pb.h"
+#include "server_cloud/replay/replay_copies.hpp"
 #include "server_cloud/store/sqlite_store.hpp"
 
 namespace {
@@ -37,6 +42,8 @@ using cvislam::Status;
 
 struct RecordedAgent {
   AgentId agent = 0;
+  AgentId recorded_as = 0;  // the recording's id (differs for a copy)
+  double start_delay_s = 0.0;
   cvislam::v1::AgentUplink hello;
   std::vector<cvislam::v1::AgentUplink> batches;  // batches[i] has sequence i + 1
 };
@@ -44,6 +51,7 @@ struct RecordedAgent {
 struct AgentResult {
   AgentId agent = 0;
   std::uint64_t batches = 0;
+  AgentId recorded_as = 0;
   std::uint64_t acked = 0;    // the newest sequence the server acknowledged
   std::uint64_t sent = 0;     // batch messages written (resends included)
   std::uint64_t streams = 0;  // Welcomes received
@@ -68,7 +76,9 @@ struct ReplayOptions {
 AgentResult replayAgent(const RecordedAgent& recorded, const ReplayOptions& options) {
   AgentResult result;
   result.agent = recorded.agent;
+  result.recorded_as = recorded.recorded_as;
   result.batches = recorded.batches.size();
+  std::this_thread::sleep_for(std::chrono::duration<double>(recorded.start_delay_s));
   cvislam::agent::LinkClientOptions client_options;
   client_options.server = options.server;
   client_options.token = options.token;
@@ -77,6 +87,7 @@ AgentResult replayAgent(const RecordedAgent& recorded, const ReplayOptions& opti
 
   cvislam::v1::AgentUplink hello = recorded.hello;
   hello.mutable_hello()->set_mission(options.mission);
+  hello.mutable_hello()->set_agent_id(recorded.agent);
   // A session number of this process: a reconnect takes over its own stream.
   hello.mutable_hello()->set_session(
       (static_cast<std::uint64_t>(::getpid()) << 40U) ^
@@ -186,11 +197,17 @@ AgentResult replayAgent(const RecordedAgent& recorded, const ReplayOptions& opti
 nlohmann::json toJson(const AgentResult& r) {
   std::vector<double> sorted = r.ack_ms;
   std::sort(sorted.begin(), sorted.end());
-  nlohmann::json j = {{"agent", r.agent},         {"batches", r.batches},
-                      {"acked", r.acked},         {"sent", r.sent},
-                      {"streams", r.streams},     {"failed_attempts", r.failed_attempts},
-                      {"redirects", r.redirects}, {"longest_gap_s", r.longest_gap_s},
-                      {"finished", r.finished},   {"last_error", r.last_error}};
+  nlohmann::json j = {{"agent", r.agent},
+                      {"recorded_agent", r.recorded_as},
+                      {"batches", r.batches},
+                      {"acked", r.acked},
+                      {"sent", r.sent},
+                      {"streams", r.streams},
+                      {"failed_attempts", r.failed_attempts},
+                      {"redirects", r.redirects},
+                      {"longest_gap_s", r.longest_gap_s},
+                      {"finished", r.finished},
+                      {"last_error", r.last_error}};
   if (!sorted.empty()) {
     j["ack_ms_p50"] = cvislam::nearestRankPercentile(sorted, 0.5);
     j["ack_ms_p99"] = cvislam::nearestRankPercentile(sorted, 0.99);
@@ -221,6 +238,15 @@ int main(int argc, char** argv) {
   double seconds = 0.0;
   app.add_option("--seconds", seconds,
                  "Replay only each agent's first S seconds of sensor time (a shorter benchmark step); 0: all [0]")
+      ->check(CLI::NonNegativeNumber);
+  cvislam::server::replay::CopyOptions copies;
+  double copy_delay_s = 1.0;
+  app.add_option("--copies", copies.copies,
+                 "Fly each recorded agent N times at once: copy k under agent id (recorded id + k * (largest "
+                 "recorded id + 1)), in its own world frame (turned k * 0.6 rad about gravity, moved k * (4, -3, 0) "
+                 "m) [1]")
+      ->check(CLI::Range(1, 1000));
+  app.add_option("--copy-delay", copy_delay_s, "Seconds between the starts of successive copies [1]")
       ->check(CLI::NonNegativeNumber);
   app.add_option("--token", options.token, "The mission's token [none]");
   app.add_option("--flush-timeout", options.flush_timeout_s,
@@ -293,6 +319,29 @@ int main(int argc, char** argv) {
       });
       a.batches.erase(late, a.batches.end());
     }
+  }
+  for (auto& [id, a] : agents) a.recorded_as = id;
+  if (copies.copies > 1) {
+    copies.id_stride = static_cast<AgentId>(agents.rbegin()->first + 1);
+    const int largest = agents.rbegin()->first + (copies.copies - 1) * copies.id_stride;
+    if (largest > 0xFFFF) {
+      std::cerr << "cvislam_replay: --copies " << copies.copies << " would give agent id " << largest
+                << ", over 65535: give fewer copies\n";
+      return 2;
+    }
+    std::map<AgentId, RecordedAgent> flown;
+    for (const auto& [id, recorded] : agents) {
+      for (int k = 0; k < copies.copies; ++k) {
+        RecordedAgent copy = recorded;
+        copy.agent = cvislam::server::replay::copyAgentId(id, k, copies);
+        copy.start_delay_s = k * copy_delay_s;
+        for (cvislam::v1::AgentUplink& b : copy.batches) {
+          cvislam::server::replay::moveToCopyWorld(*b.mutable_batch(), k, copies);
+        }
+        flown.emplace(copy.agent, std::move(copy));
+      }
+    }
+    agents = std::move(flown);
   }
   std::size_t total = 0;
   for (const auto& [id, a] : agents) total += a.batches.size();
