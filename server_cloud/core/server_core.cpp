@@ -696,6 +696,21 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
              << s.server_keyframes << ',' << s.points << ',' << s.up_bytes << ',' << s.down_bytes << '\n';
   }
   if (!timeline) return Error{ErrorCode::kIoError, "cannot write " + (dir / "timeline.csv").string()};
+  return writeIngestSamples(dir / "ingest_ms.csv");
+}
+
+// Every batch's ingest time, so that a fleet's pooled percentiles can be computed across replicas (stats.json has
+// each agent's own).
+Status ServerCore::writeIngestSamples(const std::filesystem::path& file) const {
+  std::ofstream out(file);
+  out << "mission,agent,ingest_ms\n";
+  for (const auto& mission : missions_.missions()) {
+    for (const auto& shared : mission->agents()) {
+      auto record = shared->read();
+      for (double ms : record->ingest_ms.samples()) out << mission->name() << ',' << record->id << ',' << ms << '\n';
+    }
+  }
+  if (!out) return Error{ErrorCode::kIoError, "cannot write " + file.string()};
   return Status::Ok();
 }
 

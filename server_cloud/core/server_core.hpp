@@ -262,6 +262,7 @@ class ServerCore {
   // loadMission's steps: a record of the source renamed into mission report.as; and, on a replica, the copy and
   // the load under the mission's lease.
   static Status renameLoaded(StoreRecord& r, const LoadReport& report);
+  Status writeIngestSamples(const std::filesystem::path& file) const;
   Result<LoadReport> loadOnReplica(std::vector<StoreRecord>& records, std::size_t held, LoadReport report,
                                    Clock::time_point start);
 

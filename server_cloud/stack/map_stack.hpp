@@ -101,6 +101,8 @@ class LatencySamples {
     next_ = (next_ + 1) % kCapacity;
   }
   [[nodiscard]] std::size_t size() const { return ms_.size(); }
+  // The samples kept (the newest kCapacity), not in arrival order once the ring has wrapped.
+  [[nodiscard]] const std::vector<double>& samples() const { return ms_; }
   // The fraction-quantile (in [0, 1]) by nearest rank; 0 without samples.
   [[nodiscard]] double percentile(double fraction) const {
     std::vector<double> sorted = ms_;

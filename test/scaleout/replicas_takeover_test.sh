@@ -24,20 +24,8 @@ now() { date +%s.%N; }
 conninfo=$("$repo/deploy/local_postgres.sh" start "$work/pg")
 sql() { psql "$conninfo" -tAq -F ' ' -c "$1"; }
 
-# 1. The recording: one server with a SQLite store, two agents flying the excerpt one after the other.
-rec_port=$(port)
-"$bin/cvislam_server" --listen "127.0.0.1:$rec_port" --store "$work/recording.db" --quiet --no-gba \
-  >"$work/recorder.log" 2>&1 &
-recorder=$!
-pids+=("$recorder")
-# Generous: the scale-out tests also run under ThreadSanitizer (test/run_sanitizers.sh), which starts slowly.
-wait_for_line "$work/recorder.log" "listening on" 30 "the recording server" "$recorder" ||
-  fail "the recording server did not start (see $work/recorder.log)"
-for a in 0 1; do
-  "$bin/cvislam_agent" --dataset "$seq" --output "$work/agent$a" --pace realtime --quiet --server "127.0.0.1:$rec_port" \
-    --mission recorded --agent-id "$a" >"$work/agent$a.log" 2>&1 || fail "recording agent $a (see $work/agent$a.log)"
-done
-kill -INT "$recorder"; wait "$recorder" || fail "the recording server (see $work/recorder.log)"
+# 1. The recording: two agents flying the excerpt one after the other.
+record_agents "$seq" || fail "making the recording"
 
 # 2. Three replicas.
 ports=()
