@@ -1,9 +1,13 @@
 // Validates rendered Kubernetes manifests offline: every object against the Kubernetes schemas
 // (kubernetes-models), then the project's own rules, which the schemas cannot express. One line per object,
-// then "N passed, N failed". Run by deploy/k8s/check_manifests.sh, from the tools folder (ESM resolves
+// then "N passed, N failed". Run by deploy/check_deploy.sh, from the tools folder (ESM resolves
 // kubernetes-models from the script's own location):
 //
-//   node out/deploy-tools/validate.mjs RENDERED.yaml [...]
+//   node out/deploy-tools/validate.mjs [--metrics-source METRICS_ENDPOINT_CPP] RENDERED.yaml [...]
+//
+// --metrics-source: the server's metrics endpoint (server_cloud/service/metrics_endpoint.cpp), from which the
+// names of the metrics the server exports are read (every quoted "cvislam_..." string, as
+// deploy/grafana/check_dashboard.py reads them). Without it, an HPA or adapter rule that names a metric fails.
 //
 // Rules (each names the object and the field):
 //   - workloads: pinned images (a tag, never "latest"); CPU and memory requests and a memory limit per
@@ -11,9 +15,14 @@
 //   - the server: startup, readiness and liveness probes over gRPC, on a port the container declares;
 //   - a container with iceoryx (/dev/shm mounted) gets a memory emptyDir of at least 256 MiB there;
 //   - every ConfigMap, Secret and key a pod uses exists in the same render; every Service selects a workload
-//     and targets a port it declares.
+//     and targets a port it declares;
+//   - a HorizontalPodAutoscaler (autoscaling/v2) scales a StatefulSet or Deployment of the same render (and
+//     namespace) that sets no spec.replicas of its own; 1 <= minReplicas <= maxReplicas; it has metrics, and
+//     each Pods metric is one the server exports;
+//   - a prometheus-adapter rule (a ConfigMap value holding "rules:" with seriesQuery) names an exported metric
+//     when it names a cvislam_ one, and has a metricsQuery.
 import { readFileSync } from "node:fs";
-import { parseAllDocuments } from "yaml";
+import { parse, parseAllDocuments } from "yaml";
 
 const groupOf = (apiVersion) => {
   const parts = apiVersion.split("/");
@@ -130,9 +139,96 @@ function serviceRules(obj, workloads) {
   return errors;
 }
 
+// The metric names the server exports, read from its metrics endpoint's source.
+function exportedMetrics(source) {
+  const names = new Set([...readFileSync(source, "utf8").matchAll(/"(cvislam_[a-z0-9_]+)"/g)].map((m) => m[1]));
+  if (names.size === 0) throw new Error(`validate: no metric names found in ${source}`);
+  return names;
+}
+
+function metricExported(name, exported) {
+  if (!exported) return `metric ${name}: cannot check it against the server's metrics (give --metrics-source)`;
+  return exported.has(name) ? null : `metric ${name} is not one the server exports (server_cloud/service/metrics_endpoint.cpp)`;
+}
+
+const SCALABLE = new Set(["StatefulSet", "Deployment"]);
+
+function hpaRules(obj, docs, exported) {
+  if (obj.apiVersion !== "autoscaling/v2") return [`apiVersion ${obj.apiVersion}: use autoscaling/v2`];
+  const errors = [];
+  const spec = obj.spec ?? {};
+  const ref = spec.scaleTargetRef ?? {};
+  const namespace = obj.metadata?.namespace;
+  if (!SCALABLE.has(ref.kind)) {
+    errors.push(`spec.scaleTargetRef.kind ${ref.kind}: must be a StatefulSet or Deployment`);
+  } else {
+    const target = docs.find((o) => o.kind === ref.kind && o.metadata?.name === ref.name &&
+      o.metadata?.namespace === namespace);
+    if (!target) {
+      errors.push(`spec.scaleTargetRef: ${ref.kind} ${ref.name} is not in this render${namespace ? ` (namespace ${namespace})` : ""}`);
+    } else {
+      if (ref.apiVersion !== target.apiVersion) {
+        errors.push(`spec.scaleTargetRef.apiVersion ${ref.apiVersion}: the ${ref.kind} is ${target.apiVersion}`);
+      }
+      if (target.spec?.replicas !== undefined) {
+        errors.push(`spec.scaleTargetRef: ${ref.kind} ${ref.name} sets spec.replicas, which every apply resets under the HPA`);
+      }
+    }
+  }
+  const min = spec.minReplicas ?? 1;
+  if (!(Number.isInteger(min) && min >= 1)) errors.push(`spec.minReplicas ${min}: must be at least 1`);
+  if (!(Number.isInteger(spec.maxReplicas) && spec.maxReplicas >= min)) {
+    errors.push(`spec.maxReplicas ${spec.maxReplicas}: must be at least minReplicas (${min})`);
+  }
+  const metrics = spec.metrics ?? [];
+  if (metrics.length === 0) errors.push("spec.metrics: none");
+  for (const [i, m] of metrics.entries()) {
+    if (m.type !== "Pods") continue;
+    const problem = metricExported(m.pods?.metric?.name, exported);
+    if (problem) errors.push(`spec.metrics[${i}]: ${problem}`);
+  }
+  return errors;
+}
+
+// The rules of a prometheus-adapter config held in a ConfigMap value, or null when the value is not one.
+function adapterRulesOf(text) {
+  if (!/^rules:/m.test(String(text))) return null;
+  let config;
+  try {
+    config = parse(String(text));
+  } catch (e) {
+    return null;
+  }
+  const rules = config?.rules;
+  return Array.isArray(rules) && rules.some((r) => r?.seriesQuery) ? rules : null;
+}
+
+function adapterRules(obj, exported) {
+  const errors = [];
+  for (const [key, text] of Object.entries(obj.data ?? {})) {
+    for (const [i, rule] of (adapterRulesOf(text) ?? []).entries()) {
+      const where = `data.${key} rules[${i}]`;
+      if (!rule.metricsQuery) errors.push(`${where}: no metricsQuery`);
+      for (const name of String(rule.seriesQuery ?? "").match(/cvislam_[a-z0-9_]+/g) ?? []) {
+        const problem = metricExported(name, exported);
+        if (problem) errors.push(`${where}: seriesQuery: ${problem}`);
+      }
+    }
+  }
+  return errors;
+}
+
+const args = process.argv.slice(2);
+let exported = null;
+const at = args.indexOf("--metrics-source");
+if (at >= 0) {
+  exported = exportedMetrics(args[at + 1]);
+  args.splice(at, 2);
+}
+
 let passed = 0;
 let failed = 0;
-for (const file of process.argv.slice(2)) {
+for (const file of args) {
   const docs = parseAllDocuments(readFileSync(file, "utf8")).map((d) => d.toJS()).filter(Boolean);
   // names: "Kind/name" -> set of data keys (ConfigMaps and Secrets), for reference checks
   const names = new Map(docs.map((o) => [`${o.kind}/${o.metadata?.name}`,
@@ -143,6 +239,8 @@ for (const file of process.argv.slice(2)) {
     const errors = await schemaCheck(obj);
     if (podSpecOf(obj)) errors.push(...workloadRules(obj, names));
     if (obj.kind === "Service") errors.push(...serviceRules(obj, workloads));
+    if (obj.kind === "HorizontalPodAutoscaler") errors.push(...hpaRules(obj, docs, exported));
+    if (obj.kind === "ConfigMap") errors.push(...adapterRules(obj, exported));
     if (errors.length === 0) {
       passed += 1;
       console.log(`ok    ${id}`);
