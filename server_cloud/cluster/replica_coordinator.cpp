@@ -131,6 +131,11 @@ Result<MissionOwner> ReplicaCoordinator::claim(const std::string& mission) {
       return Error{ErrorCode::kUnavailable, "mission '" + mission + "' cannot be served now: " + *blocked};
     }
   }
+  if (takeoverGoesElsewhere(mission)) {
+    return Error{ErrorCode::kUnavailable, "mission '" + mission +
+                                              "' is between replicas (its owner's lease lapsed, and another live "
+                                              "replica takes it over within a second): connect again"};
+  }
   auto owner = acquireAndQueue(mission, /*by_takeover=*/false);
   if (!owner || !owner->here) return owner;
   std::unique_lock lock(state_mutex_);
@@ -359,40 +364,67 @@ void ReplicaCoordinator::renewLeases() {
   }
 }
 
+bool ReplicaCoordinator::takeoverGoesElsewhere(const std::string& mission) {
+  std::vector<std::string> lapsed;
+  std::vector<ReplicaLoad> live;
+  {
+    std::lock_guard db(db_mutex_);
+    Result<std::optional<Lease>> lease = leases_->find(mission);
+    // A new mission, a live lease (acquire() names its holder) or an unreadable one: the claim goes on as before.
+    if (!lease || !*lease || (*lease)->remaining_s > 0.0) return false;
+    auto all_lapsed = leases_->lapsed();
+    auto all_live = leases_->liveReplicas();
+    if (!all_lapsed || !all_live) return false;
+    lapsed = std::move(*all_lapsed);
+    live = std::move(*all_live);
+  }
+  {
+    std::lock_guard lock(state_mutex_);
+    const auto seen = lapsed_seen_.find(mission);
+    if (seen != lapsed_seen_.end() && Clock::now() - seen->second >= cache_ttl_ * 3) return false;  // overdue
+  }
+  const std::vector<std::string> mine = takeoverShare(lapsed, live, leases_->options().holder);
+  return std::find(mine.begin(), mine.end(), mission) == mine.end();
+}
+
+ReplicaCoordinator::Candidates ReplicaCoordinator::noteLapsed(const std::vector<std::string>& lapsed) {
+  const auto now = Clock::now();
+  const auto whole_ttl = std::chrono::duration_cast<Clock::duration>(cache_ttl_ * 3);
+  Candidates out;
+  std::lock_guard lock(state_mutex_);
+  std::map<std::string, Clock::time_point> seen;
+  for (const std::string& mission : lapsed) {
+    auto it = lapsed_seen_.find(mission);
+    const Clock::time_point since = it == lapsed_seen_.end() ? now : it->second;
+    seen.emplace(mission, since);
+    if (stopping_ || served_.count(mission) != 0U || loading_.count(mission) != 0U) continue;
+    if (blockedLocked(mission, now)) continue;
+    out.all.push_back(mission);
+    if (now - since >= whole_ttl) out.overdue.push_back(mission);
+  }
+  lapsed_seen_ = std::move(seen);
+  return out;
+}
+
 void ReplicaCoordinator::queueTakeovers() {
   Result<std::vector<std::string>> lapsed = [&] {
     std::lock_guard db(db_mutex_);
     return leases_->lapsed();
   }();
   if (!lapsed) return;
-  const auto now = Clock::now();
-  const auto whole_ttl = std::chrono::duration_cast<Clock::duration>(cache_ttl_ * 3);
-  std::vector<std::string> candidates;
-  std::vector<std::string> overdue;  // lapsed for a whole TTL: whoever looks takes them
-  {
-    std::lock_guard lock(state_mutex_);
-    std::map<std::string, Clock::time_point> seen;
-    for (const std::string& mission : *lapsed) {
-      auto it = lapsed_seen_.find(mission);
-      const Clock::time_point since = it == lapsed_seen_.end() ? now : it->second;
-      seen.emplace(mission, since);
-      if (stopping_ || served_.count(mission) != 0U || loading_.count(mission) != 0U) continue;
-      if (blockedLocked(mission, now)) continue;
-      candidates.push_back(mission);
-      if (now - since >= whole_ttl) overdue.push_back(mission);
-    }
-    lapsed_seen_ = std::move(seen);
-  }
-  if (candidates.empty()) return;
+  const Candidates candidates = noteLapsed(*lapsed);
+  if (candidates.all.empty()) return;
   Result<std::vector<ReplicaLoad>> live = [&] {
     std::lock_guard db(db_mutex_);
     return leases_->liveReplicas();
   }();
   // Without the list of replicas, this one takes what it sees, as one replica alone would.
-  std::vector<std::string> mine = live ? takeoverShare(*lapsed, *live, leases_->options().holder) : candidates;
-  std::set<std::string> take(overdue.begin(), overdue.end());
+  std::vector<std::string> mine = live ? takeoverShare(*lapsed, *live, leases_->options().holder) : candidates.all;
+  std::set<std::string> take(candidates.overdue.begin(), candidates.overdue.end());
   for (const std::string& mission : mine) {
-    if (std::find(candidates.begin(), candidates.end(), mission) != candidates.end()) take.insert(mission);
+    if (std::find(candidates.all.begin(), candidates.all.end(), mission) != candidates.all.end()) {
+      take.insert(mission);
+    }
   }
   for (const std::string& mission : take) {
     if (has_room_ && !has_room_()) return;

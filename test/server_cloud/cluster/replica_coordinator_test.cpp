@@ -282,6 +282,43 @@ TEST_F(ReplicaCoordinatorTest, TheMissionsOfADeadReplicaAreSharedOverTheLiveOnes
   EXPECT_EQ(a->counters().taken_over + b->counters().taken_over, 6U);
 }
 
+// The agents of a dead replica all reconnect to the next replica in their lists. Their Hellos must not pull every
+// mission there: a Hello for a lapsed mission is taken only where the share puts it, and the others are told to
+// connect again while the share's replica takes them over.
+TEST_F(ReplicaCoordinatorTest, HellosForADeadReplicasMissionsFollowTheShareNotTheReplicaTheyReach) {
+  auto a = coordinator("replica/a");
+  auto b = coordinator("replica/b");
+  auto c = coordinator("replica/c");
+  for (auto* r : {a.get(), b.get(), c.get()}) r->start();
+  for (const char* m : {"a1", "a2"}) ASSERT_TRUE(claimServed(*a, m).ok());
+  for (const char* m : {"b1", "b2"}) ASSERT_TRUE(claimServed(*b, m).ok());
+  const std::vector<std::string> of_c = {"c1", "c2", "c3", "c4", "c5", "c6"};
+  for (const std::string& m : of_c) ASSERT_TRUE(claimServed(*c, m).ok());
+  c.reset();
+  // c's heartbeat and leases lapse now, not after the TTL; then every agent of c says Hello to a at once.
+  auto sql = PgConnection::open(conninfo_, "test");
+  ASSERT_TRUE(sql.ok());
+  ASSERT_TRUE((*sql)
+                  ->execScript("UPDATE cvislam_replicas SET expires_at = now() - interval '1 second' WHERE holder = "
+                               "'replica/c'; UPDATE cvislam_leases SET expires_at = now() - interval '1 second' "
+                               "WHERE holder = 'replica/c'")
+                  .ok());
+  int told_to_come_back = 0;
+  for (const std::string& m : of_c) {
+    auto answer = a->claim(m);
+    if (!answer.ok() && answer.error().message().find("between replicas") != std::string::npos) ++told_to_come_back;
+  }
+  for (int i = 0; i < 100 && a->served().size() + b->served().size() < 10; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  a->waitForLoads();
+  b->waitForLoads();
+  std::printf("Hellos at a: %d of 6 told to connect again; a serves %zu, b serves %zu\n", told_to_come_back,
+              a->served().size(), b->served().size());
+  EXPECT_EQ(a->served().size(), 5U);
+  EXPECT_EQ(b->served().size(), 5U);
+}
+
 // A replica that shuts down cleanly removes its heartbeat and releases its missions: the others share them at
 // their next look, without waiting for a TTL.
 TEST_F(ReplicaCoordinatorTest, AReplicaThatLeavesCleanlyHasItsMissionsSharedAtOnce) {
