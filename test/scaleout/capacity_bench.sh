@@ -86,6 +86,9 @@ source "$repo/test/scaleout/lib.sh"
 scaleout_work capacity
 cpu_s() { awk -v hz="$(getconf CLK_TCK)" '{print ($14 + $15) / hz}' "/proc/$1/stat" 2>/dev/null || echo 0; }
 
+# The machine's busy and total jiffies (all cores, /proc/stat): a step whose machine was near 1.0 busy measured
+# the machine, not the replicas' budgets.
+machine_cpu() { awk '/^cpu / {idle = $5 + $6; total = 0; for (i = 2; i <= NF; i++) total += $i; print total - idle, total}' /proc/stat; }
 rss_mb() { awk '/^VmHWM:/ {print $2 / 1024}' "/proc/$1/status" 2>/dev/null || echo 0; }
 
 if [ "$budgets" = 1 ]; then
@@ -121,13 +124,8 @@ for R in "${r_list[@]}"; do
       p=$(port); ports+=("$p")
       replica=("$bin/cvislam_server" --listen "127.0.0.1:$p" --postgres "$ci" --replica "r$r" --quiet
         --output "$step/out$r" "${server_args[@]}")
-      if [ "$budgets" = 1 ]; then
-        cgroup_make "r${R}_a${N}_replica$r" "$replica_cpus"
-        cgroup_run "r${R}_a${N}_replica$r" "${replica[@]}" >"$step/replica$r.log" 2>&1 &
-      else
-        "${replica[@]}" >"$step/replica$r.log" 2>&1 &
-      fi
-      replica_pids+=("$!"); pids+=("$!")
+      run_budgeted "r${R}_a${N}_replica$r" "$replica_cpus" "$step/replica$r.log" "${replica[@]}"
+      replica_pids+=("$started_pid"); pids+=("$started_pid")
     done
     for ((r = 0; r < R; r++)); do
       wait_for_line "$step/replica$r.log" "listening on" 10 "replica r$r" "${replica_pids[$r]}" || exit 1
@@ -136,6 +134,7 @@ for R in "${r_list[@]}"; do
     # CPU is counted from here: a replica's start-up (its vocabulary) is not the agents' cost.
     for p in "${replica_pids[@]}"; do cpu_at_start+=("$(cpu_s "$p")"); done
     started=$(date +%s.%N)
+    read -r busy_at_start total_at_start < <(machine_cpu)
     for ((m = 0; m < missions; m++)); do
       first=$(( m % R )) list=""
       for ((k = 0; k < R; k++)); do list+="${list:+,}127.0.0.1:${ports[$(( (first + k) % R ))]}"; done
@@ -152,6 +151,8 @@ for R in "${r_list[@]}"; do
     replays_ok=1
     for p in "${replay_pids[@]}"; do wait "$p" || replays_ok=0; done
     wall=$(python3 -c "import time;print(round(time.time() - $started, 1))")
+    read -r busy_now total_now < <(machine_cpu)
+    machine_busy=$(python3 -c "print(round(($busy_now - $busy_at_start) / max(1, $total_now - $total_at_start), 2))")
     for ((r = 0; r < R; r++)); do
       p=${replica_pids[$r]}
       stat=""
@@ -159,10 +160,15 @@ for R in "${r_list[@]}"; do
       cpu=$(python3 -c "print(round($(cpu_s "$p") - ${cpu_at_start[$r]}, 2))")
       echo "{\"cpu_s\": $cpu, \"rss_mb\": $(rss_mb "$p")$stat}" > "$step/replica$r.json"
     done
+    # PostgreSQL's CPU for this step: its backends for the step's database (they live as long as the replicas'
+    # connections), measured before the replicas end them.
+    pg_cpu=0
+    for p in $(pgrep -f "postgres: postgres $db "); do pg_cpu=$(python3 -c "print(round($pg_cpu + $(cpu_s "$p"), 2))"); done
+    echo "{\"cpu_s\": $pg_cpu}" > "$step/postgres.json"
     for p in "${replica_pids[@]}"; do kill -INT "$p" 2>/dev/null || true; done
     for p in "${replica_pids[@]}"; do wait "$p" 2>/dev/null || true; done
     line=$(python3 "$repo/test/scaleout/capacity_step.py" "$step" "$missions" "$R" "$bound_ms" "$wall" "$replays_ok" \
-      "$replica_cpus")
+      "$replica_cpus" "$machine_busy")
     steps+=("$line")
     python3 - "$line" <<'PY'
 import json, sys
@@ -170,6 +176,7 @@ r = json.loads(sys.argv[1])
 f = lambda v, d=0: "-" if v is None else f"{v:.{d}f}"
 budget = f"  budget used {f(r['budget_used'], 2)}, throttled {r['throttled_periods']}/{r['periods']} periods" \
     if r["replica_cpu_budget"] else ""
+budget += f", machine busy {f(r['machine_busy'], 2)}"
 print(f"replicas {r['replicas']}  agents {r['agents']:3d} ({r['missions']} missions)  acked {r['acked']}/{r['batches']}  "
       f"ingest p50 {f(r['ingest_ms_p50_median'])} ms  p99 worst agent {f(r['ingest_ms_p99_worst'])} ms, pooled "
       f"{f(r['ingest_ms_p99_pooled'])} ms (during GBA {f(r['ingest_during_gba_ms_p99_worst'])})  ack p50/p99 "

@@ -23,6 +23,7 @@ def pct(values, q):
 def main():
     step, missions, replicas, bound = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
     wall, replays_ok, budget = float(sys.argv[5]), sys.argv[6] == "1", float(sys.argv[7])
+    machine_busy = float(sys.argv[8]) if len(sys.argv) > 8 else None
     ok = replays_ok
     agents = []
     for m in range(missions):
@@ -57,6 +58,10 @@ def main():
     merged = [m["match_to_merged_s"] for m in merges if m.get("match_to_merged_s", -1) >= 0]
     optimised = [m["match_to_optimised_s"] for m in merges if m.get("match_to_optimised_s", -1) >= 0]
     cpu = sum(x["cpu_s"] for x in measured)
+    try:
+        postgres_cpu = json.load(open(f"{step}/postgres.json"))["cpu_s"]
+    except (OSError, ValueError, KeyError):
+        postgres_cpu = None
     row = {
         "replicas": replicas, "agents": len(agents), "missions": missions, "finished": bool(finished),
         "ingest_ms_p50_median": pct([a["ingest_ms"]["p50"] for a in served], 0.5),
@@ -68,13 +73,21 @@ def main():
         "batches": sum(a["batches"] for a in agents), "acked": sum(a["acked"] for a in agents),
         "redirects": sum(a["redirects"] for a in agents), "wall_s": wall,
         "server_cpu_s": round(cpu, 1),
+        "postgres_cpu_s": postgres_cpu,  # its backends for the step's database
         "replica_cpu_budget": budget or None,
         # The replicas' use of what their budget allowed over the step (1: every period's quota spent).
         "budget_used": round(cpu / (budget * replicas * wall), 2) if budget > 0 and wall > 0 else None,
+        "machine_busy": machine_busy,  # the whole machine's busy share over the step (all processes)
         "throttled_periods": sum(x.get("nr_throttled", 0) for x in measured),
         "periods": sum(x.get("nr_periods", 0) for x in measured),
         "throttled_s": round(sum(x.get("throttled_s", 0.0) for x in measured), 1),
         "replica_rss_mb_max": max((x["rss_mb"] for x in measured), default=None),
+        "replica_rss_mb_sum": round(sum(x["rss_mb"] for x in measured), 1),
+        # What the replicas held at the end (after redundancy removal), for memory per keyframe and point.
+        "server_keyframes": sum(int(a.get("server_keyframes", 0)) for a in served),
+        "server_points": sum(int(a.get("points", 0)) for a in served),
+        "uplink_bytes": sum(int(a.get("up", {}).get("message", {}).get("bytes", 0)) for a in served),
+        "downlink_bytes": sum(int(a.get("down", {}).get("message", {}).get("bytes", 0)) for a in served),
         "merges": len(merges),
         "match_to_merged_s_p50": pct(merged, 0.5), "match_to_merged_s_p99": pct(merged, 0.99),
         "match_to_optimised_s_p50": pct(optimised, 0.5), "match_to_optimised_s_p99": pct(optimised, 0.99),

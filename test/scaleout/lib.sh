@@ -80,6 +80,18 @@ cgroup_run() {  # cgroup_run SUB COMMAND...: runs COMMAND in the group (in the b
   echo "$BASHPID" > "$g/cgroup.procs"
   exec "$@"
 }
+run_budgeted() {  # run_budgeted GROUP CPUS LOG COMMAND...: COMMAND in the background, in a new group of CPUS cores
+  # when `budgets` is 1 (else as it is), its output to LOG; sets `started_pid`
+  local group=$1 cpus=$2 log=$3
+  shift 3
+  if [ "${budgets:-0}" = 1 ]; then
+    cgroup_make "$group" "$cpus"
+    cgroup_run "$group" "$@" >"$log" 2>&1 &
+  else
+    "$@" >"$log" 2>&1 &
+  fi
+  started_pid=$!
+}
 cgroup_move() {  # cgroup_move SUB PID...: moves running processes into the group
   local g="$cgroup_dir/$1" p
   shift
