@@ -328,6 +328,13 @@ Result<std::vector<MissionOwner>> ReplicaCoordinator::others() {
 }
 
 void ReplicaCoordinator::renewLeases() {
+  // Only what was served before the renewal can have been lost: a mission whose load ends while the renewal runs
+  // was acquired after (or during) it, so its lease is not among those renewed and yet is this replica's.
+  std::set<std::string> served_before;
+  {
+    std::lock_guard lock(state_mutex_);
+    served_before = served_;
+  }
   Result<std::vector<std::string>> renewed = [&]() -> Result<std::vector<std::string>> {
     std::lock_guard renewing(renew_mutex_);
     if (Status beat = renewals_->heartbeat(); !beat.ok()) return beat.error();
@@ -345,7 +352,7 @@ void ReplicaCoordinator::renewLeases() {
     const std::set<std::string> still(renewed->begin(), renewed->end());
     std::lock_guard lock(state_mutex_);
     for (auto it = served_.begin(); it != served_.end();) {
-      if (still.count(*it) != 0U) {
+      if (still.count(*it) != 0U || served_before.count(*it) == 0U) {
         ++it;
         continue;
       }
@@ -381,7 +388,7 @@ bool ReplicaCoordinator::takeoverGoesElsewhere(const std::string& mission) {
   {
     std::lock_guard lock(state_mutex_);
     const auto seen = lapsed_seen_.find(mission);
-    if (seen != lapsed_seen_.end() && Clock::now() - seen->second >= cache_ttl_ * 3) return false;  // overdue
+    if (seen != lapsed_seen_.end() && Clock::now() - seen->second >= overdueAfter()) return false;
   }
   const std::vector<std::string> mine = takeoverShare(lapsed, live, leases_->options().holder);
   return std::find(mine.begin(), mine.end(), mission) == mine.end();
@@ -389,7 +396,6 @@ bool ReplicaCoordinator::takeoverGoesElsewhere(const std::string& mission) {
 
 ReplicaCoordinator::Candidates ReplicaCoordinator::noteLapsed(const std::vector<std::string>& lapsed) {
   const auto now = Clock::now();
-  const auto whole_ttl = std::chrono::duration_cast<Clock::duration>(cache_ttl_ * 3);
   Candidates out;
   std::lock_guard lock(state_mutex_);
   std::map<std::string, Clock::time_point> seen;
@@ -400,7 +406,7 @@ ReplicaCoordinator::Candidates ReplicaCoordinator::noteLapsed(const std::vector<
     if (stopping_ || served_.count(mission) != 0U || loading_.count(mission) != 0U) continue;
     if (blockedLocked(mission, now)) continue;
     out.all.push_back(mission);
-    if (now - since >= whole_ttl) out.overdue.push_back(mission);
+    if (now - since >= overdueAfter()) out.overdue.push_back(mission);
   }
   lapsed_seen_ = std::move(seen);
   return out;

@@ -12,7 +12,7 @@
 //     thread. Lapsed missions are shared out over the live replicas, each in turn to the one that serves fewest
 //     (takeoverShare()); every replica computes the same share from the database and takes only its own, so that
 //     the missions of a dead replica spread instead of all going to the first replica that looks. A mission that
-//     stays lapsed for a whole TTL (its replica has no room, or died too) is taken by whoever looks next. A Hello
+//     stays lapsed for two TTLs (its replica has no room, or died too) is taken by whoever looks next. A Hello
 //     for a lapsed mission follows the same share: it is taken where it arrives only when the share says so, and
 //     is otherwise told to connect again (by then the share's replica holds it, and redirects follow).
 //   - After a load the lease is read again: a mission whose lease lapsed or moved while it loaded is dropped, not
@@ -119,7 +119,7 @@ class ReplicaCoordinator final : public MissionOwnership {
   using Clock = std::chrono::steady_clock;
 
   // Lapsed missions this replica could take now (not served, loading or backing off here), and those of them
-  // lapsed for a whole TTL, which it takes whatever the share says.
+  // lapsed for overdueAfter(), which it takes whatever the share says.
   struct Candidates {
     std::vector<std::string> all;
     std::vector<std::string> overdue;
@@ -129,6 +129,9 @@ class ReplicaCoordinator final : public MissionOwnership {
   // replica (and it is not overdue), so that agents reconnecting all to the next replica in their lists do not pull
   // a dead replica's missions there; the renewal thread of the replica the share names takes it.
   bool takeoverGoesElsewhere(const std::string& mission);
+  // How long a lapsed mission waits for the replica the share gives it before any replica takes it: two TTLs, so
+  // that a replica whose renewal thread runs late (a CPU budget spent, a slow database) still takes its share.
+  [[nodiscard]] Clock::duration overdueAfter() const { return cache_ttl_ * 6; }
   // Remembers since when each mission has been seen lapsed, and says which this replica could take.
   Candidates noteLapsed(const std::vector<std::string>& lapsed);
   void queueTakeovers();

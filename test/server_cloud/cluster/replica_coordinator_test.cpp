@@ -25,6 +25,9 @@ using ::testing::HasSubstr;
 using ::testing::IsEmpty;
 
 constexpr double kTtlS = 1.0;  // the shortest lease allowed: renewals every 1/3 s
+// The sharing tests count where each mission went, so no live replica may lose a lease because its renewal ran
+// late on a loaded machine: they use the default TTL and make the dead replica's leases lapse in SQL.
+constexpr double kSharingTtlS = 3.0;
 
 // What the core would do with its missions, recorded.
 struct FakeCore {
@@ -67,9 +70,21 @@ struct FakeCore {
 
 class ReplicaCoordinatorTest : public PostgresTest {
  protected:
-  std::unique_ptr<ReplicaCoordinator> coordinator(const std::string& holder, ReplicaOptions options = {}) {
+  std::unique_ptr<ReplicaCoordinator> coordinator(const std::string& holder, ReplicaOptions options = {},
+                                                  double ttl_s = kTtlS) {
     return std::make_unique<ReplicaCoordinator>(
-        leases(holder, kTtlS), leases(holder, kTtlS), core_.loader(), core_.dropper(), [] { return true; }, options);
+        leases(holder, ttl_s), leases(holder, ttl_s), core_.loader(), core_.dropper(), [] { return true; }, options);
+  }
+  // What a holder's death leaves once its TTL has passed: its heartbeat and leases lapsed (made so in SQL).
+  void lapse(const std::string& holder) {
+    auto c = PgConnection::open(conninfo_, "test");
+    ASSERT_TRUE(c.ok());
+    ASSERT_TRUE((*c)->exec("UPDATE cvislam_replicas SET expires_at = now() - interval '1 second' WHERE holder = $1",
+                           PgParams().text(holder))
+                    .ok());
+    ASSERT_TRUE((*c)->exec("UPDATE cvislam_leases SET expires_at = now() - interval '1 second' WHERE holder = $1",
+                           PgParams().text(holder))
+                    .ok());
   }
   // Another replica takes the mission over in one statement, as its acquire after a lapse would (done in one step
   // so that the coordinator's running renewals cannot slip in between a lapse and the acquire).
@@ -91,6 +106,20 @@ class ReplicaCoordinatorTest : public PostgresTest {
       owner = c.claim(mission);
     }
     return owner;
+  }
+  // Replicas a, b and c running, serving two, two and six missions (kOfC).
+  struct ThreeReplicas {
+    std::unique_ptr<ReplicaCoordinator> a, b, c;
+  };
+  static inline const std::vector<std::string> kOfC = {"c1", "c2", "c3", "c4", "c5", "c6"};
+  ThreeReplicas threeReplicas() {
+    ThreeReplicas r{coordinator("replica/a", {}, kSharingTtlS), coordinator("replica/b", {}, kSharingTtlS),
+                    coordinator("replica/c", {}, kSharingTtlS)};
+    for (auto* each : {r.a.get(), r.b.get(), r.c.get()}) each->start();
+    for (const char* m : {"a1", "a2"}) EXPECT_TRUE(claimServed(*r.a, m).ok()) << m;
+    for (const char* m : {"b1", "b2"}) EXPECT_TRUE(claimServed(*r.b, m).ok()) << m;
+    for (const std::string& m : kOfC) EXPECT_TRUE(claimServed(*r.c, m).ok()) << m;
+    return r;
   }
   FakeCore core_;
 };
@@ -252,20 +281,15 @@ TEST(TakeoverShareTest, EachLapsedMissionGoesToTheReplicaServingFewestAndTheShar
 }
 
 // Replica c dies holding six missions while a and b serve two each: a and b share c's missions (three each)
-// instead of the first to look taking all six, each is loaded once more, and c, which left no heartbeat behind
-// it that lives, gets none of them.
+// instead of the first to look taking all six, and each is loaded once more.
 TEST_F(ReplicaCoordinatorTest, TheMissionsOfADeadReplicaAreSharedOverTheLiveOnes) {
-  auto a = coordinator("replica/a");
-  auto b = coordinator("replica/b");
-  auto c = coordinator("replica/c");
-  for (auto* r : {a.get(), b.get(), c.get()}) r->start();
-  for (const char* m : {"a1", "a2"}) ASSERT_TRUE(claimServed(*a, m).ok());
-  for (const char* m : {"b1", "b2"}) ASSERT_TRUE(claimServed(*b, m).ok());
-  const std::vector<std::string> of_c = {"c1", "c2", "c3", "c4", "c5", "c6"};
-  for (const std::string& m : of_c) ASSERT_TRUE(claimServed(*c, m).ok());
-  c.reset();  // dies: its threads stop, nothing is released; its heartbeat and leases lapse after the TTL
+  ThreeReplicas r = threeReplicas();
+  ASSERT_FALSE(HasFailure());
+  auto& [a, b, c] = r;
+  c.reset();  // dies: its threads stop, nothing is released
+  lapse("replica/c");
 
-  for (int i = 0; i < 100 && a->served().size() + b->served().size() < 10; ++i) {
+  for (int i = 0; i < 300 && a->served().size() + b->served().size() < 10; ++i) {  // 15 s at most
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
   a->waitForLoads();
@@ -276,7 +300,7 @@ TEST_F(ReplicaCoordinatorTest, TheMissionsOfADeadReplicaAreSharedOverTheLiveOnes
   EXPECT_EQ(on_a.size() + on_b.size(), 10U);
   EXPECT_EQ(on_a.size(), 5U);
   EXPECT_EQ(on_b.size(), 5U);
-  for (const std::string& m : of_c) {
+  for (const std::string& m : kOfC) {
     EXPECT_EQ(core_.loadsOf(m), 2) << m;  // once by c, once by its new owner
   }
   EXPECT_EQ(a->counters().taken_over + b->counters().taken_over, 6U);
@@ -286,29 +310,17 @@ TEST_F(ReplicaCoordinatorTest, TheMissionsOfADeadReplicaAreSharedOverTheLiveOnes
 // mission there: a Hello for a lapsed mission is taken only where the share puts it, and the others are told to
 // connect again while the share's replica takes them over.
 TEST_F(ReplicaCoordinatorTest, HellosForADeadReplicasMissionsFollowTheShareNotTheReplicaTheyReach) {
-  auto a = coordinator("replica/a");
-  auto b = coordinator("replica/b");
-  auto c = coordinator("replica/c");
-  for (auto* r : {a.get(), b.get(), c.get()}) r->start();
-  for (const char* m : {"a1", "a2"}) ASSERT_TRUE(claimServed(*a, m).ok());
-  for (const char* m : {"b1", "b2"}) ASSERT_TRUE(claimServed(*b, m).ok());
-  const std::vector<std::string> of_c = {"c1", "c2", "c3", "c4", "c5", "c6"};
-  for (const std::string& m : of_c) ASSERT_TRUE(claimServed(*c, m).ok());
+  ThreeReplicas r = threeReplicas();
+  ASSERT_FALSE(HasFailure());
+  auto& [a, b, c] = r;
   c.reset();
-  // c's heartbeat and leases lapse now, not after the TTL; then every agent of c says Hello to a at once.
-  auto sql = PgConnection::open(conninfo_, "test");
-  ASSERT_TRUE(sql.ok());
-  ASSERT_TRUE((*sql)
-                  ->execScript("UPDATE cvislam_replicas SET expires_at = now() - interval '1 second' WHERE holder = "
-                               "'replica/c'; UPDATE cvislam_leases SET expires_at = now() - interval '1 second' "
-                               "WHERE holder = 'replica/c'")
-                  .ok());
+  lapse("replica/c");  // then every agent of c says Hello to a at once
   int told_to_come_back = 0;
-  for (const std::string& m : of_c) {
+  for (const std::string& m : kOfC) {
     auto answer = a->claim(m);
     if (!answer.ok() && answer.error().message().find("between replicas") != std::string::npos) ++told_to_come_back;
   }
-  for (int i = 0; i < 100 && a->served().size() + b->served().size() < 10; ++i) {
+  for (int i = 0; i < 300 && a->served().size() + b->served().size() < 10; ++i) {  // 15 s at most
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
   a->waitForLoads();
@@ -322,9 +334,9 @@ TEST_F(ReplicaCoordinatorTest, HellosForADeadReplicasMissionsFollowTheShareNotTh
 // A replica that shuts down cleanly removes its heartbeat and releases its missions: the others share them at
 // their next look, without waiting for a TTL.
 TEST_F(ReplicaCoordinatorTest, AReplicaThatLeavesCleanlyHasItsMissionsSharedAtOnce) {
-  auto a = coordinator("replica/a");
-  auto b = coordinator("replica/b");
-  auto c = coordinator("replica/c");
+  auto a = coordinator("replica/a", {}, kSharingTtlS);
+  auto b = coordinator("replica/b", {}, kSharingTtlS);
+  auto c = coordinator("replica/c", {}, kSharingTtlS);
   for (auto* r : {a.get(), b.get(), c.get()}) r->start();
   for (const char* m : {"c1", "c2", "c3", "c4"}) ASSERT_TRUE(claimServed(*c, m).ok());
   ASSERT_TRUE(c->release().ok());
@@ -338,7 +350,7 @@ TEST_F(ReplicaCoordinatorTest, AReplicaThatLeavesCleanlyHasItsMissionsSharedAtOn
   b->waitForLoads();
   EXPECT_EQ(a->served().size(), 2U);
   EXPECT_EQ(b->served().size(), 2U);
-  EXPECT_LT(took_s, kTtlS) << "the released missions waited for a TTL";
+  EXPECT_LT(took_s, kSharingTtlS) << "the released missions waited for a TTL";
 }
 
 }  // namespace
