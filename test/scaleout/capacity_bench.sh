@@ -150,14 +150,19 @@ for R in "${r_list[@]}"; do
     done
     replays_ok=1
     for p in "${replay_pids[@]}"; do wait "$p" || replays_ok=0; done
-    wall=$(python3 -c "import time;print(round(time.time() - $started, 1))")
+    # The replicas' CPU and the clock are read together, at once: the replicas keep running while the figures
+    # below are worked out, and on a short step that time would count against the budget.
+    ended=$(date +%s.%N)
+    cpu_at_end=()
+    for p in "${replica_pids[@]}"; do cpu_at_end+=("$(cpu_s "$p")"); done
     read -r busy_now total_now < <(machine_cpu)
+    wall=$(python3 -c "print(round($ended - $started, 2))")
     machine_busy=$(python3 -c "print(round(($busy_now - $busy_at_start) / max(1, $total_now - $total_at_start), 2))")
     for ((r = 0; r < R; r++)); do
       p=${replica_pids[$r]}
       stat=""
       [ "$budgets" = 1 ] && stat=", $(cgroup_stat "r${R}_a${N}_replica$r")"
-      cpu=$(python3 -c "print(round($(cpu_s "$p") - ${cpu_at_start[$r]}, 2))")
+      cpu=$(python3 -c "print(round(${cpu_at_end[$r]} - ${cpu_at_start[$r]}, 2))")
       echo "{\"cpu_s\": $cpu, \"rss_mb\": $(rss_mb "$p")$stat}" > "$step/replica$r.json"
     done
     # PostgreSQL's CPU for this step: its backends for the step's database (they live as long as the replicas'
