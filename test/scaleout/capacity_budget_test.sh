@@ -10,11 +10,9 @@
 set -euo pipefail
 bin=${1:?usage: $0 BIN_DIR}
 repo=$(cd "$(dirname "$0")/../.." && pwd)
-data=${CVISLAM_DATA_DIR:-$repo/../shared/data}
-seq="$data/euroc-v101-excerpt"
-if [ ! -d "$seq/mav0" ]; then echo "SKIPPED: no $seq (set CVISLAM_DATA_DIR)"; exit 77; fi
 if [ "$(id -u)" != 0 ]; then echo "SKIPPED: CPU budgets need root (cgroups)"; exit 77; fi
 source "$repo/test/scaleout/lib.sh"
+v101_excerpt  # sets seq, or skips
 # A machine without a usable cgroup cpu controller cannot run budgets at all: say so and skip, rather than fail.
 if ! (cgroup_init "cvislam-probe-$$" && rmdir "$cgroup_dir"); then
   echo "SKIPPED: no cgroup cpu controller to run CPU budgets in (see above)"

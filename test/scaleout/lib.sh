@@ -15,6 +15,10 @@ scaleout_cleanup() {
   cgroup_cleanup
   if [ "${keep:-0}" = 0 ]; then rm -rf "$work"; else echo "logs kept in $work"; fi
 }
+v101_excerpt() {  # sets `seq` to the real EuRoC V1_01 excerpt, or exits 77 (CTest: skipped) saying where it looked
+  seq="${CVISLAM_DATA_DIR:-$repo/../shared/data}/euroc-v101-excerpt"
+  if [ ! -d "$seq/mav0" ]; then echo "SKIPPED: no $seq (set CVISLAM_DATA_DIR)"; exit 77; fi
+}
 # record_agents SEQUENCE: $work/recording.db, a server's SQLite store of mission "recorded", in which two
 # cvislam_agent processes (ids 0 and 1, with `bin` set) flew SEQUENCE one after the other at real-time pace; the
 # agents' outputs in $work/agent0 and agent1. Says what failed and where its log is.

@@ -13,10 +13,8 @@
 set -euo pipefail
 bin=${1:?usage: $0 BIN_DIR}
 repo=$(cd "$(dirname "$0")/../.." && pwd)
-data=${CVISLAM_DATA_DIR:-$repo/../shared/data}
-seq="$data/euroc-v101-excerpt"
-if [ ! -d "$seq/mav0" ]; then echo "SKIPPED: no $seq (set CVISLAM_DATA_DIR)"; exit 77; fi
 source "$repo/test/scaleout/lib.sh"
+v101_excerpt  # sets seq, or skips
 scaleout_work scaleout
 fail() { echo "FAILED: $*" >&2; keep=1; exit 1; }
 now() { date +%s.%N; }
