@@ -140,8 +140,8 @@ def report_backend(out, mission, server_agents, summary):
         refined = [c["match_to_optimised_s"] for c in changes if c.get("match_to_optimised_s", -1) >= 0]
         section["match_to_corrected_s"] = corrected
         section["match_to_refined_s"] = refined
-        print(f"match or loop -> map corrected (the merge's BA around the match and pose graph, or the loop's pose "
-              f"graph): {spread(corrected)}")
+        print(f"match or loop -> map corrected (the merge's rigid correction, or the loop's pose graph): "
+              f"{spread(corrected)}")
         print(f"match or loop -> map refined by the GBA after it: {spread(refined)}")
         print(f"new keyframes fused with their covisible and nearby keyframes: {section['new_keyframes_fused']} "
               f"({section['new_keyframe_links']} keypoints linked, {section['new_keyframe_point_merges']} points "

@@ -385,13 +385,14 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   const std::optional<HoldGba> hold = options_.merge_correction_keyframes > 0
                                           ? std::make_optional<HoldGba>(*this, mission.name(), into->id())
                                           : std::nullopt;
-  // The query's map goes, so a GBA of it would be for nothing. A GBA of the candidate's map goes on, unless a
-  // correction is to follow: the merge adds keyframes and points and moves none of the map's own, so the GBA's
-  // result still applies, and the merged keyframes keep their state until the GBA the merge requests. Cutting it
-  // short instead throws its work away, and with merges coming faster than GBAs finish (many agents meeting one
-  // after another) a growing map would get no GBA applied at all.
+  // The query's map goes, so a GBA of it would be for nothing. A GBA of the candidate's map goes on: the merge
+  // adds keyframes and points and moves none of the map's own, and the correction moves only the query map's,
+  // which that GBA's snapshot does not hold, so its result still applies, and the merged keyframes keep their
+  // state until the GBA the merge requests. Cutting it short instead throws its work away, and with merges coming
+  // faster than GBAs finish (many agents meeting one after another) a growing map would get no GBA applied at all.
+  // The hold above only keeps a GBA from starting during the correction: its snapshot would have the query map
+  // before the correction, and its change applied after it would correct that map a second time.
   cancelGba(mission.name(), from->id());
-  if (hold) cancelGba(mission.name(), into->id());
   const AgentSensorsMap sensors = sensorsOf(mission);
   const CameraTable cameras(sensors);
 
@@ -472,7 +473,7 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
         recognition::KeyframeEvent::Kind::kMerged, mission.name(), into->id(), {}, from->id()});
   }
   record.match_to_merged_s = secondsSince(arrived);
-  if (options_.merge_correction_keyframes > 0 && correctMerge(mission, state, into, match, query_keyframes, record)) {
+  if (options_.merge_correction_keyframes > 0 && correctMerge(mission, into, match, query_keyframes, record)) {
     record.match_to_corrected_s = secondsSince(arrived);
   }
   std::size_t index = 0;
@@ -486,34 +487,33 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   }
 }
 
-bool BackendWorker::correctMerge(Mission& mission, MissionState& state, const std::shared_ptr<ServerMap>& into,
+bool BackendWorker::correctMerge(Mission& mission, const std::shared_ptr<ServerMap>& into,
                                  const recognition::VerifiedMatch& match,
                                  const std::unordered_set<KeyframeId>& query_keyframes, MergeRecord& record) {
   const trace::Span span("merge_correction", {{"mission", trace::missionKey(mission.name())}, {"map", into->id()}});
   const AgentSensorsMap sensors = sensorsOf(mission);
-  std::vector<LoopEdge> loops;
-  {
-    const std::lock_guard lock(mutex_);
-    loops = state.loops[into->id()];
-  }
-  // What both solves need, copied under the read lock; the solves without a lock.
-  Result<MergeCorrectionInput> input = copyMergeCorrection(
-      *into->read(), match, query_keyframes, options_.merge_correction_keyframes, sensors, loops, options_.pose_graph);
+  // What the solve needs, copied under the read lock; the solve without a lock.
+  Result<MergeCorrectionInput> input =
+      copyMergeCorrection(*into->read(), match, query_keyframes, options_.merge_correction_keyframes, sensors);
   if (!input) return false;
   if (options_.on_merge_correction_solve_start) options_.on_merge_correction_solve_start(into->id());
   const auto start = Clock::now();
-  Result<MergeCorrection> correction = solveMergeCorrection(*input, options_.merge_correction_ba, options_.pose_graph);
+  Result<MergeCorrection> correction = solveMergeCorrection(*input, options_.merge_correction_ba);
   if (!correction) return false;
   record.correction_solve_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   record.correction_ba = correction->ba;
-  record.correction_graph = correction->graph;
-  const Move moved = moveOf(correction->keyframes, match.query);
-  record.correction_m = moved.m;
-  record.correction_deg = moved.deg;
+  record.correction_change = correction->change;
+  record.correction_keyframes = static_cast<int>(correction->keyframes.size());
+  record.correction_m = correction->query_moved_m;
+  record.correction_deg = correction->query_moved_deg;
   StackLocks locks(mission, {into});
-  // Like a loop's pose graph, the correction does not mark keyframes refined: the GBA that follows does.
-  (void)applyToMission(mission, locks, into->id(), correction->keyframes, correction->points,
-                       ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes, &correction->unchanged},
+  // The query's map moves rigidly: its keyframes keep their standing (refined or not), and its agents' frames
+  // follow the same change.
+  (void)applyToMission(mission, locks, into->id(), correction->keyframes, {},
+                       ApplyOptions{.marks_refined = false,
+                                    .frame_window = options_.frame_follows_keyframes,
+                                    .held = nullptr,
+                                    .keeps_standing = true},
                        "merge correction");
   return true;
 }

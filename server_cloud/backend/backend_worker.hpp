@@ -75,14 +75,12 @@ struct BackendOptions {
   // this (either bound); smaller loops wait for the next GBA, so long solves are not thrown away again and again.
   double loop_cancels_gba_m = 0.05;
   double loop_cancels_gba_deg = 0.5;
-  // Right after a merge, before its GBA (which takes seconds on a large map): a BA of the keyframes around the
-  // match, the query's and the candidate's this many most covisible ones each, over the points just fused, with
-  // the candidate map's keyframes around them held; then a pose graph carries the query map's other keyframes
-  // along. The match's transform alone is off by a few cm (the recognition's estimate from one keyframe);
-  // this takes that out in a fraction of a second. 0 (the default): the transform alone until the GBA. Off because
-  // on the simulated euroc-mh mono mission it made the agents' onboard estimates worse (1.2-1.4 cm to 1.9-3.2 cm,
-  // mean of five agents) while the server's map was as good; 10 is what was measured.
-  int merge_correction_keyframes = 0;
+  // Right after a merge, before its GBA (which takes seconds on a large map): a BA of the query keyframe and its
+  // this many most covisible keyframes of the query's map against the candidate's map, and the one 4-DoF change
+  // that fits their moves applied to the whole query map (merge_correction.hpp). The match's transform alone is
+  // off by a few cm (the recognition's estimate from one keyframe); this takes that out in a fraction of a second
+  // and keeps each map as consistent as it was. 0: the transform alone until the GBA.
+  int merge_correction_keyframes = 10;
   // The GBA after a merge into a map of more than this many keyframes frees only the part the merge changed: the
   // keyframes of the agent maps of the smaller of the two maps joined (those their agents add meanwhile
   // included); the others that see their points are held. With many agents over one place every keyframe sees
@@ -119,10 +117,12 @@ struct MergeRecord {
   FusionReport fusion;
   double apply_ms = 0.0;           // under the locks
   double match_to_merged_s = 0.0;  // from the match's arrival to the joined map
-  // The correction right after the merge (merge_correction_keyframes): the BA around the match, the pose graph
-  // of the rest, how far they moved the query keyframe, and when the map held it.
+  // The correction right after the merge (merge_correction_keyframes): the BA of the query's window, the rigid
+  // change it gave the query's map and how many keyframes that moved, how far it moved the query keyframe, and
+  // when the map held it.
   GlobalBaSummary correction_ba;
-  PoseGraphSummary correction_graph;
+  geometry::SE3d correction_change;
+  int correction_keyframes = 0;
   double correction_m = 0.0;
   double correction_deg = 0.0;
   double correction_solve_ms = 0.0;    // both solves, no lock held
@@ -233,9 +233,8 @@ class BackendWorker {
              std::chrono::steady_clock::time_point arrived);
   // The merge's correction (merge_correction_keyframes) of `into`, which now holds the query's map; false when
   // it could not be made (the record says nothing of it then).
-  bool correctMerge(Mission& mission, MissionState& state, const std::shared_ptr<ServerMap>& into,
-                    const recognition::VerifiedMatch& match, const std::unordered_set<KeyframeId>& query_keyframes,
-                    MergeRecord& record);
+  bool correctMerge(Mission& mission, const std::shared_ptr<ServerMap>& into, const recognition::VerifiedMatch& match,
+                    const std::unordered_set<KeyframeId>& query_keyframes, MergeRecord& record);
   void closeLoop(Mission& mission, MissionState& state, const recognition::VerifiedMatch& match,
                  std::chrono::steady_clock::time_point arrived);
   void handleKeyframes(const Event& event);

@@ -508,8 +508,10 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     change.emplace(c.id, delta);
     by_time[{kf->id.agent, kf->agent_map}].emplace(kf->t_ns, TimedChange{delta, kf->T_w_s.translation()});
     kf->T_w_s = delta * kf->T_w_s;
-    kf->refined = options.marks_refined;
-    kf->provisional = !options.marks_refined;
+    if (!options.keeps_standing) {
+      kf->refined = options.marks_refined;
+      kf->provisional = !options.marks_refined;
+    }
     if (c.velocity_bias_after) {
       // The solve estimated velocity and biases: they replace the held ones (an agent update meanwhile is lost).
       kf->v_w = c.velocity_bias_after->first;
@@ -538,7 +540,7 @@ AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeC
     ServerKeyframe* kf = map.keyframe(id);
     kf->T_w_s = delta * kf->T_w_s;
     kf->v_w = delta.so3() * kf->v_w;
-    if (!options.marks_refined) kf->provisional = true;
+    if (!options.marks_refined && !options.keeps_standing) kf->provisional = true;
     change.emplace(id, delta);
     ++applied.keyframes_propagated;
     applied.changed.push_back(id);

@@ -205,6 +205,9 @@ struct ApplyOptions {
   // Keyframes a windowed solve held: they stay as they are, where any other keyframe without a correction is
   // taken to have arrived meanwhile and is carried along.
   const std::unordered_set<KeyframeId>* held = nullptr;
+  // A rigid move of a whole map part (a merge's correction) leaves every keyframe's state as good as it was:
+  // neither flag changes.
+  bool keeps_standing = false;
 };
 // Applies corrections computed on a snapshot to the map as it is now (see the header comment).
 AppliedCorrections applyCorrections(MapContent& map, const std::vector<KeyframeCorrection>& keyframes,

@@ -5,81 +5,93 @@
 #include <unordered_map>
 #include <utility>
 
+#include "server_cloud/backend/map_fusion.hpp"
+
 namespace cvislam::server::backend {
 
 namespace {
 
 using geometry::SE3d;
 
-// The keyframes around a match: the query's and the candidate's `n` most covisible ones each, with themselves.
-std::unordered_set<KeyframeId> aroundMatch(const MapContent& map, const recognition::VerifiedMatch& match, int n) {
-  std::unordered_set<KeyframeId> out{match.query, match.candidate};
-  for (const KeyframeId& centre : {match.query, match.candidate}) {
-    std::vector<std::pair<int, KeyframeId>> ranked;
-    for (const auto& [other, shared] : map.covisible(centre)) ranked.emplace_back(shared, other);
-    const auto count = std::min<std::size_t>(ranked.size(), static_cast<std::size_t>(n));
-    std::partial_sort(
-        ranked.begin(), ranked.begin() + static_cast<std::ptrdiff_t>(count), ranked.end(),
-        [](const auto& a, const auto& b) { return a.first > b.first || (a.first == b.first && a.second < b.second); });
-    for (std::size_t i = 0; i < count; ++i) out.insert(ranked[i].second);
+// The query keyframe and its `n` most covisible keyframes among those of its own map.
+std::unordered_set<KeyframeId> queryWindow(const MapContent& map, const KeyframeId& query,
+                                           const std::unordered_set<KeyframeId>& query_keyframes, int n) {
+  std::vector<std::pair<int, KeyframeId>> ranked;
+  for (const auto& [other, shared] : map.covisible(query)) {
+    if (query_keyframes.count(other) != 0) ranked.emplace_back(shared, other);
   }
+  const auto count = std::min<std::size_t>(ranked.size(), static_cast<std::size_t>(n));
+  std::partial_sort(
+      ranked.begin(), ranked.begin() + static_cast<std::ptrdiff_t>(count), ranked.end(),
+      [](const auto& a, const auto& b) { return a.first > b.first || (a.first == b.first && a.second < b.second); });
+  std::unordered_set<KeyframeId> out{query};
+  for (std::size_t i = 0; i < count; ++i) out.insert(ranked[i].second);
   return out;
-}
-
-// Readies the pose graph once the BA has placed `placed` (see the header). Returns the keyframes held where they
-// are.
-std::unordered_set<KeyframeId> holdForMerge(PoseGraph& graph, const std::vector<KeyframeCorrection>& placed,
-                                            const std::unordered_set<KeyframeId>& query_keyframes) {
-  std::erase_if(graph.edges, [&](const PoseGraph::Edge& e) {
-    return query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.a)].id) !=
-           query_keyframes.count(graph.nodes[static_cast<std::size_t>(e.b)].id);
-  });
-  std::unordered_map<KeyframeId, SE3d> after;
-  for (const KeyframeCorrection& c : placed) after.emplace(c.id, c.T_w_s_after);
-  std::unordered_set<KeyframeId> unchanged;
-  for (PoseGraph::Node& node : graph.nodes) {
-    if (const auto it = after.find(node.id); it != after.end()) {
-      node.held_at = it->second;
-    } else if (query_keyframes.count(node.id) == 0) {
-      node.held_at = node.T_w_s;
-      unchanged.insert(node.id);
-    }
-  }
-  return unchanged;
 }
 
 }  // namespace
 
+SE3d fitFourDofChange(const std::vector<SE3d>& before, const std::vector<SE3d>& after) {
+  // Rotation: the normalised mean of the changes' quaternions (sign-aligned; they differ by little), its yaw.
+  const Eigen::Quaterniond q_ref = (after.front().so3() * before.front().so3().inverse()).quaternion();
+  Eigen::Vector4d q_sum = Eigen::Vector4d::Zero();
+  Eigen::Vector3d before_sum = Eigen::Vector3d::Zero();
+  Eigen::Vector3d after_sum = Eigen::Vector3d::Zero();
+  for (std::size_t i = 0; i < before.size(); ++i) {
+    const Eigen::Quaterniond q = (after[i].so3() * before[i].so3().inverse()).quaternion();
+    q_sum += (q.coeffs().dot(q_ref.coeffs()) < 0.0 ? -1.0 : 1.0) * q.coeffs();
+    before_sum += before[i].translation();
+    after_sum += after[i].translation();
+  }
+  const Eigen::Quaterniond q_mean(Eigen::Vector4d(q_sum.normalized()));
+  const double yaw = yawOf(q_mean.toRotationMatrix());
+  const geometry::SO3d R_yaw = geometry::SO3d::exp(Eigen::Vector3d(0.0, 0.0, yaw));
+  // Given the rotation, the translation that fits the positions: the centroids.
+  const auto n = static_cast<double>(before.size());
+  return SE3d(R_yaw, (after_sum - (R_yaw * before_sum)) / n);
+}
+
 Result<MergeCorrectionInput> copyMergeCorrection(const MapContent& map, const recognition::VerifiedMatch& match,
                                                  std::unordered_set<KeyframeId> query_keyframes, int keyframes,
-                                                 const AgentSensorsMap& sensors, const std::vector<LoopEdge>& loops,
-                                                 const PoseGraphOptions& options) {
-  if (map.keyframe(match.query) == nullptr || map.keyframe(match.candidate) == nullptr) {
+                                                 const AgentSensorsMap& sensors) {
+  const ServerKeyframe* query = map.keyframe(match.query);
+  if (query == nullptr || map.keyframe(match.candidate) == nullptr) {
     return Error{ErrorCode::kFailedPrecondition, "the match's keyframes left the map before its correction"};
   }
   GbaWindow window;
-  window.free = aroundMatch(map, match, keyframes);
+  window.free = queryWindow(map, match.query, query_keyframes, keyframes);
   for (const KeyframeId& id : query_keyframes) {
     if (window.free.count(id) == 0) window.left_out.insert(id);
   }
   Result<GbaSnapshot> snapshot = makeGbaSnapshot(map, sensors, &window);
   if (!snapshot) return snapshot.error();
-  return MergeCorrectionInput{std::move(*snapshot), buildPoseGraph(map, loops, options), std::move(query_keyframes)};
+  return MergeCorrectionInput{std::move(*snapshot), std::move(window.free), std::move(query_keyframes), match.query,
+                              query->T_w_s.translation()};
 }
 
-Result<MergeCorrection> solveMergeCorrection(MergeCorrectionInput& input, const GlobalBaOptions& ba_options,
-                                             const PoseGraphOptions& graph_options) {
+Result<MergeCorrection> solveMergeCorrection(MergeCorrectionInput& input, const GlobalBaOptions& ba_options) {
   Result<GlobalBaSummary> ba = runGlobalBa(input.window, ba_options);
   if (!ba) return ba.error();
+  std::vector<SE3d> before;
+  std::vector<SE3d> after;
+  for (const GbaKeyframe& kf : input.window.keyframes) {
+    if (kf.held || input.window_keyframes.count(kf.id) == 0) continue;
+    before.push_back(kf.T_w_s_before);
+    after.push_back(kf.T_w_s);
+  }
+  if (before.empty()) {
+    return Error{ErrorCode::kFailedPrecondition, "the merge correction's BA held every keyframe of its window"};
+  }
   MergeCorrection out;
   out.ba = *ba;
-  out.keyframes = keyframeCorrections(input.window);
-  out.points = pointCorrections(input.window);
-  out.unchanged = holdForMerge(input.graph, out.keyframes, input.query_keyframes);
-  Result<std::vector<KeyframeCorrection>> carried = solvePoseGraph(input.graph, graph_options);
-  if (!carried) return carried.error();
-  out.graph = input.graph.summary;
-  out.keyframes.insert(out.keyframes.end(), carried->begin(), carried->end());
+  out.change = fitFourDofChange(before, after);
+  if (!out.change.matrix().allFinite()) {
+    return Error{ErrorCode::kFailedPrecondition, "the merge correction's fit is not finite"};
+  }
+  out.query_moved_m = (out.change * input.p_query_before - input.p_query_before).norm();
+  out.query_moved_deg = out.change.so3().log().norm() * 180.0 / M_PI;
+  out.keyframes.reserve(input.query_keyframes.size());
+  for (const KeyframeId& id : input.query_keyframes) out.keyframes.push_back({id, SE3d(), out.change, std::nullopt});
   return out;
 }
 

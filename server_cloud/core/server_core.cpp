@@ -540,7 +540,7 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                        {{"ba_keyframes", m.correction_ba.keyframes},
                         {"ba_points", m.correction_ba.points},
                         {"ba_iterations", m.correction_ba.structure_iterations + m.correction_ba.full_iterations},
-                        {"graph_keyframes", m.correction_graph.keyframes},
+                        {"moved_keyframes", m.correction_keyframes},
                         {"query_moved_m", m.correction_m},
                         {"query_moved_deg", m.correction_deg},
                         {"solve_ms", m.correction_solve_ms}}},

@@ -312,6 +312,13 @@ void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the
   const BackendStats stats = worker.stats("m");
   ASSERT_EQ(stats.loops.size(), 1U);
   ASSERT_EQ(stats.merges.size(), 1U);
+  if (hold_the_correction) {
+    // Map 1's GBA, running when the merge came, went on and was applied: the correction moves only map 2's
+    // keyframes, which its snapshot did not hold.
+    ASSERT_FALSE(stats.gba.empty());
+    EXPECT_EQ(stats.gba[0].map, map1->id());
+    EXPECT_FALSE(stats.gba[0].summary.cancelled);
+  }
   EXPECT_GE(stats.loops[0].match_to_optimised_s, 0.0) << "the loop's waiter went with its map";
   EXPECT_GE(stats.merges[0].match_to_optimised_s, 0.0);
   EXPECT_EQ(mission->stack().find(map2->id()), nullptr);

@@ -6,11 +6,13 @@
 #include <cstdint>
 #include <map>
 #include <memory>
+#include <vector>
 
 #include <gtest/gtest.h>
 
 #include "server_cloud/backend/backend_worker.hpp"
 #include "server_cloud/backend/map_fusion.hpp"
+#include "server_cloud/backend/merge_correction.hpp"
 #include "test/server_cloud/backend/backend_test_maps.hpp"
 #include "test/support/vi_scenario.hpp"
 
@@ -34,11 +36,12 @@ class MergeTest : public BackendWorkerTest {
   std::shared_ptr<ServerMap> addAgent2(const test::ViScenario& s, int first, int last) {
     return addAgent(s, AgentPlan{.agent = 2, .first = first, .last = last, .E = [](int) { return kT_2_truth; }});
   }
-  // No redundancy removal and no fusion of new keyframes: the merge alone changes the maps.
+  // No redundancy removal, no fusion of new keyframes and no merge correction: the merge alone changes the maps.
   static BackendOptions mergeOnly() {
     BackendOptions options;
     options.redundancy.enabled = false;
     options.fuse_new_keyframes = false;
+    options.merge_correction_keyframes = 0;
     return options;
   }
   // Agent 2's keyframe `query` seen from agent 1's `candidate`, with the transform between the maps off by `error`.
@@ -91,8 +94,8 @@ TEST_F(MergeTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesItsPointsA
   const SE3d T_m_w = agent2->agent_maps.at(0).T_m_w;
   EXPECT_LT((T_m_w * kT_2_truth).translation().norm(), 0.05);
   EXPECT_EQ(agent2->keyframes.at(9).map, map1->id());
-  // Watchers of the mission saw the merge, the correction right after it (here a BA of all 16 keyframes: each is
-  // among the 10 most covisible of the query or the candidate), then the GBA's.
+  // Watchers of the mission saw the merge, the correction right after it (it moves agent 2's 8 keyframes, the
+  // query's map, as one), then the GBA's.
   const auto events = mission_->events().read(1, 100).events;
   ASSERT_GE(events.size(), 3U);
   EXPECT_EQ(events[0].kind, MissionEvent::Kind::kMapsMerged);
@@ -100,7 +103,7 @@ TEST_F(MergeTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesItsPointsA
   EXPECT_EQ(events[0].from_map, map2->id());
   EXPECT_EQ(events[1].kind, MissionEvent::Kind::kMapCorrected);
   EXPECT_EQ(events[1].cause, "merge correction");
-  EXPECT_EQ(events[1].keyframes, 16U);
+  EXPECT_EQ(events[1].keyframes, 8U);
   EXPECT_EQ(events[2].kind, MissionEvent::Kind::kMapCorrected);
   EXPECT_EQ(events[2].cause, "global BA");
   EXPECT_EQ(events[2].keyframes, 16U);
@@ -108,13 +111,38 @@ TEST_F(MergeTest, AMapMatchMergesTheQueryMapWithTheKnownTransformFusesItsPointsA
   EXPECT_LE(stats.merges[0].match_to_corrected_s, stats.merges[0].match_to_optimised_s);
 }
 
-// The match's transform comes from one keyframe and is a few cm off. The correction right after the merge (a BA
-// around the match over the fused points, a pose graph for the rest of the query's map) takes that out before any
-// GBA has run: the test holds the GBA after its snapshot and looks at the map meanwhile.
-TEST_F(MergeTest, AMergesCorrectionTakesOutTheMatchsErrorBeforeAnyGbaRuns) {
+// Agent `agent`'s keyframes in `map`, with their state's standing.
+struct HeldPose {
+  SE3d T_w_s;
+  bool refined = false;
+  bool provisional = false;
+};
+std::map<std::uint32_t, HeldPose> posesOf(const MapContent& map, AgentId agent) {
+  std::map<std::uint32_t, HeldPose> out;
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (id.agent == agent) out.emplace(id.counter, HeldPose{kf.T_w_s, kf.refined, kf.provisional});
+  }
+  return out;
+}
+
+// The match's transform comes from one keyframe and is a few cm off. The correction right after the merge (a BA of
+// the query's window over the fused points, and the 4-DoF change that fits it, applied to the query's whole map)
+// takes that out before any GBA has run: the test holds the GBA after its snapshot and looks at the map meanwhile.
+// The query's map moves as one: every relative pose within it, each keyframe's standing and the agent's frame
+// against its own keyframes stay as they were.
+TEST_F(MergeTest, AMergesCorrectionTakesOutTheMatchsErrorBeforeAnyGbaRunsAndMovesTheQueryMapRigidly) {
   const test::ViScenario s = scenario(32, 0.5, 0.3);
   const auto map1 = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 15});
   const auto map2 = addAgent2(s, 8, 31);
+  {
+    // Some of agent 2's keyframes refined by an earlier GBA, the rest not: the correction keeps both as they are.
+    auto content = map2->write();
+    std::vector<KeyframeId> ids;
+    for (const auto& [id, kf] : content->keyframes()) ids.push_back(id);
+    for (const KeyframeId& id : ids) content->keyframe(id)->refined = id.counter % 2 == 0;
+  }
+  const std::map<std::uint32_t, HeldPose> before = posesOf(*map2->read(), 2);
+  const SE3d T_m_w_before = mission_->findAgent(2)->read()->agent_maps.at(0).T_m_w;
 
   BackendOptions options = mergeOnly();
   options.merge_correction_keyframes = 10;
@@ -135,27 +163,45 @@ TEST_F(MergeTest, AMergesCorrectionTakesOutTheMatchsErrorBeforeAnyGbaRuns) {
         std::max(rigid_error, (p - s.keyframe_states[static_cast<std::size_t>(k)].T_w_s.translation()).norm());
   }
   ASSERT_GT(rigid_error, 0.05);
+  const BackendStats during = worker.stats("m");
+  ASSERT_EQ(during.merges.size(), 1U);
+  const MergeRecord& merge = during.merges[0];
   {
     const auto merged = map1->read();
     EXPECT_TRUE(merged->checkConsistency().ok());
     EXPECT_LT(maxPositionError(*merged, s, 2), 0.01) << "the transform alone: " << rigid_error;
     EXPECT_LT(maxPositionError(*merged, s, 1), 0.005) << "agent 1's map stays where it is";
+    // Rigid: the merge's transform and the correction's change move every keyframe of agent 2 alike.
+    const SE3d change = merge.correction_change * T_into_from;
+    const std::map<std::uint32_t, HeldPose> after = posesOf(*merged, 2);
+    ASSERT_EQ(after.size(), before.size());
+    for (const auto& [counter, held] : after) {
+      const HeldPose& was = before.at(counter);
+      const SE3d residual = held.T_w_s * (change * was.T_w_s).inverse();
+      EXPECT_LT(residual.translation().norm(), 1e-9) << "keyframe " << counter;
+      EXPECT_LT(residual.so3().log().norm(), 1e-9) << "keyframe " << counter;
+      EXPECT_EQ(held.refined, was.refined) << "keyframe " << counter;
+      EXPECT_EQ(held.provisional, was.provisional) << "keyframe " << counter;
+    }
+    // 4 DoF: gravity stays where the agents' IMUs put it.
+    EXPECT_LT(merge.correction_change.so3().log().head<2>().norm(), 1e-12);
+    // The agent's frame moved with its map, so its own keyframes sent down match its local map as before.
+    const SE3d T_m_w = mission_->findAgent(2)->read()->agent_maps.at(0).T_m_w;
+    const SE3d frame_residual = T_m_w * (change * T_m_w_before).inverse();
+    EXPECT_LT(frame_residual.translation().norm(), 1e-9);
+    EXPECT_LT(frame_residual.so3().log().norm(), 1e-9);
   }
-  const BackendStats during = worker.stats("m");
-  ASSERT_EQ(during.merges.size(), 1U);
-  const MergeRecord& merge = during.merges[0];
   EXPECT_TRUE(during.gba.empty()) << "no GBA has finished";
   EXPECT_GE(merge.match_to_corrected_s, merge.match_to_merged_s);
   EXPECT_GT(merge.correction_m, 0.03);
-  // The BA covered the window and its held border, not the whole map; the pose graph all of it.
+  // The BA covered the query's window and its held border, not the whole map; the change all of agent 2's map.
   EXPECT_LT(merge.correction_ba.keyframes, 40);
-  EXPECT_EQ(merge.correction_graph.keyframes, 40);
+  EXPECT_EQ(merge.correction_keyframes, 24);
   const auto events = mission_->events().read(1, 100).events;
   ASSERT_EQ(events.size(), 2U);
   EXPECT_EQ(events[0].kind, MissionEvent::Kind::kMapsMerged);
   EXPECT_EQ(events[1].cause, "merge correction");
-  // Agent 2's keyframes outside the window were carried too: every one of its keyframes changed.
-  EXPECT_GE(events[1].keyframes, 24U);
+  EXPECT_EQ(events[1].keyframes, 24U);
 
   gate.release();
   worker.drain(false);
@@ -163,6 +209,28 @@ TEST_F(MergeTest, AMergesCorrectionTakesOutTheMatchsErrorBeforeAnyGbaRuns) {
   ASSERT_EQ(after.gba.size(), 1U);
   EXPECT_GE(after.merges[0].match_to_optimised_s, after.merges[0].match_to_corrected_s);
   EXPECT_LT(maxPositionError(*map1->read(), s, 2), 0.01);
+}
+
+// The change is fitted to the window's moves: a known 4-DoF change comes back from moves that also carry noise and
+// roll and pitch, which it drops.
+TEST(FitFourDofChange, RecoversAKnownChangeFromNoisyMovesAndDropsRollAndPitch) {
+  const SE3d truth(SO3d::exp(Vector3d(0.0, 0.0, 0.02)), Vector3d(0.05, -0.03, 0.02));
+  std::vector<SE3d> before;
+  std::vector<SE3d> after;
+  for (int i = 0; i < 10; ++i) {
+    const SE3d pose(SO3d::exp(Vector3d(0.1, -0.05, 0.3 * i)), Vector3d(2.0 + 0.4 * i, 1.0 - 0.2 * i, 0.3 * (i % 3)));
+    // Each move off the truth by up to 2 mm and 0.06 deg, alternating, including about x and y.
+    const double sign = i % 2 == 0 ? 1.0 : -1.0;
+    const SE3d noise(SO3d::exp(sign * Vector3d(0.001, 0.001, 0.001)), sign * Vector3d(0.002, -0.001, 0.002));
+    before.push_back(pose);
+    after.push_back(noise * truth * pose);
+  }
+  const SE3d fitted = fitFourDofChange(before, after);
+  EXPECT_LT(fitted.so3().log().head<2>().norm(), 1e-12) << "yaw only";
+  EXPECT_NEAR(fitted.so3().log().z(), 0.02, 2e-4);
+  for (const SE3d& pose : before) {
+    EXPECT_LT(((fitted * pose).translation() - (truth * pose).translation()).norm(), 3e-3);
+  }
 }
 
 // On a large map (gba_window_above_keyframes) the GBA after a merge frees what the merge changed: the keyframes
