@@ -188,7 +188,8 @@ class MappingLoop {
       const AnchorMessage& m = *taken.value();
       // Where the server's corrections and covisible map reach the agent's map: the end of a keyframe's journey.
       const trace::Span span("apply_downlink", {{"downlink", static_cast<std::int64_t>(m.sequence)},
-                                                {"corrections", static_cast<std::int64_t>(m.correction_count)}});
+                                                {"corrections", static_cast<std::int64_t>(m.correction_count)},
+                                                {"covisible", static_cast<std::int64_t>(m.has_covisible)}});
       tsanAcquire(&m);
       auto applied = mapper_.applyDownlink(m);
       tsanRelease(&m);

@@ -110,8 +110,15 @@ int merge(const MergeCommand& command) {
         "  (%zu merges after which some agent of the merged map applied no correction before its trace ended)\n",
         journeys.merges_not_reaching_every_agent);
   }
+  if (journeys.merges_not_reaching_every_agent_corrected_map > 0) {
+    std::printf(
+        "  (%zu merges after which some agent of the merged map applied nothing of the corrected map before its trace "
+        "ended)\n",
+        journeys.merges_not_reaching_every_agent_corrected_map);
+  }
   summary["keyframes"] = journeys.keyframes;
   summary["merges_not_reaching_every_agent"] = journeys.merges_not_reaching_every_agent;
+  summary["merges_not_reaching_every_agent_corrected_map"] = journeys.merges_not_reaching_every_agent_corrected_map;
 
   if (!command.output.empty()) {
     std::ofstream out(command.output, std::ios::binary | std::ios::trunc);

@@ -199,6 +199,7 @@ struct AgentIndex {
   std::map<std::int64_t, std::int64_t> batch_of, map_of;
   std::map<std::int64_t, double> map_ready;  // when the agent's map's frame became final (its keyframes may go)
   std::vector<const TraceRecord*> corrections_applied;  // apply_downlink spans carrying corrections, by time
+  std::vector<const TraceRecord*> content_applied;      // ... carrying corrections or a covisible map, by time
 
   explicit AgentIndex(const ProcessTrace& t) {
     for (const TraceRecord& r : t.records) {
@@ -215,6 +216,7 @@ struct AgentIndex {
     for (const TraceRecord* r : named(t, "map_ready")) map_ready.emplace(r->arg("map"), r->ts_us);
     for (const TraceRecord* r : named(t, "apply_downlink")) {
       if (r->arg("corrections", 0) > 0) corrections_applied.push_back(r);
+      if (r->arg("corrections", 0) > 0 || r->arg("covisible", 0) > 0) content_applied.push_back(r);
     }
   }
 
@@ -234,6 +236,73 @@ struct AgentIndex {
 using AgentKeyframe = std::pair<std::int64_t, std::int64_t>;
 
 }  // namespace
+
+// Each agent's downlink messages as the server built them, by time.
+std::map<std::int64_t, std::vector<const TraceRecord*>> buildsByAgent(const ProcessTrace& server) {
+  std::map<std::int64_t, std::vector<const TraceRecord*>> out;
+  for (const TraceRecord* r : named(server, "downlink_build")) out[r->arg("agent")].push_back(r);
+  return out;
+}
+
+bool carriesMap(const TraceRecord& r) {
+  return r.arg("corrections", 0) > 0 || r.arg("covisible", 0) > 0;
+}
+
+// When a merge's map was first corrected after it: the end of its merge correction, else of the map's first GBA.
+double correctedUs(const ProcessTrace& server, const TraceRecord& merge) {
+  const auto ofMap = [&](const TraceRecord& r) { return r.arg("map") == merge.arg("map"); };
+  if (const TraceRecord* c = firstFrom(named(server, "merge_correction"), merge.ts_us, ofMap)) return c->endUs();
+  if (const TraceRecord* g = firstFrom(named(server, "global_ba"), merge.endUs(), ofMap)) return g->endUs();
+  return -1.0;
+}
+
+// Per merge: when every agent of the merged map held the corrected map. The first downlink message the server
+// built for an agent after the map's first correction says: carrying corrections or covisible keyframes, the agent
+// holds the corrected map once it applied that message (the first it applied with either since); carrying
+// neither, nothing the agent holds had changed, so it held it when that message was built.
+void followCorrectedMaps(const ProcessTrace& server, const std::map<std::int64_t, AgentIndex>& by_agent,
+                         const std::map<AgentKeyframe, const TraceRecord*>& queried, Journeys& j) {
+  const auto builds = buildsByAgent(server);
+  const std::vector<const TraceRecord*> members = named(server, "merged_map_agent");
+  for (const TraceRecord* merge : named(server, "merge")) {
+    std::vector<std::int64_t> agents;
+    for (const TraceRecord* member : members) {
+      if (member->ts_us >= merge->ts_us && member->ts_us <= merge->endUs() && member->tid == merge->tid &&
+          member->arg("map") == merge->arg("map")) {
+        agents.push_back(member->arg("agent"));
+      }
+    }
+    if (agents.empty()) continue;  // a stale match: its maps were one already
+    const auto q = queried.find({merge->arg("agent"), merge->arg("keyframe")});
+    const double match_us = q != queried.end() ? q->second->endUs() : merge->ts_us;
+    const double corrected_us = correctedUs(server, *merge);
+    double last_us = match_us;
+    bool every = corrected_us >= 0.0;
+    for (std::size_t i = 0; every && i < agents.size(); ++i) {
+      const auto built = builds.find(agents[i]);
+      const TraceRecord* first = built == builds.end()
+                                     ? nullptr
+                                     : firstFrom(built->second, corrected_us, [](const TraceRecord&) { return true; });
+      const auto a = by_agent.find(agents[i]);
+      double held_us = -1.0;
+      if (first != nullptr && !carriesMap(*first)) {
+        held_us = first->endUs();
+      } else if (first != nullptr && a != by_agent.end()) {
+        if (const TraceRecord* applied =
+                firstFrom(a->second.content_applied, first->endUs(), [](const TraceRecord&) { return true; })) {
+          held_us = applied->ts_us;
+        }
+      }
+      every = held_us >= 0.0;
+      last_us = std::max(last_us, held_us);
+    }
+    if (every) {
+      j.match_to_all_agents_holding_corrected_map_ms.push_back((last_us - match_us) * 1e-3);
+    } else {
+      ++j.merges_not_reaching_every_agent_corrected_map;
+    }
+  }
+}
 
 Journeys followKeyframes(const ProcessTrace& server, const std::vector<ProcessTrace>& agents) {
   Journeys j;
@@ -301,12 +370,14 @@ Journeys followKeyframes(const ProcessTrace& server, const std::vector<ProcessTr
     const double match_us = q != queried.end() ? q->second->endUs() : merge->ts_us;
     double last_us = match_us;
     bool every = false;
+    int members_found = 0;
     for (const TraceRecord* member : members) {
       if (member->ts_us < merge->ts_us || member->ts_us > merge->endUs() || member->tid != merge->tid ||
           member->arg("map") != merge->arg("map")) {
         continue;
       }
       every = true;
+      ++members_found;
       const auto a = by_agent.find(member->arg("agent"));
       const TraceRecord* applied = a == by_agent.end() ? nullptr : a->second.correctionsFrom(member->ts_us);
       if (applied == nullptr) {
@@ -315,12 +386,14 @@ Journeys followKeyframes(const ProcessTrace& server, const std::vector<ProcessTr
       }
       last_us = std::max(last_us, applied->ts_us);
     }
+    if (!every && members_found == 0) continue;  // a stale match: its maps were one already
     if (every) {
       j.match_to_all_agents_corrected_ms.push_back((last_us - match_us) * 1e-3);
     } else {
       ++j.merges_not_reaching_every_agent;
     }
   }
+  followCorrectedMaps(server, by_agent, queried, j);
   return j;
 }
 
@@ -331,6 +404,8 @@ std::vector<LinkSummary> summarise(const Journeys& journeys) {
   };
   for (const JourneyLink& link : journeys.links) out.push_back(one(link.name, link.ms));
   out.push_back(one("map match -> every agent of the merged map corrected", journeys.match_to_all_agents_corrected_ms));
+  out.push_back(one("map match -> every agent of the merged map holding the corrected map",
+                    journeys.match_to_all_agents_holding_corrected_map_ms));
   return out;
 }
 

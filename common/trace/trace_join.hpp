@@ -78,6 +78,12 @@ struct Journeys {
   // downlink message with corrections; merges after which some agent never did are counted apart.
   std::vector<double> match_to_all_agents_corrected_ms;
   std::size_t merges_not_reaching_every_agent = 0;
+  // Per merge: from the match to the moment every agent of the merged map had applied a downlink message built
+  // after the map's first correction (its merge correction, else its GBA) that carried corrections or the
+  // covisible map. An agent whose keyframes the correction did not move has nothing to correct, but its anchors
+  // come from the corrected map from then on. Merges after which some agent never did are counted apart.
+  std::vector<double> match_to_all_agents_holding_corrected_map_ms;
+  std::size_t merges_not_reaching_every_agent_corrected_map = 0;
 };
 
 // Follows every keyframe through aligned traces of one mission (the server's filtered by onlyMission): captured ->

@@ -616,8 +616,8 @@ bool AgentSession::nextDownlink(Clock::time_point now, v1::ServerDownlink& out) 
                   {{"mission", mission_trace_key_},
                    {"agent", agent_},
                    {"downlink", static_cast<std::int64_t>(out.sequence())},
-                   {"acked", static_cast<std::int64_t>(out.acked_sequence())},
-                   {"corrections", corrections}});
+                   {"corrections", corrections},
+                   {"covisible", out.has_covisible() ? 1 : 0}});
   return true;
 }
 

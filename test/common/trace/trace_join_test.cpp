@@ -57,7 +57,7 @@ Pair linkTraffic(double offset_us, const std::string& mission = "m") {
     p.server.records.push_back(span("ingest", ingest_s, 2000.0, {{"mission", key}, {"agent", kAgent}, {"batch", b}}));
     const double built_s = ingest_s + 5000.0;
     p.server.records.push_back(span("downlink_build", built_s - 100.0, 100.0,
-                                    {{"mission", key}, {"agent", kAgent}, {"downlink", b}, {"acked", b}}));
+                                    {{"mission", key}, {"agent", kAgent}, {"downlink", b}, {"corrections", 0}}));
     p.agent.records.push_back(instantAt("downlink_received", built_s + delay_us(rng) - offset_us, {{"downlink", b}}));
   }
   return p;
@@ -158,8 +158,95 @@ TEST(TraceJoin, AKeyframeIsFollowedLinkByLink) {
   EXPECT_NEAR(j.match_to_all_agents_corrected_ms[0], 790.0, 1e-9);
   EXPECT_EQ(j.merges_not_reaching_every_agent, 0U);
   const std::vector<LinkSummary> s = summarise(j);
-  EXPECT_EQ(s.back().ms.count, 1U);
-  EXPECT_NEAR(s.back().ms.p99, 790.0, 1e-9);
+  ASSERT_GE(s.size(), 2U);
+  EXPECT_EQ(s[s.size() - 2].ms.count, 1U);
+  EXPECT_NEAR(s[s.size() - 2].ms.p99, 790.0, 1e-9);
+}
+
+// A merge's map corrected at once. The first message the server builds for each agent of the merged map after the
+// correction decides: with corrections or covisible keyframes, the agent holds the corrected map once it applied
+// it; with neither, nothing it holds had changed, and it held the corrected map when that message was built.
+TEST(TraceJoin, EveryAgentHoldsTheCorrectedMapOnceTheFirstMessageBuiltAfterTheCorrectionReachedIt) {
+  const std::int64_t key = missionKey("m");
+  ProcessTrace query_agent;  // its keyframes moved: it gets corrections
+  query_agent.agent = kAgent;
+  query_agent.mission_key = key;
+  query_agent.records = {
+      span("apply_downlink", 200'000.0, 500.0, {{"downlink", 3}, {"corrections", 2}, {"covisible", 1}}),  // before
+      span("apply_downlink", 520'000.0, 500.0, {{"downlink", 4}, {"corrections", 5}, {"covisible", 0}}),
+  };
+  ProcessTrace candidate_agent;  // its anchors include moved keyframes: it gets their updates
+  candidate_agent.agent = 9;
+  candidate_agent.mission_key = key;
+  candidate_agent.records = {
+      // Built from 389 ms, before the correction ended (400 ms), and applied after it: not yet.
+      span("apply_downlink", 450'000.0, 500.0, {{"downlink", 7}, {"corrections", 0}, {"covisible", 1}}),
+      span("apply_downlink", 700'000.0, 500.0, {{"downlink", 8}, {"corrections", 0}, {"covisible", 1}}),
+  };
+  ProcessTrace far_agent;  // elsewhere in the map: nothing it holds moved
+  far_agent.agent = 10;
+  far_agent.mission_key = key;
+  far_agent.records = {
+      span("apply_downlink", 900'000.0, 500.0, {{"downlink", 2}, {"corrections", 0}, {"covisible", 1}}),
+  };
+  ProcessTrace server;
+  server.records = {
+      span("recognition_query", 100'000.0, 10'000.0, {{"mission", key}, {"agent", kAgent}, {"keyframe", 7}}),
+      span("merge", 120'000.0, 30'000.0, {{"mission", key}, {"agent", kAgent}, {"keyframe", 7}, {"map", 1}}),
+      instantAt("merged_map_agent", 130'000.0, {{"mission", key}, {"map", 1}, {"agent", kAgent}}),
+      instantAt("merged_map_agent", 131'000.0, {{"mission", key}, {"map", 1}, {"agent", 9}}),
+      instantAt("merged_map_agent", 132'000.0, {{"mission", key}, {"map", 1}, {"agent", 10}}),
+      span("merge_correction", 150'000.0, 250'000.0, {{"mission", key}, {"map", 1}}),  // corrected at 400 ms
+      span("global_ba", 900'000.0, 100'000.0, {{"mission", key}, {"map", 1}}),
+      span("downlink_build", 199'000.0, 500.0,
+           {{"mission", key}, {"agent", kAgent}, {"downlink", 3}, {"corrections", 2}, {"covisible", 1}}),
+      span("downlink_build", 500'000.0, 500.0,
+           {{"mission", key}, {"agent", kAgent}, {"downlink", 4}, {"corrections", 5}, {"covisible", 0}}),
+      span("downlink_build", 389'000.0, 1000.0,
+           {{"mission", key}, {"agent", 9}, {"downlink", 7}, {"corrections", 0}, {"covisible", 1}}),
+      span("downlink_build", 590'000.0, 500.0,
+           {{"mission", key}, {"agent", 9}, {"downlink", 8}, {"corrections", 0}, {"covisible", 1}}),
+      span("downlink_build", 450'000.0, 500.0,
+           {{"mission", key}, {"agent", 10}, {"downlink", 1}, {"corrections", 0}, {"covisible", 0}}),
+      span("downlink_build", 890'000.0, 500.0,
+           {{"mission", key}, {"agent", 10}, {"downlink", 2}, {"corrections", 0}, {"covisible", 1}}),
+      // A stale match later (its maps were one already, no agent joined): not a merge to follow.
+      span("merge", 800'000.0, 10.0, {{"mission", key}, {"agent", kAgent}, {"keyframe", 8}, {"map", 1}}),
+  };
+  const Journeys j = followKeyframes(server, {query_agent, candidate_agent, far_agent});
+  // From the match (110 ms): the query's agent at 520 ms, the far agent at 450.5 ms, the candidate's agent at 700 ms.
+  ASSERT_EQ(j.match_to_all_agents_holding_corrected_map_ms.size(), 1U);
+  EXPECT_NEAR(j.match_to_all_agents_holding_corrected_map_ms[0], 590.0, 1e-9);
+  EXPECT_EQ(j.merges_not_reaching_every_agent_corrected_map, 0U);
+  // By corrections alone, the other two agents never got any: counted apart, and the stale match not at all.
+  EXPECT_TRUE(j.match_to_all_agents_corrected_ms.empty());
+  EXPECT_EQ(j.merges_not_reaching_every_agent, 1U);
+  EXPECT_NEAR(summarise(j).back().ms.p99, 590.0, 1e-9);
+}
+
+// Without a merge correction, the map's first GBA after the merge is its first correction.
+TEST(TraceJoin, WithoutAMergeCorrectionTheCorrectedMapIsTheGbas) {
+  const std::int64_t key = missionKey("m");
+  ProcessTrace agent;
+  agent.agent = kAgent;
+  agent.mission_key = key;
+  agent.records = {
+      span("apply_downlink", 300'000.0, 500.0, {{"downlink", 3}, {"corrections", 0}, {"covisible", 1}}),  // before
+      span("apply_downlink", 800'000.0, 500.0, {{"downlink", 4}, {"corrections", 0}, {"covisible", 1}}),
+  };
+  ProcessTrace server;
+  server.records = {
+      span("merge", 120'000.0, 30'000.0, {{"mission", key}, {"agent", kAgent}, {"keyframe", 7}, {"map", 1}}),
+      instantAt("merged_map_agent", 130'000.0, {{"mission", key}, {"map", 1}, {"agent", kAgent}}),
+      span("global_ba", 160'000.0, 540'000.0, {{"mission", key}, {"map", 1}}),  // optimised at 700 ms
+      span("downlink_build", 290'000.0, 500.0,
+           {{"mission", key}, {"agent", kAgent}, {"downlink", 3}, {"covisible", 1}}),
+      span("downlink_build", 790'000.0, 500.0,
+           {{"mission", key}, {"agent", kAgent}, {"downlink", 4}, {"covisible", 1}}),
+  };
+  const Journeys j = followKeyframes(server, {agent});
+  ASSERT_EQ(j.match_to_all_agents_holding_corrected_map_ms.size(), 1U);
+  EXPECT_NEAR(j.match_to_all_agents_holding_corrected_map_ms[0], 680.0, 1e-9);  // from the merge's start
 }
 
 TEST(TraceJoin, AMergeSomeAgentNeverHeardOfIsCountedApart) {
@@ -176,6 +263,8 @@ TEST(TraceJoin, AMergeSomeAgentNeverHeardOfIsCountedApart) {
   const Journeys j = followKeyframes(server, {agent});
   EXPECT_TRUE(j.match_to_all_agents_corrected_ms.empty());
   EXPECT_EQ(j.merges_not_reaching_every_agent, 1U);
+  EXPECT_TRUE(j.match_to_all_agents_holding_corrected_map_ms.empty());
+  EXPECT_EQ(j.merges_not_reaching_every_agent_corrected_map, 1U);
 }
 
 }  // namespace
