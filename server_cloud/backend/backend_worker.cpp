@@ -84,8 +84,8 @@ std::string BackendOptions::describe() const {
       << gba.full_iterations << " iterations, " << gba.threads << " threads; a loop cuts it short above "
       << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
   if (merge_correction_keyframes > 0) {
-    out << ", a merge corrected at once (BA of " << merge_correction_keyframes
-        << " keyframes each side of the match, pose graph of the rest)";
+    out << ", a merge corrected at once (BA of the query and its " << merge_correction_keyframes
+        << " most covisible keyframes, its query map moved rigidly by the fitted change)";
   }
   out << ", an agent's frame follows its " << frame_follows_keyframes << " newest corrected keyframes";
   if (gba_every_keyframes > 0) out << " and per " << gba_every_keyframes << " new keyframes of a map";
@@ -364,8 +364,8 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
   };
   if (!from || !into || from == into) return stale();
   // Until the merge's correction is applied, no GBA of `into` starts: the two results are changes of state and
-  // compose when applied, so a GBA from a snapshot before the correction would apply the correction a second time,
-  // and one applied during the correction's solve would be undone by it.
+  // compose when applied, so a GBA from a snapshot with the query map before the correction would apply the
+  // correction a second time. A GBA already running holds none of the query map's keyframes and goes on.
   struct HoldGba {
     BackendWorker& worker;
     HoldGba(BackendWorker& w, const std::string& mission, MapId map) : worker(w) {
