@@ -11,9 +11,9 @@
 //                   of a map when set, and of every map at drain(true), the end of a mission; on a snapshot:
 //                   ingest carries on meanwhile, and the result is applied with the corrections of what
 //                   arrived (applyCorrections). After a merge into a large map, only the smaller map's part is
-//                   freed (gba_window_above_keyframes). A merge cancels a running GBA of the map that goes,
-//                   not one of the map it goes into (nothing of that map's own moves, the correction included);
-//                   a loop cancels its map's only when its pose graph moves the query keyframe by
+//                   freed (gba_window_above_keyframes). A merge cancels a running GBA of the map that goes
+//                   (and, with a merge correction, of the map it goes into, which then starts again on the
+//                   merged map); a loop cancels its map's only when its pose graph moves the query keyframe by
 //                   more than `loop_cancels_gba_m` / `loop_cancels_gba_deg`. A smaller
 //                   loop lets the running GBA finish: its result is a change of state, composed with the
 //                   loop's (applyCorrections), and the GBA the loop asks for follows it.
