@@ -346,7 +346,10 @@ TEST_F(MissionProcesses, AnAgentWhoseServerNeverAnswersRunsAsTheVioAloneAndSaysW
   const nlohmann::json link = readJson(agentOut(0) / "link.json");
   EXPECT_FALSE(link["flushed"].get<bool>());
   EXPECT_EQ(link["connections"].get<int>(), 0);
-  EXPECT_GT(link["keyframes_unacknowledged"].get<int>(), 10);
+  // Every keyframe the link held is reported unsent. How many it held by the end depends on whether mapping's last
+  // delta reached the link before the shutdown (10 or 11 of this mission's keyframes here).
+  EXPECT_GE(link["keyframes_stored"].get<int>(), 10);
+  EXPECT_EQ(link["keyframes_unacknowledged"].get<int>(), link["keyframes_stored"].get<int>());
   EXPECT_NE(readFile(dir_ / "agent0.log").find("NOT flushed"), std::string::npos);
 }
 
