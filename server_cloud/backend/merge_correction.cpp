@@ -65,7 +65,7 @@ Result<MergeCorrectionInput> copyMergeCorrection(const MapContent& map, const re
   }
   Result<GbaSnapshot> snapshot = makeGbaSnapshot(map, sensors, &window);
   if (!snapshot) return snapshot.error();
-  return MergeCorrectionInput{std::move(*snapshot), std::move(window.free), std::move(query_keyframes), match.query,
+  return MergeCorrectionInput{std::move(*snapshot), std::move(window.free), std::move(query_keyframes),
                               query->T_w_s.translation()};
 }
 

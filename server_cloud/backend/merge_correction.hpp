@@ -31,10 +31,9 @@ namespace cvislam::server::backend {
 
 // What the solve needs, copied from the merged map.
 struct MergeCorrectionInput {
-  GbaSnapshot window;                               // the BA of the query's window
-  std::unordered_set<KeyframeId> window_keyframes;  // the query keyframe and its N most covisible of its map
-  std::unordered_set<KeyframeId> query_keyframes;   // every keyframe of the query's map, before it went
-  KeyframeId query;
+  GbaSnapshot window;                                        // the BA of the query's window
+  std::unordered_set<KeyframeId> window_keyframes;           // the query keyframe and its N most covisible of its map
+  std::unordered_set<KeyframeId> query_keyframes;            // every keyframe of the query's map, before it went
   Eigen::Vector3d p_query_before = Eigen::Vector3d::Zero();  // the query keyframe's position
 };
 
