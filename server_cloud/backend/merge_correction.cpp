@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <map>
 #include <unordered_map>
 #include <utility>
 
@@ -32,21 +34,18 @@ std::unordered_set<KeyframeId> queryWindow(const MapContent& map, const Keyframe
 }  // namespace
 
 SE3d fitFourDofChange(const std::vector<SE3d>& before, const std::vector<SE3d>& after) {
-  // Rotation: the normalised mean of the changes' quaternions (sign-aligned; they differ by little), its yaw.
-  const Eigen::Quaterniond q_ref = (after.front().so3() * before.front().so3().inverse()).quaternion();
-  Eigen::Vector4d q_sum = Eigen::Vector4d::Zero();
+  // The mean change of the moves (windowChange, as an agent's frame follows its keyframes), its yaw kept; then,
+  // given that rotation, the translation that fits the positions: the centroids.
+  std::map<std::int64_t, TimedChange> moves;
   Eigen::Vector3d before_sum = Eigen::Vector3d::Zero();
   Eigen::Vector3d after_sum = Eigen::Vector3d::Zero();
   for (std::size_t i = 0; i < before.size(); ++i) {
-    const Eigen::Quaterniond q = (after[i].so3() * before[i].so3().inverse()).quaternion();
-    q_sum += (q.coeffs().dot(q_ref.coeffs()) < 0.0 ? -1.0 : 1.0) * q.coeffs();
+    moves.emplace(static_cast<std::int64_t>(i), TimedChange{after[i] * before[i].inverse(), before[i].translation()});
     before_sum += before[i].translation();
     after_sum += after[i].translation();
   }
-  const Eigen::Quaterniond q_mean(Eigen::Vector4d(q_sum.normalized()));
-  const double yaw = yawOf(q_mean.toRotationMatrix());
-  const geometry::SO3d R_yaw = geometry::SO3d::exp(Eigen::Vector3d(0.0, 0.0, yaw));
-  // Given the rotation, the translation that fits the positions: the centroids.
+  const SE3d mean = windowChange(moves, static_cast<int>(moves.size()));
+  const geometry::SO3d R_yaw = geometry::SO3d::exp(Eigen::Vector3d(0.0, 0.0, yawOf(mean.rotationMatrix())));
   const auto n = static_cast<double>(before.size());
   return SE3d(R_yaw, (after_sum - (R_yaw * before_sum)) / n);
 }
