@@ -193,6 +193,11 @@ void shiftTrace(ProcessTrace& trace, double offset_us) {
 
 namespace {
 
+// A downlink message (built or applied) that carried corrections or the covisible map.
+bool carriesMap(const TraceRecord& r) {
+  return r.arg("corrections", 0) > 0 || r.arg("covisible", 0) > 0;
+}
+
 // What one agent's trace says of its keyframes, indexed.
 struct AgentIndex {
   std::map<std::int64_t, double> captured, decided, mapped, sent;
@@ -216,7 +221,7 @@ struct AgentIndex {
     for (const TraceRecord* r : named(t, "map_ready")) map_ready.emplace(r->arg("map"), r->ts_us);
     for (const TraceRecord* r : named(t, "apply_downlink")) {
       if (r->arg("corrections", 0) > 0) corrections_applied.push_back(r);
-      if (r->arg("corrections", 0) > 0 || r->arg("covisible", 0) > 0) content_applied.push_back(r);
+      if (carriesMap(*r)) content_applied.push_back(r);
     }
   }
 
@@ -242,10 +247,6 @@ std::map<std::int64_t, std::vector<const TraceRecord*>> buildsByAgent(const Proc
   std::map<std::int64_t, std::vector<const TraceRecord*>> out;
   for (const TraceRecord* r : named(server, "downlink_build")) out[r->arg("agent")].push_back(r);
   return out;
-}
-
-bool carriesMap(const TraceRecord& r) {
-  return r.arg("corrections", 0) > 0 || r.arg("covisible", 0) > 0;
 }
 
 // When a merge's map was first corrected after it: the end of its merge correction, else of the map's first GBA.
