@@ -27,6 +27,12 @@ class WorldPointReprojectionFactor final : public ceres::SizedCostFunction<2, kP
 
   bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override;
 
+  // The same residual with the pose's Jacobian in its tangent [dp, dphi] (2 x 6), for solvers that work in the
+  // tangent space themselves (the server's Schur solver): no lift to the 7 ambient parameters and back.
+  // Jacobians may be null; false when the point is not in front of the camera.
+  bool evaluateTangent(const double* pose, const double* p_w, Eigen::Vector2d& residual,
+                       Eigen::Matrix<double, 2, 6>* J_pose, Eigen::Matrix<double, 2, 3>* J_point) const;
+
  private:
   Eigen::Vector2d keypoint_px_;
   PinholeIntrinsics intrinsics_;

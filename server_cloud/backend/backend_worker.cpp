@@ -81,8 +81,8 @@ std::string BackendOptions::describe() const {
   std::ostringstream out;
   out << "merge maps " << (merge_maps ? "on" : "off") << ", loop closure " << (close_loops ? "on" : "off")
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
-      << gba.full_iterations << " iterations, " << gba.threads << " threads; a loop cuts it short above "
-      << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
+      << gba.full_iterations << " iterations, " << toString(gba.solver) << " solver, " << gba.threads
+      << " threads; a loop cuts it short above " << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
   if (merge_correction_keyframes > 0) {
     out << ", a merge corrected at once (BA of the query and its " << merge_correction_keyframes
         << " most covisible keyframes, its query map moved rigidly by the fitted change)";

@@ -4,7 +4,9 @@
 #include <chrono>
 #include <cmath>
 #include <memory>
+#include <optional>
 #include <unordered_map>
+#include <utility>
 
 #include <ceres/ceres.h>
 
@@ -12,6 +14,7 @@
 #include "common/factors/manifolds.hpp"
 #include "common/factors/prior_factor.hpp"
 #include "common/factors/world_point_factor.hpp"
+#include "server_cloud/backend/schur_solver.hpp"
 
 namespace cvislam::server::backend {
 
@@ -246,73 +249,63 @@ struct GbaStates {
   std::vector<Eigen::Vector3d> points;
 };
 
+// What the problem holds, whichever solver takes it.
+struct GbaFactorPlan {
+  struct Reprojection {
+    std::unique_ptr<factors::WorldPointReprojectionFactor> cost;
+    std::size_t keyframe = 0;
+    std::uint32_t point = 0;
+  };
+  std::vector<Reprojection> reprojections;
+  std::vector<std::uint8_t> point_used;
+  std::vector<std::pair<std::size_t, std::size_t>> imu_links;                // (previous, next) keyframe
+  std::optional<std::pair<std::size_t, Eigen::Matrix<double, 6, 6>>> gauge;  // keyframe, sqrt information
+};
+
 // Every observation whose point is in front of its camera at the start; a point no factor uses is held.
-// Returns the number of factors.
-int addReprojectionFactors(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaStates& states,
-                           ceres::Problem& problem) {
-  int factors = 0;
-  std::vector<std::uint8_t> point_used(states.points.size(), 0);
+void planReprojections(const GbaSnapshot& snapshot, const GlobalBaOptions& options, const GbaStates& states,
+                       GbaFactorPlan& plan) {
+  plan.point_used.assign(states.points.size(), 0);
   for (std::size_t i = 0; i < snapshot.keyframes.size(); ++i) {
     const GbaKeyframe& kf = snapshot.keyframes[i];
     const GbaAgent& agent = snapshot.agents.at(kf.id.agent);
     for (const GbaObservation& o : kf.observations) {
       const double sigma = options.sigma_px * std::pow(options.pyramid_scale_factor, o.octave);
-      std::unique_ptr<ceres::CostFunction> cost;
-      if (o.second_camera) {
-        cost =
-            std::make_unique<factors::WorldPointReprojectionFactor>(o.px_undistorted, *agent.cam1, sigma, agent.T_c1_s);
-      } else {
-        cost =
-            std::make_unique<factors::WorldPointReprojectionFactor>(o.px_undistorted, agent.cam0, sigma, agent.T_c0_s);
-      }
+      auto cost = o.second_camera ? std::make_unique<factors::WorldPointReprojectionFactor>(
+                                        o.px_undistorted, *agent.cam1, sigma, agent.T_c1_s)
+                                  : std::make_unique<factors::WorldPointReprojectionFactor>(
+                                        o.px_undistorted, agent.cam0, sigma, agent.T_c0_s);
       // A point behind the camera at the start (a bad association) cannot be evaluated: leave it out.
-      const double* blocks[] = {states.poses[i].data(), states.points[o.point].data()};
       Eigen::Vector2d residual;
-      if (!cost->Evaluate(blocks, residual.data(), nullptr)) continue;
-      problem.AddResidualBlock(cost.release(), new ceres::CauchyLoss(options.cauchy_scale), states.poses[i].data(),
-                               states.points[o.point].data());
-      point_used[o.point] = 1;
-      ++factors;
+      if (!cost->evaluateTangent(states.poses[i].data(), states.points[o.point].data(), residual, nullptr, nullptr)) {
+        continue;
+      }
+      plan.reprojections.push_back({std::move(cost), i, o.point});
+      plan.point_used[o.point] = 1;
     }
   }
-  for (std::size_t p = 0; p < states.points.size(); ++p) {
-    if (point_used[p] == 0) problem.SetParameterBlockConstant(states.points[p].data());
-  }
-  return factors;
 }
 
-// IMU and bias random-walk factors along each agent's preintegration links. Returns the number of links.
-int addImuFactors(const GbaSnapshot& snapshot, GbaStates& states, ceres::Problem& problem) {
-  int links = 0;
+// IMU and bias random-walk factors along each agent's preintegration links; marks the keyframes whose velocity
+// and biases the problem then holds.
+void planImuLinks(const GbaSnapshot& snapshot, GbaStates& states, GbaFactorPlan& plan) {
   for (std::size_t j = 0; j < snapshot.keyframes.size(); ++j) {
     const GbaKeyframe& kf = snapshot.keyframes[j];
     if (kf.imu_from < 0 || !kf.preintegration) continue;
     const auto i = static_cast<std::size_t>(kf.imu_from);
     if (kf.held && snapshot.keyframes[i].held) continue;  // constrains nothing the solve moves
-    for (const std::size_t k : {i, j}) {
-      if (states.has_imu_state[k] != 0) continue;
-      states.has_imu_state[k] = 1;
-      problem.AddParameterBlock(states.velocities[k].data(), 3);
-      problem.AddParameterBlock(states.biases[k].data(), 6);
-      if (snapshot.keyframes[k].held) {
-        problem.SetParameterBlockConstant(states.velocities[k].data());
-        problem.SetParameterBlockConstant(states.biases[k].data());
-      }
-    }
-    problem.AddResidualBlock(new factors::ImuFactor(*kf.preintegration), nullptr, states.poses[i].data(),
-                             states.velocities[i].data(), states.biases[i].data(), states.poses[j].data(),
-                             states.velocities[j].data());
-    problem.AddResidualBlock(
-        new factors::BiasRandomWalkFactor(snapshot.agents.at(kf.id.agent).noise, kf.preintegration->dt()), nullptr,
-        states.biases[i].data(), states.biases[j].data());
-    ++links;
+    states.has_imu_state[i] = 1;
+    states.has_imu_state[j] = 1;
+    plan.imu_links.emplace_back(i, j);
   }
-  return links;
 }
 
 // The gauge: a prior on the oldest keyframe's pose. With every agent inertial, gravity fixes roll and pitch,
-// so only position and yaw are held.
-void addGauge(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaStates& states, ceres::Problem& problem) {
+// so only position and yaw are held. Held keyframes fix the gauge of a windowed solve instead.
+void planGauge(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaFactorPlan& plan) {
+  const bool windowed =
+      std::any_of(snapshot.keyframes.begin(), snapshot.keyframes.end(), [](const GbaKeyframe& kf) { return kf.held; });
+  if (windowed) return;
   std::size_t oldest = 0;
   for (std::size_t i = 1; i < snapshot.keyframes.size(); ++i) {
     if (snapshot.keyframes[i].t_ns < snapshot.keyframes[oldest].t_ns) oldest = i;
@@ -330,14 +323,101 @@ void addGauge(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaSt
   } else {
     gauge_sqrt_information.bottomRightCorner<3, 3>() = Eigen::Matrix3d::Identity() / options.gauge_sigma_rad;
   }
-  problem.AddResidualBlock(new factors::PosePriorFactor(snapshot.keyframes[oldest].T_w_s, gauge_sqrt_information),
-                           nullptr, states.poses[oldest].data());
+  plan.gauge.emplace(oldest, gauge_sqrt_information);
 }
 
-// One stage of the solve: at most `iterations` (0: none), with the blocks held as the caller set them.
+std::unique_ptr<factors::ImuFactor> imuFactor(const GbaSnapshot& snapshot, std::size_t j) {
+  return std::make_unique<factors::ImuFactor>(*snapshot.keyframes[j].preintegration);
+}
+
+std::unique_ptr<factors::BiasRandomWalkFactor> biasFactor(const GbaSnapshot& snapshot, std::size_t j) {
+  const GbaKeyframe& kf = snapshot.keyframes[j];
+  return std::make_unique<factors::BiasRandomWalkFactor>(snapshot.agents.at(kf.id.agent).noise,
+                                                         kf.preintegration->dt());
+}
+
+void addPlanToCeres(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaFactorPlan& plan, GbaStates& states,
+                    ceres::Problem& problem) {
+  auto* pose_manifold = new factors::PoseManifold();  // the problem takes ownership
+  for (factors::PoseBlock& pose : states.poses) {
+    problem.AddParameterBlock(pose.data(), factors::kPoseSize, pose_manifold);
+  }
+  for (Eigen::Vector3d& p : states.points) problem.AddParameterBlock(p.data(), factors::kPointSize);
+  for (GbaFactorPlan::Reprojection& r : plan.reprojections) {
+    problem.AddResidualBlock(r.cost.release(), new ceres::CauchyLoss(options.cauchy_scale),
+                             states.poses[r.keyframe].data(), states.points[r.point].data());
+  }
+  for (std::size_t p = 0; p < states.points.size(); ++p) {
+    if (plan.point_used[p] == 0) problem.SetParameterBlockConstant(states.points[p].data());
+  }
+  for (std::size_t k = 0; k < snapshot.keyframes.size(); ++k) {
+    if (states.has_imu_state[k] == 0) continue;
+    problem.AddParameterBlock(states.velocities[k].data(), factors::kVelocitySize);
+    problem.AddParameterBlock(states.biases[k].data(), factors::kBiasSize);
+    if (snapshot.keyframes[k].held) {
+      problem.SetParameterBlockConstant(states.velocities[k].data());
+      problem.SetParameterBlockConstant(states.biases[k].data());
+    }
+  }
+  for (const auto& [i, j] : plan.imu_links) {
+    problem.AddResidualBlock(imuFactor(snapshot, j).release(), nullptr, states.poses[i].data(),
+                             states.velocities[i].data(), states.biases[i].data(), states.poses[j].data(),
+                             states.velocities[j].data());
+    problem.AddResidualBlock(biasFactor(snapshot, j).release(), nullptr, states.biases[i].data(),
+                             states.biases[j].data());
+  }
+  if (plan.gauge) {
+    const auto& [oldest, sqrt_information] = *plan.gauge;
+    problem.AddResidualBlock(new factors::PosePriorFactor(snapshot.keyframes[oldest].T_w_s, sqrt_information), nullptr,
+                             states.poses[oldest].data());
+  }
+}
+
+// The Schur solver's blocks of one keyframe: pose, and velocity and biases where the problem has them.
+struct SchurKeyframeBlocks {
+  int pose = -1;
+  int velocity = -1;
+  int bias = -1;
+};
+
+std::vector<SchurKeyframeBlocks> addPlanToSchur(const GbaSnapshot& snapshot, const GlobalBaOptions& options,
+                                                GbaFactorPlan& plan, GbaStates& states, SchurProblem& problem) {
+  // Each keyframe's blocks next to each other, so that the reduced system is banded along each agent's path.
+  std::vector<SchurKeyframeBlocks> blocks(snapshot.keyframes.size());
+  for (std::size_t k = 0; k < snapshot.keyframes.size(); ++k) {
+    blocks[k].pose = problem.addPose(states.poses[k].data());
+    if (states.has_imu_state[k] != 0) {
+      blocks[k].velocity = problem.addVector(states.velocities[k].data(), factors::kVelocitySize);
+      blocks[k].bias = problem.addVector(states.biases[k].data(), factors::kBiasSize);
+      problem.setKeyframeBlockHeld(blocks[k].velocity, snapshot.keyframes[k].held);
+      problem.setKeyframeBlockHeld(blocks[k].bias, snapshot.keyframes[k].held);
+    }
+  }
+  for (std::size_t p = 0; p < states.points.size(); ++p) {
+    problem.setPointHeld(problem.addPoint(states.points[p].data()), plan.point_used[p] == 0);
+  }
+  for (GbaFactorPlan::Reprojection& r : plan.reprojections) {
+    problem.addReprojection(std::move(r.cost), blocks[r.keyframe].pose, static_cast<int>(r.point),
+                            options.cauchy_scale);
+  }
+  for (const auto& [i, j] : plan.imu_links) {
+    problem.addKeyframeFactor(imuFactor(snapshot, j),
+                              {blocks[i].pose, blocks[i].velocity, blocks[i].bias, blocks[j].pose, blocks[j].velocity});
+    problem.addKeyframeFactor(biasFactor(snapshot, j), {blocks[i].bias, blocks[j].bias});
+  }
+  if (plan.gauge) {
+    const auto& [oldest, sqrt_information] = *plan.gauge;
+    problem.addKeyframeFactor(
+        std::make_unique<factors::PosePriorFactor>(snapshot.keyframes[oldest].T_w_s, sqrt_information),
+        {blocks[oldest].pose});
+  }
+  return blocks;
+}
+
+// One Ceres stage of the solve: at most `iterations` (0: none), with the blocks held as the caller set them.
 // Cancellation is reported in the summary, not as an error.
-Status solveStage(ceres::Problem& problem, ceres::Solver::Options& solver, GbaStates& states, int iterations, int& done,
-                  double& seconds, GlobalBaSummary& summary) {
+Status solveCeresStage(ceres::Problem& problem, ceres::Solver::Options& solver, GbaStates& states, int iterations,
+                       int& done, double& seconds, GlobalBaSummary& summary) {
   if (iterations == 0) return Status::Ok();
   solver.max_num_iterations = iterations;
   // Points first (Schur-eliminated), then the keyframe states; Ceres prunes the held blocks from the ordering
@@ -374,32 +454,14 @@ Status solveStage(ceres::Problem& problem, ceres::Solver::Options& solver, GbaSt
   return Status::Ok();
 }
 
-}  // namespace
-
-Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions& options,
-                                    const std::atomic<bool>* cancel) {
-  if (Status s = options.validate(); !s.ok()) return s.error();
-  GlobalBaSummary summary;
-  summary.keyframes = static_cast<int>(snapshot.keyframes.size());
-  summary.points = static_cast<int>(snapshot.points.size());
-  if (snapshot.keyframes.size() < 2) return summary;
-
+Status solveWithCeres(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaFactorPlan& plan,
+                      GbaStates& states, const std::atomic<bool>* cancel, GlobalBaSummary& summary) {
   const auto build_start = std::chrono::steady_clock::now();
-  GbaStates states(snapshot);
   ceres::Problem::Options problem_options;
   problem_options.manifold_ownership = ceres::TAKE_OWNERSHIP;
   ceres::Problem problem(problem_options);
-  auto* pose_manifold = new factors::PoseManifold();
-  for (factors::PoseBlock& pose : states.poses)
-    problem.AddParameterBlock(pose.data(), factors::kPoseSize, pose_manifold);
-  for (Eigen::Vector3d& p : states.points) problem.AddParameterBlock(p.data(), factors::kPointSize);
-  summary.reprojection_factors = addReprojectionFactors(snapshot, options, states, problem);
-  summary.imu_factors = addImuFactors(snapshot, states, problem);
-  // Held keyframes fix the gauge of a windowed solve.
-  const bool windowed =
-      std::any_of(snapshot.keyframes.begin(), snapshot.keyframes.end(), [](const GbaKeyframe& kf) { return kf.held; });
-  if (!windowed) addGauge(snapshot, options, states, problem);
-  summary.profile.build_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+  addPlanToCeres(snapshot, options, plan, states, problem);
+  summary.profile.build_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
 
   CancelCallback callback(cancel);
   ceres::Solver::Options solver;
@@ -416,20 +478,96 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
 
   // Step 1: structure, velocities and biases with the poses held.
   for (factors::PoseBlock& pose : states.poses) problem.SetParameterBlockConstant(pose.data());
-  if (Status s = solveStage(problem, solver, states, options.structure_iterations, summary.structure_iterations,
-                            summary.structure_s, summary);
-      !s.ok()) {
-    return s.error();
+  if (Status s = solveCeresStage(problem, solver, states, options.structure_iterations, summary.structure_iterations,
+                                 summary.structure_s, summary);
+      !s.ok() || summary.cancelled) {
+    return s;
   }
-  if (summary.cancelled) return summary;
   // Step 2: everything.
   for (std::size_t i = 0; i < states.poses.size(); ++i) {
     if (!snapshot.keyframes[i].held) problem.SetParameterBlockVariable(states.poses[i].data());
   }
-  if (Status s = solveStage(problem, solver, states, options.full_iterations, summary.full_iterations, summary.full_s,
-                            summary);
-      !s.ok()) {
-    return s.error();
+  return solveCeresStage(problem, solver, states, options.full_iterations, summary.full_iterations, summary.full_s,
+                         summary);
+}
+
+// One stage of the Schur solver; its accounting goes where Ceres' would.
+void solveSchurStage(SchurProblem& problem, const GlobalBaOptions& options, int iterations,
+                     const std::atomic<bool>* cancel, int& done, double& seconds, GlobalBaSummary& summary) {
+  if (iterations == 0) return;
+  SchurSolverOptions solver;
+  solver.max_iterations = iterations;
+  solver.function_tolerance = options.function_tolerance;
+  solver.max_time_s = options.max_solver_time_s;
+  solver.threads = options.threads;
+  solver.cancel = cancel;
+  const auto start = std::chrono::steady_clock::now();
+  const SchurSolverSummary s = problem.solve(solver);
+  seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  summary.cancelled = s.cancelled;
+  done = s.iterations;
+  GlobalBaProfile& profile = summary.profile;
+  profile.preprocess_s += s.setup_s;
+  profile.residuals_s += s.evaluate_s;
+  profile.jacobians_s += s.linearize_s;
+  profile.linear_solver_s += s.linear_solver_s;
+  profile.other_s += seconds - s.setup_s - s.evaluate_s - s.linearize_s - s.linear_solver_s;
+  if (summary.initial_cost == 0.0) summary.initial_cost = s.initial_cost;
+  summary.final_cost = s.final_cost;
+}
+
+void solveWithSchur(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaFactorPlan& plan, GbaStates& states,
+                    const std::atomic<bool>* cancel, GlobalBaSummary& summary) {
+  const auto build_start = std::chrono::steady_clock::now();
+  SchurProblem problem;
+  const std::vector<SchurKeyframeBlocks> blocks = addPlanToSchur(snapshot, options, plan, states, problem);
+  summary.profile.build_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+  // Step 1: structure, velocities and biases with the poses held.
+  for (const SchurKeyframeBlocks& b : blocks) problem.setKeyframeBlockHeld(b.pose, true);
+  solveSchurStage(problem, options, options.structure_iterations, cancel, summary.structure_iterations,
+                  summary.structure_s, summary);
+  if (summary.cancelled) return;
+  // Step 2: everything.
+  for (std::size_t k = 0; k < blocks.size(); ++k) {
+    problem.setKeyframeBlockHeld(blocks[k].pose, snapshot.keyframes[k].held);
+  }
+  solveSchurStage(problem, options, options.full_iterations, cancel, summary.full_iterations, summary.full_s, summary);
+}
+
+}  // namespace
+
+Result<GlobalBaOptions::Solver> parseGbaSolver(const std::string& name) {
+  if (name == "schur") return GlobalBaOptions::Solver::kSchur;
+  if (name == "ceres") return GlobalBaOptions::Solver::kCeres;
+  return Error{ErrorCode::kInvalidArgument, "unknown GBA solver '" + name + "' (schur or ceres)"};
+}
+
+const char* toString(GlobalBaOptions::Solver solver) {
+  return solver == GlobalBaOptions::Solver::kCeres ? "ceres" : "schur";
+}
+
+Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions& options,
+                                    const std::atomic<bool>* cancel) {
+  if (Status s = options.validate(); !s.ok()) return s.error();
+  GlobalBaSummary summary;
+  summary.keyframes = static_cast<int>(snapshot.keyframes.size());
+  summary.points = static_cast<int>(snapshot.points.size());
+  if (snapshot.keyframes.size() < 2) return summary;
+
+  const auto build_start = std::chrono::steady_clock::now();
+  GbaStates states(snapshot);
+  GbaFactorPlan plan;
+  planReprojections(snapshot, options, states, plan);
+  planImuLinks(snapshot, states, plan);
+  planGauge(snapshot, options, plan);
+  summary.reprojection_factors = static_cast<int>(plan.reprojections.size());
+  summary.imu_factors = static_cast<int>(plan.imu_links.size());
+  summary.profile.build_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+
+  if (options.solver == GlobalBaOptions::Solver::kCeres) {
+    if (Status s = solveWithCeres(snapshot, options, plan, states, cancel, summary); !s.ok()) return s.error();
+  } else {
+    solveWithSchur(snapshot, options, plan, states, cancel, summary);
   }
   if (summary.cancelled) return summary;
   states.writeBack(snapshot);

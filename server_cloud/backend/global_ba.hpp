@@ -48,8 +48,12 @@ struct GlobalBaOptions {
   // bend of a long lap) by cm without a gain in cost (bench_global_ba).
   double function_tolerance = 1e-4;
   int threads = 2;
-  // The reduced (keyframe) system of each step: factorised (SPARSE_SCHUR), or solved by preconditioned conjugate
-  // gradients without forming it (ITERATIVE_SCHUR, SCHUR_JACOBI).
+  // Who solves both steps: the server's own Levenberg-Marquardt with the points eliminated in one pass
+  // (schur_solver.hpp), or Ceres, kept to compare against and to fall back on.
+  enum class Solver { kSchur, kCeres };
+  Solver solver = Solver::kSchur;
+  // With Ceres: the reduced (keyframe) system of each step factorised (SPARSE_SCHUR), or solved by
+  // preconditioned conjugate gradients without forming it (ITERATIVE_SCHUR, SCHUR_JACOBI).
   bool iterative_schur = false;
   double max_solver_time_s = 120.0;  // per step
   double gauge_sigma_m = 1e-4;       // the prior on the oldest keyframe's pose
@@ -60,6 +64,10 @@ struct GlobalBaOptions {
 
   [[nodiscard]] Status validate() const;
 };
+
+// "schur" or "ceres"; anything else is kInvalidArgument naming both.
+Result<GlobalBaOptions::Solver> parseGbaSolver(const std::string& name);
+const char* toString(GlobalBaOptions::Solver solver);
 
 // What the solve needs of an agent.
 struct GbaAgent {

@@ -266,6 +266,8 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("merge_correction_keyframes", b.merge_correction_keyframes);
   backend.read("gba_function_tolerance", b.gba.function_tolerance);
   backend.read("gba_iterative_schur", b.gba.iterative_schur);
+  std::string gba_solver = toString(b.gba.solver);
+  backend.read("gba_solver", gba_solver);
   backend.read("fusion_search_radius_px", b.fusion.search_radius_px);
   backend.read("fusion_max_descriptor_distance", b.fusion.max_descriptor_distance);
   backend.read("fuse_new_keyframes", b.fuse_new_keyframes);
@@ -283,6 +285,9 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("redundancy_keep_newest", b.redundancy.keep_newest);
   backend.read("redundancy_seed", b.redundancy.seed);
   if (Status s = backend.finish(); !s.ok()) return in_file(s);
+  auto solver = backend::parseGbaSolver(gba_solver);
+  if (!solver) return in_file(Status(solver.error().withContext("backend.gba_solver")));
+  b.gba.solver = *solver;
   return Status::Ok();  // the caller validates once the command line is applied: options combine from both
 }
 

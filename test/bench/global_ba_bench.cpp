@@ -15,6 +15,8 @@
 //
 //   bench_global_ba [--keyframes 250,500,1000,2000] [--laps 1] [--free-fraction F] [--repetitions 3] [--threads 2]
 //                   [--json OUT] [--structure-iterations N] [--full-iterations N] [--function-tolerance F]
+//                   [--solver schur|ceres|both]
+// --solver both (the default) solves every size with the server's own Schur solver and with Ceres, side by side.
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -247,13 +249,14 @@ backend::GbaSnapshot windowOf(const backend::GbaSnapshot& perturbed, std::size_t
 // The merge's correction on a lap of this size: a windowed BA of `window` keyframes from the lap's middle, the rest
 // held where they see its points, then the 4-DoF change fitted to the window's moves. Returns the whole time in
 // seconds.
-double timeCorrection(const backend::GbaSnapshot& perturbed, int window) {
+double timeCorrection(const backend::GbaSnapshot& perturbed, int window, backend::GlobalBaOptions::Solver solver) {
   const std::size_t n = perturbed.keyframes.size();
   const std::size_t first = n / 2 - static_cast<std::size_t>(window) / 2;
   const std::size_t last = std::min(n, first + static_cast<std::size_t>(window));
   std::vector<int> keyframe_index;
   backend::GbaSnapshot part = windowOf(perturbed, first, last, keyframe_index);
-  const backend::GlobalBaOptions options = backend::BackendOptions{}.merge_correction_ba;
+  backend::GlobalBaOptions options = backend::BackendOptions{}.merge_correction_ba;
+  options.solver = solver;
   const auto start = std::chrono::steady_clock::now();
   if (!backend::runGlobalBa(part, options)) std::abort();
   std::vector<SE3d> before;
@@ -328,7 +331,7 @@ int main(int argc, char** argv) {
   app.add_option("--keyframes", sizes_text, "Comma-separated keyframe counts [250,500,1000,2000]");
   app.add_option("--repetitions", repetitions, "Solves per size, each from another perturbation [3]")
       ->check(CLI::PositiveNumber);
-  app.add_option("--threads", threads, "Ceres threads [2]")->check(CLI::PositiveNumber);
+  app.add_option("--threads", threads, "Solver threads [2]")->check(CLI::PositiveNumber);
   app.add_option("--json", json_path, "Write the results here as JSON");
   app.add_option("--laps", laps, "Laps of one flight (a smaller circle each time): >1 makes covisibility dense [1]")
       ->check(CLI::PositiveNumber);
@@ -343,7 +346,11 @@ int main(int argc, char** argv) {
       ->check(CLI::NonNegativeNumber);
   app.add_option("--full-iterations", options.full_iterations, "Step 2 iterations at most [server's]")
       ->check(CLI::PositiveNumber);
-  app.add_flag("--iterative-schur", options.iterative_schur, "ITERATIVE_SCHUR (SCHUR_JACOBI) in place of SPARSE_SCHUR");
+  std::string solver_text = "both";
+  app.add_option("--solver", solver_text, "schur (the server's own), ceres, or both, side by side in this run [both]")
+      ->check(CLI::IsMember({"schur", "ceres", "both"}));
+  app.add_flag("--iterative-schur", options.iterative_schur,
+               "With Ceres: ITERATIVE_SCHUR (SCHUR_JACOBI) in place of SPARSE_SCHUR");
   app.add_option("--function-tolerance", options.function_tolerance,
                  "A step stops when an iteration lowers the cost by less than this fraction [server's]");
   CLI11_PARSE(app, argc, argv);
@@ -356,97 +363,108 @@ int main(int argc, char** argv) {
   }
 
   options.threads = threads;
+  std::vector<backend::GlobalBaOptions::Solver> solvers;
+  if (solver_text != "ceres") solvers.push_back(backend::GlobalBaOptions::Solver::kSchur);
+  if (solver_text != "schur") solvers.push_back(backend::GlobalBaOptions::Solver::kCeres);
   nlohmann::json results = nlohmann::json::array();
   std::printf("SYNTHETIC mono-inertial scenes (%d lap(s), 1 m/s, a keyframe per 0.5 s, <= 300 observations each)\n",
               laps);
   std::printf(
       "RMS keyframe position differences [cm]: start and result to the truth; result to the optimum reached "
       "from the truth; that optimum to the truth\n");
-  std::printf("%9s %7s %9s %6s %10s %10s %10s %8s %8s %10s %10s\n", "keyframes", "points", "reproj", "iters",
-              "solve p50", "solve p99", "s/KF p50", "start", "result", "to optimum", "optimum");
+  std::printf("%9s %6s %7s %9s %6s %10s %10s %10s %8s %8s %10s %10s %12s\n", "keyframes", "solver", "points", "reproj",
+              "iters", "solve p50", "solve p99", "s/KF p50", "start", "result", "to optimum", "optimum", "final cost");
   for (const int n : sizes) {
     const Scene scene = makeScene(n, laps, 1);
-    // The optimum as the solve finds it from the truth: with pixel noise it is not the truth, and over a long lap
-    // it drifts from it, so convergence is judged against this.
-    backend::GbaSnapshot from_truth = scene.snapshot;
-    if (auto s = backend::runGlobalBa(from_truth, options); !s) {
-      std::cerr << "bench_global_ba: " << s.error().toString() << "\n";
-      return 1;
-    }
-    const std::vector<SE3d> optimum = posesOf(from_truth);
-    const double optimum_to_truth_m = rmsPositionError(from_truth, scene.truth);
-    std::vector<double> to_optimum_m;
-    std::vector<double> seconds;
-    std::vector<double> before_m;
-    std::vector<double> after_m;
-    std::vector<double> correction_s;
-    std::vector<double> window_s;
-    std::vector<double> window_to_optimum_m;
-    const auto free_keyframes = static_cast<std::size_t>(std::lround(free_fraction * n));
-    std::vector<double> final_cost;
-    backend::GlobalBaSummary last;
-    for (int r = 0; r < repetitions; ++r) {
-      backend::GbaSnapshot snapshot = scene.snapshot;
-      perturb(snapshot, 100 + static_cast<std::uint64_t>(r), perturbation);
-      before_m.push_back(rmsPositionError(snapshot, scene.truth));
-      correction_s.push_back(timeCorrection(snapshot, kCorrectionWindow));
-      if (free_keyframes > 0) {
-        const auto [seconds_w, rms_m] =
-            timeWindow(from_truth, free_keyframes, 100 + static_cast<std::uint64_t>(r), perturbation, options);
-        window_s.push_back(seconds_w);
-        window_to_optimum_m.push_back(rms_m);
-      }
-      const auto start = std::chrono::steady_clock::now();
-      auto summary = backend::runGlobalBa(snapshot, options);
-      seconds.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
-      if (!summary) {
-        std::cerr << "bench_global_ba: " << summary.error().toString() << "\n";
+    for (const backend::GlobalBaOptions::Solver solver : solvers) {
+      options.solver = solver;
+      const char* solver_name = backend::toString(solver);
+      // The optimum as the solve finds it from the truth: with pixel noise it is not the truth, and over a long lap
+      // it drifts from it, so convergence is judged against this.
+      backend::GbaSnapshot from_truth = scene.snapshot;
+      if (auto s = backend::runGlobalBa(from_truth, options); !s) {
+        std::cerr << "bench_global_ba: " << s.error().toString() << "\n";
         return 1;
       }
-      last = *summary;
-      final_cost.push_back(summary->final_cost);
-      after_m.push_back(rmsPositionError(snapshot, scene.truth));
-      to_optimum_m.push_back(rmsPositionError(snapshot, optimum));
-      const backend::GlobalBaProfile& pr = summary->profile;
-      std::fprintf(stderr,
-                   "  %d keyframes, run %d/%d: %.2f s (build %.2f, preprocess %.2f, residuals %.2f, jacobians %.2f, "
-                   "linear solver %.2f, other %.2f; iterations %d + %d; cost %.6g -> %.6g)\n",
-                   n, r + 1, repetitions, seconds.back(), pr.build_s, pr.preprocess_s, pr.residuals_s, pr.jacobians_s,
-                   pr.linear_solver_s, pr.other_s, summary->structure_iterations, summary->full_iterations,
-                   summary->initial_cost, summary->final_cost);
+      const std::vector<SE3d> optimum = posesOf(from_truth);
+      const double optimum_to_truth_m = rmsPositionError(from_truth, scene.truth);
+      std::vector<double> to_optimum_m;
+      std::vector<double> seconds;
+      std::vector<double> before_m;
+      std::vector<double> after_m;
+      std::vector<double> correction_s;
+      std::vector<double> window_s;
+      std::vector<double> window_to_optimum_m;
+      const auto free_keyframes = static_cast<std::size_t>(std::lround(free_fraction * n));
+      std::vector<double> final_cost;
+      backend::GlobalBaSummary last;
+      for (int r = 0; r < repetitions; ++r) {
+        backend::GbaSnapshot snapshot = scene.snapshot;
+        perturb(snapshot, 100 + static_cast<std::uint64_t>(r), perturbation);
+        before_m.push_back(rmsPositionError(snapshot, scene.truth));
+        correction_s.push_back(timeCorrection(snapshot, kCorrectionWindow, solver));
+        if (free_keyframes > 0) {
+          const auto [seconds_w, rms_m] =
+              timeWindow(from_truth, free_keyframes, 100 + static_cast<std::uint64_t>(r), perturbation, options);
+          window_s.push_back(seconds_w);
+          window_to_optimum_m.push_back(rms_m);
+        }
+        const auto start = std::chrono::steady_clock::now();
+        auto summary = backend::runGlobalBa(snapshot, options);
+        seconds.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
+        if (!summary) {
+          std::cerr << "bench_global_ba: " << summary.error().toString() << "\n";
+          return 1;
+        }
+        last = *summary;
+        final_cost.push_back(summary->final_cost);
+        after_m.push_back(rmsPositionError(snapshot, scene.truth));
+        to_optimum_m.push_back(rmsPositionError(snapshot, optimum));
+        const backend::GlobalBaProfile& pr = summary->profile;
+        std::fprintf(
+            stderr,
+            "  %d keyframes, %s, run %d/%d: %.2f s (build %.2f, preprocess %.2f, residuals %.2f, jacobians %.2f, "
+            "linear solver %.2f, other %.2f; iterations %d + %d; cost %.6g -> %.6g)\n",
+            n, solver_name, r + 1, repetitions, seconds.back(), pr.build_s, pr.preprocess_s, pr.residuals_s,
+            pr.jacobians_s, pr.linear_solver_s, pr.other_s, summary->structure_iterations, summary->full_iterations,
+            summary->initial_cost, summary->final_cost);
+      }
+      const auto pct = [](const std::vector<double>& v, double p) { return cvislam::bench::percentile(v, p); };
+      std::printf("%9d %6s %7d %9d %6d %9.2fs %9.2fs %8.1fms %8.2f %8.2f %10.3f %10.2f %12.6g\n", n, solver_name,
+                  last.points, last.reprojection_factors, last.structure_iterations + last.full_iterations,
+                  pct(seconds, 0.5), pct(seconds, 0.99), 1000.0 * pct(seconds, 0.5) / n, 100.0 * pct(before_m, 0.5),
+                  100.0 * pct(after_m, 0.5), 100.0 * pct(to_optimum_m, 0.99), 100.0 * optimum_to_truth_m,
+                  pct(final_cost, 0.5));
+      std::printf("%9s merge correction: BA of %d keyframes and the fit, p50 %.0f ms, p99 %.0f ms\n", "",
+                  kCorrectionWindow, 1000.0 * pct(correction_s, 0.5), 1000.0 * pct(correction_s, 0.99));
+      if (free_keyframes > 0) {
+        std::printf("%9s GBA of the newest %zu keyframes, the rest held: p50 %.2f s, p99 %.2f s; to optimum %.3f cm\n",
+                    "", free_keyframes, pct(window_s, 0.5), pct(window_s, 0.99),
+                    100.0 * pct(window_to_optimum_m, 0.99));
+      }
+      std::fflush(stdout);
+      results.push_back({{"keyframes", n},
+                         {"solver", solver_name},
+                         {"correction",
+                          {{"window_keyframes", kCorrectionWindow},
+                           {"solve_s", {{"p50", pct(correction_s, 0.5)}, {"p99", pct(correction_s, 0.99)}}}}},
+                         {"window",
+                          {{"free_keyframes", free_keyframes},
+                           {"solve_s", {{"p50", pct(window_s, 0.5)}, {"p99", pct(window_s, 0.99)}}},
+                           {"free_to_optimum_m_p99", pct(window_to_optimum_m, 0.99)}}},
+                         {"points", last.points},
+                         {"reprojection_factors", last.reprojection_factors},
+                         {"imu_factors", last.imu_factors},
+                         {"iterations", last.structure_iterations + last.full_iterations},
+                         {"repetitions", repetitions},
+                         {"solve_s", {{"p50", pct(seconds, 0.5)}, {"p99", pct(seconds, 0.99)}, {"all", seconds}}},
+                         {"final_cost", final_cost},
+                         {"rms_position_m",
+                          {{"start_to_truth_p50", pct(before_m, 0.5)},
+                           {"result_to_truth_p50", pct(after_m, 0.5)},
+                           {"result_to_optimum_p99", pct(to_optimum_m, 0.99)},
+                           {"optimum_to_truth", optimum_to_truth_m}}}});
     }
-    const auto pct = [](const std::vector<double>& v, double p) { return cvislam::bench::percentile(v, p); };
-    std::printf("%9d %7d %9d %6d %9.2fs %9.2fs %8.1fms %8.2f %8.2f %10.3f %10.2f\n", n, last.points,
-                last.reprojection_factors, last.structure_iterations + last.full_iterations, pct(seconds, 0.5),
-                pct(seconds, 0.99), 1000.0 * pct(seconds, 0.5) / n, 100.0 * pct(before_m, 0.5),
-                100.0 * pct(after_m, 0.5), 100.0 * pct(to_optimum_m, 0.99), 100.0 * optimum_to_truth_m);
-    std::printf("%9s merge correction: BA of %d keyframes and the fit, p50 %.0f ms, p99 %.0f ms\n", "",
-                kCorrectionWindow, 1000.0 * pct(correction_s, 0.5), 1000.0 * pct(correction_s, 0.99));
-    if (free_keyframes > 0) {
-      std::printf("%9s GBA of the newest %zu keyframes, the rest held: p50 %.2f s, p99 %.2f s; to optimum %.3f cm\n",
-                  "", free_keyframes, pct(window_s, 0.5), pct(window_s, 0.99), 100.0 * pct(window_to_optimum_m, 0.99));
-    }
-    std::fflush(stdout);
-    results.push_back({{"keyframes", n},
-                       {"correction",
-                        {{"window_keyframes", kCorrectionWindow},
-                         {"solve_s", {{"p50", pct(correction_s, 0.5)}, {"p99", pct(correction_s, 0.99)}}}}},
-                       {"window",
-                        {{"free_keyframes", free_keyframes},
-                         {"solve_s", {{"p50", pct(window_s, 0.5)}, {"p99", pct(window_s, 0.99)}}},
-                         {"free_to_optimum_m_p99", pct(window_to_optimum_m, 0.99)}}},
-                       {"points", last.points},
-                       {"reprojection_factors", last.reprojection_factors},
-                       {"imu_factors", last.imu_factors},
-                       {"iterations", last.structure_iterations + last.full_iterations},
-                       {"repetitions", repetitions},
-                       {"solve_s", {{"p50", pct(seconds, 0.5)}, {"p99", pct(seconds, 0.99)}, {"all", seconds}}},
-                       {"final_cost", final_cost},
-                       {"rms_position_m",
-                        {{"start_to_truth_p50", pct(before_m, 0.5)},
-                         {"result_to_truth_p50", pct(after_m, 0.5)},
-                         {"result_to_optimum_p99", pct(to_optimum_m, 0.99)},
-                         {"optimum_to_truth", optimum_to_truth_m}}}});
   }
   if (!json_path.empty()) {
     std::ofstream out(json_path);

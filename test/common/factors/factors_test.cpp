@@ -653,6 +653,53 @@ TEST_F(WorldPointFactorTest, JacobiansMatchNumericAtRandomStatesTinyRotationsAnd
   expectJacobiansMatchNumeric(tiny, {poseBlock(T_w_s, pose_manifold_), vectorBlock(VectorXd(p_w))});
 }
 
+// The tangent-space entry point (the server's Schur solver): its pose Jacobian against central differences
+// of the residual along PoseManifold::Plus, its point Jacobian against differences in p_w, its residual the
+// Ceres one.
+TEST_F(WorldPointFactorTest, TangentJacobiansMatchNumericAlongThePoseManifold) {
+  constexpr double kStep = 1e-6;
+  for (int trial = 0; trial < 20; ++trial) {
+    const WorldPointReprojectionFactor sut(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5, T_s_c_.inverse());
+    const std::vector<Block> blocks = randomCase(random_.uniform(1.0, 10.0), M_PI / std::sqrt(3.0));
+    const double* pose = blocks[0].value.data();
+    const double* p_w = blocks[1].value.data();
+    Eigen::Vector2d r;
+    Eigen::Matrix<double, 2, 6> J_pose;
+    Eigen::Matrix<double, 2, 3> J_point;
+    ASSERT_TRUE(sut.evaluateTangent(pose, p_w, r, &J_pose, &J_point));
+    EXPECT_LT((r - evaluate(sut, blocks)).norm(), 1e-12);
+    Eigen::Matrix<double, 2, 6> numeric_pose;
+    for (int k = 0; k < 6; ++k) {
+      Eigen::Matrix<double, 6, 1> delta = Eigen::Matrix<double, 6, 1>::Zero();
+      Eigen::Matrix<double, 7, 1> plus;
+      Eigen::Matrix<double, 7, 1> minus;
+      delta[k] = kStep;
+      pose_manifold_.Plus(pose, delta.data(), plus.data());
+      delta[k] = -kStep;
+      pose_manifold_.Plus(pose, delta.data(), minus.data());
+      Eigen::Vector2d r_plus;
+      Eigen::Vector2d r_minus;
+      ASSERT_TRUE(sut.evaluateTangent(plus.data(), p_w, r_plus, nullptr, nullptr));
+      ASSERT_TRUE(sut.evaluateTangent(minus.data(), p_w, r_minus, nullptr, nullptr));
+      numeric_pose.col(k) = (r_plus - r_minus) / (2.0 * kStep);
+    }
+    Eigen::Matrix<double, 2, 3> numeric_point;
+    for (int k = 0; k < 3; ++k) {
+      Vector3d plus(p_w[0], p_w[1], p_w[2]);
+      Vector3d minus = plus;
+      plus[k] += kStep;
+      minus[k] -= kStep;
+      Eigen::Vector2d r_plus;
+      Eigen::Vector2d r_minus;
+      ASSERT_TRUE(sut.evaluateTangent(pose, plus.data(), r_plus, nullptr, nullptr));
+      ASSERT_TRUE(sut.evaluateTangent(pose, minus.data(), r_minus, nullptr, nullptr));
+      numeric_point.col(k) = (r_plus - r_minus) / (2.0 * kStep);
+    }
+    EXPECT_LT((J_pose - numeric_pose).cwiseAbs().maxCoeff(), 1e-4 * std::max(1.0, J_pose.cwiseAbs().maxCoeff()));
+    EXPECT_LT((J_point - numeric_point).cwiseAbs().maxCoeff(), 1e-4 * std::max(1.0, J_point.cwiseAbs().maxCoeff()));
+  }
+}
+
 TEST_F(WorldPointFactorTest, SecondCameraJacobiansMatchNumericAndAFarPointStillConstrainsRotation) {
   const SE3d T_c1_c0(SO3d::exp(Vector3d(0.001, -0.002, 0.003)), Vector3d(-0.11, 0.001, 0.0005));
   const SE3d T_c1_s = T_c1_c0 * T_s_c_.inverse();

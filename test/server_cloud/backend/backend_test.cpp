@@ -33,18 +33,8 @@ using geometry::SO3d;
 TEST(GlobalBa, ConvergesToTheTruthFromAPerturbedStartWithImuFactorsOnlyInsideEachAgent) {
   const test::ViScenario s = scenario(16, 0.5, 0.5);
   MapContent map(0);
-  // Two agents over the same place: agent 1 flies keyframes 0-7, agent 2 keyframes 8-15, seeing the same points.
-  buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 7}, nullptr);
-  buildAgentMap(map, s, AgentPlan{.agent = 2, .first = 8, .last = 15}, nullptr);
-  // Agent 2's points are agent 1's where both see them: fuse them as a merge would.
-  for (std::size_t p = 0; p < s.points.size(); ++p) {
-    const MapPointId a{1, static_cast<std::uint32_t>(p)};
-    const MapPointId b{2, static_cast<std::uint32_t>(p)};
-    if (map.point(a) != nullptr && map.point(b) != nullptr) {
-      ASSERT_TRUE(map.mergePoints(b, a).ok());
-    }
-  }
-  ASSERT_TRUE(map.checkConsistency().ok());
+  buildTwoAgentsFusedMap(map, s);
+  if (HasFatalFailure()) return;
   // The best the data allows: the solve started at the truth (0.5 px noise on 5-9 m points). The server's
   // default stops once an iteration gains less than 1e-4 of the cost; here the solves run to the optimum.
   GlobalBaOptions options;
@@ -53,24 +43,7 @@ TEST(GlobalBa, ConvergesToTheTruthFromAPerturbedStartWithImuFactorsOnlyInsideEac
   Result<GbaSnapshot> from_truth = makeGbaSnapshot(map, {{1, sensorsOf(s)}, {2, sensorsOf(s)}});
   ASSERT_TRUE(from_truth.ok());
   ASSERT_TRUE(runGlobalBa(*from_truth, options).ok());
-  // Perturb every keyframe but the oldest (the gauge) and every point, seeded.
-  std::mt19937_64 rng(5);
-  std::normal_distribution<double> noise(0.0, 1.0);
-  const auto vec = [&](double sigma) {
-    const double x = noise(rng);
-    const double y = noise(rng);
-    const double z = noise(rng);
-    return Vector3d(sigma * x, sigma * y, sigma * z);
-  };
-  for (const auto& [id, kf_const] : map.keyframes()) {
-    if (id == KeyframeId{1, 0}) continue;
-    ServerKeyframe* kf = map.keyframe(id);
-    kf->T_w_s = SE3d(kf->T_w_s.so3() * SO3d::exp(vec(0.01)), kf->T_w_s.translation() + vec(0.05));
-    kf->v_w += vec(0.05);
-  }
-  std::vector<MapPointId> ids;
-  for (const auto& [id, p] : map.points()) ids.push_back(id);
-  for (const MapPointId& id : ids) map.point(id)->p_w += vec(0.05);
+  perturbAllButTheGauge(map, 5);
   const double before = std::max(maxPositionError(map, s, 1), maxPositionError(map, s, 2));
   ASSERT_GT(before, 0.05);
 

@@ -107,6 +107,39 @@ void buildAgentMap(MapContent& map, const test::ViScenario& s, const AgentPlan& 
   }
 }
 
+void buildTwoAgentsFusedMap(MapContent& map, const test::ViScenario& s) {
+  buildAgentMap(map, s, AgentPlan{.agent = 1, .first = 0, .last = 7}, nullptr);
+  buildAgentMap(map, s, AgentPlan{.agent = 2, .first = 8, .last = 15}, nullptr);
+  for (std::size_t p = 0; p < s.points.size(); ++p) {
+    const MapPointId a{1, static_cast<std::uint32_t>(p)};
+    const MapPointId b{2, static_cast<std::uint32_t>(p)};
+    if (map.point(a) != nullptr && map.point(b) != nullptr) {
+      ASSERT_TRUE(map.mergePoints(b, a).ok());
+    }
+  }
+  ASSERT_TRUE(map.checkConsistency().ok());
+}
+
+void perturbAllButTheGauge(MapContent& map, std::uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> noise(0.0, 1.0);
+  const auto vec = [&](double sigma) {
+    const double x = noise(rng);
+    const double y = noise(rng);
+    const double z = noise(rng);
+    return Eigen::Vector3d(sigma * x, sigma * y, sigma * z);
+  };
+  for (const auto& [id, kf_const] : map.keyframes()) {
+    if (id == KeyframeId{1, 0}) continue;
+    ServerKeyframe* kf = map.keyframe(id);
+    kf->T_w_s = SE3d(kf->T_w_s.so3() * geometry::SO3d::exp(vec(0.01)), kf->T_w_s.translation() + vec(0.05));
+    kf->v_w += vec(0.05);
+  }
+  std::vector<MapPointId> ids;
+  for (const auto& [id, p] : map.points()) ids.push_back(id);
+  for (const MapPointId& id : ids) map.point(id)->p_w += vec(0.05);
+}
+
 double maxPositionError(const MapContent& map, const test::ViScenario& s, AgentId agent, const SE3d& T_truth_map) {
   double worst = 0.0;
   for (const auto& [id, kf] : map.keyframes()) {

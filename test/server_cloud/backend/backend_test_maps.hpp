@@ -40,6 +40,14 @@ void buildAgentMap(MapContent& map, const test::ViScenario& s, const AgentPlan& 
 // keyframes that arrive while the back-end solves. True when every one was added.
 bool addArrivingKeyframes(ServerMap& map, const test::ViScenario& s, const AgentPlan& plan);
 
+// Two agents over the same place, their points fused as a merge would: agent 1 flies keyframes 0-7 and agent 2
+// keyframes 8-15 of `s`, seeing the same points.
+void buildTwoAgentsFusedMap(MapContent& map, const test::ViScenario& s);
+
+// Moves every keyframe but agent 1's first (the gauge) by 0.01 rad and 5 cm, its velocity by 5 cm/s, and every
+// point by 5 cm (standard deviations per axis; seeded).
+void perturbAllButTheGauge(MapContent& map, std::uint64_t seed);
+
 // The largest position error of the agent's keyframes against the truth, after mapping the map frame by T.
 double maxPositionError(const MapContent& map, const test::ViScenario& s, AgentId agent, const SE3d& T_truth_map = {});
 

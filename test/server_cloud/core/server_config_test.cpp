@@ -90,5 +90,18 @@ TEST(ServerConfigFiles, AnUnknownKeyIsRefusedNamingIt) {
   EXPECT_THAT(s.error().message(), HasSubstr("health_port"));
 }
 
+TEST(ServerConfigFiles, AnUnknownGbaSolverIsRefusedNamingTheKeyAndTheChoices) {
+  cvislam::test::TempDir dir;
+  std::ofstream(dir.path() / "bad.yaml") << "backend:\n  gba_solver: dense\n";
+  ServerOptions o;
+  const Status s = loadServerConfig(dir.path() / "bad.yaml", o);
+  ASSERT_FALSE(s.ok());
+  EXPECT_THAT(s.error().toString(), HasSubstr("backend.gba_solver"));
+  EXPECT_THAT(s.error().toString(), HasSubstr("schur or ceres"));
+  std::ofstream(dir.path() / "ceres.yaml") << "backend:\n  gba_solver: ceres\n";
+  ASSERT_TRUE(loadServerConfig(dir.path() / "ceres.yaml", o).ok());
+  EXPECT_EQ(o.backend.gba.solver, backend::GlobalBaOptions::Solver::kCeres);
+}
+
 }  // namespace
 }  // namespace cvislam::server
