@@ -16,8 +16,14 @@ WorldPointReprojectionFactor::WorldPointReprojectionFactor(const Eigen::Vector2d
 bool WorldPointReprojectionFactor::evaluateTangent(const double* pose, const double* p_w_block,
                                                    Eigen::Vector2d& residual, Eigen::Matrix<double, 2, 6>* J_pose,
                                                    Eigen::Matrix<double, 2, 3>* J_point) const {
-  const Eigen::Map<const Eigen::Vector3d> p_w_s(pose);
   const Eigen::Matrix3d R_w_s = Eigen::Quaterniond(pose[6], pose[3], pose[4], pose[5]).normalized().toRotationMatrix();
+  return evaluateTangent(R_w_s, Eigen::Vector3d(pose[0], pose[1], pose[2]), p_w_block, residual, J_pose, J_point);
+}
+
+bool WorldPointReprojectionFactor::evaluateTangent(const Eigen::Matrix3d& R_w_s, const Eigen::Vector3d& p_w_s,
+                                                   const double* p_w_block, Eigen::Vector2d& residual,
+                                                   Eigen::Matrix<double, 2, 6>* J_pose,
+                                                   Eigen::Matrix<double, 2, 3>* J_point) const {
   const Eigen::Map<const Eigen::Vector3d> p_w(p_w_block);
 
   const Eigen::Vector3d X_s = R_w_s.transpose() * (p_w - p_w_s);

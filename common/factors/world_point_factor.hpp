@@ -32,6 +32,11 @@ class WorldPointReprojectionFactor final : public ceres::SizedCostFunction<2, kP
   // Jacobians may be null; false when the point is not in front of the camera.
   bool evaluateTangent(const double* pose, const double* p_w, Eigen::Vector2d& residual,
                        Eigen::Matrix<double, 2, 6>* J_pose, Eigen::Matrix<double, 2, 3>* J_point) const;
+  // The same with the pose as its rotation matrix and position, for a solver that evaluates many observations of
+  // one pose and converts its quaternion once.
+  bool evaluateTangent(const Eigen::Matrix3d& R_w_s, const Eigen::Vector3d& p_w_s, const double* p_w,
+                       Eigen::Vector2d& residual, Eigen::Matrix<double, 2, 6>* J_pose,
+                       Eigen::Matrix<double, 2, 3>* J_point) const;
 
  private:
   Eigen::Vector2d keypoint_px_;

@@ -150,6 +150,10 @@ struct SchurProblem::Impl {
   Eigen::VectorXd dc;
   std::vector<Vec3> dp;
   std::vector<double> backup;
+  // Each pose block's rotation matrix and position, converted once per evaluation pass rather than per
+  // observation.
+  std::vector<Mat33> R_w_s;
+  std::vector<Vec3> p_w_s;
 
   int pairOf(int a, int b, std::unordered_map<std::uint64_t, int>& index) {
     const int lo = std::min(a, b);
@@ -166,11 +170,22 @@ struct SchurProblem::Impl {
 
   bool freeBlock(int b) const { return !keyframe_blocks[static_cast<std::size_t>(b)].held; }
 
+  void cachePoses() {
+    R_w_s.resize(keyframe_blocks.size());
+    p_w_s.resize(keyframe_blocks.size());
+    for (std::size_t b = 0; b < keyframe_blocks.size(); ++b) {
+      const double* x = keyframe_blocks[b].x;
+      if (!keyframe_blocks[b].pose) continue;
+      R_w_s[b] = Eigen::Quaterniond(x[6], x[3], x[4], x[5]).normalized().toRotationMatrix();
+      p_w_s[b] = Vec3(x[0], x[1], x[2]);
+    }
+  }
+
   void setup(int parts);
   void buildPattern();
   bool linearize(int parts);
   bool eliminateAndSolve(double lambda, int parts, double& model_reduction);
-  bool evaluateCost(int parts, double& out) const;
+  bool evaluateCost(int parts, double& out);
   void applyStep();
   void restore();
   [[nodiscard]] double stateNorm() const;
@@ -282,18 +297,22 @@ void SchurProblem::Impl::setup(int parts) {
   }
   buildPattern();
 
-  C.assign(values_size, 0.0);
-  S.assign(values_size, 0.0);
-  gc = Eigen::VectorXd::Zero(dim);
-  g = Eigen::VectorXd::Zero(dim);
-  Hpp.assign(points.size(), Mat33::Zero());
-  bp.assign(points.size(), Vec3::Zero());
-  W.assign(slot_pose.size(), Mat63::Zero());
-  Hinv.assign(points.size(), Mat33::Zero());
-  point_diagonal.assign(points.size(), Vec3::Zero());
-  dp.assign(points.size(), Vec3::Zero());
-  part_values.assign(static_cast<std::size_t>(std::max(parts - 1, 0)), std::vector<double>(values_size, 0.0));
-  part_rhs.assign(static_cast<std::size_t>(std::max(parts - 1, 0)), Eigen::VectorXd::Zero(dim));
+  // Sized only: linearize() and eliminateAndSolve() write every entry before anything reads it (zeroing tens
+  // of MB here cost as much as the rest of the setup).
+  C.resize(values_size);
+  S.resize(values_size);
+  gc.resize(dim);
+  g.resize(dim);
+  Hpp.resize(points.size());
+  bp.resize(points.size());
+  W.resize(slot_pose.size());
+  Hinv.resize(points.size());
+  point_diagonal.resize(points.size());
+  dp.resize(points.size());
+  part_values.resize(static_cast<std::size_t>(std::max(parts - 1, 0)));
+  for (std::vector<double>& v : part_values) v.resize(values_size);
+  part_rhs.resize(static_cast<std::size_t>(std::max(parts - 1, 0)));
+  for (Eigen::VectorXd& v : part_rhs) v.resize(dim);
   part_cost.assign(static_cast<std::size_t>(parts), 0.0);
   part_failed.assign(static_cast<std::size_t>(parts), 0);
 }
@@ -380,6 +399,7 @@ bool SchurProblem::Impl::linearize(int parts) {
   for (Eigen::VectorXd& v : part_rhs) v.setZero();
   std::fill(part_cost.begin(), part_cost.end(), 0.0);
   std::fill(part_failed.begin(), part_failed.end(), 0);
+  cachePoses();
   splitOver(parts, points.size(), [&](int part, std::size_t begin, std::size_t end) {
     double* values = part == 0 ? C.data() : part_values[static_cast<std::size_t>(part - 1)].data();
     Eigen::VectorXd& rhs = part == 0 ? gc : part_rhs[static_cast<std::size_t>(part - 1)];
@@ -395,7 +415,8 @@ bool SchurProblem::Impl::linearize(int parts) {
         Eigen::Vector2d r;
         Eigen::Matrix<double, 2, 6> J_pose;
         Eigen::Matrix<double, 2, 3> J_point;
-        if (!o.factor->evaluateTangent(pose.x, points[p].x, r, pose.held ? nullptr : &J_pose,
+        if (!o.factor->evaluateTangent(R_w_s[static_cast<std::size_t>(o.pose)], p_w_s[static_cast<std::size_t>(o.pose)],
+                                       points[p].x, r, pose.held ? nullptr : &J_pose,
                                        point_free ? &J_point : nullptr)) {
           part_failed[static_cast<std::size_t>(part)] = 1;
           continue;
@@ -553,7 +574,8 @@ bool SchurProblem::Impl::eliminateAndSolve(double lambda, int parts, double& mod
   return std::isfinite(model_reduction);
 }
 
-bool SchurProblem::Impl::evaluateCost(int parts, double& out) const {
+bool SchurProblem::Impl::evaluateCost(int parts, double& out) {
+  cachePoses();
   std::vector<double> costs(static_cast<std::size_t>(std::max(parts, 1)), 0.0);
   std::vector<std::uint8_t> failed(costs.size(), 0);
   splitOver(static_cast<int>(costs.size()), reprojections.size(), [&](int part, std::size_t begin, std::size_t end) {
@@ -561,7 +583,7 @@ bool SchurProblem::Impl::evaluateCost(int parts, double& out) const {
     for (std::size_t i = begin; i < end; ++i) {
       const Reprojection& o = reprojections[i];
       Eigen::Vector2d r;
-      if (!o.factor->evaluateTangent(keyframe_blocks[static_cast<std::size_t>(o.pose)].x,
+      if (!o.factor->evaluateTangent(R_w_s[static_cast<std::size_t>(o.pose)], p_w_s[static_cast<std::size_t>(o.pose)],
                                      points[static_cast<std::size_t>(o.point)].x, r, nullptr, nullptr)) {
         failed[static_cast<std::size_t>(part)] = 1;
         return;
@@ -637,7 +659,7 @@ double SchurProblem::Impl::stepNorm() const {
   return std::sqrt(sum);
 }
 
-bool SchurProblem::cost(double& out, int threads) const {
+bool SchurProblem::cost(double& out, int threads) {
   return impl_->evaluateCost(threads, out);
 }
 

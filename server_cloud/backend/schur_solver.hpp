@@ -83,7 +83,7 @@ class SchurProblem {
 
   // Half the sum of the robustified squared residuals at the current states; false when a factor cannot be
   // evaluated (a point behind its camera).
-  [[nodiscard]] bool cost(double& out, int threads = 1) const;
+  [[nodiscard]] bool cost(double& out, int threads = 1);
   // The gradient of cost() in the tangent space of every free block, as the solver assembles it: keyframe blocks
   // in index order (poses 6, vectors their size), then points (3 each). For tests against numeric differences.
   [[nodiscard]] Eigen::VectorXd gradient();
