@@ -195,25 +195,29 @@ TEST(BackendLoopDuringGba, ABigLoopCutsTheRunningGbaShortAndTheNextOneRemovesThe
 }
 
 // With loop_cancels_gba_in_a_row 1: a big loop cuts the running GBA short; a second big loop, arriving while the GBA
-// after it runs, does not cut that one short, which is applied. The second loop's match is 30 cm off (as a wrong
-// loop would be), so that its pose graph is big too.
+// after it runs, does not cut that one short, which is applied; a third, during the GBA after that, cuts it short
+// again (the count starts over once a GBA is applied). The later loops' matches are 30 cm off (as wrong loops would
+// be), so that their pose graphs are big too.
 TEST(BackendLoopDuringGba, LoopsCutAMapsGbaShortOnlySoManyTimesInARow) {
   MissionRegistry registry;
   const test::ViScenario s = scenario(24, 0.5, 0.3);
   const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
   std::shared_ptr<ServerMap> map = driftedMap(*mission, s, 0.4, 0.05);
-  // Holds the map's first two GBA solves at their start, one at a time.
+  // Holds the map's first three GBA solves at their start, one at a time.
   GbaGate first(map->id());
   GbaGate second(map->id());
+  GbaGate third(map->id());
   std::atomic<int> solves{0};
   BackendOptions options;
   options.redundancy.enabled = false;
   options.loop_cancels_gba_in_a_row = 1;
-  options.loop_cooldown_keyframes = 0;  // both loops are the same agent's, one keyframe apart
-  options.on_gba_solve_start = [&, hold_first = first.hook(), hold_second = second.hook()](MapId m) {
+  options.loop_cooldown_keyframes = 0;  // the loops are the same agent's, at most one keyframe apart
+  options.on_gba_solve_start = [&, hold_first = first.hook(), hold_second = second.hook(),
+                                hold_third = third.hook()](MapId m) {
     const int n = solves.fetch_add(1);
     if (n == 0) hold_first(m);
     if (n == 1) hold_second(m);
+    if (n == 2) hold_third(m);
   };
   BackendWorker worker(options, registry, nullptr);
   std::thread mission_end([&] { worker.drain(true); });
@@ -231,18 +235,27 @@ TEST(BackendLoopDuringGba, LoopsCutAMapsGbaShortOnlySoManyTimesInARow) {
   EXPECT_TRUE(worker.onMatch("m", loop2));
   EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 2; }));
   second.release();
+  third.waitUntilHeld();
+  recognition::MatchRecord loop3 =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 23}, map->id(), KeyframeId{1, 1}, map->id());
+  loop3.match.T_cmap_cq = SE3d(SO3d(), Vector3d(0.0, -0.3, 0.0)) * s.keyframe_states[23].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", loop3));
+  EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 3; }));
+  third.release();
   mission_end.join();
   worker.drain(false);
   const BackendStats stats = worker.stats("m");
-  ASSERT_EQ(stats.loops.size(), 2U);
-  EXPECT_GT(stats.loops[0].correction_m, options.loop_cancels_gba_m);
-  EXPECT_GT(stats.loops[1].correction_m, options.loop_cancels_gba_m);
+  ASSERT_EQ(stats.loops.size(), 3U);
+  for (const LoopRecord& loop : stats.loops) EXPECT_GT(loop.correction_m, options.loop_cancels_gba_m);
   EXPECT_TRUE(stats.loops[0].cancelled_gba);
   EXPECT_FALSE(stats.loops[1].cancelled_gba) << "the map's last GBA was cut short already";
-  EXPECT_EQ(stats.gba_cancelled, 1U);
-  ASSERT_GE(stats.gba.size(), 2U);
+  EXPECT_TRUE(stats.loops[2].cancelled_gba) << "a GBA was applied since";
+  EXPECT_EQ(stats.gba_cancelled, 2U);
+  ASSERT_GE(stats.gba.size(), 4U);
   EXPECT_TRUE(stats.gba[0].summary.cancelled);
   EXPECT_FALSE(stats.gba[1].summary.cancelled) << "the GBA the second loop found running was applied";
+  EXPECT_TRUE(stats.gba[2].summary.cancelled);
+  EXPECT_FALSE(stats.gba.back().summary.cancelled);
   EXPECT_TRUE(map->read()->checkConsistency().ok());
 }
 
