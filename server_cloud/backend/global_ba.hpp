@@ -2,11 +2,11 @@
 // keyframe poses: loop closure, merges) is applied to a map that kept changing while the solve ran.
 //
 // Problem: every keyframe's pose, and velocity and biases where its agent uses the IMU; every map point seen by
-// at least two keyframes (or by both cameras of one), as one world-position block, so that SPARSE_SCHUR
-// eliminates points. Factors: reprojection (cam0, and cam1 for stereo matches), Cauchy loss; IMU
-// preintegration and bias random walk only between consecutive keyframes of one agent (the IMU link the
-// agent sent, preintegrated from its raw samples); a prior on the oldest keyframe's pose for the gauge.
-// Two steps, as the paper says: points, velocities and biases with the poses held, then everything.
+// at least two keyframes (or by both cameras of one), as one world-position block, so that the solver eliminates
+// points (schur_solver.hpp, or Ceres' SPARSE_SCHUR). Factors: reprojection (cam0, and cam1 for stereo matches), Cauchy
+// loss; IMU preintegration and bias random walk only between consecutive keyframes of one agent (the IMU link the agent
+// sent, preintegrated from its raw samples); a prior on the oldest keyframe's pose for the gauge. Two steps, as the
+// paper says: points, velocities and biases with the poses held, then everything.
 //
 // The solve runs on a snapshot (GbaSnapshot), taken under the map's read lock, so ingest never waits for it.
 // applyCorrections() writes the result back under the write lock: optimised keyframes take the change the solve
@@ -140,10 +140,10 @@ std::optional<GbaWindow> agentMapsWindow(const MapContent& map, const std::set<A
 Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors,
                                     const GbaWindow* window = nullptr);
 
-// Where a solve's time went: building the problem, and Ceres' own accounting summed over both steps.
+// Where a solve's time went: building the problem, and the solver's own accounting summed over both steps.
 struct GlobalBaProfile {
   double build_s = 0.0;          // the states, the factors and the gauge
-  double preprocess_s = 0.0;     // Ceres: the program, the ordering, the Schur complement's structure
+  double preprocess_s = 0.0;     // the reduced system's structure and its analysis (Ceres: the program, the ordering)
   double residuals_s = 0.0;      // cost evaluations (the trust region's trial steps included)
   double jacobians_s = 0.0;      // residuals and Jacobians at the accepted points
   double linear_solver_s = 0.0;  // Schur elimination and the reduced system's factorisation
