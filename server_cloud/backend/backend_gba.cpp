@@ -34,15 +34,11 @@ void BackendWorker::requestGba(const std::string& mission, MapId map, bool final
   gba_wake_.notify_one();
 }
 
-bool BackendWorker::cancelGba(const std::string& mission, MapId map, bool by_loop) {
+bool BackendWorker::cancelGba(const std::string& mission, MapId map) {
   const std::lock_guard lock(mutex_);
   if (gba_running_ && gba_running_->mission == mission && gba_running_->map == map && !gba_cancel_) {
-    MissionState& s = state(mission);
-    int& in_a_row = s.gba_cut_short_in_a_row[map];
-    if (by_loop && in_a_row >= options_.loop_cancels_gba_in_a_row) return false;
-    ++in_a_row;
     gba_cancel_ = true;
-    ++s.stats.gba_cancelled;
+    ++state(mission).stats.gba_cancelled;
     // Its waiters move to the GBA that the change will request.
     GbaRequest again = *gba_running_;
     again.final = false;
@@ -159,7 +155,6 @@ void BackendWorker::gba(const GbaRequest& request) {
   MissionState& s = state(request.mission);
   s.stats.gba.push_back(record);
   if (record.summary.cancelled) return;
-  s.gba_cut_short_in_a_row[request.map] = 0;
   const double since = secondsSince(request.since);
   for (const auto& [is_merge, index] : request.waiting) {
     if (is_merge && index < s.stats.merges.size()) s.stats.merges[index].match_to_optimised_s = since;

@@ -55,9 +55,6 @@ Status BackendOptions::validate() const {
   if (!(loop_cancels_gba_m >= 0.0) || !(loop_cancels_gba_deg >= 0.0)) {
     return Error{ErrorCode::kInvalidArgument, "backend.loop_cancels_gba_m and loop_cancels_gba_deg must be >= 0"};
   }
-  if (loop_cancels_gba_in_a_row < 0) {
-    return Error{ErrorCode::kInvalidArgument, "backend.loop_cancels_gba_in_a_row must be >= 0 (0: loops never do)"};
-  }
   if (gba_every_keyframes < 0) {
     return Error{ErrorCode::kInvalidArgument,
                  "backend.gba_every_keyframes must be >= 0 (0: only after merges and loops)"};
@@ -85,8 +82,7 @@ std::string BackendOptions::describe() const {
   out << "merge maps " << (merge_maps ? "on" : "off") << ", loop closure " << (close_loops ? "on" : "off")
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
       << gba.full_iterations << " iterations, " << toString(gba.solver) << " solver, " << gba.threads
-      << " threads; a loop cuts it short above " << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg
-      << " deg, at most " << loop_cancels_gba_in_a_row << " in a row)";
+      << " threads; a loop cuts it short above " << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
   if (merge_correction_keyframes > 0) {
     out << ", a merge corrected at once (BA of the query and its " << merge_correction_keyframes
         << " most covisible keyframes, its query map moved rigidly by the fitted change)";
@@ -585,7 +581,7 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
   // A running GBA of this map goes on unless the loop is a big correction: both results are changes of state
   // and compose when applied, and the GBA requested below takes the loop in.
   if (record.correction_m > options_.loop_cancels_gba_m || record.correction_deg > options_.loop_cancels_gba_deg) {
-    record.cancelled_gba = cancelGba(mission.name(), map->id(), /*by_loop=*/true);
+    record.cancelled_gba = cancelGba(mission.name(), map->id());
   }
   const CameraTable cameras(sensors);
   ProjectionSearchInput search;

@@ -14,8 +14,7 @@
 //                   freed (gba_window_above_keyframes). A merge cancels a running GBA of the map that goes
 //                   (and, with a merge correction, of the map it goes into, which then starts again on the
 //                   merged map); a loop cancels its map's only when its pose graph moves the query keyframe by
-//                   more than `loop_cancels_gba_m` / `loop_cancels_gba_deg`, and not when the map's last
-//                   `loop_cancels_gba_in_a_row` GBAs were all cut short. A smaller
+//                   more than `loop_cancels_gba_m` / `loop_cancels_gba_deg`. A smaller
 //                   loop lets the running GBA finish: its result is a change of state, composed with the
 //                   loop's (applyCorrections), and the GBA the loop asks for follows it.
 //
@@ -76,11 +75,6 @@ struct BackendOptions {
   // this (either bound); smaller loops wait for the next GBA, so long solves are not thrown away again and again.
   double loop_cancels_gba_m = 0.05;
   double loop_cancels_gba_deg = 0.5;
-  // A map whose last this many GBAs were all cut short gets its next one applied: loops do not cut it. Where agents
-  // keep revisiting a map that merges left unrefined, big loops can otherwise come faster than a GBA ends, each
-  // one's crude pose graph applied and none refined (simulated hall8: seven loops in a row, their map unrefined
-  // for 50 s).
-  int loop_cancels_gba_in_a_row = 2;
   // Right after a merge, before its GBA (which takes seconds on a large map): a BA of the query keyframe and its
   // this many most covisible keyframes of the query's map against the candidate's map, and the one 4-DoF change
   // that fits their moves applied to the whole query map (merge_correction.hpp). The match's transform alone is
@@ -252,9 +246,8 @@ class BackendWorker {
   // joins that has none): the whole map.
   void requestGba(const std::string& mission, MapId map, bool final, std::optional<std::pair<bool, std::size_t>> waiter,
                   std::chrono::steady_clock::time_point since, const std::set<AgentMapKey>* changed = nullptr);
-  // True when a GBA of `map` was running and is now told to stop. A loop (`by_loop`) does not stop one that
-  // follows `loop_cancels_gba_in_a_row` GBAs of the map cut short.
-  bool cancelGba(const std::string& mission, MapId map, bool by_loop = false);
+  // True when a GBA of `map` was running and is now told to stop.
+  bool cancelGba(const std::string& mission, MapId map);
   void gba(const GbaRequest& request);
   MissionState& state(const std::string& mission);
 

@@ -37,8 +37,7 @@ struct BackendWorker::MissionState {
   std::map<AgentId, std::uint32_t> last_loop_query;
   std::map<MapId, int> keyframes_since_redundancy;
   std::map<MapId, int> keyframes_since_gba;
-  std::map<MapId, MapId> merged_into;           // maps that went, and the map each went into
-  std::map<MapId, int> gba_cut_short_in_a_row;  // since the map's last applied GBA
+  std::map<MapId, MapId> merged_into;  // maps that went, and the map each went into
   std::mt19937_64 rng;
   BackendStats stats;  // under the worker's mutex
 };

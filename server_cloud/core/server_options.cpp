@@ -257,7 +257,6 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("frame_follows_keyframes", b.frame_follows_keyframes);
   backend.read("loop_cancels_gba_m", b.loop_cancels_gba_m);
   backend.read("loop_cancels_gba_deg", b.loop_cancels_gba_deg);
-  backend.read("loop_cancels_gba_in_a_row", b.loop_cancels_gba_in_a_row);
   backend.read("gba_structure_iterations", b.gba.structure_iterations);
   backend.read("gba_full_iterations", b.gba.full_iterations);
   backend.read("gba_threads", b.gba.threads);
