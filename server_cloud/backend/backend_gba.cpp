@@ -48,6 +48,21 @@ bool BackendWorker::cancelGba(const std::string& mission, MapId map) {
   return false;
 }
 
+void BackendWorker::refreshLoopEdges(const std::string& mission, MapId map, const MapContent& content) {
+  // A loop edge carries the one relative pose place recognition measured when the loop closed. Once a GBA has
+  // taken the loop in (its two sides' points fused, every keyframe refined against them), the map's own relative
+  // pose across the loop is the better estimate; later loops' pose graphs then hold that, as ORB-SLAM's essential
+  // graph does, instead of pulling the refined map back toward the old measurement at ten times the weight.
+  const std::lock_guard lock(mutex_);
+  const auto it = state(mission).loops.find(map);
+  if (it == state(mission).loops.end()) return;
+  for (LoopEdge& edge : it->second) {
+    const ServerKeyframe* a = content.keyframe(edge.a);
+    const ServerKeyframe* b = content.keyframe(edge.b);
+    if (a != nullptr && b != nullptr) edge.T_a_b = a->T_w_s.inverse() * b->T_w_s;
+  }
+}
+
 void BackendWorker::runGba() {
   trace::bindThread("global BA");
   std::unique_lock lock(mutex_);
@@ -149,6 +164,7 @@ void BackendWorker::gba(const GbaRequest& request) {
                          ApplyOptions{/*marks_refined=*/true, options_.frame_follows_keyframes}, "global BA");
       record.keyframes_propagated = applied.keyframes_propagated;
       record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+      refreshLoopEdges(request.mission, request.map, locks.map(request.map));
     }
   }
   const std::lock_guard lock(mutex_);

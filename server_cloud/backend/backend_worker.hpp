@@ -249,6 +249,8 @@ class BackendWorker {
   // True when a GBA of `map` was running and is now told to stop.
   bool cancelGba(const std::string& mission, MapId map);
   void gba(const GbaRequest& request);
+  // After a GBA of `map` was applied: each of its loop edges takes the relative pose the map holds now (see gba()).
+  void refreshLoopEdges(const std::string& mission, MapId map, const MapContent& content);
   MissionState& state(const std::string& mission);
 
   BackendOptions options_;

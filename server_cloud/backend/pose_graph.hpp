@@ -4,8 +4,9 @@
 //     covisible neighbour,
 //   - the strong covisibility edges (at least `strong_covisibility` shared points),
 //   - every loop edge closed in this map so far (the new one included),
-// with the relative poses the map holds now as measurements, except the loop edges, which carry what place
-// recognition measured. The oldest keyframe is held (the gauge). Map points then move with their reference
+// with the relative poses the map holds now as measurements, except the loop edges: those carry what place
+// recognition measured until a GBA of the map is applied, and the map's relative pose from then on
+// (BackendWorker::refreshLoopEdges). The oldest keyframe is held (the gauge). Map points then move with their reference
 // keyframes (applyCorrections), and global BA follows.
 #pragma once
 

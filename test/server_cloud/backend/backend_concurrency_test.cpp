@@ -104,26 +104,24 @@ TEST_F(BackendWorkerTest, KeyframesAndAMergeArrivingDuringAMergesCorrectionAreKe
   EXPECT_LT(maxPositionError(*content, s, 3), 0.01);
 }
 
-// A loop closed while the map's GBA runs: the drift of `drift_m` (position, with a yaw of `drift_rad`) is injected
-// from keyframe 12 on, as in ALoopClosureRemovesAnInjectedDrift. Returns the worker's stats and the largest
-// keyframe position error before and after.
+// What closeALoopWhileGbaRuns returns: the worker's stats and the largest keyframe position error before and after.
 struct LoopDuringGba {
   BackendStats stats;
   double before = 0.0;
   double after = 0.0;
 };
 
-LoopDuringGba closeALoopWhileGbaRuns(MissionRegistry& registry, double drift_m, double drift_rad) {
-  const test::ViScenario s = scenario(24, 0.5, 0.3);
-  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+// Agent 1's map of the 24 keyframes of `s` with a drift of `drift_m` (position, with a yaw of `drift_rad`) from
+// keyframe 12 on, the later keyframes making points of their own (as after drift).
+std::shared_ptr<ServerMap> driftedMap(Mission& mission, const test::ViScenario& s, double drift_m, double drift_rad) {
   const Vector3d drift_xi = drift_m * Vector3d(0.3, -0.25, 0.05).normalized();
   const auto drift_at = [&](int k) {
     const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
     return SE3d(SO3d::exp(Vector3d(0.0, 0.0, drift_rad * f)), f * drift_xi);
   };
-  std::shared_ptr<ServerMap> map = mission->stack().createMap();
+  std::shared_ptr<ServerMap> map = mission.stack().createMap();
   {
-    auto record = mission->agent(1)->write();
+    auto record = mission.agent(1)->write();
     record->sensors = sensorsOf(s);
     record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
     buildAgentMap(
@@ -132,6 +130,14 @@ LoopDuringGba closeALoopWhileGbaRuns(MissionRegistry& registry, double drift_m, 
             .agent = 1, .first = 0, .last = 23, .E = drift_at, .generation = [](int k) { return k >= 12 ? 1 : 0; }},
         &*record);
   }
+  return map;
+}
+
+// A loop closed while the map's GBA runs, on driftedMap (as in ALoopClosureRemovesAnInjectedDrift).
+LoopDuringGba closeALoopWhileGbaRuns(MissionRegistry& registry, double drift_m, double drift_rad) {
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+  std::shared_ptr<ServerMap> map = driftedMap(*mission, s, drift_m, drift_rad);
   LoopDuringGba out;
   out.before = maxPositionError(*map->read(), s, 1);
 
@@ -186,6 +192,47 @@ TEST(BackendLoopDuringGba, ABigLoopCutsTheRunningGbaShortAndTheNextOneRemovesThe
   EXPECT_FALSE(r.stats.gba.back().summary.cancelled);
   ASSERT_GT(r.before, 0.25);
   EXPECT_LT(r.after, 0.02) << "before " << r.before;
+}
+
+// A loop closed with a measurement 3 cm off and its GBA applied (the map is then at the truth), then a second loop
+// measured exactly: its pose graph holds the first loop's edge at the relative pose the GBA left, so the map stays
+// at the truth until the GBA after it. Held at the old measurement, ten times the weight of the path's own edges,
+// the edge would bend the path by about the 3 cm.
+TEST(BackendLoops, AfterAGbaALoopEdgeHoldsTheMapsRelativePoseNotTheOldMeasurement) {
+  MissionRegistry registry;
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+  std::shared_ptr<ServerMap> map = driftedMap(*mission, s, 0.2, 0.02);
+  // Holds the GBA after the second loop, so that the map is seen as that loop's pose graph left it.
+  GbaGate gate(map->id());
+  std::atomic<bool> armed{false};
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.loop_cooldown_keyframes = 0;  // both loops are the same agent's, one keyframe apart
+  options.on_gba_solve_start = [&, hold = gate.hook()](MapId m) {
+    if (armed) hold(m);
+  };
+  BackendWorker worker(options, registry, nullptr);
+  recognition::MatchRecord loop1 =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
+  loop1.match.T_cmap_cq = SE3d(SO3d(), Vector3d(0.0, 0.03, 0.0)) * s.keyframe_states[22].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", loop1));
+  worker.drain(false);
+  ASSERT_EQ(worker.stats("m").loops.size(), 1U);
+  ASSERT_FALSE(worker.stats("m").gba.empty());
+  const double after_first_gba = maxPositionError(*map->read(), s, 1);
+  armed = true;
+  recognition::MatchRecord loop2 =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 23}, map->id(), KeyframeId{1, 2}, map->id());
+  loop2.match.T_cmap_cq = s.keyframe_states[23].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", loop2));
+  gate.waitUntilHeld();
+  const double after_second_graph = maxPositionError(*map->read(), s, 1);
+  gate.release();
+  worker.drain(false);
+  ASSERT_EQ(worker.stats("m").loops.size(), 2U);
+  EXPECT_LT(after_first_gba, 0.005);
+  EXPECT_LT(after_second_graph, 0.008) << "the first loop's 3 cm measurement bent the map again";
 }
 
 TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
