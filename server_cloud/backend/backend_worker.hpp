@@ -249,7 +249,9 @@ class BackendWorker {
   // True when a GBA of `map` was running and is now told to stop.
   bool cancelGba(const std::string& mission, MapId map);
   void gba(const GbaRequest& request);
-  // After a GBA of `map` was applied: each of its loop edges takes the relative pose the map holds now (see gba()).
+  // After a GBA of `map` was applied: each of its loop edges takes the relative pose the GBA left across the loop in
+  // place of the one measured when the loop closed. Takes the worker's mutex: call it with the map locked, not
+  // the other way round (closeLoop's order).
   void refreshLoopEdges(const std::string& mission, MapId map, const MapContent& content);
   MissionState& state(const std::string& mission);
 
