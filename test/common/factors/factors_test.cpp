@@ -1,5 +1,6 @@
-// Manifold invariants, and every factor's analytic Jacobian against numeric differentiation on the manifold,
-// at random states and at the edge cases: tiny rotations, rotations near pi, points near infinity.
+// Manifold invariants, and every factor's analytic Jacobian against numeric differentiation on the manifold
+// (jacobian_check.hpp), at random states and at the edge cases: tiny rotations, rotations near pi, points near
+// infinity. The server's world-point factor has its own file (world_point_factor_test.cpp).
 #include <cmath>
 #include <memory>
 #include <random>
@@ -14,30 +15,13 @@
 #include "common/factors/prior_factor.hpp"
 #include "common/factors/reprojection_factor.hpp"
 #include "common/factors/time_offset_point_factor.hpp"
-#include "common/factors/world_point_factor.hpp"
+#include "test/common/factors/jacobian_check.hpp"
 #include "test/support/vi_scenario.hpp"
 
 namespace cvislam::factors {
 namespace {
 
-using Eigen::Vector3d;
-using Eigen::VectorXd;
-using geometry::SE3d;
-using geometry::SO3d;
-using MatrixXdRowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
-
-class Random {
- public:
-  explicit Random(std::uint64_t seed) : rng_(seed) {}
-  double uniform(double a, double b) { return std::uniform_real_distribution<double>(a, b)(rng_); }
-  Vector3d vector3(double scale) { return scale * Vector3d(uniform(-1, 1), uniform(-1, 1), uniform(-1, 1)); }
-  SO3d rotation() { return SO3d::exp(vector3(M_PI) / std::sqrt(3.0)); }
-  SE3d pose(double translation_scale) { return {rotation(), vector3(translation_scale)}; }
-  Vector3d unitVector() { return vector3(1.0).normalized(); }
-
- private:
-  std::mt19937_64 rng_;
-};
+using namespace test_support;  // NOLINT(google-build-using-namespace): the factor tests' shared checks
 
 // ------------------------------------------------------------------------------------------- manifolds
 // Ceres' invariant macro names its matchers unqualified, as if used inside namespace ceres.
@@ -83,77 +67,6 @@ TEST(UnitBearingManifold, InvariantsHoldAtRandomPointsAndOnTheAxes) {
       expectManifoldInvariants(sut, VectorXd(x), VectorXd(delta), VectorXd(y), 1e-9);
     }
   }
-}
-
-// ------------------------------------------------------------------------------- the Jacobian checker
-// One parameter block of a factor under test, with its manifold (nullptr for a Euclidean block).
-struct Block {
-  VectorXd value;
-  const ceres::Manifold* manifold = nullptr;
-};
-
-VectorXd evaluate(const ceres::CostFunction& cost, const std::vector<Block>& blocks, bool* ok = nullptr) {
-  std::vector<const double*> parameters;
-  for (const Block& b : blocks) parameters.push_back(b.value.data());
-  VectorXd residual(cost.num_residuals());
-  const bool evaluated = cost.Evaluate(parameters.data(), residual.data(), nullptr);
-  if (ok != nullptr) *ok = evaluated;
-  return residual;
-}
-
-// Compares, for every block, (analytic ambient Jacobian) x (manifold PlusJacobian) with the central
-// difference of the residual along the manifold's tangent directions, x [+] (+-h e_k).
-void expectJacobiansMatchNumeric(const ceres::CostFunction& cost, const std::vector<Block>& blocks,
-                                 double tolerance = 1e-6, double h = 1e-6) {
-  const int rows = cost.num_residuals();
-  std::vector<const double*> parameters;
-  std::vector<MatrixXdRowMajor> jacobians;
-  std::vector<double*> jacobian_ptrs;
-  for (const Block& b : blocks) {
-    parameters.push_back(b.value.data());
-    jacobians.emplace_back(rows, b.value.size());
-  }
-  for (auto& J : jacobians) jacobian_ptrs.push_back(J.data());
-  VectorXd residual(rows);
-  ASSERT_TRUE(cost.Evaluate(parameters.data(), residual.data(), jacobian_ptrs.data()));
-
-  for (std::size_t i = 0; i < blocks.size(); ++i) {
-    const Block& b = blocks[i];
-    const int tangent = b.manifold != nullptr ? b.manifold->TangentSize() : static_cast<int>(b.value.size());
-    Eigen::MatrixXd J_analytic = jacobians[i];
-    if (b.manifold != nullptr) {
-      MatrixXdRowMajor plus_jacobian(b.value.size(), tangent);
-      ASSERT_TRUE(b.manifold->PlusJacobian(b.value.data(), plus_jacobian.data()));
-      J_analytic = jacobians[i] * plus_jacobian;
-    }
-    Eigen::MatrixXd J_numeric(rows, tangent);
-    for (int k = 0; k < tangent; ++k) {
-      std::vector<Block> plus = blocks;
-      std::vector<Block> minus = blocks;
-      VectorXd delta = VectorXd::Zero(tangent);
-      delta(k) = h;
-      if (b.manifold != nullptr) {
-        b.manifold->Plus(b.value.data(), delta.data(), plus[i].value.data());
-        delta(k) = -h;
-        b.manifold->Plus(b.value.data(), delta.data(), minus[i].value.data());
-      } else {
-        plus[i].value(k) += h;
-        minus[i].value(k) -= h;
-      }
-      J_numeric.col(k) = (evaluate(cost, plus) - evaluate(cost, minus)) / (2.0 * h);
-    }
-    const double scale = std::max(1.0, J_numeric.cwiseAbs().maxCoeff());
-    EXPECT_LT((J_analytic - J_numeric).cwiseAbs().maxCoeff(), tolerance * scale) << "block " << i << "\nanalytic\n"
-                                                                                 << J_analytic << "\nnumeric\n"
-                                                                                 << J_numeric;
-  }
-}
-
-Block poseBlock(const SE3d& T, const PoseManifold& manifold) {
-  return {poseToBlock(T), &manifold};
-}
-Block vectorBlock(const VectorXd& v) {
-  return {v, nullptr};
 }
 
 // ------------------------------------------------------------------------------------------ IMU factors
@@ -623,117 +536,6 @@ TEST(SqrtInformation, WhitensTheCovarianceToIdentity) {
   const Eigen::Matrix<double, 9, 9> covariance = A * A.transpose() + 1e-3 * Eigen::Matrix<double, 9, 9>::Identity();
   const Eigen::Matrix<double, 9, 9> S = sqrtInformationFromCovariance<9>(covariance);
   EXPECT_LT((S * covariance * S.transpose() - Eigen::Matrix<double, 9, 9>::Identity()).cwiseAbs().maxCoeff(), 1e-9);
-}
-
-// ------------------------------------------------------------------------------ world-point reprojection
-class WorldPointFactorTest : public ::testing::Test {
- protected:
-  PoseManifold pose_manifold_;
-  PinholeIntrinsics intrinsics_;
-  Random random_{43};
-  SE3d T_s_c_ = test::makeViScenario({}).T_s_c;
-
-  // A random body pose and a point `depth` metres in front of its camera.
-  std::vector<Block> randomCase(double depth, double rotation_scale) {
-    const SE3d T_w_s(SO3d::exp(random_.vector3(rotation_scale)), random_.vector3(2.0));
-    const Vector3d X_c = depth * (Vector3d(0, 0, 1) + random_.vector3(0.3)).normalized();
-    return {poseBlock(T_w_s, pose_manifold_), vectorBlock(VectorXd(T_w_s * T_s_c_ * X_c))};
-  }
-};
-
-TEST_F(WorldPointFactorTest, JacobiansMatchNumericAtRandomStatesTinyRotationsAndNearPi) {
-  for (int trial = 0; trial < 20; ++trial) {
-    const WorldPointReprojectionFactor sut(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5, T_s_c_.inverse());
-    expectJacobiansMatchNumeric(sut, randomCase(random_.uniform(1.0, 10.0), M_PI / std::sqrt(3.0)));
-  }
-  const WorldPointReprojectionFactor tiny(Eigen::Vector2d(400.0, 250.0), intrinsics_, 1.0, T_s_c_.inverse());
-  expectJacobiansMatchNumeric(tiny, randomCase(3.0, 1e-9));
-  const SE3d T_w_s(SO3d::exp(Vector3d(0.0, 0.0, M_PI - 1e-7)), Vector3d(1.0, -2.0, 0.5));
-  const Vector3d p_w = T_w_s * T_s_c_ * Vector3d(0.2, -0.1, 4.0);
-  expectJacobiansMatchNumeric(tiny, {poseBlock(T_w_s, pose_manifold_), vectorBlock(VectorXd(p_w))});
-}
-
-// The tangent-space entry point (the server's Schur solver): its pose Jacobian against central differences
-// of the residual along PoseManifold::Plus, its point Jacobian against differences in p_w, its residual the
-// Ceres one.
-TEST_F(WorldPointFactorTest, TangentJacobiansMatchNumericAlongThePoseManifold) {
-  constexpr double kStep = 1e-6;
-  for (int trial = 0; trial < 20; ++trial) {
-    const WorldPointReprojectionFactor sut(Eigen::Vector2d(300.0, 200.0), intrinsics_, 1.5, T_s_c_.inverse());
-    const std::vector<Block> blocks = randomCase(random_.uniform(1.0, 10.0), M_PI / std::sqrt(3.0));
-    const double* pose = blocks[0].value.data();
-    const double* p_w = blocks[1].value.data();
-    Eigen::Vector2d r;
-    Eigen::Matrix<double, 2, 6> J_pose;
-    Eigen::Matrix<double, 2, 3> J_point;
-    ASSERT_TRUE(sut.evaluateTangent(pose, p_w, r, &J_pose, &J_point));
-    EXPECT_LT((r - evaluate(sut, blocks)).norm(), 1e-12);
-    Eigen::Matrix<double, 2, 6> numeric_pose;
-    for (int k = 0; k < 6; ++k) {
-      Eigen::Matrix<double, 6, 1> delta = Eigen::Matrix<double, 6, 1>::Zero();
-      Eigen::Matrix<double, 7, 1> plus;
-      Eigen::Matrix<double, 7, 1> minus;
-      delta[k] = kStep;
-      pose_manifold_.Plus(pose, delta.data(), plus.data());
-      delta[k] = -kStep;
-      pose_manifold_.Plus(pose, delta.data(), minus.data());
-      Eigen::Vector2d r_plus;
-      Eigen::Vector2d r_minus;
-      ASSERT_TRUE(sut.evaluateTangent(plus.data(), p_w, r_plus, nullptr, nullptr));
-      ASSERT_TRUE(sut.evaluateTangent(minus.data(), p_w, r_minus, nullptr, nullptr));
-      numeric_pose.col(k) = (r_plus - r_minus) / (2.0 * kStep);
-    }
-    Eigen::Matrix<double, 2, 3> numeric_point;
-    for (int k = 0; k < 3; ++k) {
-      Vector3d plus(p_w[0], p_w[1], p_w[2]);
-      Vector3d minus = plus;
-      plus[k] += kStep;
-      minus[k] -= kStep;
-      Eigen::Vector2d r_plus;
-      Eigen::Vector2d r_minus;
-      ASSERT_TRUE(sut.evaluateTangent(pose, plus.data(), r_plus, nullptr, nullptr));
-      ASSERT_TRUE(sut.evaluateTangent(pose, minus.data(), r_minus, nullptr, nullptr));
-      numeric_point.col(k) = (r_plus - r_minus) / (2.0 * kStep);
-    }
-    EXPECT_LT((J_pose - numeric_pose).cwiseAbs().maxCoeff(), 1e-4 * std::max(1.0, J_pose.cwiseAbs().maxCoeff()));
-    EXPECT_LT((J_point - numeric_point).cwiseAbs().maxCoeff(), 1e-4 * std::max(1.0, J_point.cwiseAbs().maxCoeff()));
-  }
-}
-
-TEST_F(WorldPointFactorTest, SecondCameraJacobiansMatchNumericAndAFarPointStillConstrainsRotation) {
-  const SE3d T_c1_c0(SO3d::exp(Vector3d(0.001, -0.002, 0.003)), Vector3d(-0.11, 0.001, 0.0005));
-  const SE3d T_c1_s = T_c1_c0 * T_s_c_.inverse();
-  for (int trial = 0; trial < 10; ++trial) {
-    const WorldPointReprojectionFactor sut(Eigen::Vector2d(320.0, 240.0), intrinsics_, 1.2, T_c1_s);
-    expectJacobiansMatchNumeric(sut, randomCase(random_.uniform(0.5, 20.0), 1.0));
-  }
-  // 10 km away: the point Jacobian vanishes, the rotation Jacobian does not.
-  const WorldPointReprojectionFactor far(Eigen::Vector2d(320.0, 240.0), intrinsics_, 1.0, T_s_c_.inverse());
-  std::vector<Block> blocks = randomCase(1e4, 0.5);
-  expectJacobiansMatchNumeric(far, blocks, 1e-5, 1e-4);
-  std::vector<const double*> parameters{blocks[0].value.data(), blocks[1].value.data()};
-  MatrixXdRowMajor J_pose(2, 7);
-  MatrixXdRowMajor J_point(2, 3);
-  std::vector<double*> jacobians{J_pose.data(), J_point.data()};
-  Eigen::Vector2d residual;
-  ASSERT_TRUE(far.Evaluate(parameters.data(), residual.data(), jacobians.data()));
-  EXPECT_GT(J_pose.rightCols<4>().norm(), 100.0);
-  EXPECT_LT(J_point.norm(), 0.1);
-}
-
-TEST_F(WorldPointFactorTest, ResidualIsTheWhitenedPixelErrorAndBehindTheCameraIsNotEvaluable) {
-  const SE3d T_w_s(SO3d::exp(Vector3d(0.1, 0.2, -0.3)), Vector3d(1.0, 2.0, 3.0));
-  const Vector3d X_c(0.5, -0.25, 2.0);
-  const Eigen::Vector2d px(intrinsics_.fx * 0.25 + intrinsics_.cx, intrinsics_.fy * -0.125 + intrinsics_.cy);
-  const WorldPointReprojectionFactor sut(px + Eigen::Vector2d(3.0, -4.0), intrinsics_, 2.0, T_s_c_.inverse());
-  bool ok = false;
-  const VectorXd r =
-      evaluate(sut, {poseBlock(T_w_s, pose_manifold_), vectorBlock(VectorXd(T_w_s * T_s_c_ * X_c))}, &ok);
-  ASSERT_TRUE(ok);
-  EXPECT_NEAR(r(0), -1.5, 1e-9);
-  EXPECT_NEAR(r(1), 2.0, 1e-9);
-  (void)evaluate(sut, {poseBlock(T_w_s, pose_manifold_), vectorBlock(VectorXd(T_w_s * T_s_c_ * -X_c))}, &ok);
-  EXPECT_FALSE(ok);
 }
 
 // ------------------------------------------------------------------------- the camera-IMU time offset

@@ -81,25 +81,27 @@ TEST(ServerConfigFiles, TheScaleOutConfigLoadsAndNeedsTheAddressThePodGives) {
   EXPECT_TRUE(o.validate().ok()) << o.validate().error().toString();
 }
 
-TEST(ServerConfigFiles, AnUnknownKeyIsRefusedNamingIt) {
+// Writes `text` as a config file and loads it into `o`.
+Status loadConfigText(const std::string& text, ServerOptions& o) {
   cvislam::test::TempDir dir;
-  std::ofstream(dir.path() / "bad.yaml") << "server:\n  listen: 0.0.0.0:1\n  health_port: 50052\n";
+  std::ofstream(dir.path() / "config.yaml") << text;
+  return loadServerConfig(dir.path() / "config.yaml", o);
+}
+
+TEST(ServerConfigFiles, AnUnknownKeyIsRefusedNamingIt) {
   ServerOptions o;
-  const Status s = loadServerConfig(dir.path() / "bad.yaml", o);
+  const Status s = loadConfigText("server:\n  listen: 0.0.0.0:1\n  health_port: 50052\n", o);
   ASSERT_FALSE(s.ok());
   EXPECT_THAT(s.error().message(), HasSubstr("health_port"));
 }
 
 TEST(ServerConfigFiles, AnUnknownGbaSolverIsRefusedNamingTheKeyAndTheChoices) {
-  cvislam::test::TempDir dir;
-  std::ofstream(dir.path() / "bad.yaml") << "backend:\n  gba_solver: dense\n";
   ServerOptions o;
-  const Status s = loadServerConfig(dir.path() / "bad.yaml", o);
+  const Status s = loadConfigText("backend:\n  gba_solver: dense\n", o);
   ASSERT_FALSE(s.ok());
   EXPECT_THAT(s.error().toString(), HasSubstr("backend.gba_solver"));
   EXPECT_THAT(s.error().toString(), HasSubstr("schur or ceres"));
-  std::ofstream(dir.path() / "ceres.yaml") << "backend:\n  gba_solver: ceres\n";
-  ASSERT_TRUE(loadServerConfig(dir.path() / "ceres.yaml", o).ok());
+  ASSERT_TRUE(loadConfigText("backend:\n  gba_solver: ceres\n", o).ok());
   EXPECT_EQ(o.backend.gba.solver, backend::GlobalBaOptions::Solver::kCeres);
 }
 
