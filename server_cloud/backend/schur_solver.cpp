@@ -706,32 +706,20 @@ SchurSolverSummary SchurProblem::solve(const SchurSolverOptions& options) {
     double model_reduction = 0.0;
     const bool solved = m.eliminateAndSolve(1.0 / radius, parts, model_reduction);
     summary.linear_solver_s += secondsSince(t);
-    bool accepted = false;
-    double new_cost = 0.0;
     if (solved && model_reduction > 0.0) {
-      if (m.stepNorm() <= kParameterTolerance * (m.stateNorm() + kParameterTolerance)) {
-        summary.converged = true;
-        break;
-      }
+      // A step too small to change anything: converged.
+      if (m.stepNorm() <= kParameterTolerance * (m.stateNorm() + kParameterTolerance)) break;
       m.applyStep();
       t = Clock::now();
+      double new_cost = 0.0;
       const bool evaluated = m.evaluateCost(parts, new_cost);
       summary.evaluate_s += secondsSince(t);
       const double ratio = evaluated ? (m.cost_at - new_cost) / model_reduction : -1.0;
-      accepted = ratio > kMinRelativeDecrease;
-      if (accepted) {
+      if (ratio > kMinRelativeDecrease) {
         radius = std::min(kMaxRadius, radius / std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * ratio - 1.0, 3)));
         decrease_factor = 2.0;
-      } else {
-        m.restore();
-      }
-      if (accepted) {
-        ++summary.accepted;
         summary.final_cost = new_cost;
-        if (std::abs(m.cost_at - new_cost) <= options.function_tolerance * m.cost_at) {
-          summary.converged = true;
-          break;
-        }
+        if (std::abs(m.cost_at - new_cost) <= options.function_tolerance * m.cost_at) break;  // converged
         if (summary.iterations == options.max_iterations) break;  // no step left to linearise for
         t = Clock::now();
         ok = m.linearize(parts);
@@ -739,13 +727,11 @@ SchurSolverSummary SchurProblem::solve(const SchurSolverOptions& options) {
         if (!ok) break;
         continue;
       }
+      m.restore();
     }
     radius /= decrease_factor;
     decrease_factor *= 2.0;
-    if (radius < kMinRadius) {
-      summary.converged = true;
-      break;
-    }
+    if (radius < kMinRadius) break;
   }
   return summary;
 }

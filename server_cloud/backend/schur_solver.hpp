@@ -44,11 +44,9 @@ struct SchurSolverOptions {
 
 struct SchurSolverSummary {
   int iterations = 0;
-  int accepted = 0;
   double initial_cost = 0.0;
   double final_cost = 0.0;
   bool cancelled = false;  // the state is the last accepted one
-  bool converged = false;  // function tolerance, or a step too small to matter
   // Where the time went.
   double setup_s = 0.0;          // the structure: observations by point, the reduced system's pattern, its analysis
   double linearize_s = 0.0;      // residuals and Jacobians at the accepted states
