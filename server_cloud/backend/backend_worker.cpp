@@ -422,6 +422,17 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     }
     // The match's transform takes the candidate map into the query's; the query's map moves, in 4 DoF.
     const SE3d T_into_from = fourDofTransform(match.T_qmap_cmap.inverse(), query->T_w_s.translation());
+    {
+      // In the same hold of the maps' locks as the absorb: a GBA of the query's map (one this merge cut short goes
+      // back in the queue) that finds the map empty hands its waiters on through merged_into, so it must never
+      // see the map emptied without the entry.
+      const std::lock_guard lock(mutex_);
+      auto& loops = state.loops[into->id()];
+      auto& moved = state.loops[from->id()];
+      loops.insert(loops.end(), moved.begin(), moved.end());
+      state.loops.erase(from->id());
+      state.merged_into[from->id()] = into->id();
+    }
     c.absorb(q, T_into_from);
     for (auto& [agent, r] : locks.records()) {
       bool member = false;
@@ -452,16 +463,8 @@ void BackendWorker::merge(Mission& mission, MissionState& state, const recogniti
     record.T_into_from = T_into_from;
     record.apply_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
   }
+  if (options_.on_merge_joined) options_.on_merge_joined(into->id());
   record.apply_ms += fuseWithoutLock(*into, search, options_.fusion, record.fusion);
-  {
-    // Before the map leaves the stack: a GBA of it that runs from now on hands its waiters on (see gba()).
-    const std::lock_guard lock(mutex_);
-    auto& loops = state.loops[into->id()];
-    auto& moved = state.loops[from->id()];
-    loops.insert(loops.end(), moved.begin(), moved.end());
-    state.loops.erase(from->id());
-    state.merged_into[from->id()] = into->id();
-  }
   mission.stack().remove(from->id());
   {
     MissionEvent merged;

@@ -103,6 +103,9 @@ struct BackendOptions {
   // thread) and a merge's correction (on the control thread).
   std::function<void(MapId)> on_gba_solve_start;
   std::function<void(MapId)> on_merge_correction_solve_start;
+  // Called once a merge has joined the two maps and let go of their locks, before its fusion searches (the map
+  // joined into).
+  std::function<void(MapId)> on_merge_joined;
 
   [[nodiscard]] Status validate() const;
   [[nodiscard]] std::string describe() const;

@@ -2,6 +2,7 @@
 // removal; nothing accepted may be lost, and each change must end up optimised with the map it went into. Same
 // synthetic maps as backend_test.cpp (backend_test_maps.hpp); real Ceres solves and worker threads, with a gate
 // that holds a GBA after its snapshot so that the order of events is deterministic.
+#include <algorithm>
 #include <random>
 #include <thread>
 
@@ -293,9 +294,11 @@ TEST_F(BackendWorkerTest, ARemovalAndAMergeArrivingWhileGbaRunsBothApply) {
 // A loop in map 2 waits for map 2's GBA, and map 2 is merged into map 1 before that GBA can run: the loop's time to
 // optimised must come from map 1's GBA. `hold` says whose GBA is held while the loop and the merge arrive. With
 // `hold_the_correction`, the merge's correction is held too, and the held GBA let go meanwhile: map 2's GBA then
-// runs while the merge is still being corrected.
+// runs while the merge is still being corrected. With `release_when_joined`, the held GBA is let go the moment the
+// merge has joined the maps (before its fusion and before the map leaves the stack), and the GBA thread finishes
+// what it may before the merge goes on: the cut-short GBA of map 2 goes back in the queue and finds map 2 empty.
 void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the_merged_away_map,
-                                        bool hold_the_correction = false) {
+                                        bool hold_the_correction = false, bool release_when_joined = false) {
   const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
   const auto addAgent = [&](const test::ViScenario& s, const AgentPlan& plan) {
     std::shared_ptr<ServerMap> map = mission->stack().createMap();
@@ -327,7 +330,18 @@ void loopWaitingForAMapThatIsMergedAway(MissionRegistry& registry, bool hold_the
     options.merge_correction_keyframes = 10;
     options.on_merge_correction_solve_start = correction_gate.hook();
   }
+  BackendWorker* running_worker = nullptr;
+  if (release_when_joined) {
+    options.on_merge_joined = [&](MapId) {
+      gate.release();
+      EXPECT_TRUE(eventually([&] {
+        const BackendWorker::GbaWork work = running_worker->gbaWork("m");
+        return !work.running && std::count(work.queued.begin(), work.queued.end(), map2->id()) == 0;
+      })) << "the GBA thread did not finish with map 2";
+    };
+  }
   BackendWorker worker(options, registry, nullptr);
+  running_worker = &worker;
   std::thread mission_end([&] { worker.drain(true); });
   gate.waitUntilHeld();
   // While map 1's GBA runs: a loop in map 2 (its GBA is queued behind), then map 2 merges into map 1.
@@ -389,6 +403,11 @@ TEST(BackendMergeDuringGba, ALoopWaitingBehindAnotherMapsGbaIsOptimisedWithTheMa
 TEST(BackendMergeDuringGba, ALoopWaitingWhileItsOwnMapsGbaRunsIsOptimisedWithTheMapItsMapWentInto) {
   MissionRegistry registry;
   loopWaitingForAMapThatIsMergedAway(registry, true);
+}
+
+TEST(BackendMergeDuringGba, ALoopWhoseCutShortGbaRunsAgainWhileTheMergeFusesIsOptimisedWithTheMapItsMapWentInto) {
+  MissionRegistry registry;
+  loopWaitingForAMapThatIsMergedAway(registry, true, false, true);
 }
 
 }  // namespace
