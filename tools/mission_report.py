@@ -9,6 +9,7 @@ OUT/server/ (stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt) and the
 (the simulator's EuRoC folders). Only the Python standard library."""
 
 import argparse
+import csv
 import json
 import math
 import os
@@ -169,7 +170,42 @@ def report_backend(out, mission, server_agents, summary):
         print(f"{'agent' + str(agent):8} {r['batches']:8d} {r['p50_ms']:7.2f} {r['p99_ms']:7.2f} {r['max_ms']:7.2f}   "
               f"{g['batches']:8d} {g['p50_ms']:7.2f} {g['p99_ms']:7.2f} {g['max_ms']:7.2f}")
     section["ingest"] = ingest
+    pooled = pooled_ingest(os.path.join(out, "server", "ingest_ms.csv"), name)
+    if pooled is not None:
+        section["ingest_pooled"] = pooled
+        tail = pooled["slowest_1pct"]
+        print(f"all agents pooled: {pooled['batches']} batches, p50 {pooled['p50_ms']:.2f} ms, p99 "
+              f"{pooled['p99_ms']:.2f} ms; the slowest 1 % ({tail['batches']}) spent on average "
+              f"{tail['record_wait_ms']:.1f} ms waiting for the agent record's lock, {tail['map_wait_ms']:.1f} ms "
+              f"for the maps' locks, {tail['cpu_ms']:.1f} ms on a core and "
+              f"{tail['off_core_ms']:.1f} ms ready but off a core")
     summary["backend"] = section
+
+
+def pooled_ingest(path, mission_name):
+    """Every batch of the mission's agents pooled (ingest_ms.csv), and where the slowest 1 % spent their time."""
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        rows = [r for r in csv.DictReader(f) if r["mission"] == mission_name]
+    if not rows or "cpu_ms" not in rows[0]:
+        return None
+    rows.sort(key=lambda r: float(r["ingest_ms"]))
+    ms = [float(r["ingest_ms"]) for r in rows]
+
+    def rank(p):
+        return ms[min(len(ms), max(1, math.ceil(p * len(ms)))) - 1]
+
+    slow = rows[-max(1, len(rows) // 100):]
+
+    def mean(key):
+        return sum(float(r[key]) for r in slow) / len(slow)
+
+    record_wait, map_wait, cpu, total = mean("record_wait_ms"), mean("map_wait_ms"), mean("cpu_ms"), mean("ingest_ms")
+    return {"batches": len(rows), "p50_ms": rank(0.5), "p99_ms": rank(0.99),
+            "slowest_1pct": {"batches": len(slow), "ingest_ms": total, "record_wait_ms": record_wait,
+                             "map_wait_ms": map_wait, "cpu_ms": cpu,
+                             "off_core_ms": max(0.0, total - record_wait - map_wait - cpu)}}
 
 
 def report_recognition(out, mission, map_to_truth, summary):

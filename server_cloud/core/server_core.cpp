@@ -703,11 +703,18 @@ Status ServerCore::writeOutputs(const std::filesystem::path& dir) const {
 // each agent's own).
 Status ServerCore::writeIngestSamples(const std::filesystem::path& file) const {
   std::ofstream out(file);
-  out << "mission,agent,ingest_ms\n";
+  out << "mission,agent,ingest_ms,record_wait_ms,map_wait_ms,cpu_ms\n";
   for (const auto& mission : missions_.missions()) {
     for (const auto& shared : mission->agents()) {
       auto record = shared->read();
-      for (double ms : record->ingest_ms.samples()) out << mission->name() << ',' << record->id << ',' << ms << '\n';
+      const std::vector<double>& ingest = record->ingest_ms.samples();
+      const std::vector<double>& record_wait = record->ingest_record_wait_ms.samples();
+      const std::vector<double>& map_wait = record->ingest_map_wait_ms.samples();
+      const std::vector<double>& cpu = record->ingest_cpu_ms.samples();
+      for (std::size_t i = 0; i < ingest.size(); ++i) {
+        out << mission->name() << ',' << record->id << ',' << ingest[i] << ',' << record_wait[i] << ',' << map_wait[i]
+            << ',' << cpu[i] << '\n';
+      }
     }
   }
   if (!out) return Error{ErrorCode::kIoError, "cannot write " + file.string()};

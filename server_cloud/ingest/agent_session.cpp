@@ -7,6 +7,7 @@
 #include <optional>
 #include <vector>
 
+#include "common/core/steady_clock.hpp"
 #include "common/core/text.hpp"
 #include "common/trace/trace.hpp"
 #include "cvislam/v1/agent_link.pb.h"
@@ -358,6 +359,7 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   const v1::MapBatch& batch = message.batch();
   const std::uint64_t sequence = batch.sequence();
   const auto arrived = Clock::now();  // before the lock: waits for the back-end count
+  const double cpu_at_arrival_ms = threadCpuMs();
   const trace::Span span(
       "ingest", {{"mission", mission_trace_key_}, {"agent", agent_}, {"batch", static_cast<std::int64_t>(sequence)}});
   const bool gba_at_arrival = mission_->gbaRunning();
@@ -365,7 +367,9 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
     return Error{ErrorCode::kUnavailable,
                  "mission '" + mission_name_ + "' moved to another replica: connect again (the Hello is redirected)"};
   }
+  const auto locking_from = Clock::now();
   auto record = record_->write();
+  const double record_lock_wait_ms = std::chrono::duration<double, std::milli>(Clock::now() - locking_from).count();
   if (record->connections != stream_) {
     return Error{ErrorCode::kAlreadyExists, "a newer stream of this agent took over"};
   }
@@ -427,6 +431,9 @@ Status AgentSession::onBatch(const v1::AgentUplink& message, std::size_t wire_by
   if (resend_told_ != 0 && record->resend_from == resend_told_) record->resend_from = 0;  // the agent was told
   const double ingest_ms = std::chrono::duration<double, std::milli>(Clock::now() - arrived).count();
   record->ingest_ms.add(ingest_ms);
+  record->ingest_record_wait_ms.add(record_lock_wait_ms);
+  record->ingest_map_wait_ms.add(report->map_lock_wait_ms);
+  record->ingest_cpu_ms.add(threadCpuMs() - cpu_at_arrival_ms);
   if (metrics_ != nullptr) metrics_->ingest.observe(ingest_ms * 1e-3);
   if (gba_at_arrival || mission_->gbaRunning()) record->ingest_during_gba_ms.add(ingest_ms);
 

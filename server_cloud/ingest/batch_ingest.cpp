@@ -1,6 +1,7 @@
 #include "server_cloud/ingest/batch_ingest.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -491,11 +492,14 @@ Result<IngestReport> ingestBatch(const v1::MapBatch& batch, AgentRecord& agent, 
   std::vector<decltype(std::declval<ServerMap&>().write())> locks;
   std::unordered_map<MapId, MapContent*> content;
   locks.reserve(touched.size());
+  const auto locking_from = std::chrono::steady_clock::now();
   for (auto& [id, map] : touched) {
     if (!map) return Error{ErrorCode::kInternal, "server map " + std::to_string(id) + " vanished"};
     locks.push_back(map->write());
     content[id] = &*locks.back();
   }
+  report.map_lock_wait_ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - locking_from).count();
   const auto mapOf = [&](const MapKey& key) -> MapContent& { return *content.at(resolve(key)); };
 
   for (auto& planned : plan.keyframes) {

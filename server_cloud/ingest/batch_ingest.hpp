@@ -40,6 +40,7 @@ struct IngestReport {
   int duplicate_objects = 0;     // keyframes or points sent in full again: dropped
   int observations_refused = 0;  // a second keypoint of one keyframe on the same point: dropped
   int imu_links_missing = 0;     // the IMU predecessor is not held (or its samples do not cover the gap)
+  double map_lock_wait_ms = 0;   // waiting for the write locks of the maps it touches
   std::vector<std::pair<MapId, KeyframeId>> added_keyframes;
   // For place recognition and the back-end: the keyframes added with their agent's refined state, and those sent
   // before their local BA (ServerKeyframe::awaiting_local_ba) whose update came in this batch.

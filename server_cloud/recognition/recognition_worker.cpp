@@ -2,13 +2,13 @@
 
 #include <algorithm>
 #include <chrono>
-#include <ctime>
 #include <optional>
 #include <set>
 #include <string>
 #include <unordered_map>
 #include <utility>
 
+#include "common/core/steady_clock.hpp"
 #include "common/trace/trace.hpp"
 
 namespace cvislam::server::recognition {
@@ -230,14 +230,6 @@ namespace {
 
 double msSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
-
-// This thread's CPU time: on a loaded machine a lock is held for as long as the scheduler keeps its holder off a
-// core, so the work done under it is told apart from the time it was held.
-double threadCpuMs() {
-  timespec t{};
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
-  return static_cast<double>(t.tv_sec) * 1e3 + static_cast<double>(t.tv_nsec) * 1e-6;
 }
 
 Verification missing(std::string detail) {

@@ -197,6 +197,12 @@ struct AgentRecord {
   std::string last_error;
   LatencySamples ingest_ms;             // arrival to stored, per batch
   LatencySamples ingest_during_gba_ms;  // those of them with a GBA of the mission running at either end
+  // Where each batch's ingest time went, added with ingest_ms so that sample i of each is the same batch: waiting for
+  // the agent record's lock and for the maps' locks, and the ingest thread's CPU time. The rest of ingest_ms is
+  // time the thread was ready but off a core.
+  LatencySamples ingest_record_wait_ms;
+  LatencySamples ingest_map_wait_ms;
+  LatencySamples ingest_cpu_ms;
 };
 
 using SharedAgentRecord = std::shared_ptr<Synchronized<AgentRecord>>;

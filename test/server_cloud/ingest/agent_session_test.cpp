@@ -5,9 +5,11 @@
 
 #include <chrono>
 #include <cstdint>
+#include <future>
 #include <memory>
 #include <set>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <gmock/gmock.h>
@@ -262,6 +264,38 @@ TEST_F(AgentSessionTest, EveryStoredBatchIsTimedAndThoseThatMetAGlobalBaAlsoApar
   EXPECT_EQ(r->ingest_during_gba_ms.size(), 2U);
   EXPECT_GT(r->ingest_during_gba_ms.percentile(1.0), 0.0);
   EXPECT_FALSE(core_.missions().find(kMission)->gbaRunning());
+}
+
+TEST_F(AgentSessionTest, ABatchThatWaitsForItsMapsLockCountsTheWaitApartFromItsCpuTime) {
+  greet(*sut);
+  sendBatch(*sut, 1, 0, 2);
+  auto mission = core_.missions().find(kMission);
+  const std::shared_ptr<ServerMap> map = mission->stack().find(record()->read()->agent_maps.at(0).map);
+  ASSERT_NE(map, nullptr);
+
+  // Another thread (as the back-end's fusion would) holds the map's write lock while the next batch arrives.
+  std::promise<void> holding;
+  std::thread holder([&] {
+    auto content = map->write();
+    holding.set_value();
+    std::this_thread::sleep_for(std::chrono::milliseconds(80));
+  });
+  holding.get_future().wait();
+  sendBatch(*sut, 2, 2, 2);
+  holder.join();
+
+  const auto r = record()->read();
+  ASSERT_EQ(r->ingest_ms.size(), 2U);
+  ASSERT_EQ(r->ingest_record_wait_ms.size(), 2U);
+  ASSERT_EQ(r->ingest_map_wait_ms.size(), 2U);
+  ASSERT_EQ(r->ingest_cpu_ms.size(), 2U);
+  const double waited_ms = r->ingest_map_wait_ms.samples()[1];
+  EXPECT_GE(waited_ms, 40.0);
+  EXPECT_LE(waited_ms + r->ingest_record_wait_ms.samples()[1], r->ingest_ms.samples()[1]);
+  EXPECT_LT(r->ingest_record_wait_ms.samples()[1], 40.0);  // the record's lock was free
+  EXPECT_LT(r->ingest_cpu_ms.samples()[1], 40.0);          // waiting for a lock costs no CPU
+  EXPECT_GT(r->ingest_cpu_ms.samples()[0], 0.0);
+  EXPECT_LE(r->ingest_map_wait_ms.samples()[0], r->ingest_ms.samples()[0]);
 }
 
 TEST_F(AgentSessionTest, TheServerMapOpenedForAnAgentMapRemembersItsOriginAfterItIsGone) {
