@@ -9,6 +9,7 @@ OUT/server/ (stats.json, timeline.csv, <mission>/keyframes_agent<N>.txt) and the
 (the simulator's EuRoC folders). Only the Python standard library."""
 
 import argparse
+import bisect
 import csv
 import json
 import math
@@ -19,7 +20,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import mission_pictures  # noqa: E402  (tools/mission_pictures.py: the SVGs and the HTML page)
 from cvislam_tools import evaluation  # noqa: E402
 from cvislam_tools.evaluation import ate  # noqa: E402
-from cvislam_tools.files import load_json, read_rows  # noqa: E402
+from cvislam_tools.files import load_json, read_groundtruth, read_rows  # noqa: E402
 from cvislam_tools.poses import angle_between_deg, eval_transform, pose_apply, pose_inv, pose_mul  # noqa: E402
 
 
@@ -144,6 +145,13 @@ def report_backend(out, mission, server_agents, summary):
         print(f"match or loop -> map corrected (the merge's rigid correction, or the loop's pose graph): "
               f"{spread(corrected)}")
         print(f"match or loop -> map refined by the GBA after it: {spread(refined)}")
+        loops = loops_against_truth(mission, backend.get("loops", []))
+        if loops:
+            section["loops_against_truth"] = loops
+            print("loops against the ground truth (the query keyframe's pose in the candidate's): error of what place "
+                  "recognition measured / of what the map held before the pose graph [cm, deg]: " +
+                  ", ".join(f"{r['measured_cm']:.1f}/{r['map_cm']:.1f} cm {r['measured_deg']:.2f}/{r['map_deg']:.2f} deg"
+                            for r in loops))
         print(f"new keyframes fused with their covisible and nearby keyframes: {section['new_keyframes_fused']} "
               f"({section['new_keyframe_links']} keypoints linked, {section['new_keyframe_point_merges']} points "
               f"merged; {section['new_keyframe_fuse_ms_mean']:.1f} ms mean, "
@@ -180,6 +188,41 @@ def report_backend(out, mission, server_agents, summary):
               f"for the maps' locks, {tail['cpu_ms']:.1f} ms on a core and "
               f"{tail['off_core_ms']:.1f} ms ready but off a core")
     summary["backend"] = section
+
+
+def loops_against_truth(mission, loops):
+    """Each closed loop's relative pose (query keyframe in the candidate's frame) as measured and as the map held it,
+    against the truth at the two keyframes' times: tells a wrong loop measurement from a map that was off."""
+    truth = {}
+    rows = []
+    for loop in loops:
+        if "T_cs_qs_measured" not in loop:
+            return []
+        poses = []
+        for (agent, _), t_ns in ((loop["query"], loop["query_t_ns"]), (loop["candidate"], loop["candidate_t_ns"])):
+            if agent not in truth:
+                truth[agent] = read_groundtruth(os.path.join(mission["dataset"], f"agent{agent}")) or []
+            poses.append(nearest_truth(truth[agent], t_ns))
+        if None in poses:
+            continue
+        (q_q, p_q), (q_c, p_c) = poses
+        true = pose_mul(pose_inv((q_c, p_c)), (q_q, p_q))
+        row = {"query": loop["query"], "candidate": loop["candidate"]}
+        for key, name in (("T_cs_qs_measured", "measured"), ("T_cs_qs_map", "map")):
+            x, y, z, qx, qy, qz, qw = loop[key]
+            row[f"{name}_cm"] = 100.0 * math.dist(true[1], (x, y, z))
+            row[f"{name}_deg"] = angle_between_deg(true[0], (qw, qx, qy, qz))
+        rows.append(row)
+    return rows
+
+
+def nearest_truth(rows, t_ns, tolerance_ns=5_000_000):
+    """The ground-truth pose (quaternion w-first, position) nearest t_ns, within the tolerance; None otherwise."""
+    i = bisect.bisect_left(rows, (t_ns,))
+    best = min((rows[j] for j in (i - 1, i) if 0 <= j < len(rows)), key=lambda r: abs(r[0] - t_ns), default=None)
+    if best is None or abs(best[0] - t_ns) > tolerance_ns:
+        return None
+    return best[2], best[1]
 
 
 def pooled_ingest(path, mission_name):

@@ -562,6 +562,10 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     }
     const SE3d T_m_qs = match.T_cmap_cq * sensor->second.T_s_c0.inverse();
     const LoopEdge edge{match.candidate, match.query, candidate->T_w_s.inverse() * T_m_qs};
+    record.query_t_ns = query->t_ns;
+    record.candidate_t_ns = candidate->t_ns;
+    record.T_cs_qs_measured = edge.T_a_b;
+    record.T_cs_qs_map = candidate->T_w_s.inverse() * query->T_w_s;
     std::vector<LoopEdge> loops;
     {
       const std::lock_guard lock(mutex_);

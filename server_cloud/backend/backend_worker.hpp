@@ -139,6 +139,13 @@ struct LoopRecord {
   KeyframeId candidate;
   double correction_m = 0.0;  // how far the pose graph moved the query keyframe
   double correction_deg = 0.0;
+  // The loop's measurement against the map it corrects, for scoring both against the truth: the two keyframes'
+  // times, the query sensor's pose in the candidate's as place recognition measured it, and as the map held it
+  // before the pose graph.
+  std::int64_t query_t_ns = 0;
+  std::int64_t candidate_t_ns = 0;
+  geometry::SE3d T_cs_qs_measured;
+  geometry::SE3d T_cs_qs_map;
   PoseGraphSummary graph;
   FusionReport fusion;
   double solve_ms = 0.0;
