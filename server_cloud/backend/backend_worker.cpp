@@ -62,6 +62,9 @@ Status BackendOptions::validate() const {
   if (merge_correction_keyframes < 0) {
     return Error{ErrorCode::kInvalidArgument, "backend.merge_correction_keyframes must be >= 0 (0: none)"};
   }
+  if (!(loop_window_move_m >= 0.0) || !(loop_window_move_deg >= 0.0)) {
+    return Error{ErrorCode::kInvalidArgument, "backend.loop_window_move_m and loop_window_move_deg must be >= 0"};
+  }
   if (gba_window_above_keyframes < 0) {
     return Error{ErrorCode::kInvalidArgument,
                  "backend.gba_window_above_keyframes must be >= 0 (0: every GBA frees the whole map)"};
@@ -90,7 +93,9 @@ std::string BackendOptions::describe() const {
   out << ", an agent's frame follows its " << frame_follows_keyframes << " newest corrected keyframes";
   if (gba_every_keyframes > 0) out << " and per " << gba_every_keyframes << " new keyframes of a map";
   if (gba_window_above_keyframes > 0) {
-    out << ", a merge's GBA frees only what it changed in maps above " << gba_window_above_keyframes << " keyframes";
+    out << ", a merge's or loop's GBA frees only what it changed in maps above " << gba_window_above_keyframes
+        << " keyframes (a loop's: the agent maps its pose graph moved by more than " << loop_window_move_m << " m or "
+        << loop_window_move_deg << " deg)";
   }
   out << ", new keyframes fused " << (fuse_new_keyframes ? "on" : "off") << " (" << fusion.neighbours << " covisible + "
       << fusion.nearby_keyframes << " within " << fusion.nearby_radius_m << " m and " << fusion.nearby_max_angle_deg
@@ -592,11 +597,21 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
   }
   const CameraTable cameras(sensors);
   ProjectionSearchInput search;
+  std::optional<std::set<AgentMapKey>> changed;  // for a GBA of what the pose graph moved
   {
     StackLocks locks(mission, {map});
+    MapContent& content = locks.map(map->id());
+    if (options_.gba_window_above_keyframes > 0 &&
+        content.keyframes().size() > static_cast<std::size_t>(options_.gba_window_above_keyframes)) {
+      changed = agentMapsMoved(content, *corrections, options_.loop_window_move_m, options_.loop_window_move_deg);
+      // The loop's two sides, whose points its fusion joins, even where the pose graph hardly moved them.
+      for (const KeyframeId& id : {match.query, match.candidate}) {
+        if (const ServerKeyframe* kf = content.keyframe(id)) changed->insert({id.agent, kf->agent_map});
+      }
+    }
     (void)applyToMission(mission, locks, map->id(), *corrections, {},
                          ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes}, "loop closure");
-    search = fuseMatchPairs(locks.map(map->id()), match, cameras.lookup(), options_.fusion, record.fusion);
+    search = fuseMatchPairs(content, match, cameras.lookup(), options_.fusion, record.fusion);
   }
   (void)fuseWithoutLock(*map, search, options_.fusion, record.fusion);
   record.match_to_corrected_s = secondsSince(arrived);
@@ -606,7 +621,9 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     state.stats.loops.push_back(record);
     index = state.stats.loops.size() - 1;
   }
-  if (options_.gba_after_change) requestGba(mission.name(), map->id(), false, std::make_pair(false, index), arrived);
+  if (options_.gba_after_change) {
+    requestGba(mission.name(), map->id(), false, std::make_pair(false, index), arrived, changed ? &*changed : nullptr);
+  }
 }
 
 void BackendWorker::removeRedundant(Mission& mission, MissionState& state, MapId map_id, int checks) {

@@ -85,10 +85,15 @@ struct BackendOptions {
   // keyframes of the agent maps of the smaller of the two maps joined (those their agents add meanwhile
   // included); the others that see their points are held. With many agents over one place every keyframe sees
   // most others' points, so a GBA's linear system is dense and its cost grows with the cube of the free
-  // keyframes; what the merge did not move needs no new solve. Requests joined with a whole-map one (a loop's,
-  // the periodic one, the final one) free the whole map. 0: every GBA frees the whole map. 150 is what was
+  // keyframes; what the merge did not move needs no new solve. Requests joined with a whole-map one (the
+  // periodic one, the final one) free the whole map. 0: every GBA frees the whole map. 150 is what was
   // measured on the simulated hall8 mission.
   int gba_window_above_keyframes = 150;
+  // The same for the GBA after a loop in such a map: it frees the agent maps that the loop's pose graph moved a
+  // keyframe of by more than either bound (and the loop's two sides); what it barely moved keeps the state the last
+  // GBA refined. A loop of a few cm in a merged map otherwise asks for a GBA of every keyframe of every agent.
+  double loop_window_move_m = 0.01;
+  double loop_window_move_deg = 0.1;
   GlobalBaOptions merge_correction_ba{.structure_iterations = 0, .full_iterations = 6, .function_tolerance = 1e-4};
   int redundancy_every_keyframes = 10;  // per map
   // At the end of a mission (drain(true)), before the last GBA: every eligible keyframe of every map is checked

@@ -104,6 +104,19 @@ std::optional<GbaWindow> agentMapsWindow(const MapContent& map, const std::set<A
   return window;
 }
 
+std::set<AgentMapKey> agentMapsMoved(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
+                                     double min_m, double min_deg) {
+  std::set<AgentMapKey> moved;
+  for (const KeyframeCorrection& c : corrections) {
+    const ServerKeyframe* kf = map.keyframe(c.id);
+    if (kf == nullptr) continue;
+    const geometry::SE3d delta = c.T_w_s_before.inverse() * c.T_w_s_after;
+    const double deg = delta.so3().log().norm() * 180.0 / M_PI;
+    if (delta.translation().norm() > min_m || deg > min_deg) moved.insert({c.id.agent, kf->agent_map});
+  }
+  return moved;
+}
+
 Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors, const GbaWindow* window) {
   GbaSnapshot snapshot;
   snapshot.map = map.id();

@@ -176,6 +176,12 @@ struct KeyframeCorrection {
   geometry::SE3d T_w_s_after;
   std::optional<std::pair<Eigen::Vector3d, imu::ImuBias>> velocity_bias_after;
 };
+// The agent maps of `map` that `corrections` change: those with a keyframe moved by more than `min_m` or turned by
+// more than `min_deg`. A loop's pose graph spreads its correction over the map; what it barely moved keeps the
+// state the last GBA refined, so the GBA after the loop need free only these.
+std::set<AgentMapKey> agentMapsMoved(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
+                                     double min_m, double min_deg);
+
 struct PointCorrection {
   MapPointId id;
   Eigen::Vector3d p_w_before;

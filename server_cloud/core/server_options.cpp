@@ -277,6 +277,8 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("redundancy_removal", b.redundancy.enabled);
   backend.read("gba_every_keyframes", b.gba_every_keyframes);
   backend.read("gba_window_above_keyframes", b.gba_window_above_keyframes);
+  backend.read("loop_window_move_m", b.loop_window_move_m);
+  backend.read("loop_window_move_deg", b.loop_window_move_deg);
   backend.read("redundancy_every_keyframes", b.redundancy_every_keyframes);
   backend.read("redundancy_final_pass", b.final_redundancy_pass);
   backend.read("redundant_fraction", b.redundancy.redundant_fraction);

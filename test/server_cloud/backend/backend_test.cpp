@@ -338,6 +338,56 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   EXPECT_LT(after, 0.02) << "before " << before;
 }
 
+TEST_F(BackendWorkerTest, ALoopInALargeMapHasAGbaOfTheAgentMapsItsPoseGraphMovedTheRestHeld) {
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  // Agent 1 drifts from keyframe 12 on as in ALoopClosureRemovesAnInjectedDrift. Agent 2 flew the same keyframes
+  // without drift, in the same map, its points fused with those of agent 1's first half (as a merge leaves them):
+  // the loop's pose graph moves agent 1's second half and barely agent 2.
+  const auto drift_at = [](int k) {
+    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * Vector3d(0.3, -0.25, 0.05));
+  };
+  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 23, .E = drift_at, .generation = [](int k) {
+                                           return k >= 12 ? 1 : 0;
+                                         }});
+  {
+    auto record = mission_->agent(2)->write();
+    record->sensors = sensorsOf(s);
+    record->agent_maps[0] = AgentRecord::AgentMap{map->id(), SE3d()};
+    auto content = map->write();
+    buildAgentMap(*content, s, AgentPlan{.agent = 2, .first = 0, .last = 23}, &*record);
+    for (std::size_t p = 0; p < s.points.size(); ++p) {
+      const MapPointId a{1, static_cast<std::uint32_t>(p)};
+      const MapPointId b{2, static_cast<std::uint32_t>(p)};
+      if (content->point(a) != nullptr && content->point(b) != nullptr) {
+        ASSERT_TRUE(content->mergePoints(b, a).ok());
+      }
+    }
+    ASSERT_TRUE(content->checkConsistency().ok());
+  }
+
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.gba_window_above_keyframes = 40;  // the map holds 48
+  BackendWorker worker(options, registry_, nullptr);
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
+  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
+  ASSERT_TRUE(worker.onMatch("m", record));
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.loops.size(), 1U);
+  ASSERT_FALSE(stats.gba.empty());
+  const GbaRecord& gba = stats.gba.front();
+  EXPECT_TRUE(gba.windowed) << "a loop in a map above gba_window_above_keyframes";
+  EXPECT_EQ(gba.held_keyframes, 24) << "agent 2's keyframes, which the pose graph barely moved";
+  const auto content = map->read();
+  EXPECT_TRUE(content->checkConsistency().ok());
+  EXPECT_LT(maxPositionError(*content, s, 1), 0.02) << "agent 1's drift is gone";
+  EXPECT_LT(maxPositionError(*content, s, 2), 0.02);
+}
+
 // ------------------------------------------------------------------------------------ new keyframe fusion
 // Two agents in one map frame (as after a merge), over the same points but with points of their own: agent 1
 // flies keyframes 0-11, agent 2 keyframes 8-19. Nothing links agent 2's keyframes to agent 1's.

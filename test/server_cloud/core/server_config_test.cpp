@@ -105,5 +105,16 @@ TEST(ServerConfigFiles, AnUnknownGbaSolverIsRefusedNamingTheKeyAndTheChoices) {
   EXPECT_EQ(o.backend.gba.solver, backend::GlobalBaOptions::Solver::kCeres);
 }
 
+TEST(ServerConfigFiles, ALoopsGbaWindowIsReadAndANegativeBoundIsRefusedNamingTheKey) {
+  ServerOptions o;
+  ASSERT_TRUE(loadConfigText("backend:\n  loop_window_move_m: 0.02\n  loop_window_move_deg: 0.3\n", o).ok());
+  EXPECT_EQ(o.backend.loop_window_move_m, 0.02);
+  EXPECT_EQ(o.backend.loop_window_move_deg, 0.3);
+  ASSERT_TRUE(loadConfigText("backend:\n  loop_window_move_m: -0.01\n", o).ok());
+  const Status s = o.validate();
+  ASSERT_FALSE(s.ok());
+  EXPECT_THAT(s.error().toString(), HasSubstr("backend.loop_window_move_m"));
+}
+
 }  // namespace
 }  // namespace cvislam::server
