@@ -608,6 +608,10 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
       for (const KeyframeId& id : {match.query, match.candidate}) {
         if (const ServerKeyframe* kf = content.keyframe(id)) changed->insert({id.agent, kf->agent_map});
       }
+      std::set<AgentMapKey> all;
+      for (const auto& [id, kf] : content.keyframes()) all.insert({id.agent, kf.agent_map});
+      record.window_agent_maps = static_cast<int>(changed->size());
+      record.map_agent_maps = static_cast<int>(all.size());
     }
     (void)applyToMission(mission, locks, map->id(), *corrections, {},
                          ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes}, "loop closure");

@@ -151,6 +151,10 @@ struct LoopRecord {
   std::int64_t candidate_t_ns = 0;
   geometry::SE3d T_cs_qs_measured;
   geometry::SE3d T_cs_qs_map;
+  // In a map above gba_window_above_keyframes: how many of its agent maps the GBA after the loop frees (those the
+  // pose graph moved, and the loop's two sides) out of how many it holds; 0 and 0 in a smaller map.
+  int window_agent_maps = 0;
+  int map_agent_maps = 0;
   PoseGraphSummary graph;
   FusionReport fusion;
   double solve_ms = 0.0;

@@ -558,6 +558,8 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                      {"candidate_t_ns", l.candidate_t_ns},
                      {"T_cs_qs_measured", toJson(l.T_cs_qs_measured)},
                      {"T_cs_qs_map", toJson(l.T_cs_qs_map)},
+                     {"window_agent_maps", l.window_agent_maps},
+                     {"map_agent_maps", l.map_agent_maps},
                      {"cancelled_gba", l.cancelled_gba},
                      {"graph_keyframes", l.graph.keyframes},
                      {"graph_edges", l.graph.tree_edges + l.graph.covisibility_edges + l.graph.loop_edges},

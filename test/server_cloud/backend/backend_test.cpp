@@ -382,6 +382,8 @@ TEST_F(BackendWorkerTest, ALoopInALargeMapHasAGbaOfTheAgentMapsItsPoseGraphMoved
   const GbaRecord& gba = stats.gba.front();
   EXPECT_TRUE(gba.windowed) << "a loop in a map above gba_window_above_keyframes";
   EXPECT_EQ(gba.held_keyframes, 24) << "agent 2's keyframes, which the pose graph barely moved";
+  EXPECT_EQ(stats.loops[0].window_agent_maps, 1);
+  EXPECT_EQ(stats.loops[0].map_agent_maps, 2);
   const auto content = map->read();
   EXPECT_TRUE(content->checkConsistency().ok());
   EXPECT_LT(maxPositionError(*content, s, 1), 0.02) << "agent 1's drift is gone";
