@@ -603,11 +603,8 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     MapContent& content = locks.map(map->id());
     if (options_.gba_window_above_keyframes > 0 &&
         content.keyframes().size() > static_cast<std::size_t>(options_.gba_window_above_keyframes)) {
-      changed = agentMapsMoved(content, *corrections, options_.loop_window_move_m, options_.loop_window_move_deg);
-      // The loop's two sides, whose points its fusion joins, even where the pose graph hardly moved them.
-      for (const KeyframeId& id : {match.query, match.candidate}) {
-        if (const ServerKeyframe* kf = content.keyframe(id)) changed->insert({id.agent, kf->agent_map});
-      }
+      changed = loopWindowAgentMaps(content, *corrections, {match.query, match.candidate}, options_.loop_window_move_m,
+                                    options_.loop_window_move_deg, kWindowMaxFreeFraction);
       std::set<AgentMapKey> all;
       for (const auto& [id, kf] : content.keyframes()) all.insert({id.agent, kf.agent_map});
       record.window_agent_maps = static_cast<int>(changed->size());

@@ -89,9 +89,10 @@ struct BackendOptions {
   // periodic one, the final one) free the whole map. 0: every GBA frees the whole map. 150 is what was
   // measured on the simulated hall8 mission.
   int gba_window_above_keyframes = 150;
-  // The same for the GBA after a loop in such a map: it frees the agent maps that the loop's pose graph moved a
-  // keyframe of by more than either bound (and the loop's two sides); what it barely moved keeps the state the last
-  // GBA refined. A loop of a few cm in a merged map otherwise asks for a GBA of every keyframe of every agent.
+  // The same for the GBA after a loop in such a map: it frees the loop's two sides' agent maps and those that the
+  // loop's pose graph moved a keyframe of by more than either bound, the most moved first, up to 60 % of the map
+  // (loopWindowAgentMaps); the rest keeps its state. A loop of a few cm in a merged map otherwise asks for a GBA of
+  // every keyframe of every agent.
   double loop_window_move_m = 0.01;
   double loop_window_move_deg = 0.1;
   GlobalBaOptions merge_correction_ba{.structure_iterations = 0, .full_iterations = 6, .function_tolerance = 1e-4};

@@ -104,17 +104,41 @@ std::optional<GbaWindow> agentMapsWindow(const MapContent& map, const std::set<A
   return window;
 }
 
-std::set<AgentMapKey> agentMapsMoved(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
-                                     double min_m, double min_deg) {
-  std::set<AgentMapKey> moved;
+std::set<AgentMapKey> loopWindowAgentMaps(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
+                                          const std::vector<KeyframeId>& sides, double min_m, double min_deg,
+                                          double max_free_fraction) {
+  std::map<AgentMapKey, std::size_t> keyframes;
+  for (const auto& [id, kf] : map.keyframes()) ++keyframes[{id.agent, kf.agent_map}];
+  // Each agent map's largest move, in units of the bounds (above 1: over one of them).
+  std::map<AgentMapKey, double> moved;
   for (const KeyframeCorrection& c : corrections) {
     const ServerKeyframe* kf = map.keyframe(c.id);
     if (kf == nullptr) continue;
     const geometry::SE3d delta = c.T_w_s_before.inverse() * c.T_w_s_after;
-    const double deg = delta.so3().log().norm() * 180.0 / M_PI;
-    if (delta.translation().norm() > min_m || deg > min_deg) moved.insert({c.id.agent, kf->agent_map});
+    const double m = min_m > 0.0 ? delta.translation().norm() / min_m : 0.0;
+    const double deg = min_deg > 0.0 ? delta.so3().log().norm() * 180.0 / M_PI / min_deg : 0.0;
+    double& largest = moved[{c.id.agent, kf->agent_map}];
+    largest = std::max({largest, m, deg});
   }
-  return moved;
+  std::set<AgentMapKey> free;
+  std::size_t free_keyframes = 0;
+  for (const KeyframeId& id : sides) {
+    const ServerKeyframe* kf = map.keyframe(id);
+    if (kf == nullptr || !free.insert({id.agent, kf->agent_map}).second) continue;
+    free_keyframes += keyframes[{id.agent, kf->agent_map}];
+  }
+  std::vector<std::pair<double, AgentMapKey>> ranked;
+  for (const auto& [key, largest] : moved) {
+    if (largest > 1.0 && free.count(key) == 0) ranked.emplace_back(largest, key);
+  }
+  std::sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) { return a.first > b.first; });
+  const double limit = max_free_fraction * static_cast<double>(map.keyframes().size());
+  for (const auto& [largest, key] : ranked) {
+    if (static_cast<double>(free_keyframes + keyframes[key]) > limit) break;
+    free.insert(key);
+    free_keyframes += keyframes[key];
+  }
+  return free;
 }
 
 Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors, const GbaWindow* window) {

@@ -176,11 +176,15 @@ struct KeyframeCorrection {
   geometry::SE3d T_w_s_after;
   std::optional<std::pair<Eigen::Vector3d, imu::ImuBias>> velocity_bias_after;
 };
-// The agent maps of `map` that `corrections` change: those with a keyframe moved by more than `min_m` or turned by
-// more than `min_deg`. A loop's pose graph spreads its correction over the map; what it barely moved keeps the
-// state the last GBA refined, so the GBA after the loop need free only these.
-std::set<AgentMapKey> agentMapsMoved(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
-                                     double min_m, double min_deg);
+// The agent maps the GBA after a loop frees: those of `sides` (the loop's two keyframes, whose points its fusion
+// joined), then those with a keyframe that `corrections` (the loop's pose graph) moved by more than `min_m` or
+// turned by more than `min_deg`, the most moved first, as long as the free keyframes stay within
+// `max_free_fraction` of the map. A pose graph spreads its correction over the whole map; what it barely moved keeps
+// the state the last GBA refined, and what it moved least of the rest is refined by the next whole-map GBA. A
+// window that frees most of a dense map costs about what the whole map does, so it stops at the fraction.
+std::set<AgentMapKey> loopWindowAgentMaps(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
+                                          const std::vector<KeyframeId>& sides, double min_m, double min_deg,
+                                          double max_free_fraction);
 
 struct PointCorrection {
   MapPointId id;

@@ -338,6 +338,35 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   EXPECT_LT(after, 0.02) << "before " << before;
 }
 
+TEST(LoopWindow, FreesTheLoopsSidesThenTheMostMovedAgentMapsUpToTheFractionAndNeverTheBarelyMoved) {
+  const test::ViScenario s = scenario(12, 0.5, 0.3);
+  MapContent map(0);
+  for (AgentId agent = 1; agent <= 4; ++agent) {
+    buildAgentMap(map, s, AgentPlan{.agent = agent, .first = 0, .last = 9}, nullptr);
+  }
+  // Every keyframe of agent a moved by move_m[a]: 1 by 5 cm, 2 by 2 cm, 3 by 3 cm, 4 by half a millimetre.
+  const std::map<AgentId, double> move_m{{1, 0.05}, {2, 0.02}, {3, 0.03}, {4, 0.0005}};
+  std::vector<KeyframeCorrection> corrections;
+  for (const auto& [id, kf] : map.keyframes()) {
+    corrections.push_back(
+        {id, kf.T_w_s, SE3d(SO3d(), Vector3d(move_m.at(id.agent), 0.0, 0.0)) * kf.T_w_s, std::nullopt});
+  }
+  const auto agents = [](const std::set<AgentMapKey>& keys) {
+    std::set<AgentId> out;
+    for (const auto& [agent, agent_map] : keys) out.insert(agent);
+    return out;
+  };
+  const KeyframeId side1{1, 9};
+  const KeyframeId side4{4, 2};
+  // 40 keyframes, 10 per agent map. The sides come first even when barely moved (agent 4).
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1, side4}, 0.01, 0.1, 0.6)), (std::set<AgentId>{1, 4}));
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1, side4}, 0.01, 0.1, 0.8)), (std::set<AgentId>{1, 3, 4}))
+      << "agent 3 (3 cm) before agent 2 (2 cm)";
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1}, 0.01, 0.1, 1.0)), (std::set<AgentId>{1, 2, 3}))
+      << "agent 4 moved less than the bound";
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1}, 0.025, 0.1, 1.0)), (std::set<AgentId>{1, 3}));
+}
+
 TEST_F(BackendWorkerTest, ALoopInALargeMapHasAGbaOfTheAgentMapsItsPoseGraphMovedTheRestHeld) {
   const test::ViScenario s = scenario(24, 0.5, 0.3);
   // Agent 1 drifts from keyframe 12 on as in ALoopClosureRemovesAnInjectedDrift. Agent 2 flew the same keyframes
