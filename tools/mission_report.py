@@ -92,15 +92,17 @@ def report_downlink_use(out, mission, summary):
         print(f"  downlink messages mapping refused: {refused} (see the agents' logs)")
 
 
+def nearest_rank(sorted_values, p):
+    """The p-quantile (p in (0, 1]) of sorted values by nearest rank."""
+    return sorted_values[min(len(sorted_values), max(1, math.ceil(p * len(sorted_values)))) - 1]
+
+
 def spread(values):
     """'n, p50, p99, max' of seconds (nearest rank), or 'none'."""
     if not values:
         return "none"
     v = sorted(values)
-
-    def rank(p):
-        return v[min(len(v), max(1, math.ceil(p * len(v)))) - 1]
-    return f"{len(v)}: p50 {rank(0.5):.2f} s, p99 {rank(0.99):.2f} s, max {v[-1]:.2f} s"
+    return f"{len(v)}: p50 {nearest_rank(v, 0.5):.2f} s, p99 {nearest_rank(v, 0.99):.2f} s, max {v[-1]:.2f} s"
 
 
 def report_backend(out, mission, server_agents, summary):
@@ -235,17 +237,13 @@ def pooled_ingest(path, mission_name):
         return None
     rows.sort(key=lambda r: float(r["ingest_ms"]))
     ms = [float(r["ingest_ms"]) for r in rows]
-
-    def rank(p):
-        return ms[min(len(ms), max(1, math.ceil(p * len(ms)))) - 1]
-
     slow = rows[-max(1, len(rows) // 100):]
 
     def mean(key):
         return sum(float(r[key]) for r in slow) / len(slow)
 
     record_wait, map_wait, cpu, total = mean("record_wait_ms"), mean("map_wait_ms"), mean("cpu_ms"), mean("ingest_ms")
-    return {"batches": len(rows), "p50_ms": rank(0.5), "p99_ms": rank(0.99),
+    return {"batches": len(rows), "p50_ms": nearest_rank(ms, 0.5), "p99_ms": nearest_rank(ms, 0.99),
             "slowest_1pct": {"batches": len(slow), "ingest_ms": total, "record_wait_ms": record_wait,
                              "map_wait_ms": map_wait, "cpu_ms": cpu,
                              "off_core_ms": max(0.0, total - record_wait - map_wait - cpu)}}

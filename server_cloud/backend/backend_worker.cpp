@@ -603,12 +603,12 @@ void BackendWorker::closeLoop(Mission& mission, MissionState& state, const recog
     MapContent& content = locks.map(map->id());
     if (options_.gba_window_above_keyframes > 0 &&
         content.keyframes().size() > static_cast<std::size_t>(options_.gba_window_above_keyframes)) {
-      changed = loopWindowAgentMaps(content, *corrections, {match.query, match.candidate}, options_.loop_window_move_m,
-                                    options_.loop_window_move_deg, kWindowMaxFreeFraction);
-      std::set<AgentMapKey> all;
-      for (const auto& [id, kf] : content.keyframes()) all.insert({id.agent, kf.agent_map});
-      record.window_agent_maps = static_cast<int>(changed->size());
-      record.map_agent_maps = static_cast<int>(all.size());
+      LoopWindow window =
+          loopWindowAgentMaps(content, *corrections, {match.query, match.candidate}, options_.loop_window_move_m,
+                              options_.loop_window_move_deg, kWindowMaxFreeFraction);
+      record.window_agent_maps = static_cast<int>(window.free.size());
+      record.map_agent_maps = window.map_agent_maps;
+      changed = std::move(window.free);
     }
     (void)applyToMission(mission, locks, map->id(), *corrections, {},
                          ApplyOptions{/*marks_refined=*/false, options_.frame_follows_keyframes}, "loop closure");

@@ -104,9 +104,9 @@ std::optional<GbaWindow> agentMapsWindow(const MapContent& map, const std::set<A
   return window;
 }
 
-std::set<AgentMapKey> loopWindowAgentMaps(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
-                                          const std::vector<KeyframeId>& sides, double min_m, double min_deg,
-                                          double max_free_fraction) {
+LoopWindow loopWindowAgentMaps(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
+                               const std::vector<KeyframeId>& sides, double min_m, double min_deg,
+                               double max_free_fraction) {
   std::map<AgentMapKey, std::size_t> keyframes;
   for (const auto& [id, kf] : map.keyframes()) ++keyframes[{id.agent, kf.agent_map}];
   // Each agent map's largest move, in units of the bounds (above 1: over one of them).
@@ -120,7 +120,9 @@ std::set<AgentMapKey> loopWindowAgentMaps(const MapContent& map, const std::vect
     double& largest = moved[{c.id.agent, kf->agent_map}];
     largest = std::max({largest, m, deg});
   }
-  std::set<AgentMapKey> free;
+  LoopWindow window;
+  window.map_agent_maps = static_cast<int>(keyframes.size());
+  std::set<AgentMapKey>& free = window.free;
   std::size_t free_keyframes = 0;
   for (const KeyframeId& id : sides) {
     const ServerKeyframe* kf = map.keyframe(id);
@@ -138,7 +140,7 @@ std::set<AgentMapKey> loopWindowAgentMaps(const MapContent& map, const std::vect
     free.insert(key);
     free_keyframes += keyframes[key];
   }
-  return free;
+  return window;
 }
 
 Result<GbaSnapshot> makeGbaSnapshot(const MapContent& map, const AgentSensorsMap& sensors, const GbaWindow* window) {

@@ -182,9 +182,13 @@ struct KeyframeCorrection {
 // `max_free_fraction` of the map. A pose graph spreads its correction over the whole map; what it barely moved keeps
 // the state the last GBA refined, and what it moved least of the rest is refined by the next whole-map GBA. A
 // window that frees most of a dense map costs about what the whole map does, so it stops at the fraction.
-std::set<AgentMapKey> loopWindowAgentMaps(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
-                                          const std::vector<KeyframeId>& sides, double min_m, double min_deg,
-                                          double max_free_fraction);
+struct LoopWindow {
+  std::set<AgentMapKey> free;
+  int map_agent_maps = 0;  // how many agent maps the map holds
+};
+LoopWindow loopWindowAgentMaps(const MapContent& map, const std::vector<KeyframeCorrection>& corrections,
+                               const std::vector<KeyframeId>& sides, double min_m, double min_deg,
+                               double max_free_fraction);
 
 struct PointCorrection {
   MapPointId id;

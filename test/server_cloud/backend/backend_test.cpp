@@ -351,6 +351,7 @@ TEST(LoopWindow, FreesTheLoopsSidesThenTheMostMovedAgentMapsUpToTheFractionAndNe
     corrections.push_back(
         {id, kf.T_w_s, SE3d(SO3d(), Vector3d(move_m.at(id.agent), 0.0, 0.0)) * kf.T_w_s, std::nullopt});
   }
+  EXPECT_EQ(loopWindowAgentMaps(map, corrections, {}, 0.01, 0.1, 1.0).map_agent_maps, 4);
   const auto agents = [](const std::set<AgentMapKey>& keys) {
     std::set<AgentId> out;
     for (const auto& [agent, agent_map] : keys) out.insert(agent);
@@ -359,12 +360,14 @@ TEST(LoopWindow, FreesTheLoopsSidesThenTheMostMovedAgentMapsUpToTheFractionAndNe
   const KeyframeId side1{1, 9};
   const KeyframeId side4{4, 2};
   // 40 keyframes, 10 per agent map. The sides come first even when barely moved (agent 4).
-  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1, side4}, 0.01, 0.1, 0.6)), (std::set<AgentId>{1, 4}));
-  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1, side4}, 0.01, 0.1, 0.8)), (std::set<AgentId>{1, 3, 4}))
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1, side4}, 0.01, 0.1, 0.6).free),
+            (std::set<AgentId>{1, 4}));
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1, side4}, 0.01, 0.1, 0.8).free),
+            (std::set<AgentId>{1, 3, 4}))
       << "agent 3 (3 cm) before agent 2 (2 cm)";
-  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1}, 0.01, 0.1, 1.0)), (std::set<AgentId>{1, 2, 3}))
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1}, 0.01, 0.1, 1.0).free), (std::set<AgentId>{1, 2, 3}))
       << "agent 4 moved less than the bound";
-  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1}, 0.025, 0.1, 1.0)), (std::set<AgentId>{1, 3}));
+  EXPECT_EQ(agents(loopWindowAgentMaps(map, corrections, {side1}, 0.025, 0.1, 1.0).free), (std::set<AgentId>{1, 3}));
 }
 
 TEST_F(BackendWorkerTest, ALoopInALargeMapHasAGbaOfTheAgentMapsItsPoseGraphMovedTheRestHeld) {
