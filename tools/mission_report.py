@@ -139,6 +139,19 @@ def report_backend(out, mission, server_agents, summary):
             parts = ", ".join(f"{g['keyframes'] - g['held_keyframes']} of {g['keyframes']} in {g['solve_s']:.2f} s"
                               for g in windowed)
             print(f"GBA of what a merge changed (free of the solve's keyframes, the rest held): {parts}")
+        budgeted = [g for g in gba if g.get("budget_reached")]
+        section["gba_budget_reached"] = len(budgeted)
+        if budgeted:
+            # How far from converged each stopped: its last accepted step's relative decrease of the cost.
+            last_steps = []
+            for g in budgeted:
+                steps = [c for _, c in g.get("accepted_steps", [])]
+                if len(steps) >= 2 and steps[-1] > 0:
+                    last_steps.append(100.0 * (steps[-2] - steps[-1]) / steps[-1])
+            tail = (f"; their last step lowered the cost by {min(last_steps):.2f}-{max(last_steps):.2f} %"
+                    if last_steps else "")
+            print(f"GBA stopped at its time budget (applied; the map's next GBA goes on): {len(budgeted)} of "
+                  f"{len(gba)}{tail}")
         changes = backend.get("merges", []) + backend.get("loops", [])
         corrected = [c["match_to_corrected_s"] for c in changes if c.get("match_to_corrected_s", -1) >= 0]
         refined = [c["match_to_optimised_s"] for c in changes if c.get("match_to_optimised_s", -1) >= 0]

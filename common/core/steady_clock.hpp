@@ -14,6 +14,11 @@ inline std::int64_t steadyNowNs() {
       .count();
 }
 
+// Seconds on the steady clock since `start`.
+inline double secondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
 // The calling thread's CPU time [ms]. On a loaded machine a step's wall time is mostly the scheduler's; this tells
 // the work the thread did apart from the time it waited for a core or a lock.
 inline double threadCpuMs() {

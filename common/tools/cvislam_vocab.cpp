@@ -28,6 +28,7 @@
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
+#include "common/core/steady_clock.hpp"
 #include "common/dataset/euroc.hpp"
 #include "common/dataset/image.hpp"
 #include "common/dataset/image_codecs.hpp"
@@ -44,13 +45,10 @@ namespace fs = std::filesystem;
 using cvislam::Error;
 using cvislam::ErrorCode;
 using cvislam::Result;
+using cvislam::secondsSince;
 using cvislam::Status;
 using cvislam::features::Descriptor;
 using Clock = std::chrono::steady_clock;
-
-double secondsSince(Clock::time_point start) {
-  return std::chrono::duration<double>(Clock::now() - start).count();
-}
 
 std::string fixed(double value, int decimals) {
   char text[64];

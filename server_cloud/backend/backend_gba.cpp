@@ -29,7 +29,7 @@ void BackendWorker::requestGba(const std::string& mission, MapId map, bool final
     }
     it->since = std::min(it->since, since);
     it->final = it->final || final;
-    if (waiter) it->waiting.push_back(*waiter);
+    if (waiter) it->waiting.push_back({waiter->first, waiter->second, since});
   }
   gba_wake_.notify_one();
 }
@@ -106,8 +106,10 @@ void BackendWorker::gba(const GbaRequest& request) {
     const std::set<AgentMapKey>* changed = request.changed ? &*request.changed : nullptr;
     if (request.waiting.empty() && request.final)
       requestGba(request.mission, target, true, std::nullopt, request.since, changed);
-    for (const auto& waiter : request.waiting)
-      requestGba(request.mission, target, request.final, waiter, request.since, changed);
+    for (const GbaRequest::Waiter& waiter : request.waiting) {
+      requestGba(request.mission, target, request.final, std::make_pair(waiter.is_merge, waiter.index), waiter.since,
+                 changed);
+    }
   };
   const std::shared_ptr<ServerMap> map = mission->stack().find(request.map);
   if (!map) return forward();
@@ -149,7 +151,9 @@ void BackendWorker::gba(const GbaRequest& request) {
   span.set("keyframes", static_cast<std::int64_t>(snapshot->keyframes.size()));
   span.set("held", record.held_keyframes);
   if (options_.on_gba_solve_start) options_.on_gba_solve_start(request.map);
-  Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, options_.gba, &gba_cancel_);
+  GlobalBaOptions gba_options = options_.gba;
+  if (!request.final) gba_options.time_budget_s = options_.gba_time_budget_s;
+  Result<GlobalBaSummary> summary = runGlobalBa(*snapshot, gba_options, &gba_cancel_);
   if (!summary) return;
   record.summary = *summary;
   if (gba_cancel_) record.summary.cancelled = true;  // cut short after its last iteration: not applied
@@ -171,10 +175,10 @@ void BackendWorker::gba(const GbaRequest& request) {
   MissionState& s = state(request.mission);
   s.stats.gba.push_back(record);
   if (record.summary.cancelled) return;
-  const double since = secondsSince(request.since);
-  for (const auto& [is_merge, index] : request.waiting) {
-    if (is_merge && index < s.stats.merges.size()) s.stats.merges[index].match_to_optimised_s = since;
-    if (!is_merge && index < s.stats.loops.size()) s.stats.loops[index].match_to_optimised_s = since;
+  for (const GbaRequest::Waiter& w : request.waiting) {
+    const double since = secondsSince(w.since);
+    if (w.is_merge && w.index < s.stats.merges.size()) s.stats.merges[w.index].match_to_optimised_s = since;
+    if (!w.is_merge && w.index < s.stats.loops.size()) s.stats.loops[w.index].match_to_optimised_s = since;
   }
 }
 

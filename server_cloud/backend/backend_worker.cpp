@@ -65,6 +65,9 @@ Status BackendOptions::validate() const {
   if (!(loop_window_move_m >= 0.0) || !(loop_window_move_deg >= 0.0)) {
     return Error{ErrorCode::kInvalidArgument, "backend.loop_window_move_m and loop_window_move_deg must be >= 0"};
   }
+  if (!(gba_time_budget_s >= 0.0)) {
+    return Error{ErrorCode::kInvalidArgument, "backend.gba_time_budget_s must be >= 0 (0: no budget)"};
+  }
   if (gba_window_above_keyframes < 0) {
     return Error{ErrorCode::kInvalidArgument,
                  "backend.gba_window_above_keyframes must be >= 0 (0: every GBA frees the whole map)"};
@@ -84,8 +87,13 @@ std::string BackendOptions::describe() const {
   std::ostringstream out;
   out << "merge maps " << (merge_maps ? "on" : "off") << ", loop closure " << (close_loops ? "on" : "off")
       << ", GBA after each " << (gba_after_change ? "on" : "off") << " (" << gba.structure_iterations << " + "
-      << gba.full_iterations << " iterations, " << toString(gba.solver) << " solver, " << gba.threads
-      << " threads; a loop cuts it short above " << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
+      << gba.full_iterations << " iterations, " << toString(gba.solver) << " solver, " << gba.threads << " threads, ";
+  if (gba_time_budget_s > 0.0) {
+    out << "at most " << gba_time_budget_s << " s each before the final one";
+  } else {
+    out << "each to convergence";
+  }
+  out << "; a loop cuts it short above " << loop_cancels_gba_m << " m or " << loop_cancels_gba_deg << " deg)";
   if (merge_correction_keyframes > 0) {
     out << ", a merge corrected at once (BA of the query and its " << merge_correction_keyframes
         << " most covisible keyframes, its query map moved rigidly by the fitted change)";

@@ -95,6 +95,14 @@ struct BackendOptions {
   // every keyframe of every agent.
   double loop_window_move_m = 0.01;
   double loop_window_move_deg = 0.1;
+  // A GBA other than the final one stops at the last iteration expected to end within this many seconds of its
+  // start (each of its two steps takes one whatever the time) and is applied; the map's next GBA (the next merge's
+  // or loop's, the periodic one, the final one) goes on from there. Past its first full iteration or two a GBA
+  // lowers the cost by a few per cent at most (backend.json's accepted_steps), and a loop's or merge's GBA that
+  // waits behind another waits about this long at most. Not a continuation: on a dense map that keeps growing
+  // under load, continuations never converge, and the GBA thread would take a core from ingest for good.
+  // 0: every GBA runs to convergence.
+  double gba_time_budget_s = 3.0;
   GlobalBaOptions merge_correction_ba{.structure_iterations = 0, .full_iterations = 6, .function_tolerance = 1e-4};
   int redundancy_every_keyframes = 10;  // per map
   // At the end of a mission (drain(true)), before the last GBA: every eligible keyframe of every map is checked
@@ -238,8 +246,13 @@ class BackendWorker {
     std::string mission;
     MapId map = 0;
     bool final = false;
-    // Merges and loops waiting for this GBA to report their time to optimised.
-    std::vector<std::pair<bool, std::size_t>> waiting;  // (is merge, index)
+    // Merges and loops waiting for this GBA to report their time to optimised, each timed from its own match.
+    struct Waiter {
+      bool is_merge = false;
+      std::size_t index = 0;
+      std::chrono::steady_clock::time_point since;
+    };
+    std::vector<Waiter> waiting;
     std::chrono::steady_clock::time_point since;
     // The agent maps a merge moved (gba_window_above_keyframes); none: the whole map.
     std::optional<std::set<AgentMapKey>> changed;

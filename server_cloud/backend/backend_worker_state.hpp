@@ -8,6 +8,7 @@
 #include <random>
 #include <vector>
 
+#include "common/core/steady_clock.hpp"
 #include "server_cloud/backend/backend_worker.hpp"
 
 namespace cvislam::server::backend {
@@ -17,10 +18,6 @@ using Clock = std::chrono::steady_clock;
 // A merge's GBA frees the whole map when what the merge changed is more than this share of it: the solve then costs
 // nearly as much either way, and the whole map's is the better one.
 inline constexpr double kWindowMaxFreeFraction = 0.6;
-
-inline double secondsSince(Clock::time_point t) {
-  return std::chrono::duration<double>(Clock::now() - t).count();
-}
 
 // Every agent's sensors, copied from their records one at a time.
 inline AgentSensorsMap sensorsOf(const Mission& mission) {

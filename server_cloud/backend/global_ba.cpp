@@ -10,6 +10,7 @@
 
 #include <ceres/ceres.h>
 
+#include "common/core/steady_clock.hpp"
 #include "common/factors/imu_factor.hpp"
 #include "common/factors/manifolds.hpp"
 #include "common/factors/prior_factor.hpp"
@@ -52,6 +53,7 @@ Status GlobalBaOptions::validate() const {
   if (threads < 1) return bad("threads must be >= 1");
   if (!(function_tolerance > 0.0 && function_tolerance < 1.0)) return bad("function_tolerance must be in (0, 1)");
   if (!(max_solver_time_s > 0.0)) return bad("max_solver_time_s must be positive");
+  if (!(time_budget_s >= 0.0)) return bad("time_budget_s must be 0 (none) or positive");
   if (!(gauge_sigma_m > 0.0) || !(gauge_sigma_rad > 0.0)) return bad("gauge sigmas must be positive");
   return Status::Ok();
 }
@@ -455,10 +457,19 @@ std::vector<SchurKeyframeBlocks> addPlanToSchur(const GbaSnapshot& snapshot, con
 
 // One Ceres stage of the solve: at most `iterations` (0: none), with the blocks held as the caller set them.
 // Cancellation is reported in the summary, not as an error.
-Status solveCeresStage(ceres::Problem& problem, ceres::Solver::Options& solver, GbaStates& states, int iterations,
-                       int& done, double& seconds, GlobalBaSummary& summary) {
+Status solveCeresStage(ceres::Problem& problem, ceres::Solver::Options& solver, const GlobalBaOptions& options,
+                       GbaStates& states, int iterations, std::chrono::steady_clock::time_point started, int& done,
+                       double& seconds, GlobalBaSummary& summary) {
   if (iterations == 0) return Status::Ok();
+  const double offset_s = secondsSince(started);
   solver.max_num_iterations = iterations;
+  solver.max_solver_time_in_seconds = options.max_solver_time_s;
+  const double budget_left_s = options.time_budget_s - offset_s;
+  if (options.time_budget_s > 0.0 && budget_left_s <= 0.0) {
+    solver.max_num_iterations = 1;  // spent: the step's first iteration, as the Schur solver takes it
+  } else if (options.time_budget_s > 0.0) {
+    solver.max_solver_time_in_seconds = std::min(options.max_solver_time_s, budget_left_s);
+  }
   // Points first (Schur-eliminated), then the keyframe states; Ceres prunes the held blocks from the ordering
   // it is given, so each solve gets its own.
   auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
@@ -480,7 +491,16 @@ Status solveCeresStage(ceres::Problem& problem, ceres::Solver::Options& solver, 
     return Status::Ok();
   }
   if (!s.IsSolutionUsable()) return Error{ErrorCode::kDegenerate, "global BA failed: " + s.message};
+  if (options.time_budget_s > 0.0 && s.termination_type == ceres::NO_CONVERGENCE &&
+      static_cast<int>(s.iterations.size()) - 1 < iterations) {
+    summary.budget_reached = true;
+  }
   done = static_cast<int>(s.iterations.size()) - 1;
+  for (std::size_t i = 1; i < s.iterations.size(); ++i) {
+    if (s.iterations[i].step_is_successful) {
+      summary.accepted.push_back({offset_s + s.iterations[i].cumulative_time_in_seconds, s.iterations[i].cost});
+    }
+  }
   GlobalBaProfile& profile = summary.profile;
   profile.preprocess_s += s.preprocessor_time_in_seconds;
   profile.residuals_s += s.residual_evaluation_time_in_seconds;
@@ -494,7 +514,8 @@ Status solveCeresStage(ceres::Problem& problem, ceres::Solver::Options& solver, 
 }
 
 Status solveWithCeres(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaFactorPlan& plan,
-                      GbaStates& states, const std::atomic<bool>* cancel, GlobalBaSummary& summary) {
+                      GbaStates& states, const std::atomic<bool>* cancel, std::chrono::steady_clock::time_point started,
+                      GlobalBaSummary& summary) {
   const auto build_start = std::chrono::steady_clock::now();
   ceres::Problem::Options problem_options;
   problem_options.manifold_ownership = ceres::TAKE_OWNERSHIP;
@@ -511,14 +532,13 @@ Status solveWithCeres(const GbaSnapshot& snapshot, const GlobalBaOptions& option
   }
   solver.num_threads = options.threads;
   solver.function_tolerance = options.function_tolerance;
-  solver.max_solver_time_in_seconds = options.max_solver_time_s;
   solver.callbacks.push_back(&callback);
   solver.update_state_every_iteration = false;
 
   // Step 1: structure, velocities and biases with the poses held.
   for (factors::PoseBlock& pose : states.poses) problem.SetParameterBlockConstant(pose.data());
-  if (Status s = solveCeresStage(problem, solver, states, options.structure_iterations, summary.structure_iterations,
-                                 summary.structure_s, summary);
+  if (Status s = solveCeresStage(problem, solver, options, states, options.structure_iterations, started,
+                                 summary.structure_iterations, summary.structure_s, summary);
       !s.ok() || summary.cancelled) {
     return s;
   }
@@ -526,25 +546,33 @@ Status solveWithCeres(const GbaSnapshot& snapshot, const GlobalBaOptions& option
   for (std::size_t i = 0; i < states.poses.size(); ++i) {
     if (!snapshot.keyframes[i].held) problem.SetParameterBlockVariable(states.poses[i].data());
   }
-  return solveCeresStage(problem, solver, states, options.full_iterations, summary.full_iterations, summary.full_s,
-                         summary);
+  return solveCeresStage(problem, solver, options, states, options.full_iterations, started, summary.full_iterations,
+                         summary.full_s, summary);
 }
 
 // One stage of the Schur solver; its accounting goes where Ceres' would.
 void solveSchurStage(SchurProblem& problem, const GlobalBaOptions& options, int iterations,
-                     const std::atomic<bool>* cancel, int& done, double& seconds, GlobalBaSummary& summary) {
+                     const std::atomic<bool>* cancel, std::chrono::steady_clock::time_point started, int& done,
+                     double& seconds, GlobalBaSummary& summary) {
+  const double offset_s = secondsSince(started);
   if (iterations == 0) return;
   SchurSolverOptions solver;
   solver.max_iterations = iterations;
   solver.function_tolerance = options.function_tolerance;
   solver.max_time_s = options.max_solver_time_s;
+  if (options.time_budget_s > 0.0) {
+    solver.deadline = started + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                    std::chrono::duration<double>(options.time_budget_s));
+  }
   solver.threads = options.threads;
   solver.cancel = cancel;
   const auto start = std::chrono::steady_clock::now();
   const SchurSolverSummary s = problem.solve(solver);
   seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   summary.cancelled = s.cancelled;
+  summary.budget_reached = summary.budget_reached || s.deadline_reached;
   done = s.iterations;
+  for (const SchurSolverSummary::Step& step : s.accepted) summary.accepted.push_back({offset_s + step.t_s, step.cost});
   GlobalBaProfile& profile = summary.profile;
   profile.preprocess_s += s.setup_s;
   profile.residuals_s += s.evaluate_s;
@@ -556,21 +584,23 @@ void solveSchurStage(SchurProblem& problem, const GlobalBaOptions& options, int 
 }
 
 void solveWithSchur(const GbaSnapshot& snapshot, const GlobalBaOptions& options, GbaFactorPlan& plan, GbaStates& states,
-                    const std::atomic<bool>* cancel, GlobalBaSummary& summary) {
+                    const std::atomic<bool>* cancel, std::chrono::steady_clock::time_point started,
+                    GlobalBaSummary& summary) {
   const auto build_start = std::chrono::steady_clock::now();
   SchurProblem problem;
   const std::vector<SchurKeyframeBlocks> blocks = addPlanToSchur(snapshot, options, plan, states, problem);
   summary.profile.build_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
   // Step 1: structure, velocities and biases with the poses held.
   for (const SchurKeyframeBlocks& b : blocks) problem.setKeyframeBlockHeld(b.pose, true);
-  solveSchurStage(problem, options, options.structure_iterations, cancel, summary.structure_iterations,
+  solveSchurStage(problem, options, options.structure_iterations, cancel, started, summary.structure_iterations,
                   summary.structure_s, summary);
   if (summary.cancelled) return;
   // Step 2: everything.
   for (std::size_t k = 0; k < blocks.size(); ++k) {
     problem.setKeyframeBlockHeld(blocks[k].pose, snapshot.keyframes[k].held);
   }
-  solveSchurStage(problem, options, options.full_iterations, cancel, summary.full_iterations, summary.full_s, summary);
+  solveSchurStage(problem, options, options.full_iterations, cancel, started, summary.full_iterations, summary.full_s,
+                  summary);
 }
 
 }  // namespace
@@ -604,9 +634,11 @@ Result<GlobalBaSummary> runGlobalBa(GbaSnapshot& snapshot, const GlobalBaOptions
   summary.profile.build_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
 
   if (options.solver == GlobalBaOptions::Solver::kCeres) {
-    if (Status s = solveWithCeres(snapshot, options, plan, states, cancel, summary); !s.ok()) return s.error();
+    if (Status s = solveWithCeres(snapshot, options, plan, states, cancel, build_start, summary); !s.ok()) {
+      return s.error();
+    }
   } else {
-    solveWithSchur(snapshot, options, plan, states, cancel, summary);
+    solveWithSchur(snapshot, options, plan, states, cancel, build_start, summary);
   }
   if (summary.cancelled) return summary;
   states.writeBack(snapshot);

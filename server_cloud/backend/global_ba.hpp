@@ -56,7 +56,11 @@ struct GlobalBaOptions {
   // preconditioned conjugate gradients without forming it (ITERATIVE_SCHUR, SCHUR_JACOBI).
   bool iterative_schur = false;
   double max_solver_time_s = 120.0;  // per step
-  double gauge_sigma_m = 1e-4;       // the prior on the oldest keyframe's pose
+  // The whole solve's time, both steps and the problem's build: no iteration is started that would end past it
+  // (judged by the one before), but each step takes its first. Ceres is given the time left as its own limit,
+  // which it checks after each iteration. 0: none.
+  double time_budget_s = 0.0;
+  double gauge_sigma_m = 1e-4;  // the prior on the oldest keyframe's pose
   double gauge_sigma_rad = 1e-5;
   // With IMU on every agent, hold only the oldest keyframe's position and yaw (the visual-inertial gauge) and
   // leave its roll and pitch to gravity. Off: all six (the paper's prior on one keyframe's pose).
@@ -162,7 +166,15 @@ struct GlobalBaSummary {
   double structure_s = 0.0;
   double full_s = 0.0;
   GlobalBaProfile profile;
-  bool cancelled = false;  // `cancel` was raised: the snapshot holds a partial result, not to be applied
+  // The cost after each accepted step of either solver step, with the seconds since the solve began (the
+  // problem's build included): a GBA's convergence over time.
+  struct Step {
+    double t_s = 0.0;
+    double cost = 0.0;
+  };
+  std::vector<Step> accepted;
+  bool budget_reached = false;  // stopped at time_budget_s before converging; the result is applied all the same
+  bool cancelled = false;       // `cancel` was raised: the snapshot holds a partial result, not to be applied
 };
 
 // Optimises the snapshot in place. `cancel`, when given, is polled after every iteration.

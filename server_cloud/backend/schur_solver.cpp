@@ -14,6 +14,7 @@
 #include <Eigen/Dense>
 #include <Eigen/SparseCore>
 
+#include "common/core/steady_clock.hpp"
 #include "common/factors/manifolds.hpp"
 #include "common/factors/state_layout.hpp"
 #include "common/factors/world_point_factor.hpp"
@@ -38,10 +39,6 @@ constexpr double kInitialRadius = 1e4;
 constexpr double kMaxRadius = 1e16;
 constexpr double kMinRadius = 1e-32;
 constexpr double kParameterTolerance = 1e-8;
-
-double secondsSince(Clock::time_point start) {
-  return std::chrono::duration<double>(Clock::now() - start).count();
-}
 
 // Runs f(part, begin, end) over [0, n) cut into `parts` contiguous ranges, each but the first on a thread of its
 // own. `parts` is also the number of accumulators the caller keeps, so it never depends on n.
@@ -695,14 +692,21 @@ SchurSolverSummary SchurProblem::solve(const SchurSolverOptions& options) {
   if (!ok) return summary;
   double radius = kInitialRadius;
   double decrease_factor = 2.0;
+  double last_step_s = 0.0;
   while (summary.iterations < options.max_iterations) {
     if (options.cancel != nullptr && options.cancel->load(std::memory_order_relaxed)) {
       summary.cancelled = true;
       break;
     }
     if (secondsSince(start) > options.max_time_s) break;
+    const auto step_start = Clock::now();
+    if (options.deadline && summary.iterations > 0 &&
+        step_start + std::chrono::duration<double>(last_step_s) > *options.deadline) {
+      summary.deadline_reached = true;
+      break;
+    }
     ++summary.iterations;
-    t = Clock::now();
+    t = step_start;
     double model_reduction = 0.0;
     const bool solved = m.eliminateAndSolve(1.0 / radius, parts, model_reduction);
     summary.linear_solver_s += secondsSince(t);
@@ -719,16 +723,19 @@ SchurSolverSummary SchurProblem::solve(const SchurSolverOptions& options) {
         radius = std::min(kMaxRadius, radius / std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * ratio - 1.0, 3)));
         decrease_factor = 2.0;
         summary.final_cost = new_cost;
+        summary.accepted.push_back({secondsSince(start), new_cost});
         if (std::abs(m.cost_at - new_cost) <= options.function_tolerance * m.cost_at) break;  // converged
         if (summary.iterations == options.max_iterations) break;  // no step left to linearise for
         t = Clock::now();
         ok = m.linearize(parts);
         summary.linearize_s += secondsSince(t);
         if (!ok) break;
+        last_step_s = secondsSince(step_start);
         continue;
       }
       m.restore();
     }
+    last_step_s = secondsSince(step_start);
     radius /= decrease_factor;
     decrease_factor *= 2.0;
     if (radius < kMinRadius) break;

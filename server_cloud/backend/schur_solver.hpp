@@ -19,7 +19,9 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <memory>
+#include <optional>
 #include <vector>
 
 #include <Eigen/Core>
@@ -38,6 +40,9 @@ struct SchurSolverOptions {
   int max_iterations = 15;  // steps, accepted or not (as Ceres counts them)
   double function_tolerance = 1e-4;
   double max_time_s = 120.0;
+  // No step is started that would end past this, judged by how long the step before it took; the first step is
+  // taken whatever the time, so a solve always moves. Unset: no deadline.
+  std::optional<std::chrono::steady_clock::time_point> deadline;
   int threads = 2;
   const std::atomic<bool>* cancel = nullptr;  // polled after every step
 };
@@ -46,12 +51,20 @@ struct SchurSolverSummary {
   int iterations = 0;
   double initial_cost = 0.0;
   double final_cost = 0.0;
-  bool cancelled = false;  // the state is the last accepted one
+  bool cancelled = false;         // the state is the last accepted one
+  bool deadline_reached = false;  // stopped before converging, at the deadline
   // Where the time went.
   double setup_s = 0.0;          // the structure: observations by point, the reduced system's pattern, its analysis
   double linearize_s = 0.0;      // residuals and Jacobians at the accepted states
   double evaluate_s = 0.0;       // the cost of trial states
   double linear_solver_s = 0.0;  // point elimination, factorisation, back-substitution
+  // The cost after each accepted step, with the seconds since solve() began: how fast the solve converged, so
+  // that a time limit can be judged by what it would have left on the table.
+  struct Step {
+    double t_s = 0.0;
+    double cost = 0.0;
+  };
+  std::vector<Step> accepted;
 };
 
 // The problem. Parameter blocks are the caller's memory (updated in place by solve()); factors are owned.

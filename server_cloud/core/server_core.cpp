@@ -500,6 +500,13 @@ nlohmann::json toJson(const geometry::SE3d& T) {
   return {t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()};
 }
 
+// [[seconds since the solve began, cost], ...] after each accepted step.
+nlohmann::json acceptedSteps(const backend::GlobalBaSummary& summary) {
+  nlohmann::json out = nlohmann::json::array();
+  for (const backend::GlobalBaSummary::Step& step : summary.accepted) out.push_back({step.t_s, step.cost});
+  return out;
+}
+
 nlohmann::json toJson(const backend::FusionReport& f) {
   return {{"pairs_fused", f.pairs_fused},
           {"keypoints_linked", f.keypoints_linked},
@@ -574,6 +581,7 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
     gba.push_back({{"map", g.map},
                    {"final", g.final},
                    {"cancelled", g.summary.cancelled},
+                   {"budget_reached", g.summary.budget_reached},
                    {"keyframes", g.summary.keyframes},
                    {"points", g.summary.points},
                    {"reprojection_factors", g.summary.reprojection_factors},
@@ -592,6 +600,7 @@ Status writeBackend(const std::filesystem::path& path, const backend::BackendSta
                    {"snapshot_ms", g.snapshot_ms},
                    {"apply_ms", g.apply_ms},
                    {"keyframes_propagated", g.keyframes_propagated},
+                   {"accepted_steps", acceptedSteps(g.summary)},
                    {"windowed", g.windowed},
                    {"held_keyframes", g.held_keyframes}});
   }

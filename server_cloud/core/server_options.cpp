@@ -261,6 +261,7 @@ Status loadServerConfig(const std::filesystem::path& file, ServerOptions& o) {
   backend.read("gba_full_iterations", b.gba.full_iterations);
   backend.read("gba_threads", b.gba.threads);
   backend.read("gba_max_solver_time_s", b.gba.max_solver_time_s);
+  backend.read("gba_time_budget_s", b.gba_time_budget_s);
   backend.read("gba_gauge_position_yaw_only", b.gba.gauge_position_yaw_only);
   backend.read("pose_graph_strong_covisibility", b.pose_graph.strong_covisibility);
   backend.read("merge_correction_keyframes", b.merge_correction_keyframes);

@@ -181,6 +181,47 @@ TEST(BackendLoopDuringGba, ASmallLoopLetsTheRunningGbaFinishAndTheGbaAfterItTake
   EXPECT_LT(r.after, 0.01) << "before " << r.before;
 }
 
+// Two small loops arrive 0.3 s apart while the map's GBA runs: their requests join into one GBA, and each loop's
+// time to refined counts from its own match, so the second's is the shorter by about the 0.3 s.
+TEST(BackendLoopDuringGba, TwoLoopsWhoseGbaRequestsJoinAreEachTimedFromTheirOwnMatch) {
+  MissionRegistry registry;
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
+  std::shared_ptr<ServerMap> map = driftedMap(*mission, s, 0.035, 0.004);
+  GbaGate gate(map->id());
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.loop_cooldown_keyframes = 0;  // both loops are the same agent's, one keyframe apart
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });  // the GBA that both loops find running
+  gate.waitUntilHeld();
+  recognition::MatchRecord loop1 =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
+  loop1.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", loop1));
+  EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 1; }));
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  recognition::MatchRecord loop2 =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 23}, map->id(), KeyframeId{1, 2}, map->id());
+  loop2.match.T_cmap_cq = s.keyframe_states[23].T_w_s * s.T_s_c;
+  EXPECT_TRUE(worker.onMatch("m", loop2));
+  EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 2; }));
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+
+  const BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.loops.size(), 2U);
+  EXPECT_FALSE(stats.loops[0].cancelled_gba);
+  EXPECT_FALSE(stats.loops[1].cancelled_gba);
+  ASSERT_EQ(stats.gba.size(), 2U) << "the running GBA, then one for both loops";
+  const double first = stats.loops[0].match_to_optimised_s;
+  const double second = stats.loops[1].match_to_optimised_s;
+  ASSERT_GT(second, 0.0);
+  EXPECT_GT(first - second, 0.25) << "first " << first << " s, second " << second << " s";
+}
+
 TEST(BackendLoopDuringGba, ABigLoopCutsTheRunningGbaShortAndTheNextOneRemovesTheDrift) {
   MissionRegistry registry;
   const LoopDuringGba r = closeALoopWhileGbaRuns(registry, 0.4, 0.05);

@@ -86,6 +86,53 @@ TEST(GlobalBa, ConvergesToTheTruthFromAPerturbedStartWithImuFactorsOnlyInsideEac
   EXPECT_LT(worst_pose, 0.001);
 }
 
+// A time budget stops the solve before the first iteration that would end past it, but each of the two steps takes
+// its first: a budget already spent leaves one structure and one full iteration, applied as any result. Each
+// accepted step is recorded with its time and cost, the last being the final cost.
+TEST(GlobalBa, ATimeBudgetStopsEachStepAfterItsFirstIterationAndTheSummarySaysSo) {
+  const test::ViScenario s = scenario(16, 0.5, 0.5);
+  MapContent map(0);
+  buildTwoAgentsFusedMap(map, s);
+  if (HasFatalFailure()) return;
+  perturbAllButTheGauge(map, 5);
+  Result<GbaSnapshot> start = makeGbaSnapshot(map, {{1, sensorsOf(s)}, {2, sensorsOf(s)}});
+  ASSERT_TRUE(start.ok());
+  for (const GlobalBaOptions::Solver solver : {GlobalBaOptions::Solver::kSchur, GlobalBaOptions::Solver::kCeres}) {
+    SCOPED_TRACE(toString(solver));
+    GlobalBaOptions options;
+    options.solver = solver;
+    GbaSnapshot unbudgeted = *start;
+    const Result<GlobalBaSummary> whole = runGlobalBa(unbudgeted, options);
+    ASSERT_TRUE(whole.ok());
+    EXPECT_FALSE(whole->budget_reached);
+    ASSERT_GT(whole->full_iterations, 2) << "a perturbed start needs several: the budget below must cut them";
+
+    options.time_budget_s = 1e-9;
+    GbaSnapshot budgeted = *start;
+    const Result<GlobalBaSummary> cut = runGlobalBa(budgeted, options);
+    ASSERT_TRUE(cut.ok());
+    EXPECT_TRUE(cut->budget_reached);
+    EXPECT_FALSE(cut->cancelled);
+    if (solver == GlobalBaOptions::Solver::kSchur) {
+      EXPECT_EQ(cut->structure_iterations, 1);
+      EXPECT_EQ(cut->full_iterations, 1);
+    }
+    EXPECT_LT(cut->full_iterations, whole->full_iterations);
+    EXPECT_LT(cut->final_cost, cut->initial_cost);
+    EXPECT_GT(cut->final_cost, whole->final_cost);
+
+    ASSERT_FALSE(whole->accepted.empty());
+    EXPECT_EQ(whole->accepted.back().cost, whole->final_cost);
+    for (std::size_t i = 1; i < whole->accepted.size(); ++i) {
+      EXPECT_GE(whole->accepted[i].t_s, whole->accepted[i - 1].t_s);
+      EXPECT_LE(whole->accepted[i].cost, whole->accepted[i - 1].cost);
+    }
+  }
+  GlobalBaOptions bad;
+  bad.time_budget_s = -1.0;
+  EXPECT_NE(bad.validate().error().toString().find("time_budget_s"), std::string::npos);
+}
+
 // A windowed solve (the merge's correction) moves the window's keyframes and the points they see, holds the
 // keyframes around them, and leaves the left-out ones out of the problem; applied, the held keyframes stay and
 // a left-out newer one is carried along like a keyframe that arrived during the solve.
@@ -338,6 +385,72 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   EXPECT_LT(after, 0.02) << "before " << before;
 }
 
+// Agent 1's drift in ALoopClosureRemovesAnInjectedDrift, for the tests that start from the same map: none up to
+// keyframe 11, then growing to 3 deg of yaw and 0.4 m at keyframe 23, with points made anew from keyframe 12 on.
+SE3d loopDrift(int k) {
+  const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+  return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * Vector3d(0.3, -0.25, 0.05));
+}
+int loopGeneration(int k) {
+  return k >= 12 ? 1 : 0;
+}
+
+// The loop of those tests, measured exactly: keyframe 22 against keyframe 3's points; then the worker is drained.
+void closeTheLoop22To3(BackendWorker& worker, MapId map, const test::ViScenario& s) {
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map, KeyframeId{1, 3}, map);
+  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
+  ASSERT_TRUE(worker.onMatch("m", record));
+  worker.drain(false);
+}
+
+// With a budget that every GBA overruns, the loop's GBA stops after its first iterations and is applied: the loop's
+// time to refined is set by it, and every keyframe holds its state. The final GBA has no budget and runs to
+// convergence.
+TEST_F(BackendWorkerTest, ABudgetedGbaIsAppliedAfterItsFirstIterationsAndTheFinalOneRunsToConvergence) {
+  const test::ViScenario s = scenario(24, 0.5, 0.3);
+  const auto map =
+      addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 23, .E = loopDrift, .generation = loopGeneration});
+  const double before = maxPositionError(*map->read(), s, 1);
+  ASSERT_GT(before, 0.25);
+
+  BackendOptions options;
+  options.redundancy.enabled = false;
+  options.gba_time_budget_s = 1e-9;
+  BackendWorker worker(options, registry_, nullptr);
+  closeTheLoop22To3(worker, map->id(), s);
+
+  BackendStats stats = worker.stats("m");
+  ASSERT_EQ(stats.loops.size(), 1U);
+  EXPECT_GT(stats.loops[0].match_to_optimised_s, 0.0) << "the budgeted GBA counts as the loop's refinement";
+  ASSERT_EQ(stats.gba.size(), 1U) << "no continuation";
+  EXPECT_TRUE(stats.gba[0].summary.budget_reached);
+  EXPECT_FALSE(stats.gba[0].final);
+  EXPECT_EQ(stats.gba[0].summary.full_iterations, 1);
+  EXPECT_LT(stats.gba[0].summary.final_cost, stats.gba[0].summary.initial_cost);
+  {
+    const auto content = map->read();
+    EXPECT_TRUE(content->checkConsistency().ok());
+    for (const auto& [id, kf] : content->keyframes()) EXPECT_TRUE(kf.refined) << id.toString() << ": applied";
+    EXPECT_LT(maxPositionError(*content, s, 1), 0.25 * before);
+  }
+
+  // Away from the optimum again: the final GBA needs more than one iteration, and takes them.
+  perturbAllButTheGauge(*map->write(), 7);
+  worker.drain(true);
+  stats = worker.stats("m");
+  ASSERT_EQ(stats.gba.size(), 2U);
+  EXPECT_TRUE(stats.gba[1].final);
+  EXPECT_FALSE(stats.gba[1].summary.budget_reached);
+  EXPECT_GT(stats.gba[1].summary.full_iterations, 1);
+  EXPECT_LT(maxPositionError(*map->read(), s, 1), 0.02);
+
+  BackendOptions bad;
+  bad.gba_time_budget_s = -1.0;
+  ASSERT_FALSE(bad.validate().ok());
+  EXPECT_NE(bad.validate().error().toString().find("gba_time_budget_s"), std::string::npos);
+}
+
 TEST(LoopWindow, FreesTheLoopsSidesThenTheMostMovedAgentMapsUpToTheFractionAndNeverTheBarelyMoved) {
   const test::ViScenario s = scenario(12, 0.5, 0.3);
   MapContent map(0);
@@ -375,13 +488,8 @@ TEST_F(BackendWorkerTest, ALoopInALargeMapHasAGbaOfTheAgentMapsItsPoseGraphMoved
   // Agent 1 drifts from keyframe 12 on as in ALoopClosureRemovesAnInjectedDrift. Agent 2 flew the same keyframes
   // without drift, in the same map, its points fused with those of agent 1's first half (as a merge leaves them):
   // the loop's pose graph moves agent 1's second half and barely agent 2.
-  const auto drift_at = [](int k) {
-    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
-    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * Vector3d(0.3, -0.25, 0.05));
-  };
-  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 23, .E = drift_at, .generation = [](int k) {
-                                           return k >= 12 ? 1 : 0;
-                                         }});
+  const auto map =
+      addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 23, .E = loopDrift, .generation = loopGeneration});
   {
     auto record = mission_->agent(2)->write();
     record->sensors = sensorsOf(s);
@@ -402,11 +510,7 @@ TEST_F(BackendWorkerTest, ALoopInALargeMapHasAGbaOfTheAgentMapsItsPoseGraphMoved
   options.redundancy.enabled = false;
   options.gba_window_above_keyframes = 40;  // the map holds 48
   BackendWorker worker(options, registry_, nullptr);
-  recognition::MatchRecord record =
-      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
-  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
-  ASSERT_TRUE(worker.onMatch("m", record));
-  worker.drain(false);
+  closeTheLoop22To3(worker, map->id(), s);
 
   const BackendStats stats = worker.stats("m");
   ASSERT_EQ(stats.loops.size(), 1U);
