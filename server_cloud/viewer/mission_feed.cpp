@@ -105,6 +105,7 @@ Status FeedOptions::validate() const {
   const auto bad = [](const std::string& what) { return Error{ErrorCode::kInvalidArgument, "viewer: " + what}; };
   if (max_points_per_map > 5000000) return bad("points per map must be at most 5000000");
   if (covisible_links > 64) return bad("covisible links must be at most 64");
+  if (links_every_looks < 1 || links_every_looks > 1000) return bad("links every looks must be in [1, 1000]");
   if (!(moved_m >= 0.0) || !(moved_deg >= 0.0)) return bad("the move thresholds must be >= 0");
   if (!(points_period_s >= 0.0) || !(stats_period_s >= 0.0) || !(trajectory_period_s >= 0.0)) {
     return bad("the periods must be >= 0");
@@ -140,8 +141,20 @@ void MissionFeed::keep(FeedMessage message, std::vector<FeedMessage>& out) {
   out.push_back(std::move(message));
 }
 
+const std::vector<KeyframeId>& MissionFeed::linksFor(const MapContent& content, const ServerKeyframe& kf) {
+  auto it = links_.find(kf.id);
+  const bool turn = (looks_ + kf.id.counter + 7U * kf.id.agent) % options_.links_every_looks == 0;
+  const auto gone = [&](const KeyframeId& link) { return content.keyframe(link) == nullptr; };
+  if (it == links_.end() || turn || std::any_of(it->second.begin(), it->second.end(), gone)) {
+    ++link_lookups_;
+    it = links_.insert_or_assign(kf.id, linksOf(content, kf, options_.covisible_links)).first;
+  }
+  return it->second;
+}
+
 void MissionFeed::update(const Mission& mission, std::int64_t t_unix_ns, Clock::time_point now,
                          std::vector<FeedMessage>& out) {
+  ++looks_;
   Captured captured;
   for (const auto& map : mission.stack().maps()) {
     Captured::Map& m = captured.maps[map->id()];
@@ -160,7 +173,7 @@ void MissionFeed::update(const Mission& mission, std::int64_t t_unix_ns, Clock::
       k.agent_map = kf.agent_map;
       k.t_ns = kf.t_ns;
       k.T_m_s = kf.T_w_s;
-      k.links = linksOf(*content, kf, options_.covisible_links);
+      k.links = linksFor(*content, kf);
       const Eigen::Vector3d& p = kf.T_w_s.translation();
       signature +=
           static_cast<std::uint64_t>(std::llround(1000.0 * (std::abs(p.x()) + std::abs(p.y()) + std::abs(p.z()))));
@@ -187,6 +200,7 @@ void MissionFeed::update(const Mission& mission, std::int64_t t_unix_ns, Clock::
     }
   }
 
+  std::erase_if(links_, [&](const auto& entry) { return captured.keyframes.count(entry.first) == 0; });
   sendEvents(mission, t_unix_ns, out);
   sendKeyframes(captured, t_unix_ns, out);
   for (auto& [map, m] : captured.maps) {

@@ -14,6 +14,7 @@
 #include <map>
 #include <optional>
 #include <string>
+#include <unordered_map>
 #include <utility>
 #include <vector>
 
@@ -23,14 +24,22 @@
 #include "server_cloud/viewer/foxglove_messages.hpp"
 
 namespace cvislam::server {
+class MapContent;
 class Mission;
-}
+struct ServerKeyframe;
+}  // namespace cvislam::server
 
 namespace cvislam::server::viewer {
 
 struct FeedOptions {
   std::size_t max_points_per_map = 20000;  // a fixed subset of the map's points, by id, beyond that
   std::size_t covisible_links = 3;         // lines from each keyframe to its strongest older covisible keyframes
+  // A keyframe's links are looked up again on every this many looks, the keyframes staggered over them, and at once
+  // when it is new or one of its links went. The lookup walks the keyframe's covisibility under its map's read lock,
+  // which ingest's writes wait behind: every keyframe's on every look (five a second) held the lock for tens of ms
+  // on an eight-agent map under load, and was most of ingest's slowest batches. A link that changed strength shows
+  // within this many looks.
+  std::size_t links_every_looks = 10;
   // A keyframe (and a trajectory, a world frame) is sent again when it moved or turned more than this: less is
   // not seen in a viewer, and each local BA nudges a dozen keyframes by about a millimetre.
   double moved_m = 0.005;
@@ -69,6 +78,8 @@ class MissionFeed {
   // Every channel so far, in the order they came: an index never changes meaning.
   [[nodiscard]] const std::vector<FeedChannel>& channels() const { return channels_; }
   [[nodiscard]] const std::string& mission() const { return mission_; }
+  // How many keyframes' links the feed has looked up so far (FeedOptions::links_every_looks).
+  [[nodiscard]] std::uint64_t linkLookups() const { return link_lookups_; }
   // Frame ids of the mission's maps and of its agents' world frames.
   [[nodiscard]] std::string mapFrame(std::uint32_t map) const;
   [[nodiscard]] std::string agentWorldFrame(AgentId agent, std::uint32_t agent_map) const;
@@ -97,6 +108,7 @@ class MissionFeed {
                       std::vector<FeedMessage>& out);
   void sendLivePose(const CapturedAgent& agent, std::int64_t t_ns, std::vector<FeedMessage>& out);
   void sendEvents(const Mission& mission, std::int64_t t_ns, std::vector<FeedMessage>& out);
+  const std::vector<KeyframeId>& linksFor(const MapContent& content, const ServerKeyframe& kf);
   void keep(FeedMessage message, std::vector<FeedMessage>& out);  // sends it and keeps it as its channel's newest
 
   std::string mission_;
@@ -104,6 +116,9 @@ class MissionFeed {
   std::vector<FeedChannel> channels_;
   std::map<std::string, std::size_t> channel_by_topic_;
   std::map<KeyframeId, DrawnKeyframe> drawn_;
+  std::unordered_map<KeyframeId, std::vector<KeyframeId>> links_;  // as last looked up
+  std::uint64_t looks_ = 0;
+  std::uint64_t link_lookups_ = 0;
   std::map<std::uint32_t, std::uint64_t> points_signature_;  // per map: what its last cloud was made of
   std::map<std::uint32_t, Clock::time_point> points_sent_at_;
   std::map<AgentId, std::int64_t> pose_sent_t_ns_;

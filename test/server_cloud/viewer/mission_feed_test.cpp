@@ -142,6 +142,46 @@ TEST_F(MissionFeedTest, ALaterLookSendsOnlyWhatMovedOrWent) {
   EXPECT_EQ(deletions[0]["id"], keyframeEntityId(removed));
 }
 
+// A keyframe's links (a walk of its covisibility under the map's read lock) are looked up at its first look, then
+// once in every links_every_looks looks, the keyframes staggered over them; at once when one of its links went.
+TEST_F(MissionFeedTest, LinksAreLookedUpAtFirstThenOnceEveryFewLooksStaggeredAndAtOnceWhenALinkWent) {
+  options_.links_every_looks = 4;
+  MissionFeed feed(example_.name, options_);
+  (void)look(feed);
+  const std::uint64_t n = keyframesHeld();
+  ASSERT_GT(n, 8U);
+  EXPECT_EQ(feed.linkLookups(), n) << "every keyframe's at the first look";
+  std::uint64_t most_in_one_look = 0;
+  for (int i = 0; i < 4; ++i) {
+    const std::uint64_t before = feed.linkLookups();
+    (void)look(feed);
+    most_in_one_look = std::max(most_in_one_look, feed.linkLookups() - before);
+  }
+  EXPECT_EQ(feed.linkLookups(), 2 * n) << "each keyframe once more over four looks";
+  EXPECT_LE(most_in_one_look, n / 2) << "staggered over the looks, not all at one";
+
+  options_.links_every_looks = 1000;  // no keyframe's turn comes in this test
+  MissionFeed rare(example_.name, options_);
+  (void)look(rare);
+  (void)look(rare);
+  EXPECT_EQ(rare.linkLookups(), n);
+  // The oldest keyframe of map 0 is its successor's IMU link: removed, the successor is looked up at once.
+  auto map = mission_->stack().find(0);
+  {
+    auto content = map->write();
+    KeyframeId oldest = content->keyframes().begin()->first;
+    for (const auto& [id, kf] : content->keyframes()) oldest = std::min(oldest, id);
+    ASSERT_TRUE(content->removeKeyframe(oldest).ok());
+  }
+  (void)look(rare);
+  EXPECT_GT(rare.linkLookups(), n);
+  EXPECT_LT(rare.linkLookups(), n + n / 2) << "only the keyframes linked to it";
+
+  FeedOptions bad = options_;
+  bad.links_every_looks = 0;
+  EXPECT_THAT(bad.validate().error().message(), HasSubstr("links every looks"));
+}
+
 TEST_F(MissionFeedTest, ATrajectoryGoesAtMostOncePerPeriod) {
   options_.trajectory_period_s = 5.0;
   MissionFeed feed(example_.name, options_);
