@@ -3,6 +3,7 @@
 // synthetic maps as backend_test.cpp (backend_test_maps.hpp); real Ceres solves and worker threads, with a gate
 // that holds a GBA after its snapshot so that the order of events is deterministic.
 #include <algorithm>
+#include <functional>
 #include <random>
 #include <thread>
 
@@ -134,6 +135,23 @@ std::shared_ptr<ServerMap> driftedMap(Mission& mission, const test::ViScenario& 
   return map;
 }
 
+// The mission's end, with its GBA of `map` held at its start while `during` runs; then the GBA is let go and the
+// worker drained. The worker's stats.
+BackendStats whileTheFinalGbaIsHeld(MissionRegistry& registry, MapId map, BackendOptions options,
+                                    const std::function<void(BackendWorker&)>& during) {
+  GbaGate gate(map);
+  options.redundancy.enabled = false;
+  options.on_gba_solve_start = gate.hook();
+  BackendWorker worker(options, registry, nullptr);
+  std::thread mission_end([&] { worker.drain(true); });
+  gate.waitUntilHeld();
+  during(worker);
+  gate.release();
+  mission_end.join();
+  worker.drain(false);
+  return worker.stats("m");
+}
+
 // A loop closed while the map's GBA runs, on driftedMap (as in ALoopClosureRemovesAnInjectedDrift).
 LoopDuringGba closeALoopWhileGbaRuns(MissionRegistry& registry, double drift_m, double drift_rad) {
   const test::ViScenario s = scenario(24, 0.5, 0.3);
@@ -141,23 +159,10 @@ LoopDuringGba closeALoopWhileGbaRuns(MissionRegistry& registry, double drift_m, 
   std::shared_ptr<ServerMap> map = driftedMap(*mission, s, drift_m, drift_rad);
   LoopDuringGba out;
   out.before = maxPositionError(*map->read(), s, 1);
-
-  GbaGate gate(map->id());
-  BackendOptions options;
-  options.redundancy.enabled = false;
-  options.on_gba_solve_start = gate.hook();
-  BackendWorker worker(options, registry, nullptr);
-  std::thread mission_end([&] { worker.drain(true); });  // the GBA that the loop finds running
-  gate.waitUntilHeld();
-  recognition::MatchRecord record =
-      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
-  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
-  EXPECT_TRUE(worker.onMatch("m", record));
-  EXPECT_TRUE(eventually([&] { return !worker.stats("m").loops.empty(); }));
-  gate.release();
-  mission_end.join();
-  worker.drain(false);
-  out.stats = worker.stats("m");
+  out.stats = whileTheFinalGbaIsHeld(registry, map->id(), BackendOptions{}, [&](BackendWorker& worker) {
+    EXPECT_TRUE(worker.onMatch("m", exactLoop(map->id(), s, 22, 3)));
+    EXPECT_TRUE(eventually([&] { return !worker.stats("m").loops.empty(); }));
+  });
   const auto content = map->read();
   EXPECT_TRUE(content->checkConsistency().ok());
   out.after = maxPositionError(*content, s, 1);
@@ -188,30 +193,16 @@ TEST(BackendLoopDuringGba, TwoLoopsWhoseGbaRequestsJoinAreEachTimedFromTheirOwnM
   const test::ViScenario s = scenario(24, 0.5, 0.3);
   const std::shared_ptr<Mission> mission = registry.getOrCreate("m");
   std::shared_ptr<ServerMap> map = driftedMap(*mission, s, 0.035, 0.004);
-  GbaGate gate(map->id());
   BackendOptions options;
-  options.redundancy.enabled = false;
   options.loop_cooldown_keyframes = 0;  // both loops are the same agent's, one keyframe apart
-  options.on_gba_solve_start = gate.hook();
-  BackendWorker worker(options, registry, nullptr);
-  std::thread mission_end([&] { worker.drain(true); });  // the GBA that both loops find running
-  gate.waitUntilHeld();
-  recognition::MatchRecord loop1 =
-      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
-  loop1.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
-  EXPECT_TRUE(worker.onMatch("m", loop1));
-  EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 1; }));
-  std::this_thread::sleep_for(std::chrono::milliseconds(300));
-  recognition::MatchRecord loop2 =
-      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 23}, map->id(), KeyframeId{1, 2}, map->id());
-  loop2.match.T_cmap_cq = s.keyframe_states[23].T_w_s * s.T_s_c;
-  EXPECT_TRUE(worker.onMatch("m", loop2));
-  EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 2; }));
-  gate.release();
-  mission_end.join();
-  worker.drain(false);
+  const BackendStats stats = whileTheFinalGbaIsHeld(registry, map->id(), options, [&](BackendWorker& worker) {
+    EXPECT_TRUE(worker.onMatch("m", exactLoop(map->id(), s, 22, 3)));
+    EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 1; }));
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    EXPECT_TRUE(worker.onMatch("m", exactLoop(map->id(), s, 23, 2)));
+    EXPECT_TRUE(eventually([&] { return worker.stats("m").loops.size() == 2; }));
+  });
 
-  const BackendStats stats = worker.stats("m");
   ASSERT_EQ(stats.loops.size(), 2U);
   EXPECT_FALSE(stats.loops[0].cancelled_gba);
   EXPECT_FALSE(stats.loops[1].cancelled_gba);
@@ -264,10 +255,7 @@ TEST(BackendLoops, AfterAGbaALoopEdgeHoldsTheMapsRelativePoseNotTheOldMeasuremen
   ASSERT_FALSE(worker.stats("m").gba.empty());
   const double after_first_gba = maxPositionError(*map->read(), s, 1);
   armed = true;
-  recognition::MatchRecord loop2 =
-      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 23}, map->id(), KeyframeId{1, 2}, map->id());
-  loop2.match.T_cmap_cq = s.keyframe_states[23].T_w_s * s.T_s_c;
-  EXPECT_TRUE(worker.onMatch("m", loop2));
+  EXPECT_TRUE(worker.onMatch("m", exactLoop(map->id(), s, 23, 2)));
   gate.waitUntilHeld();
   const double after_second_graph = maxPositionError(*map->read(), s, 1);
   gate.release();

@@ -338,31 +338,35 @@ TEST(FrameChange, TranslationsAlongTheWindowAverage) {
 }
 
 // -------------------------------------------------------------------------------- the worker: a mission
+// Agent 1's drift in the loop tests below: from keyframe 12 on the estimate drifts, as VIO does, a little more at
+// every keyframe up to 3 deg of yaw and 0.4 m at keyframe 23, with points made anew (nobody re-associated them).
+SE3d loopDrift(int k) {
+  const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
+  return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * Vector3d(0.3, -0.25, 0.05));
+}
+int loopGeneration(int k) {
+  return k >= 12 ? 1 : 0;
+}
+
+// The loop of those tests, measured exactly: keyframe 22 against keyframe 3's points; then the worker is drained.
+void closeTheLoop22To3(BackendWorker& worker, MapId map, const test::ViScenario& s) {
+  ASSERT_TRUE(worker.onMatch("m", exactLoop(map, s, 22, 3)));
+  worker.drain(false);
+}
+
 TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   const test::ViScenario s = scenario(24, 0.5, 0.3);
-  // From keyframe 12 on the estimate drifts, as VIO does, a little more at every keyframe up to 3 deg of yaw and
-  // 0.4 m at keyframe 23, with points made anew (nobody re-associated them). A loop from keyframe 22 to keyframe
-  // 3 sees the truth.
-  const Vector3d drift_xi(0.3, -0.25, 0.05);
-  const auto drift_at = [&](int k) {
-    const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
-    return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * drift_xi);
-  };
-  const SE3d drift = drift_at(22);
-  const auto map = addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 23, .E = drift_at, .generation = [](int k) {
-                                           return k >= 12 ? 1 : 0;
-                                         }});
+  // A loop from keyframe 22 to keyframe 3 sees the truth.
+  const SE3d drift = loopDrift(22);
+  const auto map =
+      addAgent(s, AgentPlan{.agent = 1, .first = 0, .last = 23, .E = loopDrift, .generation = loopGeneration});
   const double before = maxPositionError(*map->read(), s, 1);
   ASSERT_GT(before, 0.25);
 
   BackendOptions options;
   options.redundancy.enabled = false;
   BackendWorker worker(options, registry_, nullptr);
-  recognition::MatchRecord record =
-      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map->id(), KeyframeId{1, 3}, map->id());
-  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;  // the query camera, from the old points
-  ASSERT_TRUE(worker.onMatch("m", record));
-  worker.drain(false);
+  closeTheLoop22To3(worker, map->id(), s);
 
   const BackendStats stats = worker.stats("m");
   ASSERT_EQ(stats.loops.size(), 1U);
@@ -383,25 +387,6 @@ TEST_F(BackendWorkerTest, ALoopClosureRemovesAnInjectedDrift) {
   EXPECT_TRUE(content->checkConsistency().ok());
   const double after = maxPositionError(*content, s, 1);
   EXPECT_LT(after, 0.02) << "before " << before;
-}
-
-// Agent 1's drift in ALoopClosureRemovesAnInjectedDrift, for the tests that start from the same map: none up to
-// keyframe 11, then growing to 3 deg of yaw and 0.4 m at keyframe 23, with points made anew from keyframe 12 on.
-SE3d loopDrift(int k) {
-  const double f = k < 12 ? 0.0 : static_cast<double>(k - 11) / 12.0;
-  return SE3d(SO3d::exp(Vector3d(0.0, 0.0, 0.05 * f)), f * Vector3d(0.3, -0.25, 0.05));
-}
-int loopGeneration(int k) {
-  return k >= 12 ? 1 : 0;
-}
-
-// The loop of those tests, measured exactly: keyframe 22 against keyframe 3's points; then the worker is drained.
-void closeTheLoop22To3(BackendWorker& worker, MapId map, const test::ViScenario& s) {
-  recognition::MatchRecord record =
-      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, 22}, map, KeyframeId{1, 3}, map);
-  record.match.T_cmap_cq = s.keyframe_states[22].T_w_s * s.T_s_c;
-  ASSERT_TRUE(worker.onMatch("m", record));
-  worker.drain(false);
 }
 
 // With a budget that every GBA overruns, the loop's GBA stops after its first iterations and is applied: the loop's

@@ -172,6 +172,13 @@ recognition::MatchRecord matchRecord(recognition::QueryKind kind, const Keyframe
   return record;
 }
 
+recognition::MatchRecord exactLoop(MapId map, const test::ViScenario& s, std::uint32_t query, std::uint32_t candidate) {
+  recognition::MatchRecord record =
+      matchRecord(recognition::QueryKind::kLoop, KeyframeId{1, query}, map, KeyframeId{1, candidate}, map);
+  record.match.T_cmap_cq = s.keyframe_states[query].T_w_s * s.T_s_c;
+  return record;
+}
+
 bool addArrivingKeyframes(ServerMap& map, const test::ViScenario& s, const AgentPlan& plan) {
   MapContent late(0);
   buildAgentMap(late, s, plan, nullptr);

@@ -58,6 +58,10 @@ test::ViScenario scenario(int keyframes, double interval_s, double pixel_sigma);
 recognition::MatchRecord matchRecord(recognition::QueryKind kind, const KeyframeId& query, MapId query_map,
                                      const KeyframeId& candidate, MapId candidate_map);
 
+// A loop of agent 1 from keyframe `query` to keyframe `candidate` of `map`, measured exactly (the query camera's
+// true pose, as the old points see it).
+recognition::MatchRecord exactLoop(MapId map, const test::ViScenario& s, std::uint32_t query, std::uint32_t candidate);
+
 // Polls `done` (the worker's stats) until it holds; false after a minute.
 bool eventually(const std::function<bool()>& done);
 
