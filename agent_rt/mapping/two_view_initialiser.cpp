@@ -37,7 +37,14 @@ Result<TwoViewResult> initialiseTwoView(std::span<const Eigen::Vector3d> bearing
   }
   cv::Mat R;
   cv::Mat t;
+  // recoverPose picks the decomposition of E that puts the most points in front of both cameras, counting only
+  // points nearer than 50 baselines (a parallax above about 1.1 deg): farther ones are in front under every
+  // decomposition within their noise, and counting them picks a wrong one with a short baseline. But it also
+  // drops them from its mask, which would leave the median parallax test below only points that pass it: the
+  // points kept are the essential matrix's inliers that the checks below pass.
+  const cv::Mat essential_inliers = mask.clone();
   cv::recoverPose(E, x0, x1, cv::Mat::eye(3, 3, CV_64F), R, t, mask);
+  mask = essential_inliers;
   Eigen::Matrix3d R_c1_c0;
   Eigen::Vector3d t_c1_c0;
   for (int r = 0; r < 3; ++r) {
