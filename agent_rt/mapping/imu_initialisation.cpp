@@ -250,6 +250,7 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
   s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) { kf.bias.gyro = aligned->gyro_bias; });
   if (alignment.estimate_time_offset) s.map.setTimeCorrectionS(aligned->time_correction_s);
   s.imu_initialised = true;
+  s.keyframes_since_imu_init = 0;
   report.imu_initialised_now = true;
   report.note = "IMU initialised over " + std::to_string(chain.size()) + " keyframes: scale " +
                 std::to_string(aligned->scale) + ", gyro bias " + std::to_string(aligned->gyro_bias.norm()) + " rad/s";

@@ -10,7 +10,7 @@
 
 #include "agent_rt/mapping/imu_initialisation.hpp"
 #include "agent_rt/mapping/mapper_state.hpp"
-#include "agent_rt/mapping/two_view_initialiser.hpp"
+#include "agent_rt/mapping/monocular_start.hpp"
 #include "agent_rt/messages/conversions.hpp"
 #include "common/features/best_two.hpp"
 #include "common/trace/trace.hpp"
@@ -35,6 +35,12 @@ Status MapperOptions::validate() const {
     return bad("imu_init_keyframes must be >= 4 and imu_init_max_keyframes >= imu_init_keyframes");
   }
   if (imu_init_max_keyframes > max_keyframes) return bad("imu_init_max_keyframes must not exceed max_keyframes");
+  if (imu_init_full_window_keyframes < 0) return bad("imu_init_full_window_keyframes must be >= 0");
+  if (!(mono_init_search_radius_px > 0.0)) return bad("mono_init_search_radius_px must be > 0");
+  if (!(mono_init_ratio > 0.0 && mono_init_ratio <= 1.0)) return bad("mono_init_ratio must be in (0, 1]");
+  if (mono_init_max_distance < 0 || mono_init_max_distance > 256) {
+    return bad("mono_init_max_distance must be in [0, 256] bits");
+  }
   if (downlink.max_anchor_keyframes < 0 ||
       static_cast<std::size_t>(max_keyframes + 1 + downlink.max_anchor_keyframes) > kMaxKeyframes) {
     return bad("downlink.max_anchor_keyframes must be in [0, " + std::to_string(kMaxKeyframes) +
@@ -390,71 +396,6 @@ void writeSnapshot(Mapper::State& s, const KeyframeId& newest, MapSnapshotMessag
   }
 }
 
-// Monocular: the first map from the reference keyframe and this one, when they see enough of the same
-// scene with enough parallax.
-Status initialiseMonocular(Mapper::State& s, PoolHandle handle, MapperReport& report) {
-  KeyframeData& kf1 = *s.map.keyframes().get(handle);
-  KeyframeData* kf0p = s.map.keyframes().get(*s.mono_reference);
-  if (kf0p == nullptr) return Error{ErrorCode::kNotFound, "monocular initialisation: reference keyframe gone"};
-  KeyframeData& kf0 = *kf0p;
-  std::vector<features::DescriptorMatch> matches(kf0.keypoint_count);
-  features::MatchOptions match_options;
-  match_options.ratio = 0.8F;
-  const int count =
-      features::matchDescriptors(std::span(kf0.descriptors.data(), kf0.keypoint_count),
-                                 std::span(kf1.descriptors.data(), kf1.keypoint_count), match_options, matches);
-  std::vector<Vector3d> b0;
-  std::vector<Vector3d> b1;
-  for (int i = 0; i < count; ++i) {
-    b0.push_back(s.left.unproject(
-        kf0.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].query)].px.cast<double>()));
-    b1.push_back(s.left.unproject(
-        kf1.keypoints[static_cast<std::size_t>(matches[static_cast<std::size_t>(i)].train)].px.cast<double>()));
-  }
-  TwoViewOptions two_view;
-  two_view.focal_px = s.left.calibration().fx;
-  two_view.min_inliers = s.options.mono_init_min_matches;
-  two_view.min_median_parallax_deg = s.options.mono_init_min_parallax_deg;
-  auto geometry = initialiseTwoView(b0, b1, two_view);
-  if (!geometry) return geometry.error();
-  // Median depth 2 (arbitrary units until the IMU gives the scale).
-  std::vector<double> depths;
-  for (std::size_t i = 0; i < geometry->inlier.size(); ++i) {
-    if (geometry->inlier[i] != 0) depths.push_back(geometry->p_c0[i].norm());
-  }
-  std::nth_element(depths.begin(), depths.begin() + static_cast<std::ptrdiff_t>(depths.size() / 2), depths.end());
-  const double scale = 2.0 / depths[depths.size() / 2];
-  const SE3d T_w_c0 = s.cameraPose(kf0);
-  SE3d T_c0_c1 = geometry->T_c0_c1;
-  T_c0_c1.translation() *= scale;
-  kf1.T_w_s = T_w_c0 * T_c0_c1 * s.T_s_c.inverse();
-  const double dt = static_cast<double>(kf1.t_ns - kf0.t_ns) * 1e-9;
-  kf1.v_w = dt > 0 ? Vector3d((kf1.T_w_s.translation() - kf0.T_w_s.translation()) / dt) : Vector3d::Zero();
-  int created = 0;
-  for (std::size_t i = 0; i < geometry->inlier.size(); ++i) {
-    if (geometry->inlier[i] == 0) continue;
-    const auto& m = matches[i];
-    const Vector3d p_c0 = geometry->p_c0[i] * scale;
-    auto point = s.map.createMapPoint(*s.mono_reference, static_cast<std::uint16_t>(m.query), p_c0.normalized(),
-                                      p_c0.norm(), s.point_ids.next());
-    if (!point) continue;
-    (void)s.map.addObservation(handle, static_cast<std::uint16_t>(m.train), *point);
-    ++created;
-  }
-  // The keyframes between the two carry no points: remove them (the IMU chain restarts at kf1).
-  std::vector<PoolHandle> between;
-  s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) {
-    if (!(h == handle) && !(h == *s.mono_reference)) between.push_back(h);
-  });
-  for (PoolHandle h : between) (void)s.map.removeKeyframe(h);
-  s.mono_initialised = true;
-  report.mono_initialised_now = true;
-  report.triangulated += created;
-  report.note = "monocular map from two views: " + std::to_string(created) + " points, median parallax " +
-                std::to_string(geometry->median_parallax_deg) + " deg";
-  return Status::Ok();
-}
-
 // No keyframe ever waits (the default of process()).
 const std::function<bool()> kNeverYield;
 
@@ -538,7 +479,7 @@ void makeRoomForKeyframe(Mapper::State& s, MapperReport& report) {
   int own = 0;
   s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& k) { own += k.anchor ? 0 : 1; });
   while (own >= s.options.max_keyframes || s.map.keyframes().size() >= kMaxKeyframes) {
-    if (s.mono_reference && !s.mono_initialised) break;
+    if (!s.mono_start.views.empty() && !s.mono_initialised) break;
     if (!s.map.evictOldestKeyframe().ok()) break;
     ++report.evicted;
     --own;
@@ -561,27 +502,6 @@ void linkTrackedMatches(Mapper::State& s, PoolHandle handle, const KeyframeMessa
   }
 }
 
-// Monocular start: the first keyframe is the reference; later ones try the two-view initialisation.
-void tryMonocularStart(Mapper::State& s, PoolHandle handle, std::int64_t t_ns, MapperReport& report) {
-  if (!s.mono_reference || s.map.keyframes().get(*s.mono_reference) == nullptr) {
-    s.mono_reference = handle;
-    return;
-  }
-  const Status st = initialiseMonocular(s, handle, report);
-  if (st.ok()) return;
-  report.note = st.error().message();
-  // Too old a reference (far apart views match badly): start over from this keyframe.
-  const KeyframeData* ref = s.map.keyframes().get(*s.mono_reference);
-  if (ref != nullptr && t_ns - ref->t_ns > 2'000'000'000) {
-    std::vector<PoolHandle> others;
-    s.map.keyframes().forEach([&](PoolHandle h, const KeyframeData&) {
-      if (!(h == handle)) others.push_back(h);
-    });
-    for (PoolHandle h : others) (void)s.map.removeKeyframe(h);
-    s.mono_reference = handle;
-  }
-}
-
 // Local BA over the window, skipped (at most every other keyframe, never for the keyframe that made the
 // monocular map) when tracking has keyframes waiting.
 void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyframe_waiting, MapperReport& report) {
@@ -596,6 +516,14 @@ void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyfra
   }
   LocalBundleAdjustmentOptions ba = s.options.ba;
   ba.use_imu = s.imu_initialised && s.options.use_imu;
+  // Monocular, right after the IMU initialisation: the whole local map. Its scale came from the few seconds
+  // before, and the keyframes a window holds fixed would hold that scale too. (A stereo map's scale is the
+  // baseline's; there the whole map was measured to do worse than the window.)
+  const bool mono = !s.right.has_value();
+  if (mono && ba.use_imu && s.keyframes_since_imu_init < s.options.imu_init_full_window_keyframes) {
+    ba.window = s.options.max_keyframes;
+  }
+  ++s.keyframes_since_imu_init;
   const auto t0 = std::chrono::steady_clock::now();
   const trace::Span span("local_ba");
   auto summary = runLocalBundleAdjustment(s.map, ba, yield);
@@ -685,7 +613,7 @@ Status insertKeyframe(Mapper::State& s, const KeyframeMessage& msg, MapperReport
   const bool stereo = s.right.has_value();
   if (stereo) report.stereo_matches = matchStereo(s, handle, msg);
   if (!stereo && !s.mono_initialised) {
-    tryMonocularStart(s, handle, msg.state.t_ns, report);
+    tryMonocularStart(s, handle, report);
   } else {
     report.fused = fusePoints(s, handle, &report.merged);
     if (stereo) report.stereo_points = addStereoPoints(s, handle);

@@ -68,9 +68,19 @@ struct MapperOptions {
   bool use_imu = true;
   int imu_init_keyframes = 15;      // keyframes before the IMU initialisation is tried (paper: 15)
   int imu_init_max_keyframes = 20;  // monocular: still failing then, the map is started again
+  // Monocular: the next keyframes' local BAs after the IMU initialisation take every own keyframe, not the
+  // window. The scale estimated from the first seconds then goes on being estimated with all the motion since,
+  // rather than being held by the keyframes a window keeps fixed. (ORB-SLAM3 refines scale and gravity over the
+  // whole map a few seconds after the initialisation; here the map is the local one.)
+  int imu_init_full_window_keyframes = 10;
   imu::VisualInertialAlignmentOptions alignment;
   int mono_init_min_matches = 80;
   double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
+  // Following the reference's keypoints to the next keyframes (monocular_start.hpp): the window around the
+  // position the gyro predicts, at level 0, the largest descriptor distance, and Lowe's ratio within the window.
+  double mono_init_search_radius_px = 100.0;
+  int mono_init_max_distance = 50;
+  double mono_init_ratio = 0.9;
   DownlinkOptions downlink;
   // Mapping behind tracking (ORB-SLAM's local mapping does the same): when the next keyframe is already waiting
   // (or tracking has asked, its keyframe overdue: the agent's YieldRequests), this keyframe's local BA is skipped

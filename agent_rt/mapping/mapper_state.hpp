@@ -42,8 +42,21 @@ struct Mapper::State {
   geometry::SE3d epoch_transform;
   bool imu_initialised = false;
   bool mono_initialised = false;
-  bool ba_skipped_last = false;  // the previous keyframe's local BA was skipped (the next one is not)
-  std::optional<PoolHandle> mono_reference;
+  int keyframes_since_imu_init = 0;  // local BAs with the IMU since its initialisation
+  bool ba_skipped_last = false;      // the previous keyframe's local BA was skipped (the next one is not)
+  // A monocular map waiting for its two-view start: the reference keyframe, then every keyframe since, oldest
+  // first; per keyframe the keypoint each of the reference's keypoints was found at (-1: not found there), and
+  // the camera's rotation from the reference by the gyro.
+  struct MonocularStart {
+    std::vector<PoolHandle> views;
+    std::vector<std::vector<std::int32_t>> followed;  // [view][reference keypoint]
+    std::vector<geometry::SO3d> R_c_c0;
+    void clear() {
+      views.clear();
+      followed.clear();
+      R_c_c0.clear();
+    }
+  } mono_start;
   std::uint64_t expected_sequence = 0;
   bool seen_message = false;
   std::uint32_t keyframe_map_id = 0;  // the map the keyframe being processed was inserted into
@@ -99,7 +112,7 @@ struct Mapper::State {
     for (PoolHandle h : points) (void)map.removeMapPoint(h);
     imu_initialised = false;
     mono_initialised = false;
-    mono_reference.reset();
+    mono_start.clear();
     pending_corrections.clear();
     T_local_server = geometry::SE3d();
   }

@@ -102,7 +102,7 @@ void traceKeyframe(double t_s, const KeyframeMessage& msg, const MapperReport& r
                "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
                "triangulated %d, culled %d; BA %d keyframes + %d fixed (%d anchors), %d points (%d left out), %d "
                "factors (%d cam1, %d mismatches left out, %d by anchors), cost %.1f -> %.1f in %d iterations, "
-               "%.1f ms%s\n",
+               "%.1f ms%s%s%s\n",
                t_s, msg.state.id.toString().c_str(), report.linked, report.fused, report.merged, report.stereo_matches,
                report.stereo_points, report.triangulated, report.culled, ba.window_keyframes, ba.fixed_keyframes,
                ba.anchor_keyframes, ba.map_points, ba.map_points_left_out, ba.reprojection_factors,
@@ -112,7 +112,8 @@ void traceKeyframe(double t_s, const KeyframeMessage& msg, const MapperReport& r
                : report.ba_skipped                       ? " (BA skipped: the next keyframe is waiting)"
                : ba.stopped_early && yielded_to_tracking ? " (BA cut short: tracking asked)"
                : ba.stopped_early                        ? " (BA cut short: the next keyframe is waiting)"
-                                                         : "");
+                                                         : "",
+               report.note.empty() ? "" : "; ", report.note.c_str());
 }
 
 // The mapping thread's ports, its wait set and its loop. It sleeps in the wait set until a keyframe comes, the

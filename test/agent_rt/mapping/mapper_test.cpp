@@ -70,14 +70,15 @@ class MapperTest : public ::testing::Test {
   // The camera looks along world z; keyframe k sits at x = 0.25 k, with a small yaw. `scale` scales the
   // camera's position (a monocular map is the scene up to scale about camera 0).
   [[nodiscard]] SE3d truePose(int k, double scale = 1.0) const {
-    const SE3d T_w_c(SO3d::exp(Vector3d(0.0, 0.02 * k, 0.0)), scale * Vector3d(0.25 * k, 0.02 * k, 0.0));
+    const SE3d T_w_c(SO3d::exp(Vector3d(0.0, 0.02 * k, 0.0)), scale * Vector3d(step_m_ * k, 0.02 * k, 0.0));
     return T_w_c * T_s_c_.inverse();
   }
 
   // A keyframe message seeing the scene from keyframe k's true pose; tracking's matches where `match_ids`
   // names a map point for a scene point.
   const KeyframeMessage& keyframe(int k, KeyframeKind kind, const SE3d& T_w_s_estimate,
-                                  const std::vector<MapPointId>* match_ids = nullptr) {
+                                  const std::vector<MapPointId>* match_ids = nullptr,
+                                  const std::vector<bool>* detected = nullptr) {
     KeyframeMessage& m = *message_;
     m = KeyframeMessage{};
     m.sequence = static_cast<std::uint64_t>(k);
@@ -91,6 +92,7 @@ class MapperTest : public ::testing::Test {
       const Vector3d p_c = T_c_w * scene_.p_w[i];
       const auto px = camera_->project(p_c);
       if (p_c.z() < 0.5 || !px || px->x() < 20 || px->y() < 20 || px->x() > 730 || px->y() > 460) continue;
+      if (detected != nullptr && !(*detected)[i]) continue;
       const std::uint16_t k_index = m.keypoint_count++;
       m.keypoints[k_index] = KeypointMsg{static_cast<float>(px->x()), static_cast<float>(px->y()), 1.0F, 0.0F, 0};
       m.descriptors[k_index] = scene_.descriptors[i];
@@ -112,6 +114,7 @@ class MapperTest : public ::testing::Test {
   std::unique_ptr<MapSnapshotMessage> snapshot_;
   std::vector<std::size_t> keypoint_point_;
   Scene scene_ = makeScene(400, 3);
+  double step_m_ = 0.25;  // sideways between keyframes k and k + 1
 };
 
 TEST_F(MapperTest, MonocularStartLinkFuseTriangulateAndBound) {
@@ -191,6 +194,74 @@ TEST_F(MapperTest, MonocularStartLinkFuseTriangulateAndBound) {
     EXPECT_LE(mapper_->map().keyframes().size(), 6u);
   }
   EXPECT_EQ(snapshot_->keyframe_count, 6u);
+}
+
+// Keyframes 5 cm apart, each detecting a random 60 % of the scene (a corner is not found in every image): the first
+// ones lack the parallax, so the reference's keypoints are followed through them, each from the last keyframe
+// that found it. The start comes once there is parallax; the keyframes between stay, placed on its points.
+TEST_F(MapperTest, MonocularStartFollowsTheReferencesKeypointsAndKeepsTheKeyframesBetween) {
+  step_m_ = 0.05;
+  // Room for the keyframes that wait for the start (half the own keyframes).
+  MapperOptions options = options_;
+  options.max_keyframes = 12;
+  auto mapper = Mapper::create(options, *camera_, nullptr, T_s_c_, SE3d());
+  ASSERT_TRUE(mapper.ok());
+  mapper_ = std::move(mapper.value());
+  std::mt19937_64 rng(11);
+  std::bernoulli_distribution found(0.6);
+  std::vector<std::vector<bool>> detected(6, std::vector<bool>(scene_.p_w.size(), true));
+  for (std::size_t k = 1; k < detected.size(); ++k) {
+    for (std::size_t i = 0; i < scene_.p_w.size(); ++i) detected[k][i] = found(rng);
+  }
+  auto r0 = mapper_->process(keyframe(0, KeyframeKind::kNewMap, truePose(0)), *snapshot_);
+  ASSERT_TRUE(r0.ok());
+  const std::size_t visible = keypoint_point_.size();
+  int started_at = -1;
+  int created = 0;
+  for (int k = 1; k < 6 && started_at < 0; ++k) {
+    auto r = mapper_->process(keyframe(k, KeyframeKind::kTracked, truePose(0), nullptr, &detected[k]), *snapshot_);
+    ASSERT_TRUE(r.ok());
+    std::printf("keyframe %d: %s\n", k, r->note.c_str());
+    if (r->mono_initialised_now) {
+      started_at = k;
+      created = r->triangulated;
+    }
+  }
+  ASSERT_GE(started_at, 3) << "5 cm per keyframe: not enough parallax before keyframe 3";
+  // A keypoint of the reference is among the start's points when the start's keyframe found it (60 %) and the
+  // keyframes before did not all miss it for too long; followed only from the keyframe just before, it would take
+  // being found in every one (0.6^k).
+  EXPECT_GT(created, static_cast<int>(0.45 * static_cast<double>(visible)));
+
+  // Every keyframe from the reference on is in the map, placed where the scene says (in the map's scale), with
+  // observations of the start's points.
+  ASSERT_EQ(snapshot_->keyframe_count, static_cast<std::uint32_t>(started_at + 1));
+  const SE3d T_w_c0 = truePose(0) * T_s_c_;
+  const Vector3d c_n = (T_w_c0.inverse() * truePose(started_at) * T_s_c_).translation();
+  double scale = 0.0;
+  for (std::uint32_t i = 0; i < snapshot_->keyframe_count; ++i) {
+    const KeyframeStateMsg& kf = snapshot_->keyframes[i];
+    if (kf.id.counter != static_cast<std::uint32_t>(started_at)) continue;
+    scale = (T_w_c0.inverse() * fromMsg(kf.T_w_s) * T_s_c_).translation().norm() / c_n.norm();
+  }
+  ASSERT_GT(scale, 0.0);
+  for (std::uint32_t i = 0; i < snapshot_->keyframe_count; ++i) {
+    const KeyframeStateMsg& kf = snapshot_->keyframes[i];
+    const int k = static_cast<int>(kf.id.counter);
+    const SE3d T_c0_c = T_w_c0.inverse() * fromMsg(kf.T_w_s) * T_s_c_;
+    const SE3d T_c0_c_true = T_w_c0.inverse() * truePose(k) * T_s_c_;
+    EXPECT_LT((T_c0_c.translation() - scale * T_c0_c_true.translation()).norm(), 0.02 * scale * step_m_ * started_at)
+        << "keyframe " << k;
+    EXPECT_LT((T_c0_c.so3().inverse() * T_c0_c_true.so3()).log().norm(), 1e-3) << "keyframe " << k;
+    int observations = 0;
+    const KeyframeData* data = nullptr;
+    mapper_->map().keyframes().forEach([&](PoolHandle, const KeyframeData& d) {
+      if (d.id == kf.id) data = &d;
+    });
+    ASSERT_NE(data, nullptr);
+    for (std::uint16_t j = 0; j < data->keypoint_count; ++j) observations += data->has_map_point[j] ? 1 : 0;
+    EXPECT_GT(observations, 50) << "keyframe " << k;
+  }
 }
 
 // The two-phase path the agent takes by default: insert() hands the keyframe to the link before its local BA,
@@ -667,6 +738,18 @@ TEST(MapperOptions, NamesBadValues) {
   o = MapperOptions{};
   o.downlink.max_anchor_points = -1;
   EXPECT_NE(o.validate().error().message().find("max_anchor_points"), std::string::npos);
+  o = MapperOptions{};
+  o.imu_init_full_window_keyframes = -1;
+  EXPECT_NE(o.validate().error().message().find("imu_init_full_window_keyframes"), std::string::npos);
+  o = MapperOptions{};
+  o.mono_init_search_radius_px = 0.0;
+  EXPECT_NE(o.validate().error().message().find("mono_init_search_radius_px"), std::string::npos);
+  o = MapperOptions{};
+  o.mono_init_ratio = 1.5;
+  EXPECT_NE(o.validate().error().message().find("mono_init_ratio"), std::string::npos);
+  o = MapperOptions{};
+  o.mono_init_max_distance = 300;
+  EXPECT_NE(o.validate().error().message().find("mono_init_max_distance"), std::string::npos);
 }
 
 }  // namespace
