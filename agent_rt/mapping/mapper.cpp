@@ -523,7 +523,7 @@ void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyfra
   if (mono && ba.use_imu && s.keyframes_since_imu_init < s.options.imu_init_full_window_keyframes) {
     ba.window = s.options.max_keyframes;
   }
-  ++s.keyframes_since_imu_init;
+  if (ba.use_imu) ++s.keyframes_since_imu_init;
   const auto t0 = std::chrono::steady_clock::now();
   const trace::Span span("local_ba");
   auto summary = runLocalBundleAdjustment(s.map, ba, yield);

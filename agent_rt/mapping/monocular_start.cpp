@@ -131,20 +131,17 @@ bool registerView(Mapper::State& s, PoolHandle handle, const std::vector<std::in
   cv::Mat tvec;
   std::vector<int> inliers;
   const double threshold = 2.0 / s.left.calibration().fx;
-  if (!cv::solvePnPRansac(object, image, cv::Mat::eye(3, 3, CV_64F), cv::Mat(), rvec, tvec, false, 100, threshold, 0.99,
-                          inliers) ||
-      static_cast<int>(inliers.size()) < kMinRegisteredPoints) {
-    return false;
+  try {
+    if (!cv::solvePnPRansac(object, image, cv::Mat::eye(3, 3, CV_64F), cv::noArray(), rvec, tvec, false, 100, threshold,
+                            0.99, inliers)) {
+      return false;
+    }
+  } catch (const cv::Exception&) {
+    return false;  // a degenerate configuration: the keyframe is left out like one with too few inliers
   }
-  cv::Mat R;
-  cv::Rodrigues(rvec, R);
-  Eigen::Matrix3d R_c_c0;
-  Vector3d t_c_c0;
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) R_c_c0(r, c) = R.at<double>(r, c);
-    t_c_c0(r) = tvec.at<double>(r);
-  }
-  const SE3d T_c_c0(SO3d(Eigen::Quaterniond(R_c_c0).normalized()), t_c_c0);
+  if (static_cast<int>(inliers.size()) < kMinRegisteredPoints) return false;
+  const SE3d T_c_c0(SO3d::exp(Vector3d(rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2))),
+                    Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2)));
   KeyframeData& view = *s.map.keyframes().get(handle);
   view.T_w_s = T_w_c0 * T_c_c0.inverse() * s.T_s_c.inverse();
   for (int i : inliers) {
