@@ -15,6 +15,7 @@ Status KeyframeDecisionOptions::validate() const {
     return Error{ErrorCode::kInvalidArgument, "keyframe decision options: " + what};
   };
   if (max_frames_between < 1) return bad("max_frames_between must be >= 1");
+  if (!(max_interval_s >= 0.0)) return bad("max_interval_s must be >= 0 (0: no cap)");
   if (!(min_coverage_ratio >= 0.0 && min_coverage_ratio <= 1.0)) return bad("min_coverage_ratio must be in [0, 1]");
   if (min_tracked_points < 0) return bad("min_tracked_points must be >= 0");
   if (grid_columns < 1 || grid_rows < 1 || grid_columns * grid_rows > kMaxCells) {
@@ -29,6 +30,8 @@ const char* toString(KeyframeReason reason) {
       return "none";
     case KeyframeReason::kFrameCount:
       return "frames since the last keyframe";
+    case KeyframeReason::kInterval:
+      return "time since the last keyframe";
     case KeyframeReason::kCoverage:
       return "tracked keypoint coverage dropped";
     case KeyframeReason::kFewTrackedPoints:
@@ -58,6 +61,7 @@ KeyframeReason decideKeyframe(const TrackingState& state, const KeyframeDecision
     return KeyframeReason::kCoverage;
   }
   if (state.frames_since_keyframe > options.max_frames_between) return KeyframeReason::kFrameCount;
+  if (options.max_interval_s > 0.0 && state.interval_s >= options.max_interval_s) return KeyframeReason::kInterval;
   return KeyframeReason::kNone;
 }
 

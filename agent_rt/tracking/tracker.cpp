@@ -560,8 +560,10 @@ void considerKeyframe(Tracker::State& s, FrameStep& f, const SE3d& T, const Vect
                                          f.frame.width, f.frame.height, o.keyframe.grid_columns, o.keyframe.grid_rows);
   if (s.keyframe_coverage <= 0.0) s.keyframe_coverage = tracking_state.coverage;  // first frame on a new map
   tracking_state.keyframe_coverage = s.keyframe_coverage;
+  if (s.has_keyframe) tracking_state.interval_s = static_cast<double>(f.frame.t_ns - s.keyframe.t_ns) * 1e-9;
   KeyframeDecisionOptions decision_options = o.keyframe;
   if (!s.imu_initialised && o.use_imu) decision_options.max_frames_between = o.initialisation_max_frames_between;
+  if (!o.use_imu) decision_options.max_interval_s = 0.0;  // the cap is for the IMU links' sake
   f.result.keyframe_reason = decideKeyframe(tracking_state, decision_options);
   if (f.result.keyframe_reason == KeyframeReason::kNone) return;
   const KeyframeGate gate = s.backlog.gate(f.mapping, tracking_state.tracked_points);

@@ -23,6 +23,9 @@
 //
 // With --compare-trace, passes alternate between tracing off and on (cvislam_agent --trace: every stage recorded
 // into the thread's ring), so the trace's cost on tracking shows side by side in one run.
+//
+// With --compare-keyframe-interval, passes alternate between keyframes spaced by the frame count alone and the
+// default time cap with the IMU (tracking.max_keyframe_interval_s): what the extra keyframes cost tracking.
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -99,6 +102,11 @@ int main(int argc, char** argv) {
   bool compare_trace = false;
   app.add_flag("--compare-trace", compare_trace, "Alternate passes with tracing off and on (cvislam_agent --trace)")
       ->excludes("--server");
+  bool compare_interval = false;
+  app.add_flag("--compare-keyframe-interval", compare_interval,
+               "Alternate passes without and with the keyframe time cap (tracking.max_keyframe_interval_s)")
+      ->excludes("--server")
+      ->excludes("--compare-trace");
   CLI11_PARSE(app, argc, argv);
 
   auto sequence = cvislam::dataset::EurocSequence::open(dataset);
@@ -108,7 +116,7 @@ int main(int argc, char** argv) {
   }
   const std::size_t capacity = static_cast<std::size_t>(passes) * sequence->cam0().frames.size();
   // Index 0: without the link (or the trace); 1: with it.
-  const bool compare = !server.empty() || compare_trace;
+  const bool compare = !server.empty() || compare_trace || compare_interval;
   std::vector<Recorders> recorders;
   recorders.emplace_back(capacity);
   if (compare) recorders.emplace_back(capacity);
@@ -132,7 +140,9 @@ int main(int argc, char** argv) {
       mapper_options.imu_init_keyframes = std::min(mapper_options.imu_init_keyframes, local_map_keyframes - 5);
       mapper_options.imu_init_max_keyframes = local_map_keyframes;
     }
-    auto agent = cvislam::test::InlineAgent::create(*sequence, mode == "stereo", {}, mapper_options);
+    cvislam::agent::TrackerOptions tracker_options;
+    if (compare_interval && !second) tracker_options.keyframe.max_interval_s = 0.0;
+    auto agent = cvislam::test::InlineAgent::create(*sequence, mode == "stereo", tracker_options, mapper_options);
     if (!agent) {
       std::cerr << "bench_agent_tracking: " << agent.error().toString() << "\n";
       return 1;
@@ -211,7 +221,8 @@ int main(int argc, char** argv) {
       stages.push_back(cvislam::agent::summarise(*r));
     }
     const char* label = compare_trace ? (k == 0 ? "tracing off" : "tracing on (every stage into the thread's ring)")
-                                      : (k == 0 ? "without the link" : "with the link streaming to the server");
+                        : compare_interval ? (k == 0 ? "keyframes by frame count" : "keyframes with the time cap")
+                                           : (k == 0 ? "without the link" : "with the link streaming to the server");
     std::printf("%s, %s: %zu frames (%d passes), %zu tracked, %zu keyframes\n%s", dataset.c_str(), label, rec.frames,
                 passes, rec.tracked, rec.keyframes, cvislam::agent::formatLatencyTable(stages).c_str());
     const double determinism = stages[0].ms.p50 > 0 ? stages[0].ms.p99 / stages[0].ms.p50 : 0.0;
@@ -223,7 +234,9 @@ int main(int argc, char** argv) {
       std::printf("downlink: %d anchors added; %zu of %zu local BAs with anchors' observations in them\n",
                   rec.anchors_added, rec.keyframes_with_anchors, rec.local_ba.samplesMs().size());
     }
-    const char* key = compare_trace ? (k == 0 ? "tracing_off" : "tracing_on") : (k == 0 ? "without_link" : "with_link");
+    const char* key = compare_trace      ? (k == 0 ? "tracing_off" : "tracing_on")
+                      : compare_interval ? (k == 0 ? "keyframe_interval_off" : "keyframe_interval_on")
+                                         : (k == 0 ? "without_link" : "with_link");
     out[key] = nlohmann::json::parse(cvislam::agent::latencyJson(stages));
   }
   if (!json.empty()) std::ofstream(json) << (compare ? out.dump(2) : out["without_link"].dump(2)) << "\n";

@@ -43,6 +43,22 @@ TEST(KeyframeDecision, InitialisationKeepsAtMostThreeFramesBetweenKeyframes) {
   EXPECT_EQ(decideKeyframe({4, 200, 0.9, 0.9}, options), KeyframeReason::kFrameCount);
 }
 
+TEST(KeyframeDecision, WithTheImuKeyframesAreAtMostHalfASecondApart) {
+  KeyframeDecisionOptions options;  // 0.5 s by default
+  TrackingState slow{8, 200, 0.9, 0.9};
+  slow.interval_s = 0.45;
+  EXPECT_EQ(decideKeyframe(slow, options), KeyframeReason::kNone);
+  slow.interval_s = 0.5;
+  EXPECT_EQ(decideKeyframe(slow, options), KeyframeReason::kInterval);
+  options.max_interval_s = 0.0;  // no cap: the frame count alone
+  slow.interval_s = 5.0;
+  EXPECT_EQ(decideKeyframe(slow, options), KeyframeReason::kNone);
+  options.max_interval_s = -1.0;
+  const Status status = options.validate();
+  ASSERT_FALSE(status.ok());
+  EXPECT_NE(status.error().message().find("max_interval_s"), std::string::npos);
+}
+
 TEST(GridCoverage, CountsTheCellsThatHoldAPointAndIgnoresPointsOutsideTheImage) {
   // Two points in one cell, one in another, one outside: 2 of 48 cells.
   const std::vector<Eigen::Vector2f> points = {{10.0F, 10.0F}, {20.0F, 15.0F}, {700.0F, 400.0F}, {-5.0F, 10.0F}};
