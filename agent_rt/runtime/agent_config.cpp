@@ -53,6 +53,8 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   YamlSection tracking = section("tracking");
   tracking.read("search_radius_px", o.tracking.search_radius_px);
   tracking.read("refine_radius_px", o.tracking.refine_radius_px);
+  tracking.read("max_descriptor_distance", o.tracking.search.max_distance);
+  tracking.read("match_ratio", o.tracking.search.ratio);
   tracking.read("relocalisation_radius_px", o.tracking.relocalisation_radius_px);
   tracking.read("max_frames_between_keyframes", o.tracking.keyframe.max_frames_between);
   tracking.read("max_keyframe_interval_s", o.tracking.keyframe.max_interval_s);

@@ -15,7 +15,8 @@ Status KeyframeDecisionOptions::validate() const {
     return Error{ErrorCode::kInvalidArgument, "keyframe decision options: " + what};
   };
   if (max_frames_between < 1) return bad("max_frames_between must be >= 1");
-  if (!(max_interval_s >= 0.0)) return bad("max_interval_s must be >= 0 (0: no cap)");
+  if (!(max_interval_s >= 0.0))
+    return bad("max_interval_s (tracking.max_keyframe_interval_s) must be >= 0 (0: no cap)");
   if (!(min_coverage_ratio >= 0.0 && min_coverage_ratio <= 1.0)) return bad("min_coverage_ratio must be in [0, 1]");
   if (min_tracked_points < 0) return bad("min_tracked_points must be >= 0");
   if (grid_columns < 1 || grid_rows < 1 || grid_columns * grid_rows > kMaxCells) {

@@ -31,6 +31,12 @@ Status TrackerOptions::validate() const {
     return Error{ErrorCode::kInvalidArgument, "tracker: search radii must be > 0"};
   }
   if (!(sigma_px > 0.0)) return Error{ErrorCode::kInvalidArgument, "tracker: sigma_px must be > 0"};
+  if (search.max_distance < 1 || search.max_distance > 256) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: max_descriptor_distance must be in [1, 256] bits"};
+  }
+  if (!(search.ratio > 0.0F && search.ratio <= 1.0F)) {
+    return Error{ErrorCode::kInvalidArgument, "tracker: match_ratio must be in (0, 1]"};
+  }
   if (initialisation_max_frames_between < 1) {
     return Error{ErrorCode::kInvalidArgument, "tracker: initialisation_max_frames_between must be >= 1"};
   }

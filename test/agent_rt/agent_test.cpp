@@ -656,10 +656,34 @@ TEST(AgentConfig, ReadsThreadSchedulesAndNamesBadOnes) {
   AgentOptions shipped;
   ASSERT_TRUE(loadAgentConfig(CVISLAM_SOURCE_DIR "/deploy/agent_config.yaml", shipped).ok());
   const AgentOptions defaults;
+  EXPECT_EQ(shipped.tracking.search.max_distance, defaults.tracking.search.max_distance);
+  EXPECT_FLOAT_EQ(shipped.tracking.search.ratio, defaults.tracking.search.ratio);
+  EXPECT_DOUBLE_EQ(shipped.tracking.keyframe.max_interval_s, defaults.tracking.keyframe.max_interval_s);
   EXPECT_EQ(shipped.threads.tracking.realtime_priority, defaults.threads.tracking.realtime_priority);
   EXPECT_EQ(shipped.threads.mapping.nice, defaults.threads.mapping.nice);
   EXPECT_EQ(shipped.tracking.lag.min_tracked_points_when_busy, defaults.tracking.lag.min_tracked_points_when_busy);
   EXPECT_EQ(shipped.threads.lower_others_with_realtime, defaults.threads.lower_others_with_realtime);
+}
+
+TEST(AgentConfig, ReadsTrackingsMatchingAndKeyframeThresholdsAndNamesBadOnes) {
+  test::TempDir dir;
+  const auto write = [&](const std::string& text) { return writeConfig(dir, text); };
+  AgentOptions matching;
+  ASSERT_TRUE(loadAgentConfig(write("tracking:\n  max_descriptor_distance: 70\n  match_ratio: 0.8\n"
+                                    "  max_keyframe_interval_s: 0.25\n"),
+                              matching)
+                  .ok());
+  EXPECT_EQ(matching.tracking.search.max_distance, 70);
+  EXPECT_FLOAT_EQ(matching.tracking.search.ratio, 0.8F);
+  EXPECT_DOUBLE_EQ(matching.tracking.keyframe.max_interval_s, 0.25);
+  for (const char* bad : {"max_descriptor_distance: 300", "match_ratio: 0", "max_keyframe_interval_s: -1"}) {
+    AgentOptions out_of_range;
+    ASSERT_TRUE(loadAgentConfig(write(std::string("tracking:\n  ") + bad + "\n"), out_of_range).ok());
+    const Status status = out_of_range.tracking.validate();
+    ASSERT_FALSE(status.ok()) << bad;
+    const std::string key = std::string(bad).substr(0, std::string(bad).find(':'));
+    EXPECT_NE(status.error().message().find(key), std::string::npos) << status.error().message();
+  }
 }
 
 TEST(ThreadSchedule, OthersDropTheirNiceOnlyWhenTrackingRunsWithoutRealTimePriority) {
