@@ -115,7 +115,7 @@ int main(int argc, char** argv) {
     return 1;
   }
   const std::size_t capacity = static_cast<std::size_t>(passes) * sequence->cam0().frames.size();
-  // Index 0: without the link (or the trace); 1: with it.
+  // Index 0: without the link (or the trace, or the keyframe time cap); 1: with it.
   const bool compare = !server.empty() || compare_trace || compare_interval;
   std::vector<Recorders> recorders;
   recorders.emplace_back(capacity);

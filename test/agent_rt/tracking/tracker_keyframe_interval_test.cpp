@@ -1,7 +1,7 @@
 // The keyframe rule in time, on the real Tracker and Mapper (test/support/inline_agent) over a rendered stereo loop
 // (fixed seed): with the IMU, once it is initialised, keyframes are at most max_interval_s (0.5 s) apart; with the
-// cap off, or without the IMU, only the frame count spaces them, and this sequence then leaves longer gaps. So the
-// cap is what keeps the IMU links short, and the tracker leaves it to the IMU.
+// cap off, or without the IMU, only the frame count spaces them, and this sequence then leaves longer gaps. So it is
+// the cap that keeps the keyframes close, and the tracker applies it only with the IMU.
 #include <algorithm>
 #include <cstdint>
 #include <cstdio>
@@ -10,8 +10,6 @@
 #include <gtest/gtest.h>
 
 #include "agent_rt/runtime/sensor_setup.hpp"
-#include "test/sim/mission_writer.hpp"
-#include "test/sim/presets.hpp"
 #include "test/support/inline_agent.hpp"
 #include "test/support/rendered_mission.hpp"
 #include "test/support/temp_dir.hpp"
