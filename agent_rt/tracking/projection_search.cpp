@@ -6,6 +6,17 @@
 
 namespace cvislam::agent {
 
+Status ProjectionSearchOptions::validate() const {
+  if (max_distance < 1 || max_distance > 256) {
+    return Error{ErrorCode::kInvalidArgument,
+                 "projection search: max_distance (tracking.max_descriptor_distance) must be in [1, 256] bits"};
+  }
+  if (!(ratio > 0.0F && ratio <= 1.0F)) {
+    return Error{ErrorCode::kInvalidArgument, "projection search: ratio (tracking.match_ratio) must be in (0, 1]"};
+  }
+  return Status::Ok();
+}
+
 void KeypointGrid::build(std::span<const features::Keypoint> keypoints, int width, int height, int cell_px) {
   keypoints_ = keypoints.first(std::min(keypoints.size(), kMaxFrameKeypoints));
   cell_px_ = std::max(1, cell_px);

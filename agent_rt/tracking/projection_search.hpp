@@ -11,6 +11,7 @@
 
 #include <Eigen/Core>
 
+#include "common/core/result.hpp"
 #include "common/features/orb.hpp"
 
 namespace cvislam::agent {
@@ -69,6 +70,8 @@ struct ProjectedMapPoint {
 struct ProjectionSearchOptions {
   int max_distance = 50;  // Hamming bits
   float ratio = 0.9F;     // best / second best within the radius
+
+  [[nodiscard]] Status validate() const;
 };
 
 class ProjectionMatcher {

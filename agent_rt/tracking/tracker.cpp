@@ -31,12 +31,6 @@ Status TrackerOptions::validate() const {
     return Error{ErrorCode::kInvalidArgument, "tracker: search radii must be > 0"};
   }
   if (!(sigma_px > 0.0)) return Error{ErrorCode::kInvalidArgument, "tracker: sigma_px must be > 0"};
-  if (search.max_distance < 1 || search.max_distance > 256) {
-    return Error{ErrorCode::kInvalidArgument, "tracker: max_descriptor_distance must be in [1, 256] bits"};
-  }
-  if (!(search.ratio > 0.0F && search.ratio <= 1.0F)) {
-    return Error{ErrorCode::kInvalidArgument, "tracker: match_ratio must be in (0, 1]"};
-  }
   if (initialisation_max_frames_between < 1) {
     return Error{ErrorCode::kInvalidArgument, "tracker: initialisation_max_frames_between must be >= 1"};
   }
@@ -49,6 +43,7 @@ Status TrackerOptions::validate() const {
                                                   " must be in [1, " + std::to_string(kMaxMotionBaKeyframes) +
                                                   "] (raise CVISLAM_MAX_MOTION_BA_KEYFRAMES)"};
   }
+  if (Status s = search.validate(); !s.ok()) return s;
   if (Status s = pose.validate(); !s.ok()) return s;
   if (Status s = lag.validate(); !s.ok()) return s;
   return keyframe.validate();
