@@ -28,6 +28,7 @@ Status MapperOptions::validate() const {
     return bad("max_keyframes must be in [2, " + std::to_string(kMaxKeyframes) + "] (CVISLAM_MAX_KEYFRAMES)");
   }
   if (ba.window > max_keyframes) return bad("the BA window must not exceed max_keyframes");
+  if (Status st = retention.validate(); !st.ok()) return st;
   if (triangulation_neighbours < 0) return bad("triangulation_neighbours must be >= 0");
   if (!(fuse_radius_px > 0.0)) return bad("fuse_radius_px must be > 0");
   if (!(fuse_max_depth_ratio >= 0.0)) return bad("fuse_max_depth_ratio must be >= 0");
@@ -41,10 +42,15 @@ Status MapperOptions::validate() const {
   if (mono_init_max_distance < 0 || mono_init_max_distance > 256) {
     return bad("mono_init_max_distance must be in [0, 256] bits");
   }
-  if (downlink.max_anchor_keyframes < 0 ||
-      static_cast<std::size_t>(max_keyframes + 1 + downlink.max_anchor_keyframes) > kMaxKeyframes) {
+  if (static_cast<std::size_t>(max_keyframes + retention.place_keyframes + 1) > kMaxKeyframes) {
+    return bad("max_keyframes + place_keyframes must be < " + std::to_string(kMaxKeyframes) +
+               " (CVISLAM_MAX_KEYFRAMES: the pool holds the own keyframes and the one being added)");
+  }
+  if (downlink.max_anchor_keyframes < 0 || static_cast<std::size_t>(max_keyframes + retention.place_keyframes + 1 +
+                                                                    downlink.max_anchor_keyframes) > kMaxKeyframes) {
     return bad("downlink.max_anchor_keyframes must be in [0, " + std::to_string(kMaxKeyframes) +
-               " - max_keyframes - 1] (the pool holds the own keyframes, the one being added, and the anchors)");
+               " - max_keyframes - place_keyframes - 1] (the pool holds the own keyframes, the one being added, and "
+               "the anchors)");
   }
   if (downlink.max_anchor_points < 0 || static_cast<std::size_t>(downlink.max_anchor_points) >= kMaxMapPoints) {
     return bad("downlink.max_anchor_points must be in [0, " + std::to_string(kMaxMapPoints) + ")");
@@ -473,16 +479,17 @@ KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, 
   return kf;
 }
 
-// The window keeps at most N own keyframes (the oldest goes) and leaves room in the pool. A monocular map
-// waiting for its two-view start keeps its reference.
+// The map keeps at most N own keyframes and place_keyframes older ones (keyframe_retention.hpp says which goes),
+// and leaves room in the pool. A monocular map waiting for its two-view start keeps its reference.
 void makeRoomForKeyframe(Mapper::State& s, MapperReport& report) {
-  int own = 0;
-  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& k) { own += k.anchor ? 0 : 1; });
-  while (own >= s.options.max_keyframes || s.map.keyframes().size() >= kMaxKeyframes) {
+  std::vector<PoolHandle> own = s.keyframesBySequence();
+  const int most = s.options.max_keyframes + s.options.retention.place_keyframes;
+  while (static_cast<int>(own.size()) >= most || s.map.keyframes().size() >= kMaxKeyframes) {
     if (!s.mono_start.views.empty() && !s.mono_initialised) break;
-    if (!s.map.evictOldestKeyframe().ok()) break;
+    const std::optional<PoolHandle> evict = keyframeToEvict(s.map, own, s.options.max_keyframes, s.options.retention);
+    if (!evict || !s.map.removeKeyframe(*evict, MapEventReason::kEvicted).ok()) break;
+    own.erase(std::find(own.begin(), own.end(), *evict));
     ++report.evicted;
-    --own;
   }
 }
 

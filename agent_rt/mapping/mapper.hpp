@@ -16,6 +16,7 @@
 #include <memory>
 
 #include "agent_rt/map/local_map.hpp"
+#include "agent_rt/mapping/keyframe_retention.hpp"
 #include "agent_rt/mapping/local_bundle_adjustment.hpp"
 #include "agent_rt/messages/messages.hpp"
 #include "common/camera/camera_model.hpp"
@@ -55,8 +56,9 @@ struct DownlinkOptions {
 
 struct MapperOptions {
   AgentId agent = 0;
-  int max_keyframes = 20;           // N: the agent's own keyframes kept in the local map
-  LocalBundleAdjustmentOptions ba;  // window = M
+  int max_keyframes = 20;              // N: the agent's own keyframes kept in the local map
+  KeyframeRetentionOptions retention;  // which of them leaves when the map is full
+  LocalBundleAdjustmentOptions ba;     // window = M
   CullOptions cull;
   features::OrbOptions orb;  // for the second camera's image (stereo)
   StereoOptions stereo;

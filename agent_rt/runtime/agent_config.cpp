@@ -73,6 +73,8 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
 
   YamlSection mapping = section("mapping");
   mapping.read("max_keyframes", o.mapping.max_keyframes);
+  mapping.read("place_keyframes", o.mapping.retention.place_keyframes);
+  mapping.read("place_angle_weight_m", o.mapping.retention.angle_weight_m);
   mapping.read("ba_window", o.mapping.ba.window);
   mapping.read("ba_iterations", o.mapping.ba.max_iterations);
   mapping.read("yield_to_waiting_keyframes", o.mapping.yield_to_waiting_keyframes);

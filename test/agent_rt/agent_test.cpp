@@ -686,6 +686,32 @@ TEST(AgentConfig, ReadsTrackingsMatchingAndKeyframeThresholdsAndNamesBadOnes) {
   }
 }
 
+TEST(AgentConfig, ReadsThePlaceKeyframesAndNamesBadOnes) {
+  test::TempDir dir;
+  const auto write = [&](const std::string& text) { return writeConfig(dir, text); };
+  AgentOptions places;
+  ASSERT_TRUE(loadAgentConfig(write("mapping:\n  place_keyframes: 12\n  place_angle_weight_m: 0.5\n"), places).ok());
+  EXPECT_EQ(places.mapping.retention.place_keyframes, 12);
+  EXPECT_DOUBLE_EQ(places.mapping.retention.angle_weight_m, 0.5);
+  EXPECT_TRUE(places.mapping.validate().ok());
+  // More own keyframes than the pool holds beside the anchors: the message names the keys and the capacity.
+  AgentOptions too_many;
+  ASSERT_TRUE(
+      loadAgentConfig(write("mapping:\n  place_keyframes: " + std::to_string(kMaxKeyframes) + "\n"), too_many).ok());
+  const Status status = too_many.mapping.validate();
+  ASSERT_FALSE(status.ok());
+  EXPECT_NE(status.error().message().find("place_keyframes"), std::string::npos) << status.error().message();
+  EXPECT_NE(status.error().message().find("CVISLAM_MAX_KEYFRAMES"), std::string::npos) << status.error().message();
+  for (const char* bad : {"place_keyframes: -1", "place_angle_weight_m: -2"}) {
+    AgentOptions out_of_range;
+    ASSERT_TRUE(loadAgentConfig(write(std::string("mapping:\n  ") + bad + "\n"), out_of_range).ok());
+    const Status invalid = out_of_range.mapping.validate();
+    ASSERT_FALSE(invalid.ok()) << bad;
+    const std::string key = std::string(bad).substr(0, std::string(bad).find(':'));
+    EXPECT_NE(invalid.error().message().find(key), std::string::npos) << invalid.error().message();
+  }
+}
+
 TEST(ThreadSchedule, OthersDropTheirNiceOnlyWhenTrackingRunsWithoutRealTimePriority) {
   ThreadScheduleOptions o;
   o.mapping.cpus = {0};

@@ -15,8 +15,9 @@
 // With the link, what the server sends down (its covisible map, corrections) goes back into mapping between
 // keyframes, as in the agent, so the link passes track against a local map with anchors in it. Local BA's time
 // per keyframe is recorded too (mapping runs between frames, untimed for tracking). --local-map-keyframes N
-// shrinks the local map (N own keyframes) so that on a short sequence the server already has older ones to
-// send down. On the simulator's loop (60 s, which comes back over its start beyond the default local map):
+// shrinks the local map (the newest N own keyframes, none kept for their places) so that on a short sequence the
+// server already has older ones to send down. On the simulator's loop (60 s, which comes back over its start beyond the
+// default local map):
 //
 //   build/default/bin/cvislam_sim --preset loop --seed 1 --stereo --out /tmp/loop
 //   taskset -c 1 build/default/bin/bench_agent_tracking --dataset /tmp/loop/agent0 --server 127.0.0.1:50051
@@ -26,7 +27,12 @@
 //
 // With --compare-keyframe-interval, passes alternate between keyframes spaced by the frame count alone and the
 // default time cap with the IMU (tracking.max_keyframe_interval_s): what the extra keyframes cost tracking.
+//
+// With --compare-place-keyframes, passes alternate between a local map of the newest keyframes only
+// (mapping.place_keyframes 0) and the default, which keeps older keyframes for their places: what the larger map
+// costs tracking, and local BA.
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -92,7 +98,8 @@ int main(int argc, char** argv) {
   int local_map_keyframes = 0;
   app.add_option("--dataset", dataset, "Sequence folder that holds mav0");
   app.add_option("--local-map-keyframes", local_map_keyframes,
-                 "N own keyframes in the local map (default: the mapper's, 20)")
+                 "N own keyframes in the local map, none kept for their places (default: the mapper's, 20 newest "
+                 "and 40 for their places)")
       ->check(CLI::Range(10, 40));
   app.add_option("--server", server,
                  "cvislam_server HOST:PORT: alternate passes without and with the link streaming to it");
@@ -107,6 +114,14 @@ int main(int argc, char** argv) {
                "Alternate passes without and with the keyframe time cap (tracking.max_keyframe_interval_s)")
       ->excludes("--server")
       ->excludes("--compare-trace");
+  bool compare_places = false;
+  app.add_flag("--compare-place-keyframes", compare_places,
+               "Alternate passes with the newest keyframes only and with the keyframes kept for their places "
+               "(mapping.place_keyframes)")
+      ->excludes("--server")
+      ->excludes("--compare-trace")
+      ->excludes("--compare-keyframe-interval")
+      ->excludes("--local-map-keyframes");
   CLI11_PARSE(app, argc, argv);
 
   auto sequence = cvislam::dataset::EurocSequence::open(dataset);
@@ -115,8 +130,25 @@ int main(int argc, char** argv) {
     return 1;
   }
   const std::size_t capacity = static_cast<std::size_t>(passes) * sequence->cam0().frames.size();
-  // Index 0: without the link (or the trace, or the keyframe time cap); 1: with it.
-  const bool compare = !server.empty() || compare_trace || compare_interval;
+  // Index 0: without the link (or the trace, the keyframe time cap, the place keyframes); 1: with it.
+  const bool compare = !server.empty() || compare_trace || compare_interval || compare_places;
+  // What the two kinds of pass are called in the tables and the JSON.
+  struct Variant {
+    const char* label;
+    const char* key;
+  };
+  std::array<Variant, 2> variants{Variant{"without the link", "without_link"},
+                                  Variant{"with the link streaming to the server", "with_link"}};
+  if (compare_trace) {
+    variants = {Variant{"tracing off", "tracing_off"},
+                Variant{"tracing on (every stage into the thread's ring)", "tracing_on"}};
+  } else if (compare_interval) {
+    variants = {Variant{"keyframes by frame count", "keyframe_interval_off"},
+                Variant{"keyframes with the time cap", "keyframe_interval_on"}};
+  } else if (compare_places) {
+    variants = {Variant{"the newest keyframes only", "place_keyframes_off"},
+                Variant{"keyframes kept for their places", "place_keyframes_on"}};
+  }
   std::vector<Recorders> recorders;
   recorders.emplace_back(capacity);
   if (compare) recorders.emplace_back(capacity);
@@ -139,7 +171,9 @@ int main(int argc, char** argv) {
       mapper_options.max_keyframes = local_map_keyframes;
       mapper_options.imu_init_keyframes = std::min(mapper_options.imu_init_keyframes, local_map_keyframes - 5);
       mapper_options.imu_init_max_keyframes = local_map_keyframes;
+      mapper_options.retention.place_keyframes = 0;
     }
+    if (compare_places && !second) mapper_options.retention.place_keyframes = 0;
     cvislam::agent::TrackerOptions tracker_options;
     if (compare_interval && !second) tracker_options.keyframe.max_interval_s = 0.0;
     auto agent = cvislam::test::InlineAgent::create(*sequence, mode == "stereo", tracker_options, mapper_options);
@@ -220,9 +254,7 @@ int main(int argc, char** argv) {
     for (const auto* r : {&rec.total, &rec.orb, &rec.matching, &rec.pose, &rec.motion, &rec.local_ba}) {
       stages.push_back(cvislam::agent::summarise(*r));
     }
-    const char* label = compare_trace ? (k == 0 ? "tracing off" : "tracing on (every stage into the thread's ring)")
-                        : compare_interval ? (k == 0 ? "keyframes by frame count" : "keyframes with the time cap")
-                                           : (k == 0 ? "without the link" : "with the link streaming to the server");
+    const char* label = variants[k].label;
     std::printf("%s, %s: %zu frames (%d passes), %zu tracked, %zu keyframes\n%s", dataset.c_str(), label, rec.frames,
                 passes, rec.tracked, rec.keyframes, cvislam::agent::formatLatencyTable(stages).c_str());
     const double determinism = stages[0].ms.p50 > 0 ? stages[0].ms.p99 / stages[0].ms.p50 : 0.0;
@@ -234,10 +266,7 @@ int main(int argc, char** argv) {
       std::printf("downlink: %d anchors added; %zu of %zu local BAs with anchors' observations in them\n",
                   rec.anchors_added, rec.keyframes_with_anchors, rec.local_ba.samplesMs().size());
     }
-    const char* key = compare_trace      ? (k == 0 ? "tracing_off" : "tracing_on")
-                      : compare_interval ? (k == 0 ? "keyframe_interval_off" : "keyframe_interval_on")
-                                         : (k == 0 ? "without_link" : "with_link");
-    out[key] = nlohmann::json::parse(cvislam::agent::latencyJson(stages));
+    out[variants[k].key] = nlohmann::json::parse(cvislam::agent::latencyJson(stages));
   }
   if (!json.empty()) std::ofstream(json) << (compare ? out.dump(2) : out["without_link"].dump(2)) << "\n";
   return 0;

@@ -101,6 +101,9 @@ TEST(LinkAllocations, TrackingAllocatesNothingWhileTheLinkStreamsToAServer) {
   MapperOptions mapper_options;
   mapper_options.agent = test::kAgent;
   mapper_options.max_keyframes = kLocalMapKeyframes;
+  // None kept for their places: on this short sequence the map would keep every keyframe, and the server's
+  // covisible ones would all be held already.
+  mapper_options.retention.place_keyframes = 0;
   mapper_options.imu_init_keyframes = 10;
   mapper_options.imu_init_max_keyframes = kLocalMapKeyframes;
   auto agent = cvislam::test::InlineAgent::create(*seq, true, tracker_options, mapper_options);

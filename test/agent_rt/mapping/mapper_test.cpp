@@ -51,6 +51,7 @@ class MapperTest : public ::testing::Test {
     MapperOptions options;
     options.use_imu = false;
     options.max_keyframes = 6;
+    options.retention.place_keyframes = 0;  // the newest only, unless a test asks for more
     options.ba.window = 4;
     options.ba.intrinsics = {calibration_.fx, calibration_.fy, calibration_.cx, calibration_.cy};
     options.imu_init_keyframes = 4;
@@ -194,6 +195,39 @@ TEST_F(MapperTest, MonocularStartLinkFuseTriangulateAndBound) {
     EXPECT_LE(mapper_->map().keyframes().size(), 6u);
   }
   EXPECT_EQ(snapshot_->keyframe_count, 6u);
+}
+
+class MapperWithPlaceKeyframesTest : public MapperTest {
+  void adjust(MapperOptions& options) override { options.retention.place_keyframes = 3; }
+};
+
+// Past the newest N (6), three older keyframes stay for their places: the map holds nine own keyframes at most,
+// the first of them among them (no older keyframe covers its place), and the snapshot tracking gets holds them
+// all.
+TEST_F(MapperWithPlaceKeyframesTest, OlderKeyframesStayBesideTheNewestUpToTheirNumber) {
+  ASSERT_TRUE(mapper_->process(keyframe(0, KeyframeKind::kNewMap, truePose(0)), *snapshot_).ok());
+  auto r2 = mapper_->process(keyframe(2, KeyframeKind::kTracked, truePose(0)), *snapshot_);
+  ASSERT_TRUE(r2.ok());
+  ASSERT_TRUE(r2->mono_initialised_now) << r2->note;
+  // The map's scale: keyframe 2's distance from keyframe 0 in the map against the truth.
+  double scale = 0.0;
+  for (std::uint32_t i = 0; i < snapshot_->keyframe_count; ++i) {
+    if (snapshot_->keyframes[i].id.counter != 2) continue;
+    const SE3d T_w_s_0 = truePose(0);
+    scale = (fromMsg(snapshot_->keyframes[i].T_w_s).translation() - T_w_s_0.translation()).norm() /
+            (truePose(2).translation() - T_w_s_0.translation()).norm();
+  }
+  ASSERT_GT(scale, 0.0);
+  std::size_t most = 0;
+  for (int k = 3; k < 16; ++k) {
+    ASSERT_TRUE(mapper_->process(keyframe(k, KeyframeKind::kTracked, truePose(k, scale)), *snapshot_).ok());
+    most = std::max(most, mapper_->map().keyframes().size());
+  }
+  EXPECT_EQ(most, 9u);
+  EXPECT_EQ(snapshot_->keyframe_count, 9u);
+  bool first_held = false;
+  mapper_->map().keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { first_held |= kf.id.counter == 0; });
+  EXPECT_TRUE(first_held);
 }
 
 // Keyframes 5 cm apart, each detecting a random 60 % of the scene (a corner is not found in every image): the first
