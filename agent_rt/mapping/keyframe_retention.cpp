@@ -39,7 +39,7 @@ std::optional<PoolHandle> keyframeToEvict(const LocalMap& map, const std::vector
   // Candidates are own[0, older); below two of them no older keyframe can cover one, and age decides.
   const std::size_t kept = recent > 0 ? static_cast<std::size_t>(recent) : 0;
   const std::size_t older = own.size() > kept ? own.size() - kept : 0;
-  if (older < 2) return own.front();
+  if (older < 2 || options.place_keyframes == 0) return own.front();
   std::vector<Place> places;
   places.reserve(older);
   for (std::size_t i = 0; i < older; ++i) places.push_back(placeOf(map, own[i]));

@@ -8,6 +8,9 @@
 //
 // Measured against an older keyframe only, so that of two keyframes at one place the newer goes: the older has
 // been refined longer and carries the map the robot made on its first visit.
+//
+// The mapper keeps the newest N only while it holds the server's covisible map (mapper.cpp, makeRoomForKeyframe):
+// the server's map is then the memory of the places.
 #pragma once
 
 #include <optional>
@@ -29,8 +32,8 @@ struct KeyframeRetentionOptions {
 };
 
 // The own keyframe to evict, from `own` (the map's own keyframes, oldest first), of which the newest `recent`
-// stay: the oldest when there are fewer than two older ones, else the older one whose nearest older own keyframe
-// is nearest. Empty when `own` is empty.
+// stay: the oldest when there are fewer than two older ones or place_keyframes is 0, else the older one whose
+// nearest older own keyframe is nearest. Empty when `own` is empty.
 std::optional<PoolHandle> keyframeToEvict(const LocalMap& map, const std::vector<PoolHandle>& own, int recent,
                                           const KeyframeRetentionOptions& options);
 

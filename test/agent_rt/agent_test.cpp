@@ -3,6 +3,7 @@
 // (an IMU gap, a missing image, a black frame, an unreadable image), an interrupted run, and config errors.
 #include "agent_rt/runtime/agent.hpp"
 #include "agent_rt/runtime/channel_depths.hpp"
+#include "agent_rt/runtime/run_plan.hpp"
 #include "agent_rt/runtime/yield_requests.hpp"
 
 #include <atomic>
@@ -684,6 +685,23 @@ TEST(AgentConfig, ReadsTrackingsMatchingAndKeyframeThresholdsAndNamesBadOnes) {
     const std::string key = std::string(bad).substr(0, std::string(bad).find(':'));
     EXPECT_NE(status.error().message().find(key), std::string::npos) << status.error().message();
   }
+}
+
+// Without a server the local map keeps older keyframes for their places; with one, the server's covisible map is
+// that memory, and the plan keeps the newest keyframes only.
+TEST(AgentPlan, OlderKeyframesAreKeptForTheirPlacesOnlyWithoutAServer) {
+  CVISLAM_REQUIRE_DATA(excerpt, "euroc-v101-excerpt");
+  test::TempDir dir;
+  AgentOptions alone;
+  alone.dataset = excerpt;
+  alone.output = dir.path() / "alone";
+  AgentOptions with_server = alone;
+  with_server.link.server = "127.0.0.1:50051";
+  ASSERT_TRUE(planRun(alone).ok());
+  ASSERT_TRUE(planRun(with_server).ok());
+  EXPECT_EQ(alone.mapping.retention.place_keyframes, MapperOptions{}.retention.place_keyframes);
+  EXPECT_GT(alone.mapping.retention.place_keyframes, 0);
+  EXPECT_EQ(with_server.mapping.retention.place_keyframes, 0);
 }
 
 TEST(AgentConfig, ReadsThePlaceKeyframesAndNamesBadOnes) {

@@ -635,6 +635,35 @@ TEST_F(MapperDownlinkTest, AnAnchorFromAnotherAgentTakesPartInLocalBaWithoutMovi
   }
 }
 
+class MapperDownlinkWithPlaceKeyframesTest : public MapperDownlinkTest {
+  void adjust(MapperOptions& options) override { options.retention.place_keyframes = 3; }
+};
+
+// Alone, the map keeps three older keyframes for their places beside the newest six; once the server's covisible
+// map is held, it keeps the newest six only, and the oldest go.
+TEST_F(MapperDownlinkWithPlaceKeyframesTest, TheServersMapTakesThePlaceOfTheOlderKeyframes) {
+  const auto own = [&] {
+    int n = 0;
+    mapper_->map().keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { n += kf.anchor ? 0 : 1; });
+    return n;
+  };
+  for (int k = 5; k <= 12; ++k) {
+    ASSERT_TRUE(mapper_->process(keyframe(k, KeyframeKind::kTracked, truePose(k, scale_)), *snapshot_).ok());
+  }
+  ASSERT_EQ(own(), 9);
+  ASSERT_NE(keyframeById(KeyframeId{0, 0}), nullptr);  // no older keyframe covers the first one's place
+  AnchorMessage& m = message(1, 1);
+  addAnchor(m, 12, 100);
+  ASSERT_TRUE(mapper_->applyDownlink(m).ok());
+  ASSERT_EQ(anchorsHeld(), 1);
+  auto r13 = mapper_->process(keyframe(13, KeyframeKind::kTracked, truePose(13, scale_)), *snapshot_);
+  ASSERT_TRUE(r13.ok());
+  EXPECT_EQ(r13->evicted, 4);  // room for the new keyframe among the newest six
+  EXPECT_EQ(own(), 6);
+  EXPECT_EQ(keyframeById(KeyframeId{0, 0}), nullptr);
+  EXPECT_NE(keyframeById(KeyframeId{0, 8}), nullptr);  // the newest six: 8-13
+}
+
 TEST_F(MapperDownlinkTest, MessagesTwiceOutOfOrderOrReferringToWhatTheAgentLetGoAreHandled) {
   AnchorMessage& m = message(1, 5);
   addAnchor(m, 5, 100);
