@@ -3,8 +3,8 @@
 // a bearing and inverse depth in the camera of its reference keyframe, as the reprojection factor wants it.
 //
 // Capacity policy: insertKeyframe() and createMapPoint() report kCapacityExceeded instead of growing. The
-// mapping thread then evicts the oldest keyframe that is not an anchor (evictOldestKeyframe()) and culls map
-// points (cullMapPoints()). Removing a keyframe moves the reference of each of its map points to another
+// mapping thread then evicts an own keyframe (removeKeyframe(), which one: mapping/keyframe_retention.hpp) and
+// culls map points (cullMapPoints()). Removing a keyframe moves the reference of each of its map points to another
 // observing keyframe, or removes the point when none is left.
 //
 // Anchors (keyframes that came down from the server, KeyframeData::anchor) and the server's points

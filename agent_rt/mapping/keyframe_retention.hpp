@@ -2,9 +2,9 @@
 // stay: they are the local BA window, the keyframes new points are triangulated against and what tracking has
 // just seen. Up to `place_keyframes` older ones are kept for their places rather than their age: when one must
 // go, it is the one whose place an older keyframe covers best (nearest in camera position and viewing
-// direction). A robot that comes back to a place
-// then finds it mapped, its keyframes and points from the first visit, and tracking and local BA tie the new
-// keyframes to them; with only the newest keyframes kept, it maps the place again and the drift since stays.
+// direction). A robot that comes back to a place then finds it mapped, its keyframes and points from the first
+// visit, and tracking and local BA tie the new keyframes to them; with only the newest keyframes kept, it maps the
+// place again and the drift since stays.
 //
 // Measured against an older keyframe only, so that of two keyframes at one place the newer goes: the older has
 // been refined longer and carries the map the robot made on its first visit.
