@@ -486,12 +486,11 @@ KeyframeData& keyframeFromMessage(Mapper::State& s, const KeyframeMessage& msg, 
 // there, this agent's older ones among them, carry its global BA's states, where the own older keyframes still
 // carry the drift the server has taken out, and the two would pull local BA apart (on eight simulated agents with a
 // server, the onboard ATE went from 0.7-1.4 cm to 1.0-3.1 cm). Only the newest N stay then.
-void makeRoomForKeyframe(Mapper::State& s, MapperReport& report) {
-  std::vector<PoolHandle> own = s.keyframesBySequence();
-  bool server_map = false;
-  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { server_map = server_map || kf.anchor; });
+//
+// `own` is the map's own keyframes by sequence; those evicted leave it.
+void makeRoomForKeyframe(Mapper::State& s, std::vector<PoolHandle>& own, MapperReport& report) {
   KeyframeRetentionOptions retention = s.options.retention;
-  if (server_map) retention.place_keyframes = 0;
+  if (s.anchorCount() > 0) retention.place_keyframes = 0;
   const int most = s.options.max_keyframes + retention.place_keyframes;
   while (static_cast<int>(own.size()) >= most || s.map.keyframes().size() >= kMaxKeyframes) {
     if (!s.mono_start.views.empty() && !s.mono_initialised) break;
@@ -617,7 +616,7 @@ Status insertKeyframe(Mapper::State& s, const KeyframeMessage& msg, MapperReport
   std::vector<PoolHandle> order = s.keyframesBySequence();
   completeImuLinks(s, order);
   const KeyframeData& kf = keyframeFromMessage(s, msg, order.empty() ? nullptr : &order.back());
-  makeRoomForKeyframe(s, report);
+  makeRoomForKeyframe(s, order, report);
   auto inserted = s.map.insertKeyframe(kf);
   if (!inserted) return inserted.error();
   const PoolHandle handle = *inserted;

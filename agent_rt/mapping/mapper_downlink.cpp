@@ -48,12 +48,6 @@ void Mapper::State::applyPendingCorrections() {
 
 namespace {
 
-int countAnchors(const Mapper::State& s) {
-  int n = 0;
-  s.map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { n += kf.anchor ? 1 : 0; });
-  return n;
-}
-
 bool overCapacity(const AnchorMessage& msg) {
   return msg.selected_count > kMaxAnchorKeyframesPerMessage || msg.keyframe_count > kMaxAnchorKeyframesPerMessage ||
          msg.keyframe_update_count > kMaxAnchorKeyframesPerMessage || msg.point_count > kMaxAnchorPointsPerMessage ||
@@ -272,7 +266,7 @@ int addAnchors(Mapper::State& s, const AnchorMessage& msg, const std::unordered_
                std::unordered_map<KeyframeId, PoolHandle>& keyframe_by_id, DownlinkReport& report) {
   s.message_point.clear();
   for (std::uint32_t i = 0; i < msg.point_count; ++i) s.message_point.emplace(msg.points[i].id, i);
-  int anchors = countAnchors(s);
+  int anchors = s.anchorCount();
   int server_points = 0;
   s.map.mapPoints().forEach([&](PoolHandle, const MapPointData& p) { server_points += p.from_server ? 1 : 0; });
   for (std::uint16_t i = 0; i < msg.keyframe_count; ++i) {
@@ -306,7 +300,7 @@ Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
   if (s.downlink_seen &&
       (msg.stream < s.downlink_stream || (msg.stream == s.downlink_stream && msg.sequence <= s.downlink_sequence))) {
     report.stale = true;
-    report.anchors_held = countAnchors(s);
+    report.anchors_held = s.anchorCount();
     return report;
   }
   if (overCapacity(msg)) return Error{ErrorCode::kDataError, "downlink message over the message's capacities: refused"};
@@ -321,7 +315,7 @@ Result<DownlinkReport> Mapper::applyDownlink(const AnchorMessage& msg) {
   }
   if (msg.has_covisible != 0) report.skipped = covisibleSkipReason(s, msg, ready);
   if (msg.has_covisible == 0 || !report.skipped.empty()) {
-    report.anchors_held = countAnchors(s);
+    report.anchors_held = s.anchorCount();
     return report;
   }
   const std::unordered_set<KeyframeId> selected(msg.selected.begin(), msg.selected.begin() + msg.selected_count);

@@ -117,6 +117,13 @@ struct Mapper::State {
     T_local_server = geometry::SE3d();
   }
 
+  // The server's keyframes held in the local map.
+  [[nodiscard]] int anchorCount() const {
+    int n = 0;
+    map.keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { n += kf.anchor ? 1 : 0; });
+    return n;
+  }
+
   // Own keyframes by sequence, oldest first (anchors are not among them).
   [[nodiscard]] std::vector<PoolHandle> keyframesBySequence() const {
     std::vector<std::pair<std::uint64_t, PoolHandle>> order;
