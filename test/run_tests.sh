@@ -29,6 +29,19 @@ case "$preset" in
   *) echo "run_tests: unknown preset '$preset' (use default, asan or tsan)" >&2; exit 2 ;;
 esac
 
+# A full run from a clean checkout writes about 4 GB (this build 2.6 GB, the aarch64 build, the sysroot and the
+# simulator's renders). A full disk otherwise shows up minutes later as a linker error, so say it first and again
+# if the build fails.
+need_kb=$((5 * 1024 * 1024))
+disk_note() {
+  local free_kb
+  free_kb=$(df -Pk "$repo" | awk 'NR == 2 { print $4 }')
+  if [ "${free_kb:-0}" -lt "$need_kb" ]; then
+    echo "run_tests: only $((free_kb / 1024)) MB free on the disk holding $repo; a full run needs about" \
+      "$((need_kb / 1024)) MB. Free space there (old build/ folders, out/sim-cache) and run again." >&2
+  fi
+}
+disk_note
 "$repo/deploy/install_deps.sh"
 "$repo/deploy/install_deploy_tools.sh"
 cd "$repo"
@@ -40,7 +53,7 @@ start=$(date +%s)
 if [ ! -f "$build/build.ninja" ]; then
   cmake --preset "$preset" >/dev/null
 fi
-cmake --build --preset "$preset"
+cmake --build --preset "$preset" || { disk_note; exit 1; }
 echo "run_tests: build took $(( $(date +%s) - start )) s"
 junit="$build/ctest-junit.xml"
 ctest --preset "$preset" --output-junit "$PWD/$junit" "$@" || rc=$?
