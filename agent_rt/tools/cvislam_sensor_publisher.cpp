@@ -3,6 +3,7 @@
 //
 //   cvislam_sensor_publisher (--dataset SEQ_DIR | --mcap BAG.mcap [--calibration F --imu-calibration F])
 //                            --name NAME [--rate R] [--mode mono|stereo|auto] [--wait-for-agent S] [--max-frames N]
+//                            [--crash-after-frames N]
 //   cvislam_sensor_publisher (--dataset SEQ_DIR | ...) --write-calibration DIR
 //
 // The second form writes the recording's rig as Kalibr files (DIR/camchain-imucam.yaml, DIR/imu.yaml), which is
@@ -12,6 +13,8 @@
 // camera's own timestamps (a calibration's timeshift_cam_imu is taken off again, as a driver would not know it); the
 // IMU samples go out between them in time order. At the end it publishes end-of-stream, which ends the agent's run.
 // Exit status: 0 done, 1 the recording or iceoryx failed, 2 bad command line.
+#include <unistd.h>
+
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -46,6 +49,7 @@ struct PlayOptions {
   double rate = 1.0;
   bool stereo = false;
   std::size_t max_frames = 0;
+  std::size_t crash_after_frames = 0;  // 0: never
   bool quiet = false;
 };
 
@@ -105,6 +109,9 @@ PlayCounts play(Recording& recording, SensorPublisher& publisher, const PlayOpti
     std::this_thread::sleep_until(due(frame.t_ns));
     publisher.publishFrame(frame.t_ns - shift_ns);
     ++counts.frames;
+    // Between two publishes, where this process holds none of iceoryx's locks: a crash anywhere else can leave
+    // one held (they are not robust in iceoryx 2.0), and a test of the agent's recovery would test iceoryx's.
+    if (counts.frames == options.crash_after_frames) std::raise(SIGKILL);
     if (!options.quiet && Clock::now() - last_progress > std::chrono::seconds(2)) {
       last_progress = Clock::now();
       std::fprintf(stderr, "[publisher] frame %zu/%zu  t=%.1f s  IMU samples %zu\n", i + 1, frames.size(),
@@ -186,6 +193,9 @@ int main(int argc, char** argv) {
                  "Seconds to wait for an agent to subscribe before playing; 0: play at once, as a driver would [30]");
   app.add_option("--max-frames", play_options.max_frames, "Stop after this many frames (0 = all)");
   app.add_flag("--quiet", play_options.quiet, "No progress output");
+  app.add_option("--crash-after-frames", play_options.crash_after_frames,
+                 "For tests of a driver crash: kill this process (SIGKILL, no end-of-stream) right after frame N")
+      ->group("Testing");
   std::string write_calibration;
   app.add_option("--write-calibration", write_calibration,
                  "Write the recording's rig as Kalibr files (DIR/camchain-imucam.yaml, DIR/imu.yaml) for "
@@ -222,7 +232,11 @@ int main(int argc, char** argv) {
   play_options.stereo = mode == "stereo" || (mode == "auto" && rig.cam1.has_value());
   if (!write_calibration.empty()) return writeCalibration(rig, play_options.stereo, write_calibration);
 
-  if (auto s = cvislam::agent::attachToExternalRouDi("cvislam_publisher_" + name); !s.ok()) {
+  // The process id makes each start of a driver a new iceoryx process. Under its old name, RouDi would first clean
+  // up the driver's last run, and a run killed inside a publish can leave iceoryx 2.0's (non-robust) port lock held:
+  // that cleanup then blocks RouDi for every process on the machine.
+  const std::string runtime_name = "cvislam_publisher_" + name + "_" + std::to_string(::getpid());
+  if (auto s = cvislam::agent::attachToExternalRouDi(runtime_name); !s.ok()) {
     std::cerr << "cvislam_sensor_publisher: " << s.error().toString() << "\n";
     return 1;
   }
