@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <string>
 
 #include <Eigen/Dense>
@@ -130,6 +131,23 @@ LinearSystem buildSystem(const std::vector<SO3d>& R_v_s, const std::vector<Vecto
   return sys;
 }
 
+// The scale's standard deviation over the scale, from the least-squares covariance sigma^2 (A^T A)^-1 with sigma^2
+// estimated from the residual: how well the motion so far has observed scale, as the equations themselves say.
+// Infinite when there are no spare equations or the normal matrix is singular.
+double relativeScaleSigma(const LinearSystem& sys, const VectorXd& x) {
+  const Eigen::Index rows = sys.A.rows();
+  const Eigen::Index cols = sys.A.cols();
+  if (rows <= cols) return std::numeric_limits<double>::infinity();
+  const double sigma2 = (sys.A * x - sys.b).squaredNorm() / static_cast<double>(rows - cols);
+  const Eigen::LDLT<MatrixXd> normal(sys.A.transpose() * sys.A);
+  if (normal.info() != Eigen::Success || !normal.isPositive()) return std::numeric_limits<double>::infinity();
+  VectorXd unit = VectorXd::Zero(cols);
+  unit(cols - 1) = 1.0;
+  const double variance = sigma2 * normal.solve(unit)(cols - 1);
+  const double scale = x(cols - 1);
+  return variance >= 0.0 && scale > 0.0 ? std::sqrt(variance) / scale : std::numeric_limits<double>::infinity();
+}
+
 }  // namespace
 
 Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyframe>& keyframes,
@@ -209,12 +227,13 @@ Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyf
   }
 
   // Step 3: gravity on the sphere of radius |g|, two unknowns about the current direction.
+  LinearSystem last = free;
   for (int it = 0; it < options.gravity_refinement_iterations; ++it) {
     const Vector3d g_dir = g_v.normalized();
     const Eigen::Matrix<double, 3, 2> B = geometry::bearingTangentBasis(g_dir);
-    const LinearSystem refined = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), shift_s, preintegrations, bias, B,
-                                             options.gravity_magnitude * g_dir);
-    x = solve(refined, false).value();
+    last = buildSystem(R_v_s, c_v, R_v_c, T_c_s.translation(), shift_s, preintegrations, bias, B,
+                       options.gravity_magnitude * g_dir);
+    x = solve(last, false).value();
     g_v = (options.gravity_magnitude * g_dir + B * x.segment<2>(3 * n)).normalized() * options.gravity_magnitude;
     scale = x(x.size() - 1);
   }
@@ -223,6 +242,7 @@ Result<VisualInertialAlignment> alignVisualInertial(const std::vector<VisualKeyf
   }
 
   out.scale = scale;
+  if (!fixed_scale) out.scale_sigma_relative = relativeScaleSigma(last, x);
   out.g_v = g_v;
   // The smallest rotation that turns gravity down: the yaw of v is kept.
   out.R_w_v = SO3d::exp(geometry::greatCircleRotation(g_v.normalized(), -Vector3d::UnitZ()));

@@ -53,7 +53,11 @@ struct VisualKeyframe {
 };
 
 struct VisualInertialAlignment {
-  double scale = 1.0;    // metric = scale * visual
+  double scale = 1.0;  // metric = scale * visual
+  // The scale's standard deviation relative to it, from the fit's residual (0 with a known scale): how well the
+  // equations pin the scale down. On real data the residual holds model error too (the accelerometer bias is not
+  // estimated here), so it says more about the fit than about the scale's true error; the agent logs it.
+  double scale_sigma_relative = 0.0;
   geometry::SO3d R_w_v;  // rotates v into the gravity-aligned world
   Eigen::Vector3d gyro_bias = Eigen::Vector3d::Zero();
   double time_correction_s = 0.0;                 // estimated (estimate_time_offset), else the newest keyframe's
