@@ -1,6 +1,7 @@
 #include "agent_rt/mapping/imu_initialisation.hpp"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -212,17 +213,44 @@ void keepImuHistory(Mapper::State& s, const KeyframeMessage& msg) {
   }
 }
 
+namespace {
+// True when `scale` lies within imu_init_scale_agreement of each of the last early attempts' scales; otherwise it
+// joins them, the oldest leaving. The attempts follow keyframe by keyframe, so a scale that agrees with the ones
+// before it no longer moves with the motion the new keyframes add. Slots without an attempt yet are NaN, which
+// agrees with nothing.
+bool scaleHasSettled(Mapper::State& s, double scale) {
+  const double tolerance = s.options.imu_init_scale_agreement * scale;
+  const bool settled = std::all_of(s.early_scales.begin(), s.early_scales.end(),
+                                   [&](double earlier) { return std::abs(earlier - scale) <= tolerance; });
+  if (!settled) {
+    std::rotate(s.early_scales.begin(), s.early_scales.begin() + 1, s.early_scales.end());
+    s.early_scales.back() = scale;
+  }
+  return settled;
+}
+}  // namespace
+
 Status initialiseImu(Mapper::State& s, MapperReport& report) {
   const std::vector<PoolHandle> chain = imuLinkedChain(s);
-  if (static_cast<int>(chain.size()) < s.options.imu_init_keyframes) {
-    return Error{ErrorCode::kNotFound, std::to_string(chain.size()) + " IMU-linked keyframes"};
-  }
+  const int count = static_cast<int>(chain.size());
+  // A stereo map's scale is known: only a monocular one tries earlier, on the scale it has observed.
+  const int first_try =
+      s.right ? s.options.imu_init_keyframes : std::min(s.options.imu_init_min_keyframes, s.options.imu_init_keyframes);
+  if (count < first_try) return Error{ErrorCode::kNotFound, std::to_string(count) + " IMU-linked keyframes"};
+  const bool early = count < s.options.imu_init_keyframes;
   imu::VisualInertialAlignmentOptions alignment = s.options.alignment;
   if (s.right) alignment.known_scale = 1.0;  // the stereo map is metric already
   alignment.estimate_time_offset = s.options.ba.estimate_time_offset;
   alignment.max_time_offset_s = s.options.ba.max_time_offset_s;
   auto aligned = alignChain(s, chain, alignment);
-  if (!aligned) return aligned.error();
+  // Before imu_init_keyframes a refusal is not a failure: the attempt at imu_init_keyframes is the first that counts.
+  if (!aligned) {
+    s.forgetEarlyScales();
+    return early ? Error{ErrorCode::kNotFound, aligned.error().message()} : aligned.error();
+  }
+  if (early && !scaleHasSettled(s, aligned->scale)) {
+    return Error{ErrorCode::kNotFound, std::to_string(count) + " IMU-linked keyframes: the scale has not settled"};
+  }
   int retimings = 0;
   if (alignment.estimate_time_offset) {
     // Aligned again over the re-timed keyframes: the velocities, the scale and the offset then come from IMU
@@ -253,7 +281,8 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
   s.keyframes_since_imu_init = 0;
   report.imu_initialised_now = true;
   report.note = "IMU initialised over " + std::to_string(chain.size()) + " keyframes: scale " +
-                std::to_string(aligned->scale) + ", gyro bias " + std::to_string(aligned->gyro_bias.norm()) + " rad/s";
+                std::to_string(aligned->scale) + " (+-" + std::to_string(aligned->scale_sigma_relative * 100.0) +
+                " %), gyro bias " + std::to_string(aligned->gyro_bias.norm()) + " rad/s";
   if (alignment.estimate_time_offset) {
     report.note += ", time offset correction " + std::to_string(aligned->time_correction_s * 1e3) + " ms" +
                    (retimings > 0 ? " (the keyframes re-timed to it)" : "");

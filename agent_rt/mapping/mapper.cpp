@@ -36,6 +36,8 @@ Status MapperOptions::validate() const {
     return bad("imu_init_keyframes must be >= 4 and imu_init_max_keyframes >= imu_init_keyframes");
   }
   if (imu_init_max_keyframes > max_keyframes) return bad("imu_init_max_keyframes must not exceed max_keyframes");
+  if (imu_init_min_keyframes < 4) return bad("imu_init_min_keyframes must be >= 4");
+  if (!(imu_init_scale_agreement >= 0.0)) return bad("imu_init_scale_agreement must be >= 0");
   if (imu_init_full_window_keyframes < 0) return bad("imu_init_full_window_keyframes must be >= 0");
   if (!(mono_init_search_radius_px > 0.0)) return bad("mono_init_search_radius_px must be > 0");
   if (!(mono_init_ratio > 0.0 && mono_init_ratio <= 1.0)) return bad("mono_init_ratio must be in (0, 1]");

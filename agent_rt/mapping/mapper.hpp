@@ -70,6 +70,12 @@ struct MapperOptions {
   bool use_imu = true;
   int imu_init_keyframes = 15;      // keyframes before the IMU initialisation is tried (paper: 15)
   int imu_init_max_keyframes = 20;  // monocular: still failing then, the map is started again
+  // Monocular: from this many keyframes on, the alignment is tried at every keyframe, and the initialisation is made
+  // as soon as its scale has settled: the last three attempts' scales within imu_init_scale_agreement of each other
+  // (relative). At imu_init_keyframes it is made whatever they were. Motion that shows the scale clearly gives the
+  // metric map sooner; motion that does not is not initialised on a scale that still moves.
+  int imu_init_min_keyframes = 10;
+  double imu_init_scale_agreement = 0.0075;
   // Monocular: the next keyframes' local BAs after the IMU initialisation take every own keyframe, not the
   // window. The scale estimated from the first seconds then goes on being estimated with all the motion since,
   // rather than being held by the keyframes a window keeps fixed. (ORB-SLAM3 refines scale and gravity over the

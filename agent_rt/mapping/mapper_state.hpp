@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <array>
 #include <cstdint>
+#include <limits>
 #include <optional>
 #include <unordered_map>
 #include <utility>
@@ -43,7 +44,12 @@ struct Mapper::State {
   bool imu_initialised = false;
   bool mono_initialised = false;
   int keyframes_since_imu_init = 0;  // local BAs with the IMU since its initialisation
-  bool ba_skipped_last = false;      // the previous keyframe's local BA was skipped (the next one is not)
+  // Monocular: the scales of the last two initialisation attempts before imu_init_keyframes, newest last; NaN
+  // where there was none.
+  std::array<double, 2> early_scales{kNoScale, kNoScale};
+  static constexpr double kNoScale = std::numeric_limits<double>::quiet_NaN();
+  void forgetEarlyScales() { early_scales.fill(kNoScale); }
+  bool ba_skipped_last = false;  // the previous keyframe's local BA was skipped (the next one is not)
   // A monocular map waiting for its two-view start: the reference keyframe, then every keyframe since, oldest
   // first; per keyframe the keypoint each of the reference's keypoints was found at (-1: not found there), and
   // the camera's rotation from the reference by the gyro.
@@ -111,6 +117,7 @@ struct Mapper::State {
     map.mapPoints().forEach([&](PoolHandle h, const MapPointData&) { points.push_back(h); });
     for (PoolHandle h : points) (void)map.removeMapPoint(h);
     imu_initialised = false;
+    forgetEarlyScales();
     mono_initialised = false;
     mono_start.clear();
     pending_corrections.clear();

@@ -36,6 +36,8 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   imu.read("noise_inflation", o.imu_noise_inflation);
   imu.read("init_keyframes", o.mapping.imu_init_keyframes);
   imu.read("init_max_keyframes", o.mapping.imu_init_max_keyframes);
+  imu.read("init_min_keyframes", o.mapping.imu_init_min_keyframes);
+  imu.read("init_scale_agreement", o.mapping.imu_init_scale_agreement);
   imu.read("init_full_window_keyframes", o.mapping.imu_init_full_window_keyframes);
   imu.read("estimate_time_offset", o.mapping.ba.estimate_time_offset);
   imu.read("max_time_offset_s", o.mapping.ba.max_time_offset_s);

@@ -121,6 +121,8 @@ TEST(AgentConfig, ReadsThreadSchedulesAndNamesBadOnes) {
   EXPECT_EQ(shipped.threads.mapping.nice, defaults.threads.mapping.nice);
   EXPECT_EQ(shipped.tracking.lag.min_tracked_points_when_busy, defaults.tracking.lag.min_tracked_points_when_busy);
   EXPECT_EQ(shipped.threads.lower_others_with_realtime, defaults.threads.lower_others_with_realtime);
+  EXPECT_EQ(shipped.mapping.imu_init_min_keyframes, defaults.mapping.imu_init_min_keyframes);
+  EXPECT_DOUBLE_EQ(shipped.mapping.imu_init_scale_agreement, defaults.mapping.imu_init_scale_agreement);
 }
 
 TEST(AgentConfig, ReadsTrackingsMatchingAndKeyframeThresholdsAndNamesBadOnes) {
@@ -173,6 +175,18 @@ TEST(AgentConfig, ReadsThePlaceKeyframesAndNamesBadOnes) {
   EXPECT_NE(status.error().message().find("place_keyframes"), std::string::npos) << status.error().message();
   EXPECT_NE(status.error().message().find("CVISLAM_MAX_KEYFRAMES"), std::string::npos) << status.error().message();
   expectEachRefusedNamingItsKey(dir, "mapping", {"place_keyframes: -1", "place_angle_weight_m: -2"},
+                                [](const AgentOptions& o) { return o.mapping.validate(); });
+}
+
+TEST(AgentConfig, ReadsTheEarlyImuInitialisationAndNamesBadValues) {
+  test::TempDir dir;
+  AgentOptions early;
+  ASSERT_TRUE(
+      loadAgentConfig(writeConfig(dir, "imu:\n  init_min_keyframes: 12\n  init_scale_agreement: 0.002\n"), early).ok());
+  EXPECT_EQ(early.mapping.imu_init_min_keyframes, 12);
+  EXPECT_DOUBLE_EQ(early.mapping.imu_init_scale_agreement, 0.002);
+  EXPECT_TRUE(early.mapping.validate().ok());
+  expectEachRefusedNamingItsKey(dir, "imu", {"init_min_keyframes: 3", "init_scale_agreement: -0.1"},
                                 [](const AgentOptions& o) { return o.mapping.validate(); });
 }
 
