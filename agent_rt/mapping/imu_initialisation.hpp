@@ -34,7 +34,8 @@ bool integrateImuLink(const Mapper::State& s, const KeyframeData& previous, std:
 // the images' true times lie between. False when the gap is longer than the bound or there is no history.
 bool linkFromBeforeFirstSample(const Mapper::State& s, const KeyframeData& previous, KeyframeData& kf);
 
-// kNotFound while there are too few IMU-linked keyframes; other errors when the alignment refuses the motion.
+// kNotFound while there are too few IMU-linked keyframes, and before imu_init_keyframes while a monocular map's scale
+// has not settled or the alignment refuses; other errors when the alignment refuses the motion at the full count.
 Status initialiseImu(Mapper::State& s, MapperReport& report);
 
 }  // namespace cvislam::agent

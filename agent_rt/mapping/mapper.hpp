@@ -68,7 +68,7 @@ struct MapperOptions {
   int fuse_max_distance = 40;         // Hamming bits
   double fuse_max_depth_ratio = 0.2;  // duplicates: depths in the keyframe's camera within this share
   bool use_imu = true;
-  int imu_init_keyframes = 15;      // keyframes before the IMU initialisation is tried (paper: 15)
+  int imu_init_keyframes = 15;      // keyframes at which the IMU initialisation is made (paper: 15)
   int imu_init_max_keyframes = 20;  // monocular: still failing then, the map is started again
   // Monocular: from this many keyframes on, the alignment is tried at every keyframe, and the initialisation is made
   // as soon as its scale has settled: the last three attempts' scales within imu_init_scale_agreement of each other
