@@ -60,6 +60,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   tracking.read("relocalisation_radius_px", o.tracking.relocalisation_radius_px);
   tracking.read("max_frames_between_keyframes", o.tracking.keyframe.max_frames_between);
   tracking.read("max_keyframe_interval_s", o.tracking.keyframe.max_interval_s);
+  tracking.read("init_max_frames_between_keyframes", o.tracking.initialisation_max_frames_between);
   tracking.read("min_coverage_ratio", o.tracking.keyframe.min_coverage_ratio);
   tracking.read("min_tracked_points", o.tracking.keyframe.min_tracked_points);
   tracking.read("max_lost_frames", o.tracking.max_lost_frames);

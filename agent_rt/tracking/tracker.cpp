@@ -32,7 +32,9 @@ Status TrackerOptions::validate() const {
   }
   if (!(sigma_px > 0.0)) return Error{ErrorCode::kInvalidArgument, "tracker: sigma_px must be > 0"};
   if (initialisation_max_frames_between < 1) {
-    return Error{ErrorCode::kInvalidArgument, "tracker: initialisation_max_frames_between must be >= 1"};
+    return Error{
+        ErrorCode::kInvalidArgument,
+        "tracker: initialisation_max_frames_between (tracking.init_max_frames_between_keyframes) must be >= 1"};
   }
   if (max_lost_frames < 1) return Error{ErrorCode::kInvalidArgument, "tracker: max_lost_frames must be >= 1"};
   if (!(max_dead_reckoning_s > 0.0)) {

@@ -117,6 +117,7 @@ TEST(AgentConfig, ReadsThreadSchedulesAndNamesBadOnes) {
   EXPECT_EQ(shipped.tracking.search.max_distance, defaults.tracking.search.max_distance);
   EXPECT_FLOAT_EQ(shipped.tracking.search.ratio, defaults.tracking.search.ratio);
   EXPECT_DOUBLE_EQ(shipped.tracking.keyframe.max_interval_s, defaults.tracking.keyframe.max_interval_s);
+  EXPECT_EQ(shipped.tracking.initialisation_max_frames_between, defaults.tracking.initialisation_max_frames_between);
   EXPECT_EQ(shipped.threads.tracking.realtime_priority, defaults.threads.tracking.realtime_priority);
   EXPECT_EQ(shipped.threads.mapping.nice, defaults.threads.mapping.nice);
   EXPECT_EQ(shipped.tracking.lag.min_tracked_points_when_busy, defaults.tracking.lag.min_tracked_points_when_busy);
@@ -130,14 +131,16 @@ TEST(AgentConfig, ReadsTrackingsMatchingAndKeyframeThresholdsAndNamesBadOnes) {
   const auto write = [&](const std::string& text) { return writeConfig(dir, text); };
   AgentOptions matching;
   ASSERT_TRUE(loadAgentConfig(write("tracking:\n  max_descriptor_distance: 70\n  match_ratio: 0.8\n"
-                                    "  max_keyframe_interval_s: 0.25\n"),
+                                    "  max_keyframe_interval_s: 0.25\n  init_max_frames_between_keyframes: 5\n"),
                               matching)
                   .ok());
   EXPECT_EQ(matching.tracking.search.max_distance, 70);
+  EXPECT_EQ(matching.tracking.initialisation_max_frames_between, 5);
   EXPECT_FLOAT_EQ(matching.tracking.search.ratio, 0.8F);
   EXPECT_DOUBLE_EQ(matching.tracking.keyframe.max_interval_s, 0.25);
   expectEachRefusedNamingItsKey(dir, "tracking",
-                                {"max_descriptor_distance: 300", "match_ratio: 0", "max_keyframe_interval_s: -1"},
+                                {"max_descriptor_distance: 300", "match_ratio: 0", "max_keyframe_interval_s: -1",
+                                 "init_max_frames_between_keyframes: 0"},
                                 [](const AgentOptions& o) { return o.tracking.validate(); });
 }
 
