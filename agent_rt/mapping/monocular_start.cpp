@@ -162,21 +162,22 @@ void velocitiesFromPositions(Mapper::State& s, const std::vector<PoolHandle>& vi
   }
 }
 
-// The first map from the reference and the newest keyframe, when their followed keypoints show enough parallax,
-// and the keyframes between placed on it.
-Status initialiseFromTwoViews(Mapper::State& s, MapperReport& report) {
+// The first map from the view `first` (the reference, or a keyframe after it) and the newest keyframe, when their
+// followed keypoints show enough parallax, and the other waiting keyframes placed on it.
+Status initialiseFromTwoViews(Mapper::State& s, std::size_t first, MapperReport& report) {
   MonocularStart& start = s.mono_start;
-  const PoolHandle reference = start.views.front();
+  const PoolHandle reference = start.views[first];
   const PoolHandle newest = start.views.back();
   const KeyframeData& kf0 = *s.map.keyframes().get(reference);
   const KeyframeData& kf1 = *s.map.keyframes().get(newest);
+  const std::vector<std::int32_t>& in_first = start.followed[first];
   const std::vector<std::int32_t>& last = start.followed.back();
   std::vector<Vector3d> b0;
   std::vector<Vector3d> b1;
   std::vector<std::size_t> tracks;
   for (std::size_t track = 0; track < last.size(); ++track) {
-    if (last[track] < 0) continue;
-    b0.push_back(s.left.unproject(kf0.keypoints[track].px.cast<double>()));
+    if (in_first[track] < 0 || last[track] < 0) continue;
+    b0.push_back(s.left.unproject(kf0.keypoints[static_cast<std::size_t>(in_first[track])].px.cast<double>()));
     b1.push_back(s.left.unproject(kf1.keypoints[static_cast<std::size_t>(last[track])].px.cast<double>()));
     tracks.push_back(track);
   }
@@ -205,18 +206,18 @@ Status initialiseFromTwoViews(Mapper::State& s, MapperReport& report) {
     if (geometry->inlier[i] == 0) continue;
     const std::size_t track = tracks[i];
     const Vector3d p_c0 = geometry->p_c0[i] * scale;
-    auto point = s.map.createMapPoint(reference, static_cast<std::uint16_t>(track), p_c0.normalized(), p_c0.norm(),
-                                      s.point_ids.next());
+    auto point = s.map.createMapPoint(reference, static_cast<std::uint16_t>(in_first[track]), p_c0.normalized(),
+                                      p_c0.norm(), s.point_ids.next());
     if (!point) continue;
     (void)s.map.addObservation(newest, static_cast<std::uint16_t>(last[track]), *point);
     point_of_track[track] = *point;
     p_c0_of_track[track] = p_c0;
     ++created;
   }
-  std::vector<PoolHandle> placed{reference};
+  std::vector<PoolHandle> placed;
   int dropped = 0;
-  for (std::size_t v = 1; v + 1 < start.views.size(); ++v) {
-    if (registerView(s, start.views[v], start.followed[v], point_of_track, p_c0_of_track, T_w_c0)) {
+  for (std::size_t v = 0; v + 1 < start.views.size(); ++v) {
+    if (v == first || registerView(s, start.views[v], start.followed[v], point_of_track, p_c0_of_track, T_w_c0)) {
       placed.push_back(start.views[v]);
     } else {
       // Its IMU link goes with it: the chain the IMU initialisation aligns starts after it.
@@ -229,10 +230,11 @@ Status initialiseFromTwoViews(Mapper::State& s, MapperReport& report) {
   s.mono_initialised = true;
   report.mono_initialised_now = true;
   report.triangulated += created;
-  report.note = "monocular map from two views " + std::to_string(start.views.size() - 1) +
-                " keyframes apart: " + std::to_string(created) + " points, median parallax " +
-                std::to_string(geometry->median_parallax_deg) + " deg, " + std::to_string(placed.size() - 2) +
-                " keyframes between placed" + (dropped > 0 ? " (" + std::to_string(dropped) + " left out)" : "");
+  report.note = "monocular map from two views " + std::to_string(start.views.size() - 1 - first) + " keyframes apart" +
+                (first > 0 ? " (the first " + std::to_string(first) + " after the reference)" : "") + ": " +
+                std::to_string(created) + " points, median parallax " + std::to_string(geometry->median_parallax_deg) +
+                " deg, " + std::to_string(placed.size() - 2) + " keyframes between placed" +
+                (dropped > 0 ? " (" + std::to_string(dropped) + " left out)" : "");
   start.clear();
   return Status::Ok();
 }
@@ -255,8 +257,13 @@ void tryMonocularStart(Mapper::State& s, PoolHandle handle, MapperReport& report
     startOver(s, handle);
     return;
   }
-  const Status st = initialiseFromTwoViews(s, report);
+  // The reference first. A start that moves back and forth can bring the camera back near the reference while a
+  // keyframe between saw the scene from far enough away: then that one makes the map with the newest.
+  const Status st = initialiseFromTwoViews(s, 0, report);
   if (st.ok()) return;
+  for (std::size_t first = 1; first + 1 < start.views.size(); ++first) {
+    if (initialiseFromTwoViews(s, first, report).ok()) return;
+  }
   report.note = st.error().message();
   // The waiting keyframes stay in the map: leave room for the ones that come after the start.
   if (static_cast<int>(start.views.size()) >= s.options.max_keyframes / 2) {

@@ -66,11 +66,12 @@ class MapperTest : public ::testing::Test {
 
   virtual void adjust(MapperOptions& /*options*/) {}
 
-  // The camera looks along world z; keyframe k sits at x = 0.25 k, with a small yaw. `scale` scales the
+  // The camera looks along world z; keyframe k sits at x = 0.25 k (or x_m_[k]), with a small yaw. `scale` scales the
   // camera's position (a monocular map is the scene up to scale about camera 0).
   [[nodiscard]] geometry::SE3d truePose(int k, double scale = 1.0) const {
+    const double x_m = x_m_.empty() ? step_m_ * k : x_m_[static_cast<std::size_t>(k)];
     const geometry::SE3d T_w_c(geometry::SO3d::exp(Eigen::Vector3d(0.0, 0.02 * k, 0.0)),
-                               scale * Eigen::Vector3d(step_m_ * k, 0.02 * k, 0.0));
+                               scale * Eigen::Vector3d(x_m, 0.02 * k, 0.0));
     return T_w_c * T_s_c_.inverse();
   }
 
@@ -114,7 +115,8 @@ class MapperTest : public ::testing::Test {
   std::unique_ptr<MapSnapshotMessage> snapshot_;
   std::vector<std::size_t> keypoint_point_;
   Scene scene_ = makeScene(400, 3);
-  double step_m_ = 0.25;  // sideways between keyframes k and k + 1
+  double step_m_ = 0.25;     // sideways between keyframes k and k + 1
+  std::vector<double> x_m_;  // when set, keyframe k's sideways position instead (a start that moves back and forth)
 };
 
 }  // namespace cvislam::agent

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <memory>
 #include <random>
+#include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -196,6 +197,39 @@ TEST_F(MapperTest, MonocularStartFollowsTheReferencesKeypointsAndKeepsTheKeyfram
     ASSERT_NE(data, nullptr);
     for (std::uint16_t j = 0; j < data->keypoint_count; ++j) observations += data->has_map_point[j] ? 1 : 0;
     EXPECT_GT(observations, 50) << "keyframe " << k;
+  }
+}
+
+TEST_F(MapperTest, MonocularStartFromAKeyframeAfterTheReferenceWhenTheCameraCameBackNearIt) {
+  // Sideways 0, -0.1, +0.1 m: each keyframe is 0.1 m from the reference, a median parallax of about 0.75 deg, too
+  // little for the start (1 deg), but the last two are 0.2 m apart.
+  x_m_ = {0.0, -0.1, 0.1};
+  auto r0 = mapper_->process(keyframe(0, KeyframeKind::kNewMap, truePose(0)), *snapshot_);
+  ASSERT_TRUE(r0.ok());
+  auto r1 = mapper_->process(keyframe(1, KeyframeKind::kTracked, truePose(0)), *snapshot_);
+  ASSERT_TRUE(r1.ok());
+  ASSERT_FALSE(r1->mono_initialised_now) << r1->note;
+  auto r2 = mapper_->process(keyframe(2, KeyframeKind::kTracked, truePose(0)), *snapshot_);
+  ASSERT_TRUE(r2.ok());
+  ASSERT_TRUE(r2->mono_initialised_now) << r2->note;
+  EXPECT_NE(r2->note.find("the first 1 after the reference"), std::string::npos) << r2->note;
+  EXPECT_GT(r2->triangulated, 200);
+
+  // All three keyframes are in the map, the reference placed on the start's points: the IMU chain starts there.
+  // Positions about keyframe 1's camera (the map's first view) agree with the truth up to the map's one scale.
+  ASSERT_EQ(snapshot_->keyframe_count, 3u);
+  std::vector<SE3d> T_w_c(3);
+  for (std::uint32_t i = 0; i < snapshot_->keyframe_count; ++i) {
+    const KeyframeStateMsg& kf = snapshot_->keyframes[i];
+    T_w_c[kf.id.counter] = fromMsg(kf.T_w_s) * T_s_c_;
+  }
+  const auto relative = [&](int k) { return T_w_c[1].inverse() * T_w_c[static_cast<std::size_t>(k)]; };
+  const auto relative_true = [&](int k) { return (truePose(1) * T_s_c_).inverse() * truePose(k) * T_s_c_; };
+  const double scale = relative(2).translation().norm() / relative_true(2).translation().norm();
+  for (int k : {0, 2}) {
+    EXPECT_LT((relative(k).translation() - scale * relative_true(k).translation()).norm(), 0.02 * scale * 0.2)
+        << "keyframe " << k;
+    EXPECT_LT((relative(k).so3().inverse() * relative_true(k).so3()).log().norm(), 1e-3) << "keyframe " << k;
   }
 }
 
