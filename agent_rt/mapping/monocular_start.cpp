@@ -233,7 +233,7 @@ Status initialiseFromTwoViews(Mapper::State& s, std::size_t first, MapperReport&
   report.note = "monocular map from two views " + std::to_string(start.views.size() - 1 - first) + " keyframes apart" +
                 (first > 0 ? " (the first " + std::to_string(first) + " after the reference)" : "") + ": " +
                 std::to_string(created) + " points, median parallax " + std::to_string(geometry->median_parallax_deg) +
-                " deg, " + std::to_string(placed.size() - 2) + " keyframes between placed" +
+                " deg, " + std::to_string(placed.size() - 2) + " other keyframes placed" +
                 (dropped > 0 ? " (" + std::to_string(dropped) + " left out)" : "");
   start.clear();
   return Status::Ok();
