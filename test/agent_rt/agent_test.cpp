@@ -365,11 +365,7 @@ ClockShiftedRig renderClockShiftedRig(const fs::path& dir) {
   ClockShiftedRig rig{dir / "clock_synced", dir / "clock_shifted", dir / "clock_kalibr" / "camchain-imucam.yaml",
                       dir / "clock_kalibr" / "camchain-shifted.yaml", dir / "clock_kalibr" / "imu.yaml"};
   if (fs::exists(rig.camchain_shifted)) return rig;  // rendered by an earlier test of this process
-  sim::MissionPlanOptions plan_options;
-  plan_options.preset = "loop";
-  plan_options.seed = 4;
-  plan_options.duration_s = 6.0;
-  auto plan = sim::planMission(plan_options);
+  auto plan = sim::planPreset("loop", 4, 6.0);
   EXPECT_TRUE(plan.ok()) << plan.error().toString();
   if (!plan.ok()) return rig;
   for (const auto& [folder, shift_ns] :

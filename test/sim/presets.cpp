@@ -359,4 +359,12 @@ Result<MissionPlan> planMission(const MissionPlanOptions& options) {
   return plan;
 }
 
+Result<MissionPlan> planPreset(const std::string& preset, std::uint64_t seed, double duration_s) {
+  MissionPlanOptions options;
+  options.preset = preset;
+  options.seed = seed;
+  options.duration_s = duration_s;
+  return planMission(options);
+}
+
 }  // namespace cvislam::sim

@@ -42,4 +42,7 @@ std::filesystem::path defaultDataDir();
 
 Result<MissionPlan> planMission(const MissionPlanOptions& options);
 
+// A preset's plan with every other option at its default, as most tests and tools want it.
+Result<MissionPlan> planPreset(const std::string& preset, std::uint64_t seed, double duration_s);
+
 }  // namespace cvislam::sim

@@ -37,11 +37,7 @@ class ImuInitialisationTiming : public ::testing::Test {
 
   // The flight's IMU (EuRoC-grade noise when `noise`) and its true states, 4 s from kStartNs on.
   void simulate(bool noise, bool stereo = false) {
-    sim::MissionPlanOptions plan_options;
-    plan_options.preset = "loop";
-    plan_options.seed = 3;
-    plan_options.duration_s = 5.0;
-    auto plan = sim::planMission(plan_options);
+    auto plan = sim::planPreset("loop", 3, 5.0);
     ASSERT_TRUE(plan.ok()) << plan.error().toString();
     sim::ImuSimulatorOptions imu_options;
     imu_options.noise = noise;

@@ -34,11 +34,7 @@ class PlaceRecognitionTest : public ::testing::Test {
     Result<features::Vocabulary> vocabulary = features::Vocabulary::load(CVISLAM_VOCABULARY_FILE);
     ASSERT_TRUE(vocabulary.ok()) << vocabulary.error().message();
     vocabulary_ = std::make_unique<features::Vocabulary>(std::move(vocabulary).value());
-    sim::MissionPlanOptions plan_options;
-    plan_options.preset = "loop";
-    plan_options.seed = 1;
-    plan_options.duration_s = 60.0;
-    Result<sim::MissionPlan> plan = sim::planMission(plan_options);
+    Result<sim::MissionPlan> plan = sim::planPreset("loop", 1, 60.0);
     ASSERT_TRUE(plan.ok()) << plan.error().message();
     plan_ = std::make_unique<sim::MissionPlan>(std::move(plan).value());
     sim::WorldOptions world_options;

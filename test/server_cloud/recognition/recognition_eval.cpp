@@ -79,12 +79,7 @@ Result<RecognitionEvaluation> evaluateRecognition(const RecognitionEvalOptions& 
   const auto say = [&](const std::string& text) {
     if (options.progress) options.progress(text);
   };
-  sim::MissionPlanOptions plan_options;
-  plan_options.preset = options.preset;
-  plan_options.seed = options.seed;
-  plan_options.duration_s = options.duration_s;
-  plan_options.data_dir = sim::defaultDataDir();
-  Result<sim::MissionPlan> plan = sim::planMission(plan_options);
+  Result<sim::MissionPlan> plan = sim::planPreset(options.preset, options.seed, options.duration_s);
   if (!plan) return plan.error().withContext("planning " + options.preset);
   sim::WorldOptions world_options;
   world_options.seed = options.seed;

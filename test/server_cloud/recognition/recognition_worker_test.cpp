@@ -28,10 +28,7 @@ RecognitionWorkerOptions workerOptions() {
 // Two agents' maps in mission "m" of `registry`, six keyframes each of the same stretch (agent 1 0.2 s later, in
 // its own frame E_b_w), and the events ingest would have queued for them.
 void buildTwoAgentMission(MissionRegistry& registry, const geometry::SE3d& E_b_w, std::vector<KeyframeEvent>& events) {
-  sim::MissionPlanOptions plan_options;
-  plan_options.preset = "loop";
-  plan_options.seed = 1;
-  auto plan = sim::planMission(plan_options);
+  auto plan = sim::planPreset("loop", 1, 60.0);
   ASSERT_TRUE(plan.ok());
   sim::WorldOptions world_options;
   world_options.seed = 1;
