@@ -59,9 +59,13 @@ struct LocalBundleAdjustmentOptions {
 struct LocalBundleAdjustmentSummary {
   int window_keyframes = 0;
   int fixed_keyframes = 0;
-  int anchor_keyframes = 0;     // of the fixed ones: the server's
-  int map_points = 0;           // optimised
-  int map_points_left_out = 0;  // observed by the window but with no inverse-depth point: not optimised
+  int anchor_keyframes = 0;  // of the fixed ones: the server's
+  // How many keyframes before the window's newest the oldest of the agent's own fixed keyframes came (by
+  // KeyframeData::sequence); 0 when none is held. Large when the window sees a place mapped long ago again.
+  std::uint64_t oldest_fixed_age_keyframes = 0;
+  std::uint64_t newest_sequence = 0;  // the window's newest keyframe's KeyframeData::sequence
+  int map_points = 0;                 // optimised
+  int map_points_left_out = 0;        // observed by the window but with no inverse-depth point: not optimised
   int reprojection_factors = 0;
   int anchor_factors = 0;          // included in reprojection_factors: observations by anchors
   int second_camera_factors = 0;   // included in reprojection_factors

@@ -28,6 +28,7 @@ Status MapperOptions::validate() const {
     return bad("max_keyframes must be in [2, " + std::to_string(kMaxKeyframes) + "] (CVISLAM_MAX_KEYFRAMES)");
   }
   if (ba.window > max_keyframes) return bad("the BA window must not exceed max_keyframes");
+  if (return_full_window_keyframes < 0) return bad("return_full_window_keyframes must be >= 0");
   if (Status st = retention.validate(); !st.ok()) return st;
   if (triangulation_neighbours < 0) return bad("triangulation_neighbours must be >= 0");
   if (!(fuse_radius_px > 0.0)) return bad("fuse_radius_px must be > 0");
@@ -519,6 +520,27 @@ void linkTrackedMatches(Mapper::State& s, PoolHandle handle, const KeyframeMessa
   }
 }
 
+// A window that holds fixed one of the agent's own keyframes from well before the local map's newest ones (one
+// kept for its place), where the last BA held none that old, has come back over a place mapped long ago: it
+// starts the whole-map BAs of MapperOptions::return_full_window_keyframes. "Well before": older than the newest
+// max_keyframes by as many again. "None that old": the last BA's oldest fixed keyframe was at least max_keyframes
+// newer. A keyframe that was never out of view only ages from one BA to the next, and its window has been held
+// to it all along: that is no return.
+void noteReturnToPlace(Mapper::State& s, const LocalBundleAdjustmentSummary& ba, MapperReport& report) {
+  const auto n = static_cast<std::uint64_t>(s.options.max_keyframes);
+  const std::uint64_t age = ba.oldest_fixed_age_keyframes;
+  const std::uint64_t oldest =
+      age > 0 && age <= ba.newest_sequence ? ba.newest_sequence - age : Mapper::State::kNoFixedKeyframe;
+  const bool from_long_ago = age >= 2 * n;
+  const bool newly_in_view = s.last_oldest_fixed_sequence == Mapper::State::kNoFixedKeyframe ||
+                             (oldest != Mapper::State::kNoFixedKeyframe && s.last_oldest_fixed_sequence >= oldest + n);
+  if (from_long_ago && newly_in_view && s.options.return_full_window_keyframes > 0) {
+    s.return_full_window_left = s.options.return_full_window_keyframes;
+    report.returned_to_place = true;
+  }
+  s.last_oldest_fixed_sequence = oldest;
+}
+
 // Local BA over the window, skipped (at most every other keyframe, never for the keyframe that made the
 // monocular map) when tracking has keyframes waiting.
 void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyframe_waiting, MapperReport& report) {
@@ -541,11 +563,16 @@ void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyfra
     ba.window = s.options.max_keyframes;
   }
   if (ba.use_imu) ++s.keyframes_since_imu_init;
+  if (s.return_full_window_left > 0) {  // back over a place mapped long ago
+    ba.window = s.options.max_keyframes;
+    --s.return_full_window_left;
+  }
   const auto t0 = std::chrono::steady_clock::now();
   const trace::Span span("local_ba");
   auto summary = runLocalBundleAdjustment(s.map, ba, yield);
   report.ba_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - t0).count();
   if (summary) {
+    noteReturnToPlace(s, *summary, report);
     report.ba_ran = true;
     report.ba = *summary;
   }

@@ -81,6 +81,11 @@ struct MapperOptions {
   // rather than being held by the keyframes a window keeps fixed. (ORB-SLAM3 refines scale and gravity over the
   // whole map a few seconds after the initialisation; here the map is the local one.)
   int imu_init_full_window_keyframes = 10;
+  // Coming back over a place mapped long ago (a keyframe kept for its place, KeyframeRetentionOptions), the window
+  // meets the drift since, with that keyframe held fixed. The next this-many keyframes' local BAs take every own
+  // keyframe, not the window, so that the correction spreads over the whole local map instead of bending the
+  // window: on the simulated `loop`, the window's scale came out up to 4 % short for a few seconds. 0: never.
+  int return_full_window_keyframes = 20;
   imu::VisualInertialAlignmentOptions alignment;
   int mono_init_min_matches = 80;
   double mono_init_min_parallax_deg = 1.0;  // median, rotation compensated
@@ -116,7 +121,8 @@ struct MapperReport {
   int culled = 0;
   int evicted = 0;
   bool ba_ran = false;
-  bool ba_skipped = false;  // the next keyframe was waiting, or tracking asked (yield_to_waiting_keyframes)
+  bool ba_skipped = false;         // the next keyframe was waiting, or tracking asked (yield_to_waiting_keyframes)
+  bool returned_to_place = false;  // this BA's window came back over a place mapped long ago (whole-map BAs next)
   LocalBundleAdjustmentSummary ba;
   std::int64_t ba_ns = 0;
   std::uint64_t lost_messages = 0;      // keyframe messages missing before this one

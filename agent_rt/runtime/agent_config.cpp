@@ -79,6 +79,7 @@ Status loadAgentConfig(const std::filesystem::path& file, AgentOptions& o) {
   mapping.read("place_keyframes", o.mapping.retention.place_keyframes);
   mapping.read("place_angle_weight_m", o.mapping.retention.angle_weight_m);
   mapping.read("ba_window", o.mapping.ba.window);
+  mapping.read("return_full_window_keyframes", o.mapping.return_full_window_keyframes);
   mapping.read("ba_iterations", o.mapping.ba.max_iterations);
   mapping.read("yield_to_waiting_keyframes", o.mapping.yield_to_waiting_keyframes);
   mapping.read("min_covisible", o.mapping.ba.min_covisible);

@@ -98,22 +98,24 @@ void traceDownlink(const AnchorMessage& m, const DownlinkReport& r) {
 
 void traceKeyframe(double t_s, const KeyframeMessage& msg, const MapperReport& report, bool yielded_to_tracking) {
   const LocalBundleAdjustmentSummary& ba = report.ba;
-  std::fprintf(stderr,
-               "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
-               "triangulated %d, culled %d; BA %d keyframes + %d fixed (%d anchors), %d points (%d left out), %d "
-               "factors (%d cam1, %d mismatches left out, %d by anchors), cost %.1f -> %.1f in %d iterations, "
-               "%.1f ms%s%s%s\n",
-               t_s, msg.state.id.toString().c_str(), report.linked, report.fused, report.merged, report.stereo_matches,
-               report.stereo_points, report.triangulated, report.culled, ba.window_keyframes, ba.fixed_keyframes,
-               ba.anchor_keyframes, ba.map_points, ba.map_points_left_out, ba.reprojection_factors,
-               ba.second_camera_factors, ba.second_camera_rejected, ba.anchor_factors, ba.initial_cost, ba.final_cost,
-               ba.iterations, static_cast<double>(report.ba_ns) * 1e-6,
-               report.ba_skipped && yielded_to_tracking  ? " (BA skipped: tracking asked)"
-               : report.ba_skipped                       ? " (BA skipped: the next keyframe is waiting)"
-               : ba.stopped_early && yielded_to_tracking ? " (BA cut short: tracking asked)"
-               : ba.stopped_early                        ? " (BA cut short: the next keyframe is waiting)"
-                                                         : "",
-               report.note.empty() ? "" : "; ", report.note.c_str());
+  std::fprintf(
+      stderr,
+      "[mapping] t=%.2f s keyframe %s: linked %d, fused %d, merged %d, stereo %d matched / %d new points, "
+      "triangulated %d, culled %d; BA %d keyframes + %d fixed (%d anchors), %d points (%d left out), %d "
+      "factors (%d cam1, %d mismatches left out, %d by anchors), cost %.1f -> %.1f in %d iterations, "
+      "%.1f ms%s%s%s%s\n",
+      t_s, msg.state.id.toString().c_str(), report.linked, report.fused, report.merged, report.stereo_matches,
+      report.stereo_points, report.triangulated, report.culled, ba.window_keyframes, ba.fixed_keyframes,
+      ba.anchor_keyframes, ba.map_points, ba.map_points_left_out, ba.reprojection_factors, ba.second_camera_factors,
+      ba.second_camera_rejected, ba.anchor_factors, ba.initial_cost, ba.final_cost, ba.iterations,
+      static_cast<double>(report.ba_ns) * 1e-6,
+      report.ba_skipped && yielded_to_tracking  ? " (BA skipped: tracking asked)"
+      : report.ba_skipped                       ? " (BA skipped: the next keyframe is waiting)"
+      : ba.stopped_early && yielded_to_tracking ? " (BA cut short: tracking asked)"
+      : ba.stopped_early                        ? " (BA cut short: the next keyframe is waiting)"
+                                                : "",
+      report.returned_to_place ? "; back over a place mapped long ago: the next BAs take the whole local map" : "",
+      report.note.empty() ? "" : "; ", report.note.c_str());
 }
 
 // The mapping thread's ports, its wait set and its loop. It sleeps in the wait set until a keyframe comes, the

@@ -124,6 +124,7 @@ TEST(AgentConfig, ReadsThreadSchedulesAndNamesBadOnes) {
   EXPECT_EQ(shipped.threads.lower_others_with_realtime, defaults.threads.lower_others_with_realtime);
   EXPECT_EQ(shipped.mapping.imu_init_min_keyframes, defaults.mapping.imu_init_min_keyframes);
   EXPECT_DOUBLE_EQ(shipped.mapping.imu_init_scale_agreement, defaults.mapping.imu_init_scale_agreement);
+  EXPECT_EQ(shipped.mapping.return_full_window_keyframes, defaults.mapping.return_full_window_keyframes);
 }
 
 TEST(AgentConfig, ReadsTrackingsMatchingAndKeyframeThresholdsAndNamesBadOnes) {
@@ -165,8 +166,12 @@ TEST(AgentConfig, ReadsThePlaceKeyframesAndNamesBadOnes) {
   test::TempDir dir;
   const auto write = [&](const std::string& text) { return writeConfig(dir, text); };
   AgentOptions places;
-  ASSERT_TRUE(loadAgentConfig(write("mapping:\n  place_keyframes: 12\n  place_angle_weight_m: 0.5\n"), places).ok());
+  ASSERT_TRUE(loadAgentConfig(write("mapping:\n  place_keyframes: 12\n  place_angle_weight_m: 0.5\n"
+                                    "  return_full_window_keyframes: 5\n"),
+                              places)
+                  .ok());
   EXPECT_EQ(places.mapping.retention.place_keyframes, 12);
+  EXPECT_EQ(places.mapping.return_full_window_keyframes, 5);
   EXPECT_DOUBLE_EQ(places.mapping.retention.angle_weight_m, 0.5);
   EXPECT_TRUE(places.mapping.validate().ok());
   // More own keyframes than the pool holds beside the anchors: the message names the keys and the capacity.
@@ -177,7 +182,8 @@ TEST(AgentConfig, ReadsThePlaceKeyframesAndNamesBadOnes) {
   ASSERT_FALSE(status.ok());
   EXPECT_NE(status.error().message().find("place_keyframes"), std::string::npos) << status.error().message();
   EXPECT_NE(status.error().message().find("CVISLAM_MAX_KEYFRAMES"), std::string::npos) << status.error().message();
-  expectEachRefusedNamingItsKey(dir, "mapping", {"place_keyframes: -1", "place_angle_weight_m: -2"},
+  expectEachRefusedNamingItsKey(dir, "mapping",
+                                {"place_keyframes: -1", "place_angle_weight_m: -2", "return_full_window_keyframes: -1"},
                                 [](const AgentOptions& o) { return o.mapping.validate(); });
 }
 

@@ -100,6 +100,7 @@ TEST_F(MapperTest, MonocularStartLinkFuseTriangulateAndBound) {
 }
 
 class MapperWithPlaceKeyframesTest : public MapperTest {
+ protected:
   void adjust(MapperOptions& options) override { options.retention.place_keyframes = 3; }
 };
 
@@ -130,6 +131,107 @@ TEST_F(MapperWithPlaceKeyframesTest, OlderKeyframesStayBesideTheNewestUpToTheirN
   bool first_held = false;
   mapper_->map().keyframes().forEach([&](PoolHandle, const KeyframeData& kf) { first_held |= kf.id.counter == 0; });
   EXPECT_TRUE(first_held);
+}
+
+// The camera goes 2.5 m sideways (keyframes 0-10) and comes back (11-20). The scene's points are in three sets, and
+// each keyframe detects some of them: A at the start (0-6) and again on the way back (15-20), B in between (4-9),
+// C from 7 on. So the windows of keyframes 10-14 see C only, and hold fixed keyframes from 7 on; keyframe 0, kept
+// for its place, sees A only. At keyframe 15 A is found again: the window holds keyframe 0, 2 x N = 12 keyframes
+// or more before it, where the last one held nothing older than keyframe 7. That BA reports the return, and the
+// next three (return_full_window_keyframes) take all N = 6 newest keyframes instead of the window's M = 4.
+class MapperReturnToPlaceTest : public MapperWithPlaceKeyframesTest {
+  void adjust(MapperOptions& options) override {
+    MapperWithPlaceKeyframesTest::adjust(options);
+    options.return_full_window_keyframes = return_bas_;
+  }
+
+ protected:
+  // Per keyframe from 3 on: the BA's window, the age of its oldest fixed keyframe, and whether it reported a return.
+  struct Step {
+    int window = 0;
+    std::uint64_t oldest_fixed_age = 0;
+    bool returned = false;
+  };
+  // `out_of_view`: the sets above; otherwise every keyframe detects every point, and keyframe 0 is never out of view.
+  std::vector<Step> flyOutAndBack(bool out_of_view) {
+    for (int k = 0; k <= 10; ++k) x_m_.push_back(0.25 * k);
+    for (int k = 11; k <= 20; ++k) x_m_.push_back(0.25 * (20 - k));
+    const auto detects = [&](int k) {
+      std::vector<bool> d(scene_.p_w.size(), true);
+      if (!out_of_view) return d;
+      for (std::size_t i = 0; i < d.size(); ++i) {
+        const std::size_t set = i % 3;  // A, B, C
+        d[i] = (set == 0 && (k <= 6 || k >= 15)) || (set == 1 && k >= 4 && k <= 9) || (set == 2 && k >= 7);
+      }
+      return d;
+    };
+    std::vector<bool> d = detects(0);
+    EXPECT_TRUE(mapper_->process(keyframe(0, KeyframeKind::kNewMap, truePose(0), nullptr, &d), *snapshot_).ok());
+    d = detects(2);
+    auto r2 = mapper_->process(keyframe(2, KeyframeKind::kTracked, truePose(0), nullptr, &d), *snapshot_);
+    EXPECT_TRUE(r2.ok() && r2->mono_initialised_now);
+    double scale = 0.0;  // the map's: keyframe 2's distance from keyframe 0 in the map against the truth
+    for (std::uint32_t i = 0; i < snapshot_->keyframe_count; ++i) {
+      if (snapshot_->keyframes[i].id.counter != 2) continue;
+      scale = (fromMsg(snapshot_->keyframes[i].T_w_s).translation() - truePose(0).translation()).norm() /
+              (truePose(2).translation() - truePose(0).translation()).norm();
+    }
+    EXPECT_GT(scale, 0.0);
+    std::vector<Step> steps;
+    for (int k = 3; k <= 20; ++k) {
+      d = detects(k);
+      auto r = mapper_->process(keyframe(k, KeyframeKind::kTracked, truePose(k, scale), nullptr, &d), *snapshot_);
+      EXPECT_TRUE(r.ok()) << "keyframe " << k;
+      if (!r.ok()) break;
+      EXPECT_TRUE(r->ba_ran) << "keyframe " << k;
+      steps.push_back({r->ba.window_keyframes, r->ba.oldest_fixed_age_keyframes, r->returned_to_place});
+      std::printf("keyframe %2d: window %d, oldest fixed %llu keyframes back%s\n", k, steps.back().window,
+                  static_cast<unsigned long long>(steps.back().oldest_fixed_age),
+                  r->returned_to_place ? ", return" : "");
+    }
+    return steps;
+  }
+  int return_bas_ = 3;
+};
+
+TEST_F(MapperReturnToPlaceTest, AKeyframeFromLongAgoBackInViewMakesTheNextBasTakeTheNewestMap) {
+  const std::vector<Step> steps = flyOutAndBack(true);
+  ASSERT_EQ(steps.size(), 18u);
+  const auto at = [&](int k) { return steps[static_cast<std::size_t>(k - 3)]; };
+  for (int k = 10; k <= 14; ++k)
+    EXPECT_LT(at(k).oldest_fixed_age, 12u) << "keyframe " << k << ": nothing from long ago";
+  int returns = 0;
+  for (const Step& step : steps) returns += step.returned ? 1 : 0;
+  EXPECT_EQ(returns, 1);
+  EXPECT_TRUE(at(15).returned);
+  EXPECT_GE(at(15).oldest_fixed_age, 12u);
+  EXPECT_EQ(at(15).window, 4) << "the BA that finds the return is a window's";
+  for (int k = 16; k <= 18; ++k) EXPECT_EQ(at(k).window, 6) << "keyframe " << k;
+  for (int k = 19; k <= 20; ++k) EXPECT_EQ(at(k).window, 4) << "keyframe " << k;
+}
+
+// Keyframe 0 never leaves the view: from keyframe 13 on the window holds it, 12 keyframes back and more, but only
+// because it ages. No return, and every BA is the window's.
+TEST_F(MapperReturnToPlaceTest, AKeyframeThatNeverLeftTheViewOnlyAges) {
+  const std::vector<Step> steps = flyOutAndBack(false);
+  ASSERT_EQ(steps.size(), 18u);
+  EXPECT_GE(steps.back().oldest_fixed_age, 12u);
+  for (const Step& step : steps) {
+    EXPECT_LE(step.window, 4);
+    EXPECT_FALSE(step.returned);
+  }
+}
+
+class MapperReturnToPlaceOffTest : public MapperReturnToPlaceTest {
+ protected:
+  MapperReturnToPlaceOffTest() { return_bas_ = 0; }
+};
+
+TEST_F(MapperReturnToPlaceOffTest, WithTheOptionOffEveryBaIsTheWindows) {
+  for (const Step& step : flyOutAndBack(true)) {
+    EXPECT_LE(step.window, 4);
+    EXPECT_FALSE(step.returned);
+  }
 }
 
 // Keyframes 5 cm apart, each detecting a random 60 % of the scene (a corner is not found in every image): the first
@@ -432,6 +534,9 @@ TEST(MapperOptions, NamesBadValues) {
   o = MapperOptions{};
   o.imu_init_full_window_keyframes = -1;
   EXPECT_NE(o.validate().error().message().find("imu_init_full_window_keyframes"), std::string::npos);
+  o = MapperOptions{};
+  o.return_full_window_keyframes = -1;
+  EXPECT_NE(o.validate().error().message().find("return_full_window_keyframes"), std::string::npos);
   o = MapperOptions{};
   o.mono_init_search_radius_px = 0.0;
   EXPECT_NE(o.validate().error().message().find("mono_init_search_radius_px"), std::string::npos);
