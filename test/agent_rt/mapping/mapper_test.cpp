@@ -135,10 +135,10 @@ TEST_F(MapperWithPlaceKeyframesTest, OlderKeyframesStayBesideTheNewestUpToTheirN
 
 // The camera goes 2.5 m sideways (keyframes 0-10) and comes back (11-20). The scene's points are in three sets, and
 // each keyframe detects some of them: A at the start (0-6) and again on the way back (15-20), B in between (4-9),
-// C from 7 on. So the windows of keyframes 10-14 see C only, and hold fixed keyframes from 7 on; keyframe 0, kept
-// for its place, sees A only. At keyframe 15 A is found again: the window holds keyframe 0, 2 x N = 12 keyframes
-// or more before it, where the last one held nothing older than keyframe 7. That BA reports the return, and the
-// next three (return_full_window_keyframes) take all N = 6 newest keyframes instead of the window's M = 4.
+// C from 7 on. So the windows of keyframes 10-14 hold fixed keyframes from 4 on (B and C) at the oldest; keyframe
+// 0, kept for its place, sees A only. At keyframe 15 A is found again: the window holds keyframe 0, 2 x N = 12
+// keyframes or more before it, where the last one held nothing older than keyframe 8. That BA reports the return, and
+// the next three (return_full_window_keyframes) take all N = 6 newest keyframes instead of the window's M = 4.
 class MapperReturnToPlaceTest : public MapperWithPlaceKeyframesTest {
   void adjust(MapperOptions& options) override {
     MapperWithPlaceKeyframesTest::adjust(options);
@@ -198,8 +198,9 @@ TEST_F(MapperReturnToPlaceTest, AKeyframeFromLongAgoBackInViewMakesTheNextBasTak
   const std::vector<Step> steps = flyOutAndBack(true);
   ASSERT_EQ(steps.size(), 18u);
   const auto at = [&](int k) { return steps[static_cast<std::size_t>(k - 3)]; };
-  for (int k = 10; k <= 14; ++k)
+  for (int k = 10; k <= 14; ++k) {
     EXPECT_LT(at(k).oldest_fixed_age, 12u) << "keyframe " << k << ": nothing from long ago";
+  }
   int returns = 0;
   for (const Step& step : steps) returns += step.returned ? 1 : 0;
   EXPECT_EQ(returns, 1);
