@@ -198,14 +198,13 @@ int addFixedKeyframes(const LocalMap& map, int min_covisible, BaStates& states) 
   return anchors;
 }
 
-std::uint64_t oldestFixedAge(const LocalMap& map, const std::vector<PoolHandle>& window, const BaStates& states) {
-  const std::uint64_t newest = map.keyframes().get(window.back())->sequence;
-  std::uint64_t age = 0;
+std::optional<std::uint64_t> oldestFixedSequence(const LocalMap& map, const BaStates& states) {
+  std::optional<std::uint64_t> oldest;
   for (const KeyframeState& s : states.keyframes) {
     const KeyframeData& kf = *map.keyframes().get(s.handle);
-    if (!s.in_window && !kf.anchor && kf.sequence < newest) age = std::max(age, newest - kf.sequence);
+    if (!s.in_window && !kf.anchor && (!oldest || kf.sequence < *oldest)) oldest = kf.sequence;
   }
-  return age;
+  return oldest;
 }
 
 void addParameterBlocks(BaStates& states, factors::PoseBlock& extrinsics, ceres::Problem& problem) {
@@ -386,8 +385,8 @@ Result<LocalBundleAdjustmentSummary> runLocalBundleAdjustment(LocalMap& map,
   summary.map_points_left_out = static_cast<int>(states.left_out.size());
   summary.anchor_keyframes = addFixedKeyframes(map, options.min_covisible, states);
   summary.fixed_keyframes = static_cast<int>(states.keyframes.size()) - summary.window_keyframes;
-  summary.oldest_fixed_age_keyframes = oldestFixedAge(map, window, states);
   summary.newest_sequence = map.keyframes().get(window.back())->sequence;
+  summary.oldest_fixed_sequence = oldestFixedSequence(map, states);
   summary.map_points = static_cast<int>(states.points.size());
 
   ceres::Problem problem;

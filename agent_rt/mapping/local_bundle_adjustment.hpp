@@ -24,7 +24,9 @@
 // work waiting (the next keyframe) can stop it after any iteration: what the finished iterations gave is kept.
 #pragma once
 
+#include <cstdint>
 #include <functional>
+#include <optional>
 
 #include "agent_rt/map/local_map.hpp"
 #include "common/core/result.hpp"
@@ -60,12 +62,12 @@ struct LocalBundleAdjustmentSummary {
   int window_keyframes = 0;
   int fixed_keyframes = 0;
   int anchor_keyframes = 0;  // of the fixed ones: the server's
-  // How many keyframes before the window's newest the oldest of the agent's own fixed keyframes came (by
-  // KeyframeData::sequence); 0 when none is held. Large when the window sees a place mapped long ago again.
-  std::uint64_t oldest_fixed_age_keyframes = 0;
-  std::uint64_t newest_sequence = 0;  // the window's newest keyframe's KeyframeData::sequence
-  int map_points = 0;                 // optimised
-  int map_points_left_out = 0;        // observed by the window but with no inverse-depth point: not optimised
+  // KeyframeData::sequence of the window's newest keyframe, and of the oldest of the agent's own fixed keyframes
+  // (none when only anchors, or nothing, are held). Far apart when the window sees a place mapped long ago again.
+  std::uint64_t newest_sequence = 0;
+  std::optional<std::uint64_t> oldest_fixed_sequence;
+  int map_points = 0;           // optimised
+  int map_points_left_out = 0;  // observed by the window but with no inverse-depth point: not optimised
   int reprojection_factors = 0;
   int anchor_factors = 0;          // included in reprojection_factors: observations by anchors
   int second_camera_factors = 0;   // included in reprojection_factors

@@ -528,12 +528,9 @@ void linkTrackedMatches(Mapper::State& s, PoolHandle handle, const KeyframeMessa
 // to it all along: that is no return.
 void noteReturnToPlace(Mapper::State& s, const LocalBundleAdjustmentSummary& ba, MapperReport& report) {
   const auto n = static_cast<std::uint64_t>(s.options.max_keyframes);
-  const std::uint64_t age = ba.oldest_fixed_age_keyframes;
-  const std::uint64_t oldest =
-      age > 0 && age <= ba.newest_sequence ? ba.newest_sequence - age : Mapper::State::kNoFixedKeyframe;
-  const bool from_long_ago = age >= 2 * n;
-  const bool newly_in_view = s.last_oldest_fixed_sequence == Mapper::State::kNoFixedKeyframe ||
-                             (oldest != Mapper::State::kNoFixedKeyframe && s.last_oldest_fixed_sequence >= oldest + n);
+  const std::optional<std::uint64_t>& oldest = ba.oldest_fixed_sequence;
+  const bool from_long_ago = oldest && ba.newest_sequence >= *oldest + 2 * n;
+  const bool newly_in_view = !s.last_oldest_fixed_sequence || (oldest && *s.last_oldest_fixed_sequence >= *oldest + n);
   if (from_long_ago && newly_in_view && s.options.return_full_window_keyframes > 0) {
     s.return_full_window_left = s.options.return_full_window_keyframes;
     report.returned_to_place = true;

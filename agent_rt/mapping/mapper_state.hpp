@@ -49,8 +49,7 @@ struct Mapper::State {
   std::array<double, 2> early_scales{kNoScale, kNoScale};
   static constexpr double kNoScale = std::numeric_limits<double>::quiet_NaN();
   void forgetEarlyScales() { early_scales.fill(kNoScale); }
-  static constexpr std::uint64_t kNoFixedKeyframe = std::numeric_limits<std::uint64_t>::max();
-  std::uint64_t last_oldest_fixed_sequence = kNoFixedKeyframe;  // of the last local BA (noteReturnToPlace)
+  std::optional<std::uint64_t> last_oldest_fixed_sequence;  // of the last local BA (noteReturnToPlace)
   int return_full_window_left = 0;  // local BAs still to take the whole local map after a return
   bool ba_skipped_last = false;     // the previous keyframe's local BA was skipped (the next one is not)
   // A monocular map waiting for its two-view start: the reference keyframe, then every keyframe since, oldest
@@ -123,7 +122,7 @@ struct Mapper::State {
     forgetEarlyScales();
     mono_initialised = false;
     mono_start.clear();
-    last_oldest_fixed_sequence = kNoFixedKeyframe;
+    last_oldest_fixed_sequence.reset();
     return_full_window_left = 0;
     pending_corrections.clear();
     T_local_server = geometry::SE3d();

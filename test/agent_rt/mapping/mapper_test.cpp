@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <memory>
+#include <optional>
 #include <random>
 #include <string>
 #include <vector>
@@ -184,7 +185,8 @@ class MapperReturnToPlaceTest : public MapperWithPlaceKeyframesTest {
       EXPECT_TRUE(r.ok()) << "keyframe " << k;
       if (!r.ok()) break;
       EXPECT_TRUE(r->ba_ran) << "keyframe " << k;
-      steps.push_back({r->ba.window_keyframes, r->ba.oldest_fixed_age_keyframes, r->returned_to_place});
+      const std::optional<std::uint64_t>& oldest = r->ba.oldest_fixed_sequence;
+      steps.push_back({r->ba.window_keyframes, oldest ? r->ba.newest_sequence - *oldest : 0, r->returned_to_place});
       std::printf("keyframe %2d: window %d, oldest fixed %llu keyframes back%s\n", k, steps.back().window,
                   static_cast<unsigned long long>(steps.back().oldest_fixed_age),
                   r->returned_to_place ? ", return" : "");
