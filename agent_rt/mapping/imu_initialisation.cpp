@@ -278,7 +278,10 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
   s.map.keyframes().forEach([&](PoolHandle, KeyframeData& kf) { kf.bias.gyro = aligned->gyro_bias; });
   if (alignment.estimate_time_offset) s.map.setTimeCorrectionS(aligned->time_correction_s);
   s.imu_initialised = true;
-  s.keyframes_since_imu_init = 0;
+  // Monocular: the next local BAs take the whole local map. Its scale came from the few seconds before, and the
+  // keyframes a window holds fixed would hold that scale too. (A stereo map's scale is the baseline's; there the
+  // whole map was measured to do worse than the window.)
+  s.whole_map_bas_left = s.right.has_value() ? 0 : s.options.imu_init_full_window_keyframes;
   report.imu_initialised_now = true;
   report.note = "IMU initialised over " + std::to_string(chain.size()) + " keyframes: scale " +
                 std::to_string(aligned->scale) + " (+-" + std::to_string(aligned->scale_sigma_relative * 100.0) +

@@ -532,7 +532,7 @@ void noteReturnToPlace(Mapper::State& s, const LocalBundleAdjustmentSummary& ba,
   const bool from_long_ago = oldest && ba.newest_sequence >= *oldest + 2 * n;
   const bool newly_in_view = !s.last_oldest_fixed_sequence || (oldest && *s.last_oldest_fixed_sequence >= *oldest + n);
   if (from_long_ago && newly_in_view && s.options.return_full_window_keyframes > 0) {
-    s.return_full_window_left = s.options.return_full_window_keyframes;
+    s.whole_map_bas_left = s.options.return_full_window_keyframes;
     report.returned_to_place = true;
   }
   s.last_oldest_fixed_sequence = oldest;
@@ -552,17 +552,9 @@ void localBundleAdjustment(Mapper::State& s, const std::function<bool()>& keyfra
   }
   LocalBundleAdjustmentOptions ba = s.options.ba;
   ba.use_imu = s.imu_initialised && s.options.use_imu;
-  // Monocular, right after the IMU initialisation: the whole local map. Its scale came from the few seconds
-  // before, and the keyframes a window holds fixed would hold that scale too. (A stereo map's scale is the
-  // baseline's; there the whole map was measured to do worse than the window.)
-  const bool mono = !s.right.has_value();
-  if (mono && ba.use_imu && s.keyframes_since_imu_init < s.options.imu_init_full_window_keyframes) {
+  if (s.whole_map_bas_left > 0) {  // after a monocular IMU initialisation, or a return to a place
     ba.window = s.options.max_keyframes;
-  }
-  if (ba.use_imu) ++s.keyframes_since_imu_init;
-  if (s.return_full_window_left > 0) {  // back over a place mapped long ago
-    ba.window = s.options.max_keyframes;
-    --s.return_full_window_left;
+    --s.whole_map_bas_left;
   }
   const auto t0 = std::chrono::steady_clock::now();
   const trace::Span span("local_ba");

@@ -43,15 +43,16 @@ struct Mapper::State {
   geometry::SE3d epoch_transform;
   bool imu_initialised = false;
   bool mono_initialised = false;
-  int keyframes_since_imu_init = 0;  // local BAs with the IMU since its initialisation
   // Monocular: the scales of the last two initialisation attempts before imu_init_keyframes, newest last; NaN
   // where there was none.
   std::array<double, 2> early_scales{kNoScale, kNoScale};
   static constexpr double kNoScale = std::numeric_limits<double>::quiet_NaN();
   void forgetEarlyScales() { early_scales.fill(kNoScale); }
   std::optional<std::uint64_t> last_oldest_fixed_sequence;  // of the last local BA (noteReturnToPlace)
-  int return_full_window_left = 0;  // local BAs still to take the whole local map after a return
-  bool ba_skipped_last = false;     // the previous keyframe's local BA was skipped (the next one is not)
+  // Local BAs still to take the whole local map, not the window: after a monocular IMU initialisation
+  // (MapperOptions::imu_init_full_window_keyframes) or a return to a place (return_full_window_keyframes).
+  int whole_map_bas_left = 0;
+  bool ba_skipped_last = false;  // the previous keyframe's local BA was skipped (the next one is not)
   // A monocular map waiting for its two-view start: the reference keyframe, then every keyframe since, oldest
   // first; per keyframe the keypoint each of the reference's keypoints was found at (-1: not found there), and
   // the camera's rotation from the reference by the gyro.
@@ -123,7 +124,7 @@ struct Mapper::State {
     mono_initialised = false;
     mono_start.clear();
     last_oldest_fixed_sequence.reset();
-    return_full_window_left = 0;
+    whole_map_bas_left = 0;
     pending_corrections.clear();
     T_local_server = geometry::SE3d();
   }
