@@ -58,12 +58,16 @@ struct Mapper::State {
   // the camera's rotation from the reference by the gyro.
   struct MonocularStart {
     std::vector<PoolHandle> views;
-    std::vector<std::vector<std::int32_t>> followed;  // [view][reference keypoint]
+    std::vector<std::vector<std::int32_t>> followed;  // [view][reference keypoint]: the view's keypoint, or -1
     std::vector<geometry::SO3d> R_c_c0;
+    // The reference's index in `views`: the views before it are kept from an earlier reference, with the tracks
+    // they share with this one.
+    std::size_t reference = 0;
     void clear() {
       views.clear();
       followed.clear();
       R_c_c0.clear();
+      reference = 0;
     }
   } mono_start;
   std::uint64_t expected_sequence = 0;

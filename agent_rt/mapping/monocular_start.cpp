@@ -42,6 +42,49 @@ void startOver(Mapper::State& s, PoolHandle handle) {
   for (std::int32_t k = 0; k < static_cast<std::int32_t>(kf.keypoint_count); ++k) own[static_cast<std::size_t>(k)] = k;
 }
 
+// The start's `count` oldest views go, with their keyframes.
+void dropOldestViews(Mapper::State& s, std::size_t count) {
+  MonocularStart& start = s.mono_start;
+  for (std::size_t v = 0; v < count; ++v) (void)s.map.removeKeyframe(start.views[v]);
+  const auto drop = [&](auto& v) { v.erase(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(count)); };
+  drop(start.views);
+  drop(start.followed);
+  drop(start.R_c_c0);
+  start.reference -= std::min(start.reference, count);
+}
+
+// The newest view, which follow() has just appended, is the reference from now on: its keypoints are the tracks.
+// The views before it keep the tracks they share with it (the old reference's keypoints found in both), so that
+// once the map starts they can be placed on its points, and their IMU links stay in the chain the IMU
+// initialisation aligns: a start that lost sight of its reference would otherwise also lose the motion seen so
+// far. A view sharing fewer than kMinRegisteredPoints could not be placed; it goes, with every view before it.
+// Returns how many views were kept before the new reference.
+std::size_t startOverKeepingShared(Mapper::State& s) {
+  MonocularStart& start = s.mono_start;
+  const std::size_t newest = start.views.size() - 1;
+  const std::vector<std::int32_t> in_newest = start.followed[newest];  // old track -> the newest view's keypoint
+  const std::size_t tracks = s.map.keyframes().get(start.views[newest])->keypoint_count;
+  std::size_t first_kept = newest;
+  for (std::size_t v = newest; v-- > 0;) {
+    std::vector<std::int32_t> shared(tracks, -1);
+    int count = 0;
+    for (std::size_t track = 0; track < in_newest.size(); ++track) {
+      if (in_newest[track] < 0 || start.followed[v][track] < 0) continue;
+      shared[static_cast<std::size_t>(in_newest[track])] = start.followed[v][track];
+      ++count;
+    }
+    if (count < kMinRegisteredPoints) break;
+    start.followed[v] = std::move(shared);
+    first_kept = v;
+  }
+  std::vector<std::int32_t>& own = start.followed[newest];
+  own.assign(tracks, -1);
+  for (std::size_t k = 0; k < tracks; ++k) own[k] = static_cast<std::int32_t>(k);
+  dropOldestViews(s, first_kept);
+  start.reference = start.views.size() - 1;
+  return start.reference;
+}
+
 // The camera's rotation from `previous` to `kf` by the gyro, when kf's IMU link starts at `previous` (identity
 // otherwise: the search window then has to hold the rotation). Before the IMU initialisation the link is
 // integrated at the bias tracking assumed, which the window absorbs.
@@ -230,11 +273,13 @@ Status initialiseFromTwoViews(Mapper::State& s, std::size_t first, MapperReport&
   s.mono_initialised = true;
   report.mono_initialised_now = true;
   report.triangulated += created;
-  report.note = "monocular map from two views " + std::to_string(start.views.size() - 1 - first) + " keyframes apart" +
-                (first > 0 ? " (the first " + std::to_string(first) + " after the reference)" : "") + ": " +
-                std::to_string(created) + " points, median parallax " + std::to_string(geometry->median_parallax_deg) +
-                " deg, " + std::to_string(placed.size() - 2) + " other keyframes placed" +
-                (dropped > 0 ? " (" + std::to_string(dropped) + " left out)" : "");
+  const std::size_t after_reference = first - start.reference;
+  report.note =
+      "monocular map from two views " + std::to_string(start.views.size() - 1 - first) + " keyframes apart" +
+      (after_reference > 0 ? " (the first " + std::to_string(after_reference) + " after the reference)" : "") + ": " +
+      std::to_string(created) + " points, median parallax " + std::to_string(geometry->median_parallax_deg) + " deg, " +
+      std::to_string(placed.size() - 2) + " other keyframes placed" +
+      (dropped > 0 ? " (" + std::to_string(dropped) + " left out)" : "");
   start.clear();
   return Status::Ok();
 }
@@ -251,22 +296,31 @@ void tryMonocularStart(Mapper::State& s, PoolHandle handle, MapperReport& report
   }
   const int followed = follow(s, handle);
   if (followed < s.options.mono_init_min_matches) {
+    const std::size_t kept = startOverKeepingShared(s);
     report.note = "monocular start: " + std::to_string(followed) +
                   " of the reference's keypoints followed, fewer than " +
-                  std::to_string(s.options.mono_init_min_matches) + ": this keyframe is the reference now";
-    startOver(s, handle);
+                  std::to_string(s.options.mono_init_min_matches) + ": this keyframe is the reference now, " +
+                  std::to_string(kept) + " keyframes before it kept";
     return;
   }
   // The reference first. A start that moves back and forth can bring the camera back near the reference while a
   // keyframe between saw the scene from far enough away: then that one makes the map with the newest.
-  const Status st = initialiseFromTwoViews(s, 0, report);
+  // The views kept from before the reference share fewer tracks with it than a start needs.
+  const Status st = initialiseFromTwoViews(s, start.reference, report);
   if (st.ok()) return;
-  for (std::size_t first = 1; first + 1 < start.views.size(); ++first) {
+  for (std::size_t first = start.reference + 1; first + 1 < start.views.size(); ++first) {
     if (initialiseFromTwoViews(s, first, report).ok()) return;
   }
   report.note = st.error().message();
-  // The waiting keyframes stay in the map: leave room for the ones that come after the start.
-  if (static_cast<int>(start.views.size()) >= s.options.max_keyframes / 2) {
+  // The waiting keyframes stay in the map: leave room for the ones that come after the start. The views kept from
+  // before the reference go first.
+  const auto waiting = [&] { return static_cast<int>(start.views.size()); };
+  if (waiting() >= s.options.max_keyframes / 2 && start.reference > 0) {
+    const auto count = std::min(start.reference, static_cast<std::size_t>(waiting() - s.options.max_keyframes / 2 + 1));
+    dropOldestViews(s, count);
+    report.note += "; the " + std::to_string(count) + " oldest keyframes kept from before the reference go";
+  }
+  if (waiting() >= s.options.max_keyframes / 2) {
     report.note += "; after " + std::to_string(start.views.size() - 1) + " keyframes this one is the reference now";
     startOver(s, handle);
   }

@@ -338,6 +338,78 @@ TEST_F(MapperTest, MonocularStartFromAKeyframeAfterTheReferenceWhenTheCameraCame
   }
 }
 
+// A slow start (5 cm a keyframe) whose keyframe 2 finds only an eighth of the reference's keypoints, fewer than
+// the 50 a start needs, so that it becomes the reference; keyframes 0 and 1 saw that eighth too. Each keyframe's
+// mapper note in `notes`; returns the keyframe that started the map, -1 none by keyframe 7.
+class MapperNewReferenceTest : public MapperTest {
+ protected:
+  int run(int max_keyframes, std::vector<std::string>& notes) {
+    step_m_ = 0.05;
+    MapperOptions options = options_;
+    options.max_keyframes = max_keyframes;  // twice the keyframes that may wait for the start
+    auto mapper = Mapper::create(options, *camera_, nullptr, T_s_c_, SE3d());
+    EXPECT_TRUE(mapper.ok());
+    if (!mapper.ok()) return -1;
+    mapper_ = std::move(mapper.value());
+    const std::size_t n = scene_.p_w.size();
+    std::vector<std::vector<bool>> detected(8, std::vector<bool>(n, true));
+    for (std::size_t i = 0; i < n; ++i) {
+      detected[0][i] = i % 4 != 0;
+      detected[2][i] = i % 4 == 0 || i % 8 == 1;  // the eighth i % 8 == 1 shared with keyframe 0
+    }
+    for (int k = 0; k < 8; ++k) {
+      const KeyframeKind kind = k == 0 ? KeyframeKind::kNewMap : KeyframeKind::kTracked;
+      auto r =
+          mapper_->process(keyframe(k, kind, truePose(0), nullptr, &detected[static_cast<std::size_t>(k)]), *snapshot_);
+      EXPECT_TRUE(r.ok());
+      if (!r.ok()) return -1;
+      std::printf("keyframe %d: %s\n", k, r->note.c_str());
+      notes.push_back(r->note);
+      if (r->mono_initialised_now) return k;
+    }
+    return -1;
+  }
+};
+
+TEST_F(MapperNewReferenceTest, KeepsTheKeyframesBeforeItThatShareEnoughOfItsKeypoints) {
+  std::vector<std::string> notes;
+  const int started_at = run(16, notes);
+  ASSERT_GT(started_at, 2);
+  EXPECT_NE(notes[2].find("this keyframe is the reference now, 2 keyframes before it kept"), std::string::npos)
+      << notes[2];
+
+  // Every keyframe from 0 on is in the map, placed as the scene says up to the map's one scale, about keyframe 2's
+  // camera (the map's first view).
+  ASSERT_EQ(snapshot_->keyframe_count, static_cast<std::uint32_t>(started_at + 1));
+  std::vector<SE3d> T_w_c(static_cast<std::size_t>(started_at + 1));
+  for (std::uint32_t i = 0; i < snapshot_->keyframe_count; ++i) {
+    const KeyframeStateMsg& kf = snapshot_->keyframes[i];
+    T_w_c[kf.id.counter] = fromMsg(kf.T_w_s) * T_s_c_;
+  }
+  const auto relative = [&](int k) { return T_w_c[2].inverse() * T_w_c[static_cast<std::size_t>(k)]; };
+  const auto relative_true = [&](int k) { return (truePose(2) * T_s_c_).inverse() * truePose(k) * T_s_c_; };
+  const double scale = relative(started_at).translation().norm() / relative_true(started_at).translation().norm();
+  for (int k = 0; k <= started_at; ++k) {
+    EXPECT_LT((relative(k).translation() - scale * relative_true(k).translation()).norm(), 0.02 * scale * 0.1)
+        << "keyframe " << k;
+    EXPECT_LT((relative(k).so3().inverse() * relative_true(k).so3()).log().norm(), 1e-3) << "keyframe " << k;
+  }
+}
+
+TEST_F(MapperNewReferenceTest, TheKeyframesKeptFromBeforeItGoFirstWhenTheWaitingOnesFillTheirShare) {
+  // At most 4 keyframes wait (half of 8): keyframe 3 makes 4 with the two kept, keyframe 4 again.
+  std::vector<std::string> notes;
+  const int started_at = run(8, notes);
+  ASSERT_EQ(started_at, 5) << "the reference (keyframe 2) starts the map with keyframe 5, as with room to wait";
+  for (int k : {3, 4}) {
+    EXPECT_NE(notes[static_cast<std::size_t>(k)].find("the 1 oldest keyframes kept from before the reference go"),
+              std::string::npos)
+        << notes[static_cast<std::size_t>(k)];
+  }
+  ASSERT_EQ(snapshot_->keyframe_count, 4u);
+  for (std::uint32_t i = 0; i < snapshot_->keyframe_count; ++i) EXPECT_GE(snapshot_->keyframes[i].id.counter, 2u);
+}
+
 // The two-phase path the agent takes by default: insert() hands the keyframe to the link before its local BA,
 // refine() the refined map after it. Together they must build the same map as process() and tell the link the
 // same things, only sooner: the first delta carries the keyframe in full with tracking's estimate, the second
