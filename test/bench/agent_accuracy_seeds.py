@@ -2,7 +2,8 @@
 """The agent's accuracy as a distribution over simulator seeds, not a row: renders N seeds of each preset once into
 a cache (in parallel), runs every agent of every mission alone in each mode (--pace sync, so a run is reproducible),
 pinned one run per core, scores each with cvislam_eval, and reports per preset and mode the median, p90 and max
-of the SE3 ATE of the refined and of the live trajectory, the scale error, the tracked fraction, the maps and the
+of the SE3 ATE of the refined and of the live trajectory, the refined trajectory's ATE after a Sim3 alignment
+(what is left once its one scale error is taken out), the scale error, the tracked fraction, the maps and the
 IMU initialisation time (from the first image, and from the first motion in the ground truth). With --b-config or
 --b-build every run is made twice (A and B) and the report adds the paired ratios B/A per run: geometric mean,
 worst, and how many got worse by more than 10 %.
@@ -144,6 +145,7 @@ class Sweep:
             print(f"[{self.done}/{self.total}] {variant} {preset} seed {seed} {agent_dir.name} {mode} "
                   f"({elapsed:.0f} s)", file=sys.stderr, flush=True)
         record = json.loads(result.read_text())
+        add_sim3_to_older_record(record, out)
         record.update(variant=variant, preset=preset, seed=seed, agent=agent_dir.name, mode=mode,
                       first_motion_s=first_motion_s(str(agent_dir)))
         return record
@@ -181,7 +183,8 @@ class Sweep:
         if rc != 0:
             return None
         e = json.loads(json_out.read_text())
-        return {"ate_se3_m": e["se3"]["rmse"], "scale_error_percent": e.get("scale_error_percent", 0.0),
+        return {"ate_se3_m": e["se3"]["rmse"], "ate_sim3_m": e.get("sim3", {}).get("rmse"),
+                "scale_error_percent": e.get("scale_error_percent", 0.0),
                 "poses_left_out_before_init": e.get("before_initialisation", 0)}
 
     # --- the sweep --------------------------------------------------------------------------------------------
@@ -208,6 +211,14 @@ class Sweep:
             return list(pool.map(self.run, jobs))
 
 
+def add_sim3_to_older_record(record, out):
+    """A run made before the Sim3 ATE was recorded: taken from its eval file when that holds it."""
+    for name in ("trajectory", "trajectory_online"):
+        scored, eval_json = record.get(name), out / f"eval_{name}.json"
+        if scored is not None and "ate_sim3_m" not in scored and eval_json.exists():
+            scored["ate_sim3_m"] = json.loads(eval_json.read_text()).get("sim3", {}).get("rmse")
+
+
 def distribution_rows(records, variant):
     rows = []
     keys = sorted({(r["preset"], r["mode"]) for r in records if r["variant"] == variant})
@@ -220,6 +231,9 @@ def distribution_rows(records, variant):
                 ates = [100.0 * r[name]["ate_se3_m"] for r in ok]
                 row[name] = {"median_cm": statistics.median(ates), "p90_cm": quantile(ates, 0.9),
                              "max_cm": max(ates)}
+            sim3 = [100.0 * r["trajectory"]["ate_sim3_m"] for r in ok
+                    if r["trajectory"].get("ate_sim3_m") is not None]
+            row["trajectory_sim3"] = {"median_cm": statistics.median(sim3), "max_cm": max(sim3)} if sim3 else None
             row["scale_error_abs_median_percent"] = statistics.median(
                 abs(r["trajectory"]["scale_error_percent"]) for r in ok)
             row["scale_error_abs_max_percent"] = max(abs(r["trajectory"]["scale_error_percent"]) for r in ok)
@@ -271,14 +285,15 @@ def print_report(args, sweep, distribution, paired):
         print(f"  {variant}: {build}" + (f" with --config {config}" if config else ""))
     print()
     print("| variant | preset | mode | runs | ATE refined median / p90 / max [cm] | ATE live median / p90 / max [cm] |"
-          " scale err median / max [%] | tracked min | >1 map | IMU init median / max [s]: from the first image;"
-          " from the first motion | worst run |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          " ATE refined after Sim3 median / max [cm] | scale err median / max [%] | tracked min | >1 map |"
+          " IMU init median / max [s]: from the first image; from the first motion | worst run |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in distribution:
         if "trajectory" not in r:
-            print(f"| {r['variant']} | {r['preset']} | {r['mode']} | {r['runs']} | all failed | | | | | | |")
+            print(f"| {r['variant']} | {r['preset']} | {r['mode']} | {r['runs']} | all failed | | | | | | | |")
             continue
-        t, o = r["trajectory"], r["trajectory_online"]
+        t, o, t3 = r["trajectory"], r["trajectory_online"], r["trajectory_sim3"]
+        sim3 = "n/a" if t3 is None else f"{t3['median_cm']:.2f} / {t3['max_cm']:.2f}"
         init = "never" if r["imu_init_median_s"] is None else (
             f"{r['imu_init_median_s']:.2f} / {r['imu_init_max_s']:.2f}; "
             f"{r['imu_init_after_motion_median_s']:.2f} / {r['imu_init_after_motion_max_s']:.2f}")
@@ -287,7 +302,7 @@ def print_report(args, sweep, distribution, paired):
         failed = f" ({r['failed']} failed)" if r["failed"] else ""
         print(f"| {r['variant']} | {r['preset']} | {r['mode']} | {r['runs']}{failed} | "
               f"{t['median_cm']:.2f} / {t['p90_cm']:.2f} / {t['max_cm']:.2f} | "
-              f"{o['median_cm']:.2f} / {o['p90_cm']:.2f} / {o['max_cm']:.2f} | "
+              f"{o['median_cm']:.2f} / {o['p90_cm']:.2f} / {o['max_cm']:.2f} | {sim3} | "
               f"{r['scale_error_abs_median_percent']:.2f} / {r['scale_error_abs_max_percent']:.2f} | "
               f"{100 * r['tracked_fraction_min']:.1f} % | {r['runs_with_several_maps']} | {init} | {r['worst_run']} |")
     if paired:
