@@ -54,11 +54,11 @@ struct Mapper::State {
   int whole_map_bas_left = 0;
   bool ba_skipped_last = false;  // the previous keyframe's local BA was skipped (the next one is not)
   // A monocular map waiting for its two-view start: the reference keyframe, then every keyframe since, oldest
-  // first; per keyframe the keypoint each of the reference's keypoints was found at (-1: not found there), and
-  // the camera's rotation from the reference by the gyro.
+  // first (after the ones kept from an earlier reference); per keyframe the keypoint each of the reference's
+  // keypoints was found at (-1: not found there), and the camera's rotation from the first view by the gyro.
   struct MonocularStart {
     std::vector<PoolHandle> views;
-    std::vector<std::vector<std::int32_t>> followed;  // [view][reference keypoint]: the view's keypoint, or -1
+    std::vector<std::vector<std::int32_t>> followed;  // [view][reference keypoint]
     std::vector<geometry::SO3d> R_c_c0;
     // The reference's index in `views`: the views before it are kept from an earlier reference, with the tracks
     // they share with this one.
