@@ -1,6 +1,7 @@
 #include "agent_rt/mapping/imu_initialisation.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <string>
@@ -214,6 +215,15 @@ void keepImuHistory(Mapper::State& s, const KeyframeMessage& msg) {
 }
 
 namespace {
+// A keyframe's mapper note may already say something (the monocular start, a return to a place).
+void addNote(MapperReport& report, const std::string& note) {
+  report.note = report.note.empty() ? note : report.note + "; " + note;
+}
+
+std::string scaleOrNone(double scale) {
+  return std::isnan(scale) ? std::string("none") : std::to_string(scale);
+}
+
 // True when `scale` lies within imu_init_scale_agreement of each of the last early attempts' scales; otherwise it
 // joins them, the oldest leaving. The attempts follow keyframe by keyframe, so a scale that agrees with the ones
 // before it no longer moves with the motion the new keyframes add. Slots without an attempt yet are NaN, which
@@ -246,10 +256,21 @@ Status initialiseImu(Mapper::State& s, MapperReport& report) {
   // Before imu_init_keyframes a refusal is not a failure: the attempt at imu_init_keyframes is the first that counts.
   if (!aligned) {
     s.forgetEarlyScales();
-    return early ? Error{ErrorCode::kNotFound, aligned.error().message()} : aligned.error();
+    if (!early) return aligned.error();
+    addNote(report, "IMU initialisation over " + std::to_string(count) + " keyframes refused (" +
+                        aligned.error().message() + "), tried again at the next keyframe");
+    return Error{ErrorCode::kNotFound, aligned.error().message()};
   }
-  if (early && !scaleHasSettled(s, aligned->scale)) {
-    return Error{ErrorCode::kNotFound, std::to_string(count) + " IMU-linked keyframes: the scale has not settled"};
+  if (early) {
+    const std::array<double, 2> earlier = s.early_scales;
+    if (!scaleHasSettled(s, aligned->scale)) {
+      addNote(report, "IMU initialisation over " + std::to_string(count) + " keyframes waits: scale " +
+                          std::to_string(aligned->scale) + " (+-" +
+                          std::to_string(aligned->scale_sigma_relative * 100.0) + " %), the two attempts before " +
+                          scaleOrNone(earlier[0]) + " and " + scaleOrNone(earlier[1]) + ", not all within " +
+                          std::to_string(s.options.imu_init_scale_agreement * 100.0) + " %");
+      return Error{ErrorCode::kNotFound, std::to_string(count) + " IMU-linked keyframes: the scale has not settled"};
+    }
   }
   int retimings = 0;
   if (alignment.estimate_time_offset) {

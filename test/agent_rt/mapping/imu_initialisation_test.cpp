@@ -1,8 +1,10 @@
 // The monocular IMU initialisation's timing, on the mapper's own state: keyframes of a simulated flight, their poses
 // up to a visual scale, linked by the simulated IMU. From imu_init_min_keyframes on it is tried at every keyframe and
-// made once three attempts in a row agree on the scale; at imu_init_keyframes it is made whatever they said.
+// made once three attempts in a row agree on the scale; at imu_init_keyframes it is made whatever they said. An
+// attempt that waits says why in the keyframe's mapper note.
 #include <cstdint>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -102,6 +104,40 @@ TEST_F(ImuInitialisationTiming, AScaleThatStillMovesWaitsForTheFullCount) {
   options_.imu_init_scale_agreement = 1e-6;
   simulate(/*noise=*/true);
   EXPECT_EQ(keyframesAtInitialisation(), 15);
+}
+
+TEST_F(ImuInitialisationTiming, AnAttemptThatWaitsSaysWhyInTheKeyframesNote) {
+  options_.imu_init_scale_agreement = 1e-6;
+  simulate(/*noise=*/true);
+  for (std::uint32_t counter = 0; counter < 12; ++counter) {
+    addKeyframe(counter);
+    MapperReport report;
+    ASSERT_EQ(initialiseImu(*state_, report).error().code(), ErrorCode::kNotFound);
+    const std::string& note = report.note;
+    if (counter < 9) {
+      EXPECT_TRUE(note.empty()) << "too few keyframes to try: " << note;
+    } else if (counter == 9) {
+      EXPECT_NE(note.find("IMU initialisation over 10 keyframes waits: scale "), std::string::npos) << note;
+      EXPECT_NE(note.find("the two attempts before none and none"), std::string::npos) << note;
+    } else if (counter == 11) {
+      EXPECT_NE(note.find("IMU initialisation over 12 keyframes waits: scale "), std::string::npos) << note;
+      EXPECT_EQ(note.find("none"), std::string::npos) << "both earlier attempts are there: " << note;
+    }
+  }
+}
+
+TEST_F(ImuInitialisationTiming, AnEarlyAttemptTheAlignmentRefusesSaysSoInTheKeyframesNote) {
+  options_.alignment.min_scale_observability = 1e12;  // no motion shows the scale that well
+  simulate(/*noise=*/false);
+  for (std::uint32_t counter = 0; counter < 11; ++counter) {
+    addKeyframe(counter);
+    MapperReport report;
+    ASSERT_EQ(initialiseImu(*state_, report).error().code(), ErrorCode::kNotFound);
+    if (counter == 10) {
+      EXPECT_NE(report.note.find("IMU initialisation over 11 keyframes refused ("), std::string::npos) << report.note;
+      EXPECT_NE(report.note.find("tried again at the next keyframe"), std::string::npos) << report.note;
+    }
+  }
 }
 
 TEST_F(ImuInitialisationTiming, NoEarlierAttemptsWhenTheFirstIsAtTheFullCount) {
