@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <numeric>
 #include <optional>
 #include <string>
 #include <vector>
@@ -26,6 +27,13 @@ using MonocularStart = Mapper::State::MonocularStart;
 // The pose of a keyframe between the two views is found from at least this many of the map's points.
 constexpr int kMinRegisteredPoints = 20;
 
+// A reference's tracks: its own keypoints, each found at itself.
+std::vector<std::int32_t> ownKeypoints(std::size_t count) {
+  std::vector<std::int32_t> own(count);
+  std::iota(own.begin(), own.end(), 0);
+  return own;
+}
+
 // The reference is this keyframe from now on; the keyframes before it go (they carry no points).
 void startOver(Mapper::State& s, PoolHandle handle) {
   std::vector<PoolHandle> others;
@@ -38,8 +46,7 @@ void startOver(Mapper::State& s, PoolHandle handle) {
   start.views.push_back(handle);
   start.R_c_c0.emplace_back();
   const KeyframeData& kf = *s.map.keyframes().get(handle);
-  std::vector<std::int32_t>& own = start.followed.emplace_back(kf.keypoint_count);
-  for (std::int32_t k = 0; k < static_cast<std::int32_t>(kf.keypoint_count); ++k) own[static_cast<std::size_t>(k)] = k;
+  start.followed.push_back(ownKeypoints(kf.keypoint_count));
 }
 
 // The start's `count` oldest views go, with their keyframes.
@@ -77,9 +84,7 @@ std::size_t startOverKeepingShared(Mapper::State& s) {
     start.followed[v] = std::move(shared);
     first_kept = v;
   }
-  std::vector<std::int32_t>& own = start.followed[newest];
-  own.assign(tracks, -1);
-  for (std::size_t k = 0; k < tracks; ++k) own[k] = static_cast<std::int32_t>(k);
+  start.followed[newest] = ownKeypoints(tracks);
   dropOldestViews(s, first_kept);
   start.reference = start.views.size() - 1;
   return start.reference;
